@@ -1,0 +1,55 @@
+"""The one place that maps a device spec ("auto", "cpu", "cuda", "cuda:N") to a Warp device."""
+
+from __future__ import annotations
+
+import os
+import re
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # pragma: no cover
+    import warp as wp
+
+_SPEC = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
+
+
+def init_runtime(kernel_cache_dir: str | None = None) -> None:
+    """Initialise Warp quietly (call in a worker child, never before fork)."""
+    import warp as wp
+
+    wp.config.quiet = True
+    if kernel_cache_dir:
+        wp.config.kernel_cache_dir = kernel_cache_dir
+    wp.init()
+
+
+def resolve_device(spec: str = "auto") -> wp.context.Device:
+    """Return the Warp device for ``spec``.
+
+    Args:
+        spec: "auto" (CUDA when present, else CPU), "cpu", "cuda" or "cuda:N".
+
+    Raises:
+        ValueError: the spec is malformed or names a CUDA device that is not present.
+    """
+    if not isinstance(spec, str) or not _SPEC.match(spec):
+        raise ValueError(f"Expected device 'auto', 'cpu', 'cuda' or 'cuda:N', got {spec!r}")
+    init_runtime(os.environ.get("WARP_CACHE_PATH"))
+    import warp as wp
+
+    if spec == "auto":
+        return wp.get_device("cuda:0" if wp.get_cuda_device_count() > 0 else "cpu")
+    if spec.startswith("cuda"):
+        n = wp.get_cuda_device_count()
+        index = int(spec.split(":")[1]) if ":" in spec else 0
+        if index >= n:
+            raise ValueError(f"Expected an available CUDA device ({n} present), got {spec!r}")
+        return wp.get_device(f"cuda:{index}")
+    return wp.get_device("cpu")
+
+
+def cuda_available() -> bool:
+    """True when Warp sees at least one CUDA device."""
+    init_runtime(os.environ.get("WARP_CACHE_PATH"))
+    import warp as wp
+
+    return wp.get_cuda_device_count() > 0

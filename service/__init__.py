@@ -1,0 +1,1 @@
+"""FastAPI service (filled by the "service + worker" issue). Never imports Warp."""

@@ -1,0 +1,1 @@
+"""Celery worker (filled by the "service + worker" issue). Calls the engine."""
