@@ -1,0 +1,1 @@
+"""Loaders: slice stacks and DICOM series -> (z, y, x) arrays."""
