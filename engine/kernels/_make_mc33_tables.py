@@ -290,19 +290,20 @@ def _share_face(e1: int, e2: int) -> bool:
 
 
 def triangulate_disk(loop: list[int], new_vertex) -> list[tuple[int, int, int]]:
+    """A fan from the loop vertex that gives the best minimum angle, or from a centre vertex if no fan avoids a
+    diagonal between two vertices on one face."""
     n = len(loop)
     if n == 3:
         return [tuple(loop)]
     best = None
-    if n <= 6:
-        for s in range(n):
-            rot = loop[s:] + loop[:s]
-            if any(_share_face(rot[0], rot[i]) for i in range(2, n - 1)):
-                continue
-            tris = [(rot[0], rot[i], rot[i + 1]) for i in range(1, n - 1)]
-            q = _angle_quality(tris)
-            if best is None or q > best[0] + 1e-12:
-                best = (q, tris)
+    for s in range(n):
+        rot = loop[s:] + loop[:s]
+        if any(_share_face(rot[0], rot[i]) for i in range(2, n - 1)):
+            continue
+        tris = [(rot[0], rot[i], rot[i + 1]) for i in range(1, n - 1)]
+        q = _angle_quality(tris)
+        if best is None or q > best[0] + 1e-12:
+            best = (q, tris)
     if best is not None:
         return best[1]
     c = new_vertex({e: 1.0 / n for e in loop})
@@ -314,7 +315,77 @@ def _dist(e1: int, e2: int) -> float:
     return math.sqrt(_dot(d, d))
 
 
+def _direct_band(u: list[int], w: list[int]) -> list[tuple[int, int, int]] | None:
+    """Zipper triangles between two loops running the same way, without new vertices, using only rungs whose ends
+    share no face (so no triangle lies in a face plane). Shortest total rung length; None if impossible.
+
+    A zipper is a monotone lattice path from rung (0, 0) to (n1, n2) = (0, 0) mod (n1, n2) that must not visit
+    a rung twice: if it leaves row 0 at column c0, it may reach row n2 only after column c0 (and likewise for
+    columns), which the search enforces by fixing the first run.
+    """
+    n1, n2 = len(u), len(w)
+    inf = float("inf")
+    best: tuple[float, list[tuple[int, int, int]]] | None = None
+    for k in range(n2):
+
+        def rung_ok(i: int, j: int, k: int = k) -> bool:
+            return not _share_face(u[i % n1], w[(j + k) % n2])
+
+        if not rung_ok(0, 0):
+            continue
+        firsts = [((c, 0), 0, c) for c in range(1, n1)] + [((0, r), r, 0) for r in range(1, n2)]
+        for (fi, fj), r0, c0 in firsts:
+            run = [(i, 0) for i in range(fi + 1)] if fj == 0 else [(0, j) for j in range(fj + 1)]
+            if not all(rung_ok(i, j) for i, j in run):
+                continue
+            nxt = (fi, 1) if fj == 0 else (1, fj)  # turn after the first run
+
+            def allowed(i: int, j: int, r0: int = r0, c0: int = c0) -> bool:
+                if i == n1 and j <= r0 and (i, j) != (n1, n2):
+                    return False
+                if j == n2 and i <= c0 and (i, j) != (n1, n2):
+                    return False
+                return rung_ok(i, j)
+
+            if not allowed(*nxt):
+                continue
+            cost = {p: 0.0 for p in run}
+            back = {run[t + 1]: run[t] for t in range(len(run) - 1)}
+            cost[nxt] = _dist(u[nxt[0] % n1], w[(nxt[1] + k) % n2])
+            back[nxt] = run[-1]
+            for i in range(nxt[0], n1 + 1):
+                for j in range(nxt[1], n2 + 1):
+                    if (i, j) == nxt or not allowed(i, j):
+                        continue
+                    here = _dist(u[i % n1], w[(j + k) % n2])
+                    for p in ((i - 1, j), (i, j - 1)):
+                        if p in cost and p not in run[:-1] and cost[p] + here < cost.get((i, j), inf):
+                            cost[(i, j)] = cost[p] + here
+                            back[(i, j)] = p
+            total = cost.get((n1, n2), inf)
+            if total == inf or (best is not None and total >= best[0] - 1e-12):
+                continue
+            path = [(n1, n2)]
+            while path[-1] != (0, 0):
+                path.append(back[path[-1]])
+            path.reverse()
+            tris = []
+            for (i0, j0), (i1, j1) in itertools.pairwise(path):
+                ua, wa = u[i0 % n1], w[(j0 + k) % n2]
+                if i1 != i0:
+                    tris.append((ua, u[i1 % n1], wa))
+                else:
+                    tris.append((ua, w[(j1 + k) % n2], wa))
+            best = (total, tris)
+    return None if best is None else best[1]
+
+
 def triangulate_tube(l1: list[int], l2: list[int], new_vertex) -> list[tuple[int, int, int]]:
+    """A tube between two loops: a direct zipper band where possible, else a strip through a ring of interior
+    vertices (no triangle then has two boundary vertices on one face unless they form a contour segment)."""
+    direct = _direct_band(l1, l2[::-1])
+    if direct is not None:
+        return direct
     u = l1
     w = l2[::-1]  # runs along the strip in the same direction as l1
     n1, n2 = len(u), len(w)
