@@ -8,7 +8,8 @@ Conventions (shared with ``engine/kernels/mc33.py``):
 * corner ``i`` sits at ``(x, y, z) = (i & 1, (i >> 1) & 1, (i >> 2) & 1)``;
 * edges 0-3 run along x (``k = y + 2 z``), 4-7 along y (``k = x + 2 z``), 8-11 along z (``k = x + 2 y``);
 * faces 0-5 are ``x=0, x=1, y=0, y=1, z=0, z=1``;
-* a corner is *positive* when its value is above the level (ties count as above).
+* a corner is *positive* when its value is at or above the level; a face or body saddle exactly at the level
+  joins the positive values (both: the limit of lowering the level by an infinitesimal amount).
 
 A cell key has 18 bits: ``config`` (bit ``i`` = corner ``i`` positive), 6 face bits (bit ``f`` set when face ``f``
 is ambiguous and the asymptotic decider joins its *positive* diagonal) and 4 body bits from the sweep along z

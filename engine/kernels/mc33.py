@@ -133,7 +133,11 @@ def edge_cut(g: Grid, v: vec8f, oz: int, oy: int, ox: int, e: int) -> int:
 
 @wp.func
 def face_bits(v: vec8f, face_cyc: wp.array(dtype=wp.int32)) -> int:
-    """Asymptotic decider on the ambiguous faces: bit f set when the positive diagonal is joined."""
+    """Asymptotic decider on the ambiguous faces: bit f set when the positive diagonal is joined.
+
+    A saddle exactly at the level joins the positive diagonal: like samples at the level, it counts as above
+    (the limit of lowering the level by an infinitesimal amount).
+    """
     bits = int(0)
     for f in range(6):
         a = v[face_cyc[4 * f + 0]]
@@ -145,9 +149,9 @@ def face_bits(v: vec8f, face_cyc: wp.array(dtype=wp.int32)) -> int:
         if pa == (c >= 0.0) and pb == (d >= 0.0) and pa != pb:
             joined = False
             if pa:
-                joined = a * c > b * d
+                joined = a * c >= b * d
             else:
-                joined = b * d > a * c
+                joined = b * d >= a * c
             if joined:
                 bits = bits | (1 << f)
     return bits
@@ -155,7 +159,14 @@ def face_bits(v: vec8f, face_cyc: wp.array(dtype=wp.int32)) -> int:
 
 @wp.func
 def body_bits(v: vec8f) -> int:
-    """Interior joins found by sweeping z: the slice saddle value q(t) is a parabola; its vertex decides."""
+    """Interior joins found by sweeping z: the slice saddle value q(t) is a parabola; its vertex decides.
+
+    Along z the four vertical edges A (corners 0/4), B (1/5), C (3/7), D (2/6) are linear in t; where the slice
+    alternates in sign, its positive diagonal is joined iff q(t) = a c - b d >= 0 (A, C positive). A join that
+    exists only inside the cell needs the parabola's vertex strictly inside (0, 1) with the slice alternating
+    there: a maximum q >= 0 joins the positive diagonal, a minimum q < 0 the negative one. Anything else is
+    already decided on the faces. Values at the level count as above it, as everywhere.
+    """
     a0 = v[0]
     a1 = v[4]
     b0 = v[1]
@@ -170,7 +181,7 @@ def body_bits(v: vec8f) -> int:
     dd = d1 - d0
     alpha = da * dc - db * dd
     beta = a0 * dc + c0 * da - b0 * dd - d0 * db
-    bits = 0
+    bits = int(0)
     if alpha != 0.0:
         t = -beta / (2.0 * alpha)
         if t > 0.0 and t < 1.0:
@@ -178,23 +189,31 @@ def body_bits(v: vec8f) -> int:
             b = b0 + t * db
             c = c0 + t * dc
             d = d0 + t * dd
-            q = a * c - b * d
-            if a > 0.0 and c > 0.0 and b < 0.0 and d < 0.0:
-                if alpha < 0.0 and q > 0.0:
+            if a >= 0.0 and c >= 0.0 and b < 0.0 and d < 0.0:
+                q = a * c - b * d
+                if alpha < 0.0 and q >= 0.0:
                     bits = 1  # positive A-C
                 elif alpha > 0.0 and q < 0.0:
                     bits = 8  # negative B-D
-            elif a < 0.0 and c < 0.0 and b > 0.0 and d > 0.0:
-                if alpha > 0.0 and q < 0.0:
+            elif a < 0.0 and c < 0.0 and b >= 0.0 and d >= 0.0:
+                q2 = b * d - a * c
+                if alpha > 0.0 and q2 >= 0.0:
                     bits = 2  # positive B-D
-                elif alpha < 0.0 and q > 0.0:
+                elif alpha < 0.0 and q2 < 0.0:
                     bits = 4  # negative A-C
     return bits
 
 
 @wp.func
-def cell_triangulation(v: vec8f, cfg: int, face_cyc: wp.array(dtype=wp.int32), key_map: wp.array(dtype=wp.int32)) -> int:
-    key = cfg | (face_bits(v, face_cyc) << 8) | (body_bits(v) << 14)
+def cell_triangulation(
+    g: Grid, v: vec8f, cfg: int, oz: int, oy: int, ox: int, face_cyc: wp.array(dtype=wp.int32),
+    key_map: wp.array(dtype=wp.int32)
+) -> int:
+    """Table entry of a cell. Outside samples are infinitely far below the level: faces that touch them are
+    never ambiguous and, in that limit, no interior join exists in a cell that touches them."""
+    key = cfg | (face_bits(v, face_cyc) << 8)
+    if inside(g, oz, oy, ox) and inside(g, oz + 1, oy + 1, ox + 1):
+        key = key | (body_bits(v) << 14)
     return key_map[key]
 
 
@@ -314,7 +333,7 @@ def count_kernel(
         cuts = owned_cuts(g, v, o[0], o[1], o[2])
         nv = cuts[0] + cuts[1] + cuts[2]
         if emits(g, o[0], o[1], o[2], cfg):
-            tid = cell_triangulation(v, cfg, face_cyc, key_map)
+            tid = cell_triangulation(g, v, cfg, o[0], o[1], o[2], face_cyc, key_map)
             if tid < 0:
                 flags[3] = 1  # key outside the generated tables: should never happen
                 tid = key_map[cfg]

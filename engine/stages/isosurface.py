@@ -9,8 +9,10 @@ point is never placed closer than ``TIE_TAU`` (in units of the edge) to a sample
 level therefore gives the same topology as a level lowered by an infinitesimal amount, without coincident
 vertices or zero-area faces.
 
-Closed surfaces: samples outside the array take the value ``level - (|level| + 1)`` and the vertex on an edge
-leaving the array sits half a voxel outside it.
+Closed surfaces: samples outside the array are infinitely far below the level (the limit of padding with ever
+lower values, so the result does not depend on a pad value or on the data's offset and scale): faces touching
+them are never ambiguous, cells touching them have no interior joins, and the vertex on an edge leaving the
+array sits half a voxel outside it.
 """
 
 from __future__ import annotations
@@ -183,7 +185,7 @@ def marching_cubes_33(
             g.zoff, g.bz0, g.nbz, g.nby, g.nbx = zlo, bz0, bz1 - bz0, nby, nbx
             g.cz_first = cz_first
             g.level = lvl
-            g.pad = -(abs(lvl) + 1.0)
+            g.pad = -1.0  # only its sign is used (see the module docstring)
             g.closed = int(bool(closed))
             g.tau = TIE_TAU
             g.sz, g.sy, g.sx = sp
