@@ -10,16 +10,32 @@ if TYPE_CHECKING:  # pragma: no cover
     import warp as wp
 
 _SPEC = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
+_initialized = False
 
 
 def init_runtime(kernel_cache_dir: str | None = None) -> None:
-    """Initialise Warp quietly (call in a worker child, never before fork)."""
+    """Initialise Warp quietly (call in a worker child, never before fork).
+
+    Warp's banner and module-load lines are silenced, and so is the native "no CUDA driver" warning that it
+    writes to stderr on machines without a GPU: the engine reports the device it uses itself.
+    """
+    global _initialized
+    if _initialized:
+        return
     import warp as wp
 
-    wp.config.quiet = True
+    wp.config.log_level = 30  # warnings and above
     if kernel_cache_dir:
         wp.config.kernel_cache_dir = kernel_cache_dir
-    wp.init()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+            wp.init()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+    _initialized = True
 
 
 def resolve_device(spec: str = "auto") -> wp.context.Device:

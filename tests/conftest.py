@@ -16,6 +16,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         default="cpu",
         help="device(s) for engine tests: cpu, cuda, cuda:N, or all (cpu + every CUDA device)",
     )
+    parser.addoption("--runslow", action="store_true", help="also run tests marked slow")
 
 
 @functools.cache
@@ -36,12 +37,13 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    if _cuda_devices():
-        return
-    skip = pytest.mark.skip(reason="needs a CUDA device; none is present")
+    skip_gpu = pytest.mark.skip(reason="needs a CUDA device; none is present")
+    skip_slow = pytest.mark.skip(reason="slow: run with --runslow")
     for item in items:
-        if "gpu" in item.keywords:
-            item.add_marker(skip)
+        if "gpu" in item.keywords and not _cuda_devices():
+            item.add_marker(skip_gpu)
+        if "slow" in item.keywords and not config.getoption("--runslow"):
+            item.add_marker(skip_slow)
 
 
 def shared_file(*parts: str) -> Path:
