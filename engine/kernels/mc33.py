@@ -308,6 +308,31 @@ def compact_blocks_kernel(
         bmap[b] = -1
 
 
+@wp.func
+def pack_code(tid: int, mask: int) -> int:
+    return (tid + 1) | (mask << 16)
+
+
+@wp.func
+def code_tri(c: int) -> int:
+    return (c & 0xFFFF) - 1
+
+
+@wp.func
+def code_mask(c: int) -> int:
+    return c >> 16
+
+
+@wp.func
+def owner_slot(g: Grid, bmap: wp.array(dtype=wp.int32), oz: int, oy: int, ox: int) -> int:
+    cz = oz + 1
+    cy = oy + 1
+    cx = ox + 1
+    b = ((cz // BLOCK - g.bz0) * g.nby + cy // BLOCK) * g.nbx + cx // BLOCK
+    local = ((cz % BLOCK) * BLOCK + (cy % BLOCK)) * BLOCK + (cx % BLOCK)
+    return bmap[b] * BLOCK_CELLS + local
+
+
 @wp.kernel
 def count_kernel(
     vol: wp.array3d(dtype=Any),
@@ -319,19 +344,22 @@ def count_kernel(
     ivert_count: wp.array(dtype=wp.int32),
     vcount: wp.array(dtype=wp.int32),
     tcount: wp.array(dtype=wp.int32),
-    tri_id: wp.array(dtype=wp.int32),
+    code: wp.array(dtype=wp.int32),
     flags: wp.array(dtype=wp.int32),
 ):
+    """Per cell: vertices it owns, triangles it emits, and its code (table entry + 1, owned-cut mask << 16)."""
     slot = wp.tid()
     o = slot_origin(g, alist, slot)
     nv = int(0)
     nt = int(0)
     tid = int(-1)
+    mask = int(0)
     if o[0] < g.nz and o[1] < g.ny and o[2] < g.nx:
         v = cell_values(vol, g, o[0], o[1], o[2])
         cfg = cell_config(v)
         cuts = owned_cuts(g, v, o[0], o[1], o[2])
         nv = cuts[0] + cuts[1] + cuts[2]
+        mask = cuts[0] | (cuts[1] << 1) | (cuts[2] << 2)
         if emits(g, o[0], o[1], o[2], cfg):
             tid = cell_triangulation(g, v, cfg, o[0], o[1], o[2], face_cyc, key_map)
             if tid < 0:
@@ -341,15 +369,15 @@ def count_kernel(
             nv = nv + ivert_count[tid]
     vcount[slot] = nv
     tcount[slot] = nt
-    tri_id[slot] = tid
+    code[slot] = pack_code(tid, mask)
 
 
 @wp.func
 def owner_vertex(
     g: Grid,
-    vol: wp.array3d(dtype=Any),
     bmap: wp.array(dtype=wp.int32),
     voff: wp.array(dtype=wp.int32),
+    code: wp.array(dtype=wp.int32),
     plane_prev: wp.array3d(dtype=wp.int32),
     vstart: int,
     oz: int,
@@ -362,19 +390,14 @@ def owner_vertex(
     if oz < g.cz_first:
         vid = plane_prev[kind, oy + 1, ox + 1]
     else:
-        w = cell_values(vol, g, oz, oy, ox)
-        cuts = owned_cuts(g, w, oz, oy, ox)
+        slot = owner_slot(g, bmap, oz, oy, ox)
+        mask = code_mask(code[slot])
         rank = int(0)
         if kind >= 1:
-            rank = rank + cuts[0]
+            rank = rank + (mask & 1)
         if kind >= 2:
-            rank = rank + cuts[1]
-        cz = oz + 1
-        cy = oy + 1
-        cx = ox + 1
-        b = ((cz // BLOCK - g.bz0) * g.nby + cy // BLOCK) * g.nbx + cx // BLOCK
-        local = ((cz % BLOCK) * BLOCK + (cy % BLOCK)) * BLOCK + (cx % BLOCK)
-        vid = vstart + voff[bmap[b] * BLOCK_CELLS + local] + rank
+            rank = rank + ((mask >> 1) & 1)
+        vid = vstart + voff[slot] + rank
     return vid
 
 
@@ -401,9 +424,9 @@ def edge_point(g: Grid, v: vec8f, oz: int, oy: int, ox: int, e: int) -> wp.vec3:
 @wp.func
 def edge_owner_vertex(
     g: Grid,
-    vol: wp.array3d(dtype=Any),
     bmap: wp.array(dtype=wp.int32),
     voff: wp.array(dtype=wp.int32),
+    code: wp.array(dtype=wp.int32),
     plane_prev: wp.array3d(dtype=wp.int32),
     vstart: int,
     oz: int,
@@ -427,7 +450,7 @@ def edge_owner_vertex(
     else:
         wx = ox + lo
         wy = oy + hi
-    return owner_vertex(g, vol, bmap, voff, plane_prev, vstart, wz, wy, wx, kind)
+    return owner_vertex(g, bmap, voff, code, plane_prev, vstart, wz, wy, wx, kind)
 
 
 @wp.func
@@ -444,10 +467,9 @@ def emit_kernel(
     g: Grid,
     alist: wp.array(dtype=wp.int32),
     bmap: wp.array(dtype=wp.int32),
-    vcount: wp.array(dtype=wp.int32),
     voff: wp.array(dtype=wp.int32),
     toff: wp.array(dtype=wp.int32),
-    tri_id: wp.array(dtype=wp.int32),
+    code: wp.array(dtype=wp.int32),
     plane_prev: wp.array3d(dtype=wp.int32),
     vstart: int,
     tri_offset: wp.array(dtype=wp.int32),
@@ -460,24 +482,25 @@ def emit_kernel(
     faces: wp.array(dtype=wp.vec3i),
 ):
     slot = wp.tid()
-    tid = tri_id[slot]
-    if vcount[slot] == 0 and tid < 0:
+    c = code[slot]
+    tid = code_tri(c)
+    mask = code_mask(c)
+    if mask == 0 and tid < 0:
         return
     o = slot_origin(g, alist, slot)
     oz = o[0]
     oy = o[1]
     ox = o[2]
     v = cell_values(vol, g, oz, oy, ox)
-    cuts = owned_cuts(g, v, oz, oy, ox)
     base = voff[slot]
     rank = int(0)
-    if cuts[0] != 0:
+    if (mask & 1) != 0:
         verts[base + rank] = edge_point(g, v, oz, oy, ox, 2)
         rank = rank + 1
-    if cuts[1] != 0:
+    if (mask & 2) != 0:
         verts[base + rank] = edge_point(g, v, oz, oy, ox, 6)
         rank = rank + 1
-    if cuts[2] != 0:
+    if (mask & 4) != 0:
         verts[base + rank] = edge_point(g, v, oz, oy, ox, 8)
         rank = rank + 1
     if tid < 0:
@@ -493,7 +516,7 @@ def emit_kernel(
             pz[e] = pe[0]
             py[e] = pe[1]
             px[e] = pe[2]
-            ids[e] = edge_owner_vertex(g, vol, bmap, voff, plane_prev, vstart, oz, oy, ox, e)
+            ids[e] = edge_owner_vertex(g, bmap, voff, code, plane_prev, vstart, oz, oy, ox, e)
     # interior vertices
     ni = ivert_count[tid]
     i0 = ivert_offset[tid]
@@ -517,31 +540,29 @@ def emit_kernel(
 
 @wp.kernel
 def plane_kernel(
-    vol: wp.array3d(dtype=Any),
     g: Grid,
     bmap: wp.array(dtype=wp.int32),
     voff: wp.array(dtype=wp.int32),
+    code: wp.array(dtype=wp.int32),
     vstart: int,
     oz: int,
     plane_next: wp.array3d(dtype=wp.int32),
 ):
     """Ids of the x and y edge vertices of sample plane ``oz + 1`` (owned by cell layer ``oz``), for the next slab."""
     j, i = wp.tid()
-    oy = j - 1
-    ox = i - 1
-    v = cell_values(vol, g, oz, oy, ox)
-    cuts = owned_cuts(g, v, oz, oy, ox)
-    idx = -1
-    idy = -1
-    if cuts[0] != 0 or cuts[1] != 0:
-        cz = oz + 1
-        b = ((cz // BLOCK - g.bz0) * g.nby + j // BLOCK) * g.nbx + i // BLOCK
-        local = ((cz % BLOCK) * BLOCK + (j % BLOCK)) * BLOCK + (i % BLOCK)
-        first = vstart + voff[bmap[b] * BLOCK_CELLS + local]
-        if cuts[0] != 0:
+    idx = int(-1)
+    idy = int(-1)
+    b = (((oz + 1) // BLOCK - g.bz0) * g.nby + j // BLOCK) * g.nbx + i // BLOCK
+    if bmap[b] >= 0:
+        slot = owner_slot(g, bmap, oz, j - 1, i - 1)
+        mask = code_mask(code[slot])
+        first = vstart + voff[slot]
+        if (mask & 1) != 0:
             idx = first
             idy = first + 1
         else:
             idy = first
+        if (mask & 2) == 0:
+            idy = -1
     plane_next[0, j, i] = idx
     plane_next[1, j, i] = idy

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import functools
 import os
+import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -32,8 +34,11 @@ _INT32_MAX = 2**31 - 1
 
 @dataclass
 class IsosurfaceStats:
-    """What a run did: slabs, active blocks, table misses (must be 0)."""
+    """What a run did: slabs, active blocks, table misses (must be 0); per-stage times when ``profile``."""
 
+    profile: bool = False
+    timings: dict[str, float] = field(default_factory=dict)
+    level_in_range: bool = False
     slabs: int = 0
     blocks: int = 0
     active_blocks: int = 0
@@ -118,6 +123,142 @@ def _layers_per_slab(shape: tuple[int, int, int], itemsize: int, budget: int) ->
     return int(layers)
 
 
+class _Timer:
+    """Per-stage wall times, synchronising the device only when profiling (``stats.profile``)."""
+
+    def __init__(self, st: IsosurfaceStats, dev: Any) -> None:
+        self.st, self.dev = st, dev
+        self.t = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        if not self.st.profile:
+            return
+        import warp as wp
+
+        wp.synchronize_device(self.dev)  # sync point (profiling only)
+        now = time.perf_counter()
+        self.st.timings[name] = self.st.timings.get(name, 0.0) + now - self.t
+        self.t = now
+
+
+def _run_slabs(
+    get_slab: Callable[[int, int], Any],
+    shape: tuple[int, int, int],
+    itemsize: int,
+    is_float: bool,
+    level: float,
+    spacing: tuple[float, float, float],
+    closed: bool,
+    budget: int,
+    dev: Any,
+    st: IsosurfaceStats,
+) -> Iterator[tuple[Any, Any, int, int]]:
+    """Yield (verts, faces, n_verts, n_faces) device arrays per slab; check NaN and the level's range at the end.
+
+    ``get_slab(zlo, zhi)`` returns the (zhi - zlo + 1, ny, nx) samples of planes zlo..zhi on ``dev``.
+    """
+    import warp as wp
+
+    from engine.kernels import mc33 as k
+
+    tables = _tables(str(dev))
+    nz, ny, nx = shape
+    layers = _layers_per_slab(shape, itemsize, budget)
+    B = k.BLOCK
+    nbz_total = -(-(nz + 1) // B)
+    nby, nbx = -(-(ny + 1) // B), -(-(nx + 1) // B)
+    flags = wp.zeros(4, dtype=wp.int32, device=dev)
+    plane_prev = wp.full((2, ny + 1, nx + 1), -1, dtype=wp.int32, device=dev)
+    vstart = 0
+    timer = _Timer(st, dev)
+    for bz0 in range(0, nbz_total, layers):
+        bz1 = min(bz0 + layers, nbz_total)
+        cz_first = bz0 * B - 1
+        cz_last = min(bz1 * B - 1, nz) - 1  # last cell layer (origin)
+        zlo, zhi = max(cz_first, 0), min(cz_last + 1, nz - 1)
+        sub = get_slab(zlo, zhi)
+        timer.lap("upload")
+        g = k.Grid()
+        g.nz, g.ny, g.nx = nz, ny, nx
+        g.zoff, g.bz0, g.nbz, g.nby, g.nbx = zlo, bz0, bz1 - bz0, nby, nbx
+        g.cz_first = cz_first
+        g.level = level
+        g.pad = -1.0  # only its sign is used (see the module docstring)
+        g.closed = int(bool(closed))
+        g.tau = TIE_TAU
+        g.sz, g.sy, g.sx = spacing
+        nblocks = g.nbz * nby * nbx
+        if is_float:
+            wp.launch(k.nan_kernel, dim=sub.shape, inputs=[sub, flags])
+        active = wp.empty(nblocks, dtype=wp.int32)
+        wp.launch(k.block_kernel, dim=nblocks, inputs=[sub, g, active, flags])
+        bpos = wp.empty(nblocks, dtype=wp.int32)
+        wp.utils.array_scan(active, bpos, inclusive=False)
+        n_active = int(bpos[nblocks - 1 : nblocks].numpy()[0] + active[nblocks - 1 : nblocks].numpy()[0])  # sync point
+        alist = wp.empty(max(n_active, 1), dtype=wp.int32)
+        bmap = wp.empty(nblocks, dtype=wp.int32)
+        wp.launch(k.compact_blocks_kernel, dim=nblocks, inputs=[active, bpos, alist, bmap])
+        timer.lap("classify blocks")
+        st.slabs += 1
+        st.blocks += nblocks
+        st.active_blocks += n_active
+        st.slab_layers.append(cz_last - cz_first + 1)
+        nslots = n_active * k.BLOCK_CELLS
+        slab_bytes = (sub.capacity if sub.is_contiguous else 0) + nblocks * 12 + nslots * 20
+        if nslots == 0:
+            plane_prev.fill_(-1)
+            st.peak_slab_bytes = max(st.peak_slab_bytes, slab_bytes)
+            continue
+        vcount = wp.empty(nslots, dtype=wp.int32)
+        tcount = wp.empty(nslots, dtype=wp.int32)
+        code = wp.empty(nslots, dtype=wp.int32)
+        wp.launch(
+            k.count_kernel,
+            dim=nslots,
+            inputs=[sub, g, alist, tables["face_cyc"], tables["key_map"], tables["tri_count"],
+                    tables["ivert_count"], vcount, tcount, code, flags],
+        )
+        timer.lap("count")
+        voff = wp.empty(nslots, dtype=wp.int32)
+        toff = wp.empty(nslots, dtype=wp.int32)
+        wp.utils.array_scan(vcount, voff, inclusive=False)
+        wp.utils.array_scan(tcount, toff, inclusive=False)
+        nv = int(voff[nslots - 1 : nslots].numpy()[0] + vcount[nslots - 1 : nslots].numpy()[0])  # sync point
+        nt = int(toff[nslots - 1 : nslots].numpy()[0] + tcount[nslots - 1 : nslots].numpy()[0])  # sync point
+        del vcount, tcount
+        timer.lap("scan")
+        if vstart + nv > _INT32_MAX:
+            raise ValueError(f"Expected at most {_INT32_MAX} vertices (int32 faces), got more than {vstart + nv}")
+        verts = wp.empty(max(nv, 1), dtype=wp.vec3)
+        faces = wp.empty(max(nt, 1), dtype=wp.vec3i)
+        wp.launch(
+            k.emit_kernel,
+            dim=nslots,
+            inputs=[sub, g, alist, bmap, voff, toff, code, plane_prev, vstart,
+                    tables["tri_offset"], tables["tri_count"], tables["tri_local"], tables["ivert_offset"],
+                    tables["ivert_count"], tables["ivert_weights"], verts, faces],
+        )
+        plane_next = wp.empty((2, ny + 1, nx + 1), dtype=wp.int32)
+        wp.launch(k.plane_kernel, dim=(ny + 1, nx + 1), inputs=[g, bmap, voff, code, vstart, cz_last, plane_next])
+        plane_prev = plane_next
+        timer.lap("emit")
+        st.peak_slab_bytes = max(st.peak_slab_bytes, slab_bytes + nslots * 8 + nv * 12 + nt * 12)
+        yield verts, faces, nv, nt
+        vstart += nv
+    fl = flags.numpy()  # sync point
+    if fl[2]:
+        raise ValueError("Expected a volume without NaN, got NaN values in the float volume")
+    st.table_misses = int(fl[3])
+    st.level_in_range = bool(fl[0] and fl[1])
+
+
+def _budget(max_device_bytes: int | None, dev: Any) -> int:
+    budget = int(max_device_bytes) if max_device_bytes is not None else _default_budget(dev)
+    if budget <= 0:
+        raise ValueError(f"Expected a positive max_device_bytes, got {max_device_bytes!r}")
+    return budget
+
+
 def marching_cubes_33(
     volume: npt.NDArray[Any],
     level: float,
@@ -137,7 +278,7 @@ def marching_cubes_33(
         device: "auto", "cpu", "cuda" or "cuda:N".
         closed: treat everything outside the array as below the level, so the surface is watertight.
         max_device_bytes: working-set budget per slab; default half the free device memory (a quarter of
-            the available RAM on the CPU).
+            the available RAM on the CPU). The volume is uploaded slab by slab.
         stats: optional object filled with what the run did.
 
     Returns:
@@ -154,105 +295,81 @@ def marching_cubes_33(
     dev = resolve_device(device)
     import warp as wp
 
-    from engine.kernels import mc33 as k
-
     st = stats if stats is not None else IsosurfaceStats()
-    tables = _tables(str(dev))
-    nz, ny, nx = vol.shape
-    budget = int(max_device_bytes) if max_device_bytes is not None else _default_budget(dev)
-    if budget <= 0:
-        raise ValueError(f"Expected a positive max_device_bytes, got {max_device_bytes!r}")
-    layers = _layers_per_slab(vol.shape, vol.itemsize, budget)
-
-    B = k.BLOCK
-    nbz_total = -(-(nz + 1) // B)
-    nby, nbx = -(-(ny + 1) // B), -(-(nx + 1) // B)
-    flags = wp.zeros(4, dtype=wp.int32, device=dev)
-    plane_prev = wp.full((2, ny + 1, nx + 1), -1, dtype=wp.int32, device=dev)
+    budget = _budget(max_device_bytes, dev)
     vert_parts: list[np.ndarray] = []
     face_parts: list[np.ndarray] = []
-    vstart = 0
-
     with wp.ScopedDevice(dev):
-        for bz0 in range(0, nbz_total, layers):
-            bz1 = min(bz0 + layers, nbz_total)
-            cz_first = bz0 * B - 1
-            cz_last = min(bz1 * B - 1, nz) - 1  # last cell layer (origin)
-            zlo, zhi = max(cz_first, 0), min(cz_last + 1, nz - 1)
-            sub = wp.array(vol[zlo : zhi + 1], device=dev)
-            g = k.Grid()
-            g.nz, g.ny, g.nx = nz, ny, nx
-            g.zoff, g.bz0, g.nbz, g.nby, g.nbx = zlo, bz0, bz1 - bz0, nby, nbx
-            g.cz_first = cz_first
-            g.level = lvl
-            g.pad = -1.0  # only its sign is used (see the module docstring)
-            g.closed = int(bool(closed))
-            g.tau = TIE_TAU
-            g.sz, g.sy, g.sx = sp
-            nblocks = g.nbz * nby * nbx
-            if vol.dtype == np.float32:
-                wp.launch(k.nan_kernel, dim=sub.shape, inputs=[sub, flags])
-            active = wp.empty(nblocks, dtype=wp.int32)
-            wp.launch(k.block_kernel, dim=nblocks, inputs=[sub, g, active, flags])
-            bpos = wp.empty(nblocks, dtype=wp.int32)
-            wp.utils.array_scan(active, bpos, inclusive=False)
-            n_active = int(bpos[nblocks - 1 : nblocks].numpy()[0] + active[nblocks - 1 : nblocks].numpy()[0])  # sync
-            alist = wp.empty(max(n_active, 1), dtype=wp.int32)
-            bmap = wp.empty(nblocks, dtype=wp.int32)
-            wp.launch(k.compact_blocks_kernel, dim=nblocks, inputs=[active, bpos, alist, bmap])
-            st.slabs += 1
-            st.blocks += nblocks
-            st.active_blocks += n_active
-            st.slab_layers.append(cz_last - cz_first + 1)
-            nslots = n_active * k.BLOCK_CELLS
-            slab_bytes = sub.capacity + nblocks * 12 + nslots * 20
-            if nslots == 0:
-                plane_prev.fill_(-1)
-                st.peak_slab_bytes = max(st.peak_slab_bytes, slab_bytes)
-                continue
-            vcount = wp.empty(nslots, dtype=wp.int32)
-            tcount = wp.empty(nslots, dtype=wp.int32)
-            tri_id = wp.empty(nslots, dtype=wp.int32)
-            wp.launch(
-                k.count_kernel,
-                dim=nslots,
-                inputs=[sub, g, alist, tables["face_cyc"], tables["key_map"], tables["tri_count"],
-                        tables["ivert_count"], vcount, tcount, tri_id, flags],
-            )
-            voff = wp.empty(nslots, dtype=wp.int32)
-            toff = wp.empty(nslots, dtype=wp.int32)
-            wp.utils.array_scan(vcount, voff, inclusive=False)
-            wp.utils.array_scan(tcount, toff, inclusive=False)
-            nv = int(voff[nslots - 1 : nslots].numpy()[0] + vcount[nslots - 1 : nslots].numpy()[0])  # sync point
-            nt = int(toff[nslots - 1 : nslots].numpy()[0] + tcount[nslots - 1 : nslots].numpy()[0])  # sync point
-            if vstart + nv > _INT32_MAX:
-                raise ValueError(f"Expected at most {_INT32_MAX} vertices (int32 faces), got more than {vstart + nv}")
-            verts = wp.empty(max(nv, 1), dtype=wp.vec3)
-            faces = wp.empty(max(nt, 1), dtype=wp.vec3i)
-            wp.launch(
-                k.emit_kernel,
-                dim=nslots,
-                inputs=[sub, g, alist, bmap, vcount, voff, toff, tri_id, plane_prev, vstart,
-                        tables["tri_offset"], tables["tri_count"], tables["tri_local"], tables["ivert_offset"],
-                        tables["ivert_count"], tables["ivert_weights"], verts, faces],
-            )
-            plane_next = wp.empty((2, ny + 1, nx + 1), dtype=wp.int32)
-            wp.launch(k.plane_kernel, dim=(ny + 1, nx + 1), inputs=[sub, g, bmap, voff, vstart, cz_last, plane_next])
-            plane_prev = plane_next
-            st.peak_slab_bytes = max(st.peak_slab_bytes, slab_bytes + nslots * 8 + nv * 12 + nt * 12)
-            if nv:
-                vert_parts.append(verts.numpy()[:nv])  # sync point
-            if nt:
-                face_parts.append(faces.numpy()[:nt])  # sync point
-            vstart += nv
-        fl = flags.numpy()  # sync point
 
-    if fl[2]:
-        raise ValueError("Expected a volume without NaN, got NaN values in the float volume")
-    st.table_misses = int(fl[3])
-    empty = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
-    if not (fl[0] and fl[1]) or not face_parts:
-        return empty
+        def upload(zlo: int, zhi: int) -> Any:
+            return wp.array(vol[zlo : zhi + 1], device=dev)
+
+        slabs = _run_slabs(upload, vol.shape, vol.itemsize, vol.dtype == np.float32, lvl, sp, closed, budget, dev, st)
+        for verts, faces, nv, nt in slabs:
+            vert_parts.append(verts.numpy()[:nv])  # sync point
+            face_parts.append(faces.numpy()[:nt])  # sync point
+            _Timer(st, dev).lap("download")
+    if not st.level_in_range or not face_parts:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
     verts_np = np.concatenate(vert_parts).astype(np.float32, copy=False).reshape(-1, 3)
     faces_np = np.concatenate(face_parts).astype(np.int32, copy=False).reshape(-1, 3)
     return verts_np, faces_np
+
+
+def extract_isosurface(
+    field: Any,
+    level: float,
+    *,
+    spacing: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    closed: bool = False,
+    max_device_bytes: int | None = None,
+    stats: IsosurfaceStats | None = None,
+) -> tuple[Any, Any]:
+    """Device-resident Marching Cubes 33: a Warp array in, Warp arrays out, on the field's device.
+
+    Args:
+        field: ``wp.array3d`` (nz, ny, nx) of uint8, uint16, int16 or float32.
+        level, spacing, closed, max_device_bytes, stats: as for :func:`marching_cubes_33` (the budget bounds the
+            per-slab working set; the field itself is already resident).
+
+    Returns:
+        ``verts`` ``wp.array(dtype=wp.vec3)`` (z, y, x) in mm and ``faces`` ``wp.array(dtype=wp.vec3i)``.
+
+    Raises:
+        ValueError: as for :func:`marching_cubes_33`.
+    """
+    import warp as wp
+
+    kinds = {wp.uint8: np.uint8, wp.uint16: np.uint16, wp.int16: np.int16, wp.float32: np.float32}
+    if not isinstance(field, wp.array) or field.ndim != 3 or field.dtype not in kinds:
+        got = f"{type(field).__name__} ndim={getattr(field, 'ndim', None)} dtype={getattr(field, 'dtype', None)}"
+        raise ValueError(f"Expected a 3-D Warp array of uint8, uint16, int16 or float32, got {got}")
+    if min(field.shape) < 2:
+        raise ValueError(f"Expected every dimension of the volume to be at least 2, got shape {field.shape}")
+    probe = np.zeros((2, 2, 2), kinds[field.dtype])
+    _, lvl, sp = _validate(probe, level, spacing)
+    dev = field.device
+    st = stats if stats is not None else IsosurfaceStats()
+    budget = _budget(max_device_bytes, dev)
+    itemsize = np.dtype(kinds[field.dtype]).itemsize
+    parts: list[tuple[Any, Any, int, int]] = []
+    with wp.ScopedDevice(dev):
+
+        def view(zlo: int, zhi: int) -> Any:
+            return field[zlo : zhi + 1]
+
+        parts = list(_run_slabs(view, field.shape, itemsize, field.dtype == wp.float32, lvl, sp, closed, budget,
+                                dev, st))
+        if not st.level_in_range or not parts:
+            return wp.empty(0, dtype=wp.vec3), wp.empty(0, dtype=wp.vec3i)
+        if len(parts) == 1:
+            v, f, nv, nt = parts[0]
+            return v[:nv], f[:nt]
+        verts = wp.empty(sum(p[2] for p in parts), dtype=wp.vec3)
+        faces = wp.empty(sum(p[3] for p in parts), dtype=wp.vec3i)
+        ov = of = 0
+        for v, f, nv, nt in parts:
+            wp.copy(verts, v, dest_offset=ov, count=nv)
+            wp.copy(faces, f, dest_offset=of, count=nt)
+            ov, of = ov + nv, of + nt
+    return verts, faces

@@ -188,3 +188,33 @@ def test_cuda_matches_cpu(closed):
     gpu = marching_cubes_33(vol, 0.1, device="cuda", closed=closed)
     np.testing.assert_array_equal(gpu[1], cpu[1])  # same topology, same faces
     np.testing.assert_allclose(gpu[0], cpu[0], rtol=1e-5, atol=1e-5)
+
+
+# ------------------------------------------------------------------------------------------- device-resident
+@pytest.mark.parametrize("budget", [None, 1])
+def test_device_resident_matches_numpy(device, budget):
+    import warp as wp
+
+    from engine.isosurface import extract_isosurface
+
+    rng = np.random.default_rng(9)
+    vol = rng.integers(0, 200, size=(30, 17, 19)).astype(np.uint16)
+    ref_v, ref_f = marching_cubes_33(vol, 99.5, spacing=(2.0, 1.0, 0.5), device=device, closed=True)
+    field = wp.array(vol, device=device)
+    stats = IsosurfaceStats(profile=True)
+    v, f = extract_isosurface(field, 99.5, spacing=(2.0, 1.0, 0.5), closed=True, max_device_bytes=budget, stats=stats)
+    assert str(v.device) == str(field.device)
+    np.testing.assert_array_equal(v.numpy(), ref_v)
+    np.testing.assert_array_equal(f.numpy(), ref_f)
+    assert {"classify blocks", "count", "scan", "emit"} <= set(stats.timings)
+
+
+def test_device_resident_rejects_bad_field(device):
+    import warp as wp
+
+    from engine.isosurface import extract_isosurface
+
+    with pytest.raises(ValueError, match="3-D Warp array"):
+        extract_isosurface(wp.zeros((4, 4), dtype=wp.float32, device=device), 0.0)
+    with pytest.raises(ValueError, match="3-D Warp array"):
+        extract_isosurface(np.zeros((4, 4, 4), np.float32), 0.0)
