@@ -246,6 +246,60 @@ def _bench_ours(vol: np.ndarray, dev_spec: str, dev: Any, repeat: int, sync: Cal
     return res
 
 
+def _bench_ours_resident(vol: np.ndarray, dev: Any, repeat: int, sync: Callable[[], None]) -> dict[str, Any]:
+    """The engine on a volume already on the device, mesh left on the device (the pipeline's situation)."""
+    import warp as wp
+
+    from engine.isosurface import IsosurfaceStats, extract_isosurface
+
+    field = wp.array(vol, device=dev)
+
+    def run() -> tuple[int, int]:
+        v, f = extract_isosurface(field, BONE_LEVEL, closed=False)
+        return int(v.shape[0]), int(f.shape[0])
+
+    mem = _DeviceMemory(dev)
+    mem.start()
+    res = _timed(run, repeat, sync)
+    res.update(mem.result())
+    prof = IsosurfaceStats(profile=True)
+    extract_isosurface(field, BONE_LEVEL, closed=False, stats=prof)
+    res["stage_seconds_profiled_run"] = prof.timings
+    res["stats"] = {"slabs": prof.slabs, "blocks": prof.blocks, "active_blocks": prof.active_blocks}
+    res["input"] = "full volume, uint16 already on the device; mesh stays on the device"
+    res["voxels"] = int(vol.size)
+    res["call"] = f"extract_isosurface(wp.array(vol), {BONE_LEVEL}, closed=False)"
+    del field
+    return res
+
+
+def _bench_warp_resident(vol: np.ndarray, dev: Any, repeat: int, slab: int, sync: Callable[[], None]) -> dict[str, Any]:
+    """Warp's classic marching cubes on float32 slabs already on the device, mesh left on the device."""
+    import warp as wp
+
+    extract, api = _warp_mc_extract()
+    nz = vol.shape[0]
+    cap = max(1, (2**31 - 1) // (3 * vol.shape[1] * vol.shape[2]) - 1)
+    cells = max(1, min(int(slab), cap))
+    fields = [wp.array(vol[z0 : min(z0 + cells, nz - 1) + 1].astype(np.float32), device=dev)
+              for z0 in range(0, nz - 1, cells)]
+
+    def run() -> tuple[int, int]:
+        nv = nt = 0
+        for field in fields:
+            verts, idx = extract(field, float(BONE_LEVEL))
+            nv += int(verts.shape[0])
+            nt += int(idx.shape[0] // 3)
+        return nv, nt
+
+    res = _timed(run, repeat, sync)
+    res["input"] = f"full volume as {len(fields)} float32 slabs already on the device; mesh stays on the device"
+    res["api"] = api
+    res["voxels"] = int(vol.size)
+    del fields
+    return res
+
+
 def _crop(vol: np.ndarray, mode: str, max_voxels: int) -> np.ndarray:
     """The skimage input: the full volume, a central cube, or a central z-slab over the whole cross-section."""
     if mode == "full" or vol.size <= max_voxels:
@@ -426,6 +480,11 @@ def main(argv: list[str] | None = None) -> int:
     else:
         results["warp_mc"] = _safe("warp_mc", lambda: _bench_warp(vol, dev, args.repeat, args.warp_slab, sync))
 
+    results["ours_resident"] = _safe("ours_resident", lambda: _bench_ours_resident(vol, dev, args.repeat, sync))
+    if not args.skip_warp:
+        results["warp_mc_resident"] = _safe(
+            "warp_mc_resident", lambda: _bench_warp_resident(vol, dev, args.repeat, args.warp_slab, sync))
+
     for name, r in results.items():
         if r.get("available"):
             vox = int(r.get("voxels", nvox))
@@ -442,6 +501,8 @@ def main(argv: list[str] | None = None) -> int:
     ratios: dict[str, Any] = {
         "ours_over_skimage_voxels_per_s": ratio("ours", "skimage"),
         "ours_over_warp_mc_voxels_per_s": ratio("ours", "warp_mc"),
+        "ours_resident_over_warp_mc_resident_voxels_per_s": (
+            ratio("ours_resident", "warp_mc_resident") if "warp_mc_resident" in results else None),
     }
     note = "speed ratios of voxels/s (>1: ours faster); skimage runs on the host CPU (single-threaded)"
     if sk_crop:
