@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import functools
+import os
 from pathlib import Path
 
 import pytest
 
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+# the real scans: ../shared/data beside the repo, or BONEMESH_SHARED_DATA (e.g. on the GPU machine)
+SHARED_DATA = Path(os.environ.get("BONEMESH_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
