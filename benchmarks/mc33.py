@@ -38,8 +38,9 @@ import statistics
 import sys
 import time
 import traceback
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -115,7 +116,7 @@ def _versions() -> dict[str, str | None]:
         try:
             mod = __import__(name)
             out[name] = getattr(mod, "__version__", None)
-        except Exception:  # noqa: BLE001 - optional
+        except Exception:
             out[name] = None
     return out
 
@@ -138,7 +139,7 @@ def _reset_mempool_high(dev: Any) -> bool:
             return False
         zero = ctypes.c_uint64(0)
         return lib.cuMemPoolSetAttribute(pool, _CU_MEMPOOL_ATTR_USED_MEM_HIGH, ctypes.byref(zero)) == 0
-    except Exception:  # noqa: BLE001 - best effort
+    except Exception:
         return False
 
 
@@ -153,7 +154,7 @@ class _DeviceMemory:
         self.baseline = 0
         try:
             self.enabled = bool(dev.is_cuda and wp.is_mempool_enabled(dev))
-        except Exception:  # noqa: BLE001
+        except Exception:
             self.enabled = False
 
     def start(self) -> None:
@@ -167,31 +168,42 @@ class _DeviceMemory:
                 self.baseline = int(self.wp.get_mempool_used_mem_current(self.dev))
                 high = int(self.wp.get_mempool_used_mem_high(self.dev))
                 self.reset_ok = high <= self.baseline + (1 << 20)
-        except Exception:  # noqa: BLE001 - never let the memory probe break a timing
+        except Exception:
             self.reset_ok = False
 
     def result(self) -> dict[str, Any]:
         try:
             return self._result()
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:
             return {"peak_device_memory_bytes": None, "peak_device_memory_method": f"probe failed: {exc}"}
 
     def _result(self) -> dict[str, Any]:
         if not self.dev.is_cuda:
-            return {"peak_device_memory_bytes": None,
-                    "peak_device_memory_method": "n/a on CPU (no device pool); see peak_host_rss_bytes"}
+            return {
+                "peak_device_memory_bytes": None,
+                "peak_device_memory_method": "n/a on CPU (no device pool); see peak_host_rss_bytes",
+            }
         if not self.enabled:
-            return {"peak_device_memory_bytes": None,
-                    "peak_device_memory_method": "n/a: Warp memory pool not enabled on this device"}
+            return {
+                "peak_device_memory_bytes": None,
+                "peak_device_memory_method": "n/a: Warp memory pool not enabled on this device",
+            }
         self.wp.synchronize_device(self.dev)
         high = int(self.wp.get_mempool_used_mem_high(self.dev))
         if self.reset_ok:
-            how = ("CUDA default mempool used-memory high-water mark (wp.get_mempool_used_mem_high), reset before "
-                   "this method's warm-up; includes memory already in use at reset (in_use_at_reset_bytes)")
-            return {"peak_device_memory_bytes": high, "in_use_at_reset_bytes": self.baseline,
-                    "peak_device_memory_method": how}
-        how = ("CUDA default mempool used-memory high-water mark (wp.get_mempool_used_mem_high), CUMULATIVE over the "
-               "process (could not reset it): an upper bound that includes earlier methods")
+            how = (
+                "CUDA default mempool used-memory high-water mark (wp.get_mempool_used_mem_high), reset before "
+                "this method's warm-up; includes memory already in use at reset (in_use_at_reset_bytes)"
+            )
+            return {
+                "peak_device_memory_bytes": high,
+                "in_use_at_reset_bytes": self.baseline,
+                "peak_device_memory_method": how,
+            }
+        how = (
+            "CUDA default mempool used-memory high-water mark (wp.get_mempool_used_mem_high), CUMULATIVE over the "
+            "process (could not reset it): an upper bound that includes earlier methods"
+        )
         return {"peak_device_memory_bytes": high, "peak_device_memory_method": how}
 
 
@@ -214,12 +226,18 @@ def _timed(fn: Callable[[], tuple[int, int]], repeat: int, sync: Callable[[], No
         secs.append(time.perf_counter() - t0)
         if c != counts:
             raise RuntimeError(f"Expected the same counts on every run, got {counts} then {c}")
-    return {"warmup_seconds": warm, "seconds_all": secs, "seconds": statistics.median(secs),
-            "vertices": int(counts[0]), "triangles": int(counts[1])}
+    return {
+        "warmup_seconds": warm,
+        "seconds_all": secs,
+        "seconds": statistics.median(secs),
+        "vertices": int(counts[0]),
+        "triangles": int(counts[1]),
+    }
 
 
-def _bench_ours(vol: np.ndarray, dev_spec: str, dev: Any, repeat: int, sync: Callable[[], None],
-                label: str = "full volume") -> dict[str, Any]:
+def _bench_ours(
+    vol: np.ndarray, dev_spec: str, dev: Any, repeat: int, sync: Callable[[], None], label: str = "full volume"
+) -> dict[str, Any]:
     from engine.isosurface import IsosurfaceStats, marching_cubes_33
 
     last: dict[str, Any] = {}
@@ -234,9 +252,14 @@ def _bench_ours(vol: np.ndarray, dev_spec: str, dev: Any, repeat: int, sync: Cal
     mem.start()
     res = _timed(run, repeat, sync)
     st = last["stats"]
-    res["stats"] = {"slabs": st.slabs, "blocks": st.blocks, "active_blocks": st.active_blocks,
-                    "table_misses": st.table_misses, "peak_slab_bytes": st.peak_slab_bytes,
-                    "slab_layers": list(st.slab_layers)}
+    res["stats"] = {
+        "slabs": st.slabs,
+        "blocks": st.blocks,
+        "active_blocks": st.active_blocks,
+        "table_misses": st.table_misses,
+        "peak_slab_bytes": st.peak_slab_bytes,
+        "slab_layers": list(st.slab_layers),
+    }
     res.update(mem.result())
     res["peak_device_memory_engine_estimate_bytes"] = st.peak_slab_bytes
     res["input"] = label
@@ -269,7 +292,6 @@ def _bench_ours_resident(vol: np.ndarray, dev: Any, repeat: int, sync: Callable[
     res["input"] = "full volume, uint16 already on the device; mesh stays on the device"
     res["voxels"] = int(vol.size)
     res["call"] = f"extract_isosurface(wp.array(vol), {BONE_LEVEL}, closed=False)"
-    del field
     return res
 
 
@@ -281,8 +303,9 @@ def _bench_warp_resident(vol: np.ndarray, dev: Any, repeat: int, slab: int, sync
     nz = vol.shape[0]
     cap = max(1, (2**31 - 1) // (3 * vol.shape[1] * vol.shape[2]) - 1)
     cells = max(1, min(int(slab), cap))
-    fields = [wp.array(vol[z0 : min(z0 + cells, nz - 1) + 1].astype(np.float32), device=dev)
-              for z0 in range(0, nz - 1, cells)]
+    fields = [
+        wp.array(vol[z0 : min(z0 + cells, nz - 1) + 1].astype(np.float32), device=dev) for z0 in range(0, nz - 1, cells)
+    ]
 
     def run() -> tuple[int, int]:
         nv = nt = 0
@@ -296,7 +319,6 @@ def _bench_warp_resident(vol: np.ndarray, dev: Any, repeat: int, slab: int, sync
     res["input"] = f"full volume as {len(fields)} float32 slabs already on the device; mesh stays on the device"
     res["api"] = api
     res["voxels"] = int(vol.size)
-    del fields
     return res
 
 
@@ -305,7 +327,7 @@ def _crop(vol: np.ndarray, mode: str, max_voxels: int) -> np.ndarray:
     if mode == "full" or vol.size <= max_voxels:
         return vol
     if mode == "cube":
-        side = max(2, int(round(max_voxels ** (1.0 / 3.0))))
+        side = max(2, round(max_voxels ** (1.0 / 3.0)))
         sl = []
         for n in vol.shape:
             m = min(n, side)
@@ -328,8 +350,11 @@ def _bench_skimage(sub: np.ndarray, full_shape: tuple[int, ...], repeat: int, mo
     res = _timed(run, repeat, lambda: None)
     res["shape"] = list(sub.shape)
     res["voxels"] = int(sub.size)
-    res["input"] = ("full volume" if tuple(sub.shape) == tuple(full_shape)
-                    else f"crop '{mode}' {tuple(sub.shape)} of the volume (voxels/s are the crop's)")
+    res["input"] = (
+        "full volume"
+        if tuple(sub.shape) == tuple(full_shape)
+        else f"crop '{mode}' {tuple(sub.shape)} of the volume (voxels/s are the crop's)"
+    )
     res["call"] = f"skimage.measure.marching_cubes(vol_{sub.dtype}, {BONE_LEVEL}, method='lewiner') (host CPU)"
     return res
 
@@ -352,8 +377,9 @@ def _warp_mc_extract() -> tuple[Callable[[Any, float], tuple[Any, Any]], str]:
 
     def extract_old(field: Any, threshold: float) -> tuple[Any, Any]:  # Warp <= 1.17
         nx, ny, nz = field.shape
-        mc = wp.MarchingCubes(nx, ny, nz, max_verts=3 * field.size // 4, max_tris=2 * field.size // 2,
-                              device=field.device)
+        mc = wp.MarchingCubes(
+            nx, ny, nz, max_verts=3 * field.size // 4, max_tris=2 * field.size // 2, device=field.device
+        )
         mc.surface(field, threshold)
         return mc.verts, mc.indices
 
@@ -393,9 +419,11 @@ def _bench_warp(vol: np.ndarray, dev: Any, repeat: int, slab: int, sync: Callabl
     res["api"] = api
     res["slab_cells"] = cells
     res["slabs"] = len(ranges)
-    res["notes"] = ("field passed as the (z, y, x) numpy layout, i.e. Warp's (nx, ny, nz) = (nz, ny, nx); only counts "
-                    "and time are compared. Per slab: host uint16->float32, upload, extract, download verts+indices. "
-                    "Vertices on slab seams are counted once per slab.")
+    res["notes"] = (
+        "field passed as the (z, y, x) numpy layout, i.e. Warp's (nx, ny, nz) = (nz, ny, nx); only counts "
+        "and time are compared. Per slab: host uint16->float32, upload, extract, download verts+indices. "
+        "Vertices on slab seams are counted once per slab."
+    )
     return res
 
 
@@ -414,7 +442,7 @@ def _safe(name: str, fn: Callable[[], dict[str, Any]]) -> dict[str, Any]:
         res = fn()
         res["available"] = True
         return res
-    except Exception as exc:  # noqa: BLE001 - record, keep going
+    except Exception as exc:
         traceback.print_exc()
         return {"available": False, "error": f"{type(exc).__name__}: {exc}"}
     finally:
@@ -424,18 +452,24 @@ def _safe(name: str, fn: Callable[[], dict[str, Any]]) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.mc33", description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cpu", help="cpu or cuda[:N] (default cpu)")
-    ap.add_argument("--shape", type=_parse_shape, default=None,
-                    help="Z,Y,X (default 256,256,256 on cpu, 952,1024,1024 on cuda)")
+    ap.add_argument(
+        "--shape", type=_parse_shape, default=None, help="Z,Y,X (default 256,256,256 on cpu, 952,1024,1024 on cuda)"
+    )
     ap.add_argument("--repeat", type=int, default=3, help="timed runs after one warm-up (default 3)")
     ap.add_argument("--out", type=Path, required=True, help="result JSON path")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--skip-skimage", action="store_true")
     ap.add_argument("--skip-warp", action="store_true")
-    ap.add_argument("--skimage-crop", choices=("auto", "full", "zslab", "cube"), default="auto",
-                    help="skimage input: full volume, central z-slab over the whole cross-section, or central cube, "
-                         "of at most --skimage-max-voxels (auto: full on cpu, zslab on cuda)")
-    ap.add_argument("--skimage-max-voxels", type=int, default=256**3,
-                    help="voxel budget of the skimage crop (default 256^3)")
+    ap.add_argument(
+        "--skimage-crop",
+        choices=("auto", "full", "zslab", "cube"),
+        default="auto",
+        help="skimage input: full volume, central z-slab over the whole cross-section, or central cube, "
+        "of at most --skimage-max-voxels (auto: full on cpu, zslab on cuda)",
+    )
+    ap.add_argument(
+        "--skimage-max-voxels", type=int, default=256**3, help="voxel budget of the skimage crop (default 256^3)"
+    )
     ap.add_argument("--warp-slab", type=int, default=256, help="z cells per slab for Warp's marching cubes")
     args = ap.parse_args(argv)
     if args.repeat < 1:
@@ -473,7 +507,8 @@ def main(argv: list[str] | None = None) -> int:
         if sk_crop:  # same input for an apples-to-apples ratio
             label = f"crop '{sk_mode}' {tuple(sub.shape)}, the same input as skimage"
             results["ours_on_skimage_crop"] = _safe(
-                "ours_on_skimage_crop", lambda: _bench_ours(sub, args.device, dev, args.repeat, sync, label))
+                "ours_on_skimage_crop", lambda: _bench_ours(sub, args.device, dev, args.repeat, sync, label)
+            )
         del sub
     if args.skip_warp:
         results["warp_mc"] = {"available": False, "skipped": "--skip-warp"}
@@ -483,7 +518,8 @@ def main(argv: list[str] | None = None) -> int:
     results["ours_resident"] = _safe("ours_resident", lambda: _bench_ours_resident(vol, dev, args.repeat, sync))
     if not args.skip_warp:
         results["warp_mc_resident"] = _safe(
-            "warp_mc_resident", lambda: _bench_warp_resident(vol, dev, args.repeat, args.warp_slab, sync))
+            "warp_mc_resident", lambda: _bench_warp_resident(vol, dev, args.repeat, args.warp_slab, sync)
+        )
 
     for name, r in results.items():
         if r.get("available"):
@@ -502,23 +538,29 @@ def main(argv: list[str] | None = None) -> int:
         "ours_over_skimage_voxels_per_s": ratio("ours", "skimage"),
         "ours_over_warp_mc_voxels_per_s": ratio("ours", "warp_mc"),
         "ours_resident_over_warp_mc_resident_voxels_per_s": (
-            ratio("ours_resident", "warp_mc_resident") if "warp_mc_resident" in results else None),
+            ratio("ours_resident", "warp_mc_resident") if "warp_mc_resident" in results else None
+        ),
     }
     note = "speed ratios of voxels/s (>1: ours faster); skimage runs on the host CPU (single-threaded)"
     if sk_crop:
         ratios["ours_on_crop_over_skimage_voxels_per_s"] = ratio("ours_on_skimage_crop", "skimage")
-        note += (f"; skimage got a '{sk_mode}' crop: ours_over_skimage compares ours on the full volume with skimage "
-                 "on the crop, ours_on_crop_over_skimage compares both on the same crop")
+        note += (
+            f"; skimage got a '{sk_mode}' crop: ours_over_skimage compares ours on the full volume with skimage "
+            "on the crop, ours_on_crop_over_skimage compares both on the same crop"
+        )
     ratios["notes"] = note + "; warp_mc runs on the same device as ours, on the full volume."
 
     cuda_info: dict[str, Any] = {}
     if is_cuda:
-        cuda_info = {"arch": getattr(dev, "arch", None), "total_memory_bytes": int(dev.total_memory),
-                     "mempool_enabled": bool(wp.is_mempool_enabled(dev)),
-                     "sm_count": getattr(dev, "sm_count", None)}
+        cuda_info = {
+            "arch": getattr(dev, "arch", None),
+            "total_memory_bytes": int(dev.total_memory),
+            "mempool_enabled": bool(wp.is_mempool_enabled(dev)),
+            "sm_count": getattr(dev, "sm_count", None),
+        }
     report = {
         "benchmark": "mc33_isosurface",
-        "date_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "date_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "device": {
             "requested": args.device,
             "warp_device": str(dev),
@@ -531,15 +573,22 @@ def main(argv: list[str] | None = None) -> int:
             "host_memory_bytes": _host_memory_bytes(),
             "platform": platform.platform(),
         },
-        "volume": {"generator": "benchmarks.phantom.bone_phantom", "seed": args.seed, "units": "HU + 1024",
-                   "generation_seconds": gen_s, "nbytes": int(vol.nbytes)},
+        "volume": {
+            "generator": "benchmarks.phantom.bone_phantom",
+            "seed": args.seed,
+            "units": "HU + 1024",
+            "generation_seconds": gen_s,
+            "nbytes": int(vol.nbytes),
+        },
         "shape": list(shape),
         "voxels": nvox,
         "level": BONE_LEVEL,
         "dtype": str(vol.dtype),
         "repeats": args.repeat,
-        "timing_method": (f"median of {args.repeat} after 1 warm-up; wall clock (time.perf_counter), end to end from "
-                          "a host numpy array to host numpy results, device synchronised before/after each run"),
+        "timing_method": (
+            f"median of {args.repeat} after 1 warm-up; wall clock (time.perf_counter), end to end from "
+            "a host numpy array to host numpy results, device synchronised before/after each run"
+        ),
         "results": results,
         "ratios": ratios,
         "peak_host_rss_bytes": _peak_rss_bytes(),
@@ -553,8 +602,10 @@ def main(argv: list[str] | None = None) -> int:
     _say(f"\nMC33 benchmark  {dev} ({dev.name})  shape={shape}  level={BONE_LEVEL}  median of {args.repeat}")
     for name, r in results.items():
         if r.get("available"):
-            _say(f"  {name:20s} {r['seconds']:8.3f} s  {r['voxels_per_s'] / 1e6:9.1f} Mvox/s  "
-                  f"verts={r['vertices']:>11,d}  tris={r['triangles']:>11,d}  [{r['input']}]")
+            _say(
+                f"  {name:20s} {r['seconds']:8.3f} s  {r['voxels_per_s'] / 1e6:9.1f} Mvox/s  "
+                f"verts={r['vertices']:>11,d}  tris={r['triangles']:>11,d}  [{r['input']}]"
+            )
         else:
             _say(f"  {name:20s} unavailable: {r.get('skipped') or r.get('error')}")
     for k, v in ratios.items():
@@ -564,8 +615,10 @@ def main(argv: list[str] | None = None) -> int:
     o = results["ours"]
     if o.get("available"):
         pk = o.get("peak_device_memory_bytes")
-        _say(f"  ours peak device memory: {'n/a' if pk is None else f'{pk / 2**30:.2f} GiB'}; engine estimate "
-              f"{o['peak_device_memory_engine_estimate_bytes'] / 2**30:.2f} GiB; slabs={o['stats']['slabs']}")
+        _say(
+            f"  ours peak device memory: {'n/a' if pk is None else f'{pk / 2**30:.2f} GiB'}; engine estimate "
+            f"{o['peak_device_memory_engine_estimate_bytes'] / 2**30:.2f} GiB; slabs={o['stats']['slabs']}"
+        )
     _say(f"  wrote {args.out}")
     return 0 if results["ours"].get("available") else 1
 

@@ -42,7 +42,7 @@ _SUPPORTED = (np.uint16, np.int16, np.float32)
 
 def _waves(rng: np.random.Generator, shape: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Random plane waves: wave vectors (K, 3) in rad/voxel (z, y, x) and phases (K,)."""
-    nz, ny, nx = shape
+    _, ny, nx = shape
     period = max(7.0, min(ny, nx) / 40.0)  # trabecular spacing, voxels
     d = rng.standard_normal((N_WAVES, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -102,8 +102,8 @@ def bone_phantom(
     hole_z, hole_r = 0.36 * (nz - 1), max(2.0, 0.12 * r_mean)
     phase_cortex = rng.uniform(0, 2 * np.pi, 3)
 
-    y = (np.arange(ny, dtype=np.float32) - np.float32(cy0))
-    x = (np.arange(nx, dtype=np.float32) - np.float32(cx0))
+    y = np.arange(ny, dtype=np.float32) - np.float32(cy0)
+    x = np.arange(nx, dtype=np.float32) - np.float32(cx0)
     # in-plane wave factors: cos/sin(k_x x) (nx, K), k_y y (ny, K)
     bx = np.outer(x, kvec[:, 2]).astype(np.float32)
     cos_bx, sin_bx = np.cos(bx), np.sin(bx)
@@ -185,8 +185,9 @@ def bone_phantom(
         np.maximum(d, np.float32(dz_out + wall_v), out=fi)
         _soft(fi)  # cavity fraction
         # cortex value, with a defect: wedge (V-shaped in z) + drilled hole (along x, through both walls)
-        np.add(cortex_ang, np.float32(CORTEX_MEAN + CORTEX_SWING * 0.4 * np.sin(6.0 * zf / nz + phase_cortex[1])),
-               out=c)
+        np.add(
+            cortex_ang, np.float32(CORTEX_MEAN + CORTEX_SWING * 0.4 * np.sin(6.0 * zf / nz + phase_cortex[1])), out=c
+        )
         dzm = abs(zf - z_mid)
         if dzm < wedge_half_z:  # a few planes: temporaries are fine
             half = wedge_half_ang * (1.0 - dzm / wedge_half_z)
@@ -243,5 +244,7 @@ if __name__ == "__main__":  # pragma: no cover - quick look
     t0 = time.perf_counter()
     vol = bone_phantom(shp)  # type: ignore[arg-type]
     dt_s = time.perf_counter() - t0
-    _say(f"shape={vol.shape} dtype={vol.dtype} {dt_s:.2f}s min={vol.min()} max={vol.max()} "
-          f"bone_frac={(vol > BONE_LEVEL).mean():.4f}")
+    _say(
+        f"shape={vol.shape} dtype={vol.dtype} {dt_s:.2f}s min={vol.min()} max={vol.max()} "
+        f"bone_frac={(vol > BONE_LEVEL).mean():.4f}"
+    )

@@ -1,7 +1,7 @@
 """Engine exceptions.
 
-    EngineError
-    └── InputError      the caller's input cannot be processed (bad file, bad parameters); exit code 2
+EngineError
+└── InputError      the caller's input cannot be processed (bad file, bad parameters); exit code 2
 """
 
 from __future__ import annotations

@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 
 # the real scans: ../shared/data beside the repo, or BONEMESH_SHARED_DATA (e.g. on the GPU machine)
-SHARED_DATA = Path(os.environ.get("BONEMESH_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+_DEFAULT_SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+SHARED_DATA = Path(os.environ.get("BONEMESH_SHARED_DATA", _DEFAULT_SHARED))
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:

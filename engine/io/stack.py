@@ -37,7 +37,5 @@ def load_slice_zip(path: str | Path) -> npt.NDArray[np.generic]:
     first = slices[0]
     for n, s in zip(names, slices, strict=True):
         if s.shape != first.shape or s.dtype != first.dtype:
-            raise ValueError(
-                f"Expected every slice to be {first.shape} {first.dtype}, got {s.shape} {s.dtype} in {n}"
-            )
+            raise ValueError(f"Expected every slice to be {first.shape} {first.dtype}, got {s.shape} {s.dtype} in {n}")
     return np.stack(slices)

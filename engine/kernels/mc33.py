@@ -206,8 +206,14 @@ def body_bits(v: vec8f) -> int:
 
 @wp.func
 def cell_triangulation(
-    g: Grid, v: vec8f, cfg: int, oz: int, oy: int, ox: int, face_cyc: wp.array(dtype=wp.int32),
-    key_map: wp.array(dtype=wp.int32)
+    g: Grid,
+    v: vec8f,
+    cfg: int,
+    oz: int,
+    oy: int,
+    ox: int,
+    face_cyc: wp.array(dtype=wp.int32),
+    key_map: wp.array(dtype=wp.int32),
 ) -> int:
     """Table entry of a cell. Outside samples are infinitely far below the level: faces that touch them are
     never ambiguous and, in that limit, no interior join exists in a cell that touches them."""

@@ -85,8 +85,9 @@ def _tables(device_name: str) -> dict[str, Any]:
     face_cyc = np.asarray([c for cyc, _ in gen.FACES for c in cyc], dtype=np.int32)
 
     def up(values: Any, dtype: Any) -> Any:
-        return wp.array(np.asarray(values, dtype=dtype), dtype=wp.int32 if dtype == np.int32 else wp.float32,
-                        device=device_name)
+        return wp.array(
+            np.asarray(values, dtype=dtype), dtype=wp.int32 if dtype == np.int32 else wp.float32, device=device_name
+        )
 
     return {
         "key_map": up(key_map, np.int32),
@@ -113,7 +114,7 @@ def _default_budget(dev: Any) -> int:
 def _layers_per_slab(shape: tuple[int, int, int], itemsize: int, budget: int) -> int:
     from engine.kernels.mc33 import BLOCK, BLOCK_CELLS
 
-    nz, ny, nx = shape
+    _, ny, nx = shape
     nby, nbx = -(-(ny + 1) // BLOCK), -(-(nx + 1) // BLOCK)
     # per block layer: the volume planes, and the worst case of every block active: 5 int32 per cell slot,
     # plus room for ~1 vertex and ~2 triangles per cell of output
@@ -215,8 +216,19 @@ def _run_slabs(
         wp.launch(
             k.count_kernel,
             dim=nslots,
-            inputs=[sub, g, alist, tables["face_cyc"], tables["key_map"], tables["tri_count"],
-                    tables["ivert_count"], vcount, tcount, code, flags],
+            inputs=[
+                sub,
+                g,
+                alist,
+                tables["face_cyc"],
+                tables["key_map"],
+                tables["tri_count"],
+                tables["ivert_count"],
+                vcount,
+                tcount,
+                code,
+                flags,
+            ],
         )
         timer.lap("count")
         voff = wp.empty(nslots, dtype=wp.int32)
@@ -234,9 +246,25 @@ def _run_slabs(
         wp.launch(
             k.emit_kernel,
             dim=nslots,
-            inputs=[sub, g, alist, bmap, voff, toff, code, plane_prev, vstart,
-                    tables["tri_offset"], tables["tri_count"], tables["tri_local"], tables["ivert_offset"],
-                    tables["ivert_count"], tables["ivert_weights"], verts, faces],
+            inputs=[
+                sub,
+                g,
+                alist,
+                bmap,
+                voff,
+                toff,
+                code,
+                plane_prev,
+                vstart,
+                tables["tri_offset"],
+                tables["tri_count"],
+                tables["tri_local"],
+                tables["ivert_offset"],
+                tables["ivert_count"],
+                tables["ivert_weights"],
+                verts,
+                faces,
+            ],
         )
         plane_next = wp.empty((2, ny + 1, nx + 1), dtype=wp.int32)
         wp.launch(k.plane_kernel, dim=(ny + 1, nx + 1), inputs=[g, bmap, voff, code, vstart, cz_last, plane_next])
@@ -358,8 +386,9 @@ def extract_isosurface(
         def view(zlo: int, zhi: int) -> Any:
             return field[zlo : zhi + 1]
 
-        parts = list(_run_slabs(view, field.shape, itemsize, field.dtype == wp.float32, lvl, sp, closed, budget,
-                                dev, st))
+        parts = list(
+            _run_slabs(view, field.shape, itemsize, field.dtype == wp.float32, lvl, sp, closed, budget, dev, st)
+        )
         if not st.level_in_range or not parts:
             return wp.empty(0, dtype=wp.vec3), wp.empty(0, dtype=wp.vec3i)
         if len(parts) == 1:

@@ -15,7 +15,11 @@ REPO = Path(__file__).resolve().parents[2]
 
 def run_cli(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "engine", *args], cwd=cwd, capture_output=True, text=True, timeout=600,
+        [sys.executable, "-m", "engine", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=600,
         env={**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])},
     )
 
@@ -47,8 +51,19 @@ def test_npy_input(tmp_path):
     vol = (100 - ((z - 10) ** 2 + (y - 10) ** 2 + (x - 10) ** 2)).astype(np.int16)
     np.save(tmp_path / "ball.npy", vol)
     out = tmp_path / "ball.stl"
-    res = run_cli("isosurface", str(tmp_path / "ball.npy"), "--iso", "50.5", "--spacing", "2,1,1", "-o", str(out),
-                  "--device", "cpu", cwd=tmp_path)
+    res = run_cli(
+        "isosurface",
+        str(tmp_path / "ball.npy"),
+        "--iso",
+        "50.5",
+        "--spacing",
+        "2,1,1",
+        "-o",
+        str(out),
+        "--device",
+        "cpu",
+        cwd=tmp_path,
+    )
     assert res.returncode == 0, res.stderr
     tri, _ = read_stl(out)
     extent = tri.reshape(-1, 3).max(axis=0) - tri.reshape(-1, 3).min(axis=0)

@@ -122,7 +122,7 @@ def test_dark_ball_inside_bright_box_open_vs_closed(device):
 
 
 def test_open_surface_at_the_border_and_closing(device):
-    z, y, x = np.indices((10, 12, 14), dtype=np.float32)
+    _, _, x = np.indices((10, 12, 14), dtype=np.float32)
     vol = 5.5 - x  # a slab x < 5.5 above the level, touching the array's faces
     verts, faces = marching_cubes_33(vol, 0.0, device=device)
     assert_valid_mesh(verts, faces)
@@ -140,7 +140,8 @@ def test_open_surface_at_the_border_and_closing(device):
 def test_vertices_are_shared(device):
     verts, faces = marching_cubes_33(ball(), 0.0, device=device)
     rounded = np.round(verts, 5)
-    assert len(np.unique(rounded, axis=0)) == len(verts)
+    assert len(np.unique(rounded, axis=0)) == len(verts)  # one vertex per crossing, not a triangle soup
+    assert np.bincount(faces.ravel()).min() >= 3  # each is shared by the faces around it
 
 
 # ------------------------------------------------------------------------------------------- slabs
@@ -162,7 +163,7 @@ def test_budget_bounds_the_slab_working_set(device):
     vol = (ball((64, 40, 40), centre=(31.5, 19.5, 19.5), radius=18.0) * 10).astype(np.int16)
     budget = 3_000_000
     stats = IsosurfaceStats()
-    v, f = marching_cubes_33(vol, 0.5, device=device, max_device_bytes=budget, stats=stats)
+    _, f = marching_cubes_33(vol, 0.5, device=device, max_device_bytes=budget, stats=stats)
     assert stats.slabs > 1
     assert stats.peak_slab_bytes <= budget
     ref = marching_cubes_33(vol, 0.5, device=device)

@@ -39,7 +39,8 @@ def test_triangulations_are_closed_on_the_loops():
         assert used_edges == cut, key
         n_int = tables.IVERT_COUNT[tid]
         assert {int(v) for v in t.ravel() if v >= 12} == set(range(12, 12 + n_int))
-        w = np.asarray(tables.IVERT_WEIGHTS).reshape(-1, 12)[tables.IVERT_OFFSET[tid] : tables.IVERT_OFFSET[tid] + n_int]
+        i0 = tables.IVERT_OFFSET[tid]
+        w = np.asarray(tables.IVERT_WEIGHTS).reshape(-1, 12)[i0 : i0 + n_int]
         np.testing.assert_allclose(w.sum(axis=1), 1.0, rtol=1e-12)
         assert set(np.nonzero(w)[1].tolist()) <= cut
 
