@@ -1,0 +1,208 @@
+"""Binary glTF 2.0 (GLB) writer: one mesh, one primitive, written by hand with ``struct``/``json``.
+
+Axis convention (fixed): glTF is right-handed, +Y up, in metres. Scanner coordinates (x, y, z) in mm map to
+glTF (X, Y, Z) in metres as
+
+    X = +x * 0.001        (scanner x: patient's left in DICOM LPS)
+    Y = +z * 0.001        (scanner z: the slice axis, usually the patient's long axis, superior in LPS)
+    Z = -y * 0.001        (scanner y: posterior in LPS, so glTF +Z, toward the default camera, is anterior)
+
+i.e. ``p_gltf = 0.001 * R @ (x, y, z)`` with ``R = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]``, a rotation by -90 degrees
+about x with ``det(R) = +1``. Being a proper rotation (no mirror), it keeps triangle winding and outward normals
+valid: faces stay counter-clockwise seen from outside, as glTF requires. For a CT series in LPS the model stands
+upright (head up) and faces the viewer. For image stacks the direction of the slice axis is not known; a stack
+stored feet-first comes out upside down (flip it upstream, not here). No translation is applied: the positions
+keep the volume's origin, and viewers frame the model from the POSITION bounds.
+
+The layout is: bufferView 0 = POSITION (float32 VEC3, with min/max), bufferView 1 = NORMAL (float32 VEC3, unit),
+bufferView 2 = indices (uint16 when there are fewer than 65536 vertices, else uint32), one buffer in the BIN chunk,
+the JSON chunk padded with spaces and the BIN chunk with zeros to 4 bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from engine.errors import InputError
+
+# rows: glTF X, Y, Z in terms of scanner (x, y, z)
+GLTF_FROM_XYZ = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+MM_TO_M = 1e-3
+GENERATOR = "bonemesh"
+
+# glTF enums
+ARRAY_BUFFER = 34962
+ELEMENT_ARRAY_BUFFER = 34963
+FLOAT = 5126
+UNSIGNED_SHORT = 5123
+UNSIGNED_INT = 5125
+TRIANGLES = 4
+
+_GLB_MAGIC = 0x46546C67  # "glTF"
+_CHUNK_JSON = 0x4E4F534A  # "JSON"
+_CHUNK_BIN = 0x004E4942  # "BIN\0"
+
+BONE_MATERIAL: dict[str, Any] = {
+    "name": "bone",
+    "pbrMetallicRoughness": {"baseColorFactor": [0.89, 0.85, 0.79, 1.0], "metallicFactor": 0.0, "roughnessFactor": 0.6},
+    "doubleSided": False,
+}
+
+
+def check_mesh(
+    vertices_zyx_mm: npt.ArrayLike, faces: npt.ArrayLike, normals_zyx: npt.ArrayLike | None = None
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64], npt.NDArray[np.float64] | None]:
+    """Validate an engine mesh and return it as float64/int64 arrays (normals None if not given).
+
+    Raises:
+        InputError: wrong shapes, an empty mesh, non-finite values or indices out of range.
+    """
+    verts = np.asarray(vertices_zyx_mm, dtype=np.float64)
+    tris = np.asarray(faces, dtype=np.int64)
+    if verts.ndim != 2 or verts.shape[1] != 3 or tris.ndim != 2 or tris.shape[1] != 3:
+        raise InputError(f"expected (V, 3) vertices and (F, 3) faces, got {verts.shape} and {tris.shape}")
+    if len(verts) == 0 or len(tris) == 0:
+        raise InputError("cannot export an empty mesh to glTF (no vertices or no faces)")
+    if not np.isfinite(verts).all():
+        raise InputError("mesh vertices contain NaN or infinite values")
+    if tris.min() < 0 or tris.max() >= len(verts):
+        raise InputError(f"face indices out of range [0, {len(verts)})")
+    if len(verts) > 2**32 - 1:
+        raise InputError("too many vertices for uint32 indices")
+    norms = None
+    if normals_zyx is not None:
+        norms = np.asarray(normals_zyx, dtype=np.float64)
+        if norms.shape != verts.shape:
+            raise InputError(f"normals shape {norms.shape} does not match vertices {verts.shape}")
+    return verts, tris, norms
+
+
+def zyx_to_gltf(vectors_zyx: npt.NDArray[np.floating], scale: float = 1.0) -> npt.NDArray[np.float64]:
+    """Map (z, y, x) engine vectors to the glTF frame (see the module docstring), times ``scale``."""
+    xyz = np.asarray(vectors_zyx, dtype=np.float64)[:, ::-1]
+    return (xyz @ GLTF_FROM_XYZ.T) * scale
+
+
+def vertex_normals(
+    positions: npt.NDArray[np.floating], faces: npt.NDArray[np.integer], normals: npt.NDArray[np.floating] | None = None
+) -> npt.NDArray[np.float32]:
+    """Unit per-vertex normals in the frame of ``positions``.
+
+    Given ``normals`` (same frame) are normalised; vertices whose given normal has zero length or is not finite,
+    and all vertices when none are given, get the area-weighted mean of their faces' normals. A vertex that still
+    has none (only in zero-area faces) gets +Y, so every normal is unit length as glTF requires.
+
+    Args:
+        positions: (V, 3) vertex positions.
+        faces: (F, 3) counter-clockwise (outward) triangles.
+        normals: optional (V, 3) normals to normalise.
+
+    Returns:
+        (V, 3) float32 unit normals.
+    """
+    pos = np.asarray(positions, dtype=np.float64)
+    out = np.zeros_like(pos) if normals is None else np.nan_to_num(np.asarray(normals, dtype=np.float64), nan=0.0)
+    length = np.linalg.norm(out, axis=1)
+    missing = ~(length > 0) | ~np.isfinite(length)
+    if missing.any():
+        tri = pos[faces]
+        area_normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
+        summed = np.zeros_like(pos)
+        for k in range(3):
+            np.add.at(summed, faces[:, k], area_normal)
+        out[missing] = summed[missing]
+        length = np.linalg.norm(out, axis=1)
+    unit = np.divide(out, length[:, None], out=np.zeros_like(out), where=length[:, None] > 0)
+    unit[~(length > 0)] = (0.0, 1.0, 0.0)
+    return unit.astype(np.float32)
+
+
+def index_type(vertex_count: int) -> tuple[int, type[np.unsignedinteger[Any]]]:
+    """The index componentType and dtype: uint16 below 65536 vertices (65535 stays free as the restart value)."""
+    return (UNSIGNED_SHORT, np.uint16) if vertex_count < 65536 else (UNSIGNED_INT, np.uint32)
+
+
+def accessor_bounds(values: npt.NDArray[np.float32]) -> dict[str, list[float]]:
+    """The ``min``/``max`` of an accessor, from the float32 values as stored."""
+    return {"min": [float(v) for v in values.min(axis=0)], "max": [float(v) for v in values.max(axis=0)]}
+
+
+def base_document(name: str, primitive: dict[str, Any], accessors: list[dict[str, Any]]) -> dict[str, Any]:
+    """A glTF document with one scene, node, mesh (``primitive``) and the bone material; no buffers yet."""
+    return {
+        "asset": {"version": "2.0", "generator": GENERATOR},
+        "scene": 0,
+        "scenes": [{"name": name, "nodes": [0]}],
+        "nodes": [{"name": name, "mesh": 0}],
+        "meshes": [{"name": name, "primitives": [primitive]}],
+        "materials": [dict(BONE_MATERIAL)],
+        "accessors": accessors,
+    }
+
+
+def pack_glb(document: dict[str, Any], binary: bytes) -> bytes:
+    """Assemble a GLB: 12-byte header, JSON chunk (space-padded), BIN chunk (zero-padded) if ``binary``.
+
+    Args:
+        document: the glTF JSON; its ``buffers[0].byteLength`` must be ``len(binary)`` (before padding).
+        binary: the buffer's bytes.
+
+    Returns:
+        The GLB file's bytes; every chunk length is a multiple of 4.
+    """
+    text = json.dumps(document, separators=(",", ":"), ensure_ascii=True).encode("utf-8")
+    text += b" " * (-len(text) % 4)
+    chunks = struct.pack("<II", len(text), _CHUNK_JSON) + text
+    if binary:
+        binary = binary + b"\x00" * (-len(binary) % 4)
+        chunks += struct.pack("<II", len(binary), _CHUNK_BIN) + binary
+    return struct.pack("<III", _GLB_MAGIC, 2, 12 + len(chunks)) + chunks
+
+
+def to_glb(
+    vertices_zyx_mm: npt.ArrayLike,
+    faces: npt.ArrayLike,
+    normals_zyx: npt.ArrayLike | None = None,
+    *,
+    name: str = "bone",
+) -> bytes:
+    """Encode a mesh as binary glTF 2.0 (metres, +Y up; axes as in the module docstring).
+
+    Args:
+        vertices_zyx_mm: (V, 3) vertices in (z, y, x) order, mm (the engine's convention).
+        faces: (F, 3) vertex indices, outward normals with vertices taken in (x, y, z) order.
+        normals_zyx: optional (V, 3) per-vertex normals in (z, y, x) order; area-weighted vertex normals when
+            None. They are rotated like the positions and normalised.
+        name: the scene, node and mesh name.
+
+    Returns:
+        The GLB file's bytes.
+
+    Raises:
+        InputError: an empty or malformed mesh.
+    """
+    verts, tris, norms = check_mesh(vertices_zyx_mm, faces, normals_zyx)
+    positions = zyx_to_gltf(verts, MM_TO_M).astype(np.float32)
+    normals = vertex_normals(positions, tris, None if norms is None else zyx_to_gltf(norms))
+    index_ctype, index_dtype = index_type(len(positions))
+    parts = [positions.tobytes(), normals.tobytes(), tris.astype(index_dtype).tobytes()]
+    views, offset = [], 0
+    for data, target in zip(parts, (ARRAY_BUFFER, ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER)):
+        views.append({"buffer": 0, "byteOffset": offset, "byteLength": len(data), "target": target})
+        offset += len(data)  # float32 parts come first, so every view starts 4-byte aligned
+    binary = b"".join(parts)
+    accessors = [
+        {"bufferView": 0, "componentType": FLOAT, "count": len(positions), "type": "VEC3", **accessor_bounds(positions)},
+        {"bufferView": 1, "componentType": FLOAT, "count": len(normals), "type": "VEC3"},
+        {"bufferView": 2, "componentType": index_ctype, "count": tris.size, "type": "SCALAR"},
+    ]
+    primitive = {"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 2, "material": 0, "mode": TRIANGLES}
+    document = base_document(name, primitive, accessors)
+    document["bufferViews"] = views
+    document["buffers"] = [{"byteLength": len(binary)}]
+    return pack_glb(document, binary)

@@ -1,0 +1,188 @@
+"""Parameters of the reconstruction pipeline: frozen dataclasses that round-trip through JSON.
+
+Defaults are the paper's best combination (EMC33GPU: 3x3x3 Gaussian, MC33, reduction factor 0.2, one
+surface-preserving Laplacian iteration at 0.5 degrees). Importing this module never loads Warp.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+# lower HU bounds of InVesalius' threshold presets (adult); "bone" is the usual 300 HU
+ISO_PRESETS_HU: dict[str, float] = {"bone": 300.0, "compact-bone": 662.0, "spongy-bone": 148.0}
+
+
+def _check(cond: bool, message: str) -> None:
+    if not cond:
+        raise ValueError(message)
+
+
+@dataclass(frozen=True)
+class PreprocessParams:
+    """Optional per-slice preprocessing (the paper's) and a crop box.
+
+    Args:
+        threshold: set samples below this value (volume units) to the volume's minimum; None: off.
+        canny_sigma: replace each slice by its Canny edge map (scikit-image) with this sigma; None: off.
+        area_opening_px: remove bright specks smaller than this many pixels per slice; None: off.
+        crop_zyx_mm: ((z0, z1), (y0, y1), (x0, x1)) box in mm from the first sample; None: whole volume.
+    """
+
+    threshold: float | None = None
+    canny_sigma: float | None = None
+    area_opening_px: int | None = None
+    crop_zyx_mm: tuple[tuple[float, float], tuple[float, float], tuple[float, float]] | None = None
+
+    def __post_init__(self) -> None:
+        _check(self.canny_sigma is None or self.canny_sigma > 0, f"canny_sigma must be > 0, got {self.canny_sigma}")
+        _check(self.area_opening_px is None or self.area_opening_px >= 1,
+               f"area_opening_px must be >= 1, got {self.area_opening_px}")
+        if self.crop_zyx_mm is not None:
+            _check(len(self.crop_zyx_mm) == 3 and all(len(r) == 2 and r[0] < r[1] for r in self.crop_zyx_mm),
+                   f"crop_zyx_mm must be three (lo, hi) ranges in mm with lo < hi, got {self.crop_zyx_mm}")
+
+
+@dataclass(frozen=True)
+class GaussianParams:
+    """3x3x3 Gaussian smoothing of the volume on the device.
+
+    Args:
+        sigma_voxels: standard deviation in voxels (0.5, MATLAB's imgaussfilt3 default for a 3x3x3 kernel).
+    """
+
+    sigma_voxels: float = 0.5
+
+    def __post_init__(self) -> None:
+        _check(self.sigma_voxels > 0, f"sigma_voxels must be > 0, got {self.sigma_voxels}")
+
+
+@dataclass(frozen=True)
+class IsoParams:
+    """Iso level: an explicit value in the volume's units, a HU preset, or Otsu when neither is given.
+
+    Args:
+        iso: level in the volume's units.
+        preset: one of ``ISO_PRESETS_HU`` (needs HU data, or ``hu_offset`` for stacks that store HU + offset).
+        hu_offset: stored value = HU + hu_offset (e.g. 1024 for PNG stacks of HU + 1024).
+        closed: close the surface at the volume's borders (watertight output).
+    """
+
+    iso: float | None = None
+    preset: str | None = None
+    hu_offset: float | None = None
+    closed: bool = True
+
+    def __post_init__(self) -> None:
+        _check(not (self.iso is not None and self.preset is not None), "give either iso or preset, not both")
+        _check(self.iso is None or math.isfinite(self.iso), f"iso must be finite, got {self.iso}")
+        _check(self.preset is None or self.preset in ISO_PRESETS_HU,
+               f"preset must be one of {sorted(ISO_PRESETS_HU)}, got {self.preset!r}")
+
+
+@dataclass(frozen=True)
+class IslandParams:
+    """Island removal. Args: min_volume_mm3: drop pieces smaller than this; keep_largest: keep the N largest."""
+
+    min_volume_mm3: float | None = None
+    keep_largest: int | None = None
+
+    def __post_init__(self) -> None:
+        _check(self.min_volume_mm3 is None or self.min_volume_mm3 >= 0,
+               f"min_volume_mm3 must be >= 0, got {self.min_volume_mm3}")
+        _check(self.keep_largest is None or self.keep_largest >= 1, f"keep_largest must be >= 1, got {self.keep_largest}")
+
+
+@dataclass(frozen=True)
+class DecimateParams:
+    """Quadric-error decimation. Args: reduction: fraction of faces kept (0 < R <= 1); max_triangles: a cap."""
+
+    reduction: float | None = 0.2
+    max_triangles: int | None = None
+
+    def __post_init__(self) -> None:
+        _check(self.reduction is None or 0 < self.reduction <= 1, f"reduction must be in (0, 1], got {self.reduction}")
+        _check(self.max_triangles is None or self.max_triangles >= 4,
+               f"max_triangles must be >= 4, got {self.max_triangles}")
+        _check(self.reduction is not None or self.max_triangles is not None, "give reduction or max_triangles")
+
+
+@dataclass(frozen=True)
+class SmoothParams:
+    """Surface-preserving Laplacian smoothing. Args: iterations (>= 1); angle_deg: largest face-normal turn."""
+
+    iterations: int = 1
+    angle_deg: float = 0.5
+
+    def __post_init__(self) -> None:
+        _check(self.iterations >= 1, f"iterations must be >= 1, got {self.iterations}")
+        _check(0 < self.angle_deg < 90, f"angle_deg must be in (0, 90), got {self.angle_deg}")
+
+
+@dataclass(frozen=True)
+class ExportParams:
+    """Output budgets. Args: phone_max_triangles (Draco GLB); ar_max_triangles (plain GLB for AR viewers)."""
+
+    phone_max_triangles: int = 100_000
+    ar_max_triangles: int = 50_000
+
+    def __post_init__(self) -> None:
+        _check(self.phone_max_triangles >= 100, f"phone_max_triangles must be >= 100, got {self.phone_max_triangles}")
+        _check(self.ar_max_triangles >= 100, f"ar_max_triangles must be >= 100, got {self.ar_max_triangles}")
+
+
+_NESTED = {
+    "preprocess": PreprocessParams,
+    "gaussian": GaussianParams,
+    "iso": IsoParams,
+    "islands": IslandParams,
+    "decimate": DecimateParams,
+    "smooth": SmoothParams,
+    "export": ExportParams,
+}
+
+
+@dataclass(frozen=True)
+class ReconParams:
+    """The whole pipeline; a stage whose params are None is skipped (iso and export always run)."""
+
+    preprocess: PreprocessParams | None = None
+    gaussian: GaussianParams | None = field(default_factory=GaussianParams)
+    iso: IsoParams = field(default_factory=IsoParams)
+    islands: IslandParams | None = None
+    decimate: DecimateParams | None = field(default_factory=DecimateParams)
+    smooth: SmoothParams | None = field(default_factory=SmoothParams)
+    export: ExportParams = field(default_factory=ExportParams)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able dict (tuples become lists)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> ReconParams:
+        """Inverse of :meth:`to_dict`; unknown keys raise ValueError naming them."""
+        if not isinstance(data, dict):
+            raise ValueError(f"Expected a JSON object of parameters, got {type(data).__name__}")
+        unknown = set(data) - set(_NESTED)
+        if unknown:
+            raise ValueError(f"Unknown parameter groups {sorted(unknown)}; expected some of {sorted(_NESTED)}")
+        kwargs: dict[str, Any] = {}
+        for name, kind in _NESTED.items():
+            if name not in data:
+                continue
+            value = data[name]
+            if value is None:
+                kwargs[name] = None
+                continue
+            if not isinstance(value, dict):
+                raise ValueError(f"Expected {name} to be an object, got {type(value).__name__}")
+            names = {f.name for f in dataclasses.fields(kind)}
+            bad = set(value) - names
+            if bad:
+                raise ValueError(f"Unknown {name} parameters {sorted(bad)}; expected some of {sorted(names)}")
+            if name == "preprocess" and value.get("crop_zyx_mm") is not None:
+                value = {**value, "crop_zyx_mm": tuple(tuple(r) for r in value["crop_zyx_mm"])}
+            kwargs[name] = kind(**value)
+        return cls(**kwargs)
