@@ -1,5 +1,8 @@
 """The ``bonemesh`` command line.
 
+    bonemesh reconstruct INPUT -o OUTDIR [--iso V | --preset bone] [--spacing Z,Y,X] [--reduction R]
+                         [--max-triangles N] [--iterations N] [--angle DEG] [--min-island-mm3 V] [--device ...]
+    bonemesh reconstruct --demo -o OUTDIR
     bonemesh isosurface INPUT -o OUT.stl --iso LEVEL [--spacing Z,Y,X] [--device auto|cpu|cuda:N] [--open]
     bonemesh isosurface --demo -o OUT.stl
 
@@ -15,10 +18,12 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from engine.errors import InputError
+from engine.params import ISO_PRESETS_HU
 
 
 def _spacing(text: str) -> tuple[float, float, float]:
@@ -42,6 +47,25 @@ def build_parser() -> argparse.ArgumentParser:
     iso.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default auto)")
     iso.add_argument("--open", action="store_true", help="do not close the surface at the volume's borders")
     iso.add_argument("--demo", action="store_true", help="use the bundled VTK headsq CT head at its bone level")
+
+    rec = sub.add_parser("reconstruct", help="the EMC33 pipeline: model.stl, model.glb, phone.glb, ar.glb, report")
+    rec.add_argument("input", nargs="?", help="slice archive or folder, DICOM series (zip or folder), TIFF or .npy")
+    rec.add_argument("-o", "--output", required=True, help="output folder")
+    level = rec.add_mutually_exclusive_group()
+    level.add_argument("--iso", type=float, help="iso level in the volume's units")
+    level.add_argument("--preset", choices=sorted(ISO_PRESETS_HU), help="HU preset (bone = 300 HU)")
+    rec.add_argument("--hu-offset", type=float, help="the stack stores HU + this offset (e.g. 1024), for --preset")
+    rec.add_argument("--spacing", type=_spacing, help="voxel size Z,Y,X in mm (image stacks without it)")
+    rec.add_argument("--reduction", type=float, help="fraction of faces kept by decimation (default 0.2)")
+    rec.add_argument("--max-triangles", type=int, help="decimate to at most this many triangles instead")
+    rec.add_argument("--iterations", type=int, default=1, help="Laplacian smoothing iterations (default 1)")
+    rec.add_argument("--angle", type=float, default=0.5, help="smoothing threshold angle in degrees (default 0.5)")
+    rec.add_argument("--min-island-mm3", type=float, help="drop pieces smaller than this volume")
+    rec.add_argument("--keep-largest", type=int, help="keep only the N largest pieces")
+    rec.add_argument("--open", action="store_true", help="do not close the surface at the volume's borders")
+    rec.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default auto)")
+    rec.add_argument("--demo", action="store_true", help="use the bundled VTK headsq CT head")
+    rec.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser
 
 
@@ -112,11 +136,103 @@ def _isosurface(args: argparse.Namespace) -> int:
     return 0
 
 
+def _recon_params(args: argparse.Namespace) -> Any:
+    from engine.params import DecimateParams, IslandParams, IsoParams, ReconParams, SmoothParams
+
+    try:
+        decimate = DecimateParams(
+            reduction=None if args.max_triangles else (args.reduction or 0.2), max_triangles=args.max_triangles
+        )
+        if args.reduction is not None and args.max_triangles is not None:
+            raise ValueError("give --reduction or --max-triangles, not both")
+        islands = None
+        if args.min_island_mm3 is not None or args.keep_largest is not None:
+            islands = IslandParams(min_volume_mm3=args.min_island_mm3, keep_largest=args.keep_largest)
+        return ReconParams(
+            iso=IsoParams(iso=args.iso, preset=args.preset, hu_offset=args.hu_offset, closed=not args.open),
+            islands=islands,
+            decimate=decimate,
+            smooth=SmoothParams(iterations=args.iterations, angle_deg=args.angle),
+        )
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
+class _Bar:
+    """One progress bar per stage on stderr."""
+
+    def __init__(self, quiet: bool) -> None:
+        self.quiet = quiet
+        self.t0 = time.perf_counter()
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        if self.quiet:
+            return
+        width = 30
+        filled = round(fraction * width)
+        sys.stderr.write(
+            f"\r[{'#' * filled}{'.' * (width - filled)}] {fraction * 100:5.1f}%  {stage:<12s}"
+            f" {time.perf_counter() - self.t0:7.2f} s"
+        )
+        if fraction >= 1.0:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+
+def _reconstruct(args: argparse.Namespace) -> int:
+    from engine.io import load_volume
+    from engine.pipeline import reconstruct, write_outputs
+
+    params = _recon_params(args)
+    if args.demo:
+        from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
+
+        volume = load_volume(HEADSQ_ZIP, spacing_zyx_mm=args.spacing or HEADSQ_SPACING_ZYX_MM)
+        if args.iso is None and args.preset is None:
+            import dataclasses
+
+            params = dataclasses.replace(params, iso=dataclasses.replace(params.iso, iso=1150.0))
+    else:
+        if not args.input:
+            raise InputError("no INPUT given (or use --demo)")
+        if not Path(args.input).exists():
+            raise InputError(f"{args.input} does not exist")
+        volume = load_volume(args.input, spacing_zyx_mm=args.spacing)
+    recon = reconstruct(volume, params, device=args.device, on_progress=_Bar(args.quiet))
+    paths = write_outputs(recon, args.output, params, device=args.device)
+    rep = recon.report
+    rows = [
+        ("input", f"{tuple(volume.data.shape)} {volume.data.dtype}, spacing {tuple(volume.spacing_zyx_mm)} mm"),
+        ("iso level", f"{rep['iso_level']['value']:g} {rep['iso_level']['units']} ({rep['iso_level']['chosen_by']})"),
+        ("device", rep["device"]["name"]),
+    ]
+    for stage, secs in rep["stage_seconds"].items():
+        counts = rep["counts"].get(stage)
+        extra = f"  {counts['faces']:,} faces" if isinstance(counts, dict) and "faces" in counts else ""
+        rows.append((stage, f"{secs:8.3f} s{extra}"))
+    mesh = rep["mesh"]
+    rows.append(
+        (
+            "model",
+            f"{mesh['n_faces']:,} faces, watertight {mesh['watertight']}, volume "
+            f"{mesh['volume_mm3']:,.0f} mm3, area {mesh['area_mm2']:,.0f} mm2",
+        )
+    )
+    for name, path in paths.items():
+        rows.append((name, f"{path.stat().st_size:,} bytes"))
+    width = max(len(r[0]) for r in rows)
+    for key, value in rows:
+        print(f"{key:<{width}}  {value}")  # noqa: T201 - the command's summary table
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         if args.command == "isosurface":
             return _isosurface(args)
+        if args.command == "reconstruct":
+            return _reconstruct(args)
     except InputError as exc:
         print(f"bonemesh: error: {exc}", file=sys.stderr)  # noqa: T201
         return 2

@@ -38,11 +38,15 @@ class PreprocessParams:
 
     def __post_init__(self) -> None:
         _check(self.canny_sigma is None or self.canny_sigma > 0, f"canny_sigma must be > 0, got {self.canny_sigma}")
-        _check(self.area_opening_px is None or self.area_opening_px >= 1,
-               f"area_opening_px must be >= 1, got {self.area_opening_px}")
+        _check(
+            self.area_opening_px is None or self.area_opening_px >= 1,
+            f"area_opening_px must be >= 1, got {self.area_opening_px}",
+        )
         if self.crop_zyx_mm is not None:
-            _check(len(self.crop_zyx_mm) == 3 and all(len(r) == 2 and r[0] < r[1] for r in self.crop_zyx_mm),
-                   f"crop_zyx_mm must be three (lo, hi) ranges in mm with lo < hi, got {self.crop_zyx_mm}")
+            _check(
+                len(self.crop_zyx_mm) == 3 and all(len(r) == 2 and r[0] < r[1] for r in self.crop_zyx_mm),
+                f"crop_zyx_mm must be three (lo, hi) ranges in mm with lo < hi, got {self.crop_zyx_mm}",
+            )
 
 
 @dataclass(frozen=True)
@@ -78,8 +82,10 @@ class IsoParams:
     def __post_init__(self) -> None:
         _check(not (self.iso is not None and self.preset is not None), "give either iso or preset, not both")
         _check(self.iso is None or math.isfinite(self.iso), f"iso must be finite, got {self.iso}")
-        _check(self.preset is None or self.preset in ISO_PRESETS_HU,
-               f"preset must be one of {sorted(ISO_PRESETS_HU)}, got {self.preset!r}")
+        _check(
+            self.preset is None or self.preset in ISO_PRESETS_HU,
+            f"preset must be one of {sorted(ISO_PRESETS_HU)}, got {self.preset!r}",
+        )
 
 
 @dataclass(frozen=True)
@@ -90,9 +96,13 @@ class IslandParams:
     keep_largest: int | None = None
 
     def __post_init__(self) -> None:
-        _check(self.min_volume_mm3 is None or self.min_volume_mm3 >= 0,
-               f"min_volume_mm3 must be >= 0, got {self.min_volume_mm3}")
-        _check(self.keep_largest is None or self.keep_largest >= 1, f"keep_largest must be >= 1, got {self.keep_largest}")
+        _check(
+            self.min_volume_mm3 is None or self.min_volume_mm3 >= 0,
+            f"min_volume_mm3 must be >= 0, got {self.min_volume_mm3}",
+        )
+        _check(
+            self.keep_largest is None or self.keep_largest >= 1, f"keep_largest must be >= 1, got {self.keep_largest}"
+        )
 
 
 @dataclass(frozen=True)
@@ -104,8 +114,10 @@ class DecimateParams:
 
     def __post_init__(self) -> None:
         _check(self.reduction is None or 0 < self.reduction <= 1, f"reduction must be in (0, 1], got {self.reduction}")
-        _check(self.max_triangles is None or self.max_triangles >= 4,
-               f"max_triangles must be >= 4, got {self.max_triangles}")
+        _check(
+            self.max_triangles is None or self.max_triangles >= 4,
+            f"max_triangles must be >= 4, got {self.max_triangles}",
+        )
         _check(self.reduction is not None or self.max_triangles is not None, "give reduction or max_triangles")
 
 

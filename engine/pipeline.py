@@ -72,7 +72,7 @@ def choose_level(volume: Volume, params: ReconParams) -> tuple[float, str]:
     sample = volume.data[::step, ::step, ::step]
     if sample.min() == sample.max():
         raise EmptySurfaceError(f"the volume is constant ({sample.min()}): there is no surface to build")
-    return float(threshold_otsu(sample)), "Otsu"
+    return float(threshold_otsu(sample.ravel())), "Otsu"
 
 
 def _versions() -> dict[str, str]:
@@ -113,8 +113,13 @@ def reconstruct(
         "parameters": params.to_dict(),
         "device": {"spec": device, "name": str(dev), "description": getattr(dev, "name", str(dev))},
         "versions": _versions(),
-        "input": {"shape_zyx": list(volume.data.shape), "dtype": str(volume.data.dtype),
-                  "spacing_zyx_mm": list(volume.spacing_zyx_mm), "units": volume.units, "source": volume.source},
+        "input": {
+            "shape_zyx": list(volume.data.shape),
+            "dtype": str(volume.data.dtype),
+            "spacing_zyx_mm": list(volume.spacing_zyx_mm),
+            "units": volume.units,
+            "source": volume.source,
+        },
         "stage_seconds": {},
         "counts": {},
     }
@@ -169,8 +174,9 @@ def reconstruct(
         from engine.stages.isosurface import IsosurfaceStats, extract_isosurface
 
         st = IsosurfaceStats()
-        v, f = extract_isosurface(state["field"], state["level"], spacing=state["volume"].spacing_zyx_mm,
-                                  closed=params.iso.closed, stats=st)
+        v, f = extract_isosurface(
+            state["field"], state["level"], spacing=state["volume"].spacing_zyx_mm, closed=params.iso.closed, stats=st
+        )
         verts = v.numpy().reshape(-1, 3).astype(np.float32)  # sync point (the mesh goes to the host stages)
         faces = f.numpy().reshape(-1, 3).astype(np.int32)
         del state["field"]
@@ -189,8 +195,12 @@ def reconstruct(
             return
         from engine.stages.islands import remove_islands
 
-        v, f, info = remove_islands(state["verts"], state["faces"], min_volume_mm3=params.islands.min_volume_mm3,
-                                    keep_largest=params.islands.keep_largest)
+        v, f, info = remove_islands(
+            state["verts"],
+            state["faces"],
+            min_volume_mm3=params.islands.min_volume_mm3,
+            keep_largest=params.islands.keep_largest,
+        )
         if len(f) == 0:
             raise EmptySurfaceError("island removal left nothing: lower --min-island-mm3 or keep more pieces")
         state["verts"], state["faces"] = v, f
@@ -202,8 +212,12 @@ def reconstruct(
             return
         from engine.stages.decimate import decimate_mesh
 
-        v, f, info = decimate_mesh(state["verts"], state["faces"], reduction=params.decimate.reduction,
-                                   max_triangles=params.decimate.max_triangles)
+        v, f, info = decimate_mesh(
+            state["verts"],
+            state["faces"],
+            reduction=params.decimate.reduction,
+            max_triangles=params.decimate.max_triangles,
+        )
         state["verts"], state["faces"] = v, f
         report["decimate"] = info
         report["counts"]["decimate"] = {"vertices": len(v), "faces": len(f)}
@@ -221,8 +235,9 @@ def reconstruct(
 
         state["normals"] = vertex_normals(state["verts"], state["faces"], dev)
 
-    for name, fn in zip(STAGES, (preprocess, upload, gaussian, isosurface, islands, decimate, smooth, normals),
-                        strict=True):
+    for name, fn in zip(
+        STAGES, (preprocess, upload, gaussian, isosurface, islands, decimate, smooth, normals), strict=True
+    ):
         run(name, fn)
     from engine.stages.meshcheck import mesh_stats
 
@@ -242,8 +257,9 @@ def _budget_mesh(mesh: Mesh, max_triangles: int, device: Any) -> tuple[Mesh, dic
     return Mesh(v, f, vertex_normals(v, f, device)), {"faces": len(f), "decimated": True, "decimate": info}
 
 
-def write_outputs(recon: Reconstruction, outdir: str | Path, params: ReconParams | None = None,
-                  *, device: str = "auto") -> dict[str, Path]:
+def write_outputs(
+    recon: Reconstruction, outdir: str | Path, params: ReconParams | None = None, *, device: str = "auto"
+) -> dict[str, Path]:
     """Write model.stl, model.glb, phone.glb (Draco), ar.glb and report.json into ``outdir``.
 
     Every file is written into a temporary folder inside ``outdir`` and moved into place only when all are
@@ -272,8 +288,9 @@ def write_outputs(recon: Reconstruction, outdir: str | Path, params: ReconParams
         }
         for name, data in files.items():
             (tmp / name).write_bytes(data)
-        recon.report["exports"].update({name: {**recon.report["exports"].get(name, {}), "bytes": len(data)}
-                                        for name, data in files.items()})
+        recon.report["exports"].update(
+            {name: {**recon.report["exports"].get(name, {}), "bytes": len(data)} for name, data in files.items()}
+        )
         (tmp / "report.json").write_text(json.dumps(recon.report, indent=2, default=_json_default) + "\n")
         paths = {}
         for name in [*files, "report.json"]:

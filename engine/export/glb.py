@@ -196,8 +196,9 @@ def to_glb(
         views.append({"buffer": 0, "byteOffset": offset, "byteLength": len(data), "target": target})
         offset += len(data)  # float32 parts come first, so every view starts 4-byte aligned
     binary = b"".join(parts)
+    bounds = accessor_bounds(positions)
     accessors = [
-        {"bufferView": 0, "componentType": FLOAT, "count": len(positions), "type": "VEC3", **accessor_bounds(positions)},
+        {"bufferView": 0, "componentType": FLOAT, "count": len(positions), "type": "VEC3", **bounds},
         {"bufferView": 1, "componentType": FLOAT, "count": len(normals), "type": "VEC3"},
         {"bufferView": 2, "componentType": index_ctype, "count": tris.size, "type": "SCALAR"},
     ]

@@ -16,9 +16,7 @@ def face_normal_zyx(a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec3:
 
 
 @wp.kernel
-def vertex_normals_kernel(
-    pos: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.vec3i), acc: wp.array(dtype=wp.vec3)
-):
+def vertex_normals_kernel(pos: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.vec3i), acc: wp.array(dtype=wp.vec3)):
     f = wp.tid()
     t = faces[f]
     n = face_normal_zyx(pos[t[0]], pos[t[1]], pos[t[2]])

@@ -8,7 +8,9 @@ import numpy as np
 import numpy.typing as npt
 
 
-def vertex_normals(verts: npt.NDArray[np.float32], faces: npt.NDArray[np.int32], device: Any) -> npt.NDArray[np.float32]:
+def vertex_normals(
+    verts: npt.NDArray[np.float32], faces: npt.NDArray[np.int32], device: Any
+) -> npt.NDArray[np.float32]:
     """(V, 3) float32 unit normals in (z, y, x) order, pointing outward (toward values below the level)."""
     import warp as wp
 

@@ -28,8 +28,9 @@ def crop_volume(volume: Volume, crop_zyx_mm: tuple[tuple[float, float], ...]) ->
                 f"{(n - 1) * step:g} mm axis"
             )
         slices.append(slice(i0, i1))
-    origin = tuple(o + s.start * d for o, s, d in zip(volume.origin_mm, slices[::-1], volume.spacing_zyx_mm[::-1],
-                                                       strict=True))
+    origin = tuple(
+        o + s.start * d for o, s, d in zip(volume.origin_mm, slices[::-1], volume.spacing_zyx_mm[::-1], strict=True)
+    )
     return dataclasses.replace(volume, data=np.ascontiguousarray(volume.data[tuple(slices)]), origin_mm=origin)
 
 

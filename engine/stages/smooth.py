@@ -21,7 +21,7 @@ def unique_edges(faces: npt.NDArray[np.int32]) -> tuple[npt.NDArray[np.int32], n
     """Undirected edges (E, 2) and, per edge, whether it lies on the boundary (in one face only)."""
     e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1).astype(np.int64)
     key = e[:, 0] * (int(faces.max()) + 1) + e[:, 1]
-    uniq, first, counts = np.unique(key, return_index=True, return_counts=True)
+    _, first, counts = np.unique(key, return_index=True, return_counts=True)
     return e[first].astype(np.int32), counts == 1
 
 

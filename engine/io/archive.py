@@ -1,0 +1,312 @@
+"""Safe reading of the files inside a zip, a tar (optionally compressed), a folder or a single file.
+
+Archive member names are only labels (for sorting and messages): nothing is ever written to disk under such a
+name. Members are copied into anonymous spooled temporary files (memory first, then unnamed temp files) while
+the limits of :class:`InputLimits` are enforced on the declared sizes *and* on the bytes actually decompressed,
+so an archive whose headers lie cannot exhaust memory or disk.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tarfile
+import tempfile
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO
+
+from engine.errors import InputError
+
+_CHUNK = 1 << 20
+_SPOOL_IN_MEMORY = 16 << 20
+HEAD_BYTES = 132  # enough to see the DICOM preamble + "DICM" and every image signature
+_JUNK = re.compile(r"(^|/)(__MACOSX/|\.[^/]*$|Thumbs\.db$|desktop\.ini$)", re.IGNORECASE)
+
+
+@dataclass(frozen=True)
+class InputLimits:
+    """Ceilings that protect the engine from oversized or malicious input.
+
+    Attributes:
+        max_members: most entries (files, folders, links) an archive or folder may hold.
+        max_total_bytes: most bytes all members may hold together once uncompressed.
+        max_ratio: highest compression ratio (uncompressed / compressed) for one member and for the whole archive.
+        ratio_floor_bytes: members (and archives) smaller than this uncompressed are not ratio-checked, so small,
+            very regular files (e.g. an empty mask slice) do not trip the bomb check.
+        max_voxels: most samples the loaded volume (after any resampling) may hold.
+    """
+
+    max_members: int = 20_000
+    max_total_bytes: int = 8 << 30
+    max_ratio: float = 200.0
+    ratio_floor_bytes: int = 1 << 20
+    max_voxels: int = 1 << 31
+
+    def check_voxels(self, shape: tuple[int, ...], what: str) -> None:
+        """Raise InputError when a volume of ``shape`` would exceed ``max_voxels``."""
+        count = 1
+        for n in shape:
+            count *= int(n)
+        if count > self.max_voxels:
+            raise InputError(
+                f"{what} would hold {count:,} voxels (shape {tuple(int(n) for n in shape)}), more than the limit of "
+                f"{self.max_voxels:,}; crop or downsample the scan first"
+            )
+
+
+@dataclass
+class Member:
+    """One file of the input: its name (a label only), size and a way to read its bytes."""
+
+    name: str
+    size: int
+    head: bytes
+    _spool: IO[bytes] | None = field(default=None, repr=False)
+    _path: Path | None = field(default=None, repr=False)
+
+    def read(self) -> bytes:
+        """The member's whole content."""
+        if self._spool is not None:
+            self._spool.seek(0)
+            return self._spool.read()
+        assert self._path is not None
+        return self._path.read_bytes()
+
+
+@dataclass
+class Members:
+    """The files of one input (use as a context manager: closing drops the temporary copies)."""
+
+    kind: str
+    members: list[Member]
+    ignored: list[str] = field(default_factory=list)
+
+    def close(self) -> None:
+        """Release the spooled copies."""
+        for m in self.members:
+            if m._spool is not None:
+                m._spool.close()
+
+    def __enter__(self) -> Members:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _check_name(name: str, archive: Path) -> None:
+    parts = re.split(r"[/\\]+", name)
+    if name.startswith(("/", "\\")) or re.match(r"^[A-Za-z]:", name) or ".." in parts:
+        raise InputError(
+            f"{archive.name} holds a member named {name!r} that points outside the archive (absolute path or '..'); "
+            "refusing the archive: re-create it with relative member names"
+        )
+
+
+def _copy_limited(
+    src: IO[bytes], name: str, declared: int, budget: _Budget, member_ratio_base: int | None
+) -> tuple[IO[bytes], int, bytes]:
+    """Copy ``src`` into a spooled temp file while counting bytes against the limits."""
+    spool: IO[bytes] = tempfile.SpooledTemporaryFile(max_size=_SPOOL_IN_MEMORY)  # noqa: SIM115 - closed by Members
+    n = 0
+    try:
+        while chunk := src.read(_CHUNK):
+            n += len(chunk)
+            budget.add(len(chunk), name)
+            lim = budget.limits
+            if member_ratio_base is not None and n > lim.ratio_floor_bytes and n > lim.max_ratio * member_ratio_base:
+                raise InputError(
+                    f"archive member {name!r} expands more than {lim.max_ratio:g}x ({member_ratio_base:,} bytes "
+                    f"compressed, over {n:,} bytes so far): this looks like a zip bomb; refusing it"
+                )
+            spool.write(chunk)
+        if declared >= 0 and n != declared:
+            raise InputError(f"archive member {name!r} declares {declared:,} bytes but holds {n:,}: the archive is corrupt")
+        spool.seek(0)
+        head = spool.read(HEAD_BYTES)
+    except BaseException:
+        spool.close()
+        raise
+    return spool, n, head
+
+
+class _Budget:
+    """Running totals of one archive read."""
+
+    def __init__(self, limits: InputLimits, archive: Path, compressed_size: int) -> None:
+        self.limits = limits
+        self.archive = archive
+        self.compressed_size = max(compressed_size, 1)
+        self.total = 0
+        self.count = 0
+
+    def entry(self) -> None:
+        self.count += 1
+        if self.count > self.limits.max_members:
+            raise InputError(
+                f"{self.archive.name} holds more than {self.limits.max_members:,} entries; expected one scan's slices "
+                "(split the input or raise the member limit)"
+            )
+
+    def declare(self, name: str, size: int, compressed: int | None) -> None:
+        lim = self.limits
+        if self.total + size > lim.max_total_bytes:
+            raise InputError(
+                f"{self.archive.name} would expand to more than {lim.max_total_bytes:,} bytes (at member {name!r}); "
+                "refusing it as too large"
+            )
+        if compressed is not None and size > lim.ratio_floor_bytes and size > lim.max_ratio * max(compressed, 1):
+            raise InputError(
+                f"archive member {name!r} declares {size:,} bytes from {compressed:,} compressed (ratio over "
+                f"{lim.max_ratio:g}): this looks like a zip bomb; refusing it"
+            )
+
+    def add(self, n: int, name: str) -> None:
+        self.total += n
+        lim = self.limits
+        if self.total > lim.max_total_bytes:
+            raise InputError(
+                f"{self.archive.name} expands to more than {lim.max_total_bytes:,} bytes (at member {name!r}); "
+                "refusing it as too large"
+            )
+        if self.total > lim.ratio_floor_bytes and self.total > lim.max_ratio * self.compressed_size:
+            raise InputError(
+                f"{self.archive.name} expands more than {lim.max_ratio:g}x its size of {self.compressed_size:,} bytes: "
+                "this looks like a zip bomb; refusing it"
+            )
+
+
+def _read_zip(path: Path, limits: InputLimits) -> Members:
+    budget = _Budget(limits, path, path.stat().st_size)
+    members: list[Member] = []
+    ignored: list[str] = []
+    try:
+        with zipfile.ZipFile(path) as zf:
+            infos = zf.infolist()
+            if len(infos) > limits.max_members:
+                raise InputError(
+                    f"{path.name} holds {len(infos):,} entries, more than the limit of {limits.max_members:,}; "
+                    "expected one scan's slices"
+                )
+            for info in infos:
+                budget.entry()
+                _check_name(info.filename, path)
+                if info.is_dir():
+                    continue
+                if _JUNK.search(info.filename):
+                    ignored.append(info.filename)
+                    continue
+                if info.flag_bits & 0x1:
+                    raise InputError(f"{path.name}: member {info.filename!r} is encrypted; give an unencrypted archive")
+                budget.declare(info.filename, info.file_size, info.compress_size)
+                with zf.open(info) as src:
+                    spool, n, head = _copy_limited(src, info.filename, info.file_size, budget, info.compress_size)
+                members.append(Member(info.filename, n, head, _spool=spool))
+    except InputError:
+        Members("zip", members).close()
+        raise
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, NotImplementedError, RuntimeError, OSError, EOFError) as exc:
+        Members("zip", members).close()
+        raise InputError(f"{path.name} is not a readable zip archive: {exc}") from None
+    return Members("zip", members, ignored)
+
+
+def _read_tar(path: Path, limits: InputLimits) -> Members:
+    budget = _Budget(limits, path, path.stat().st_size)
+    members: list[Member] = []
+    ignored: list[str] = []
+    kind = "tar"
+    try:
+        with path.open("rb") as raw:
+            magic = raw.read(6)
+            raw.seek(0)
+            kind = {b"\x1f\x8b": "tar.gz", b"BZ": "tar.bz2", b"\xfd7": "tar.xz"}.get(magic[:2], "tar")
+            with tarfile.open(fileobj=raw, mode="r|*") as tf:
+                for ti in tf:
+                    budget.entry()
+                    _check_name(ti.name, path)
+                    if not ti.isfile():  # folders, symlinks, hard links, devices: never followed
+                        if ti.issym() or ti.islnk():
+                            ignored.append(ti.name)
+                        continue
+                    if _JUNK.search(ti.name):
+                        ignored.append(ti.name)
+                        continue
+                    budget.declare(ti.name, ti.size, None)
+                    src = tf.extractfile(ti)
+                    assert src is not None
+                    spool, n, head = _copy_limited(src, ti.name, ti.size, budget, None)
+                    members.append(Member(ti.name, n, head, _spool=spool))
+    except InputError:
+        Members(kind, members).close()
+        raise
+    except (tarfile.TarError, OSError, EOFError, ValueError) as exc:
+        Members(kind, members).close()
+        raise InputError(f"{path.name} is not a readable {kind} archive: {exc}") from None
+    return Members(kind, members, ignored)
+
+
+def _read_folder(path: Path, limits: InputLimits) -> Members:
+    members: list[Member] = []
+    ignored: list[str] = []
+    total = 0
+    count = 0
+    for root, dirs, files in os.walk(path, followlinks=False):
+        dirs.sort()
+        for fname in sorted(files):
+            count += 1
+            if count > limits.max_members:
+                raise InputError(
+                    f"folder {path} holds more than {limits.max_members:,} files; expected one scan's slices"
+                )
+            full = Path(root) / fname
+            rel = full.relative_to(path).as_posix()
+            if full.is_symlink() or not full.is_file() or _JUNK.search(rel):
+                ignored.append(rel)
+                continue
+            size = full.stat().st_size
+            total += size
+            if total > limits.max_total_bytes:
+                raise InputError(f"folder {path} holds more than {limits.max_total_bytes:,} bytes; refusing it as too large")
+            with full.open("rb") as fh:
+                head = fh.read(HEAD_BYTES)
+            members.append(Member(rel, size, head, _path=full))
+    return Members("folder", members, ignored)
+
+
+def open_members(path: str | Path, limits: InputLimits | None = None) -> Members:
+    """List the files of an input: a zip, tar(.gz/.bz2/.xz), a folder, or one plain file.
+
+    Raises:
+        InputError: the path is missing, or a corrupt archive, or an archive/folder beyond ``limits``.
+    """
+    limits = limits or InputLimits()
+    path = Path(path)
+    if path.is_dir():
+        return _read_folder(path, limits)
+    if not path.is_file():
+        raise InputError(f"{path} does not exist (expected a zip/tar archive, a folder, or a volume file)")
+    if zipfile.is_zipfile(path):
+        return _read_zip(path, limits)
+    name = path.name.lower()
+    if name.endswith(".zip"):
+        raise InputError(f"{path.name} ends in .zip but is not a readable zip archive (corrupt or truncated?)")
+    if _is_tar(path):
+        return _read_tar(path, limits)
+    if name.endswith((".tar", ".tgz", ".tar.gz", ".tar.bz2", ".tar.xz")):
+        raise InputError(f"{path.name} looks like a tar archive by name but cannot be read as one (corrupt or truncated?)")
+    size = path.stat().st_size
+    if size > limits.max_total_bytes:
+        raise InputError(f"{path.name} holds {size:,} bytes, more than the limit of {limits.max_total_bytes:,}")
+    with path.open("rb") as fh:
+        head = fh.read(HEAD_BYTES)
+    return Members("file", [Member(path.name, size, head, _path=path)])
+
+
+def _is_tar(path: Path) -> bool:
+    try:
+        return tarfile.is_tarfile(path)
+    except (OSError, EOFError, tarfile.TarError):
+        return False
