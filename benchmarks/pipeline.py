@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -79,6 +78,10 @@ def _bench(volume: Volume, device: str, repeat: int) -> dict[str, Any]:
     }
 
 
+def _json_default(obj: Any) -> Any:
+    return obj.item() if isinstance(obj, np.generic) else str(obj)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--device", default="auto")
@@ -90,12 +93,15 @@ def main(argv: list[str] | None = None) -> int:
     shape = tuple(int(s) for s in args.phantom.split(",")) if args.phantom else None
     results = {}
     for name, vol in _inputs(args.data, shape).items():  # type: ignore[arg-type]
-        print(f"[pipeline] {name} {vol.data.shape}", flush=True)  # noqa: T201
+        print(f"[pipeline] {name} {vol.data.shape}", flush=True)
         results[name] = _bench(vol, args.device, args.repeat)
         r = results[name]
         stages = ", ".join(f"{k} {v:.3f}" for k, v in r["stage_seconds"].items())
-        print(f"  reconstruct {r['reconstruct_seconds']:.3f} s ({stages}); outputs {r['write_outputs_seconds']:.3f} s;"  # noqa: T201
-              f" faces {r['counts']['isosurface']['faces']:,} -> {r['mesh']['n_faces']:,}", flush=True)
+        print(
+            f"  reconstruct {r['reconstruct_seconds']:.3f} s ({stages}); outputs {r['write_outputs_seconds']:.3f} s;"
+            f" faces {r['counts']['isosurface']['faces']:,} -> {r['mesh']['n_faces']:,}",
+            flush=True,
+        )
     report = {
         "benchmark": "pipeline",
         "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
@@ -105,7 +111,9 @@ def main(argv: list[str] | None = None) -> int:
         "results": results,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2, default=lambda o: o.item() if isinstance(o, np.generic) else str(o)))
+    args.out.write_text(
+        json.dumps(report, indent=2, default=lambda o: o.item() if isinstance(o, np.generic) else str(o))
+    )
     return 0
 
 

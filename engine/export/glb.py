@@ -192,7 +192,7 @@ def to_glb(
     index_ctype, index_dtype = index_type(len(positions))
     parts = [positions.tobytes(), normals.tobytes(), tris.astype(index_dtype).tobytes()]
     views, offset = [], 0
-    for data, target in zip(parts, (ARRAY_BUFFER, ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER)):
+    for data, target in zip(parts, (ARRAY_BUFFER, ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER), strict=True):
         views.append({"buffer": 0, "byteOffset": offset, "byteLength": len(data), "target": target})
         offset += len(data)  # float32 parts come first, so every view starts 4-byte aligned
     binary = b"".join(parts)
