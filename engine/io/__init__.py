@@ -1,1 +1,56 @@
-"""Loaders: slice stacks and DICOM series -> (z, y, x) arrays."""
+"""Loaders: slice stacks, volume files and DICOM series -> :class:`engine.types.Volume`.
+
+``load_volume`` accepts a zip / tar / tar.gz archive or a folder of 2-D slices (PNG, TIFF, JPEG, BMP) or of DICOM
+files, a multi-page TIFF, a ``.npy`` (z, y, x) array, or a single DICOM file. DICOM is recognised by content
+(with or without preamble and file extension); everything else by its file signature.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+from engine.errors import InputError
+from engine.io.archive import InputLimits, open_members
+from engine.io.dicom import has_dicom_images, load_dicom
+from engine.io.stack import StackWarning, check_spacing, load_stack, natural_key
+from engine.types import Volume
+
+__all__ = ["InputLimits", "StackWarning", "load_volume", "natural_key"]
+
+
+def load_volume(
+    path: str | Path,
+    *,
+    spacing_zyx_mm: Sequence[float] | None = None,
+    series_uid: str | None = None,
+    limits: InputLimits | None = None,
+) -> Volume:
+    """Load a scan as a (z, y, x) :class:`Volume`.
+
+    Args:
+        path: archive (zip, tar, tar.gz/bz2/xz), folder, multi-page TIFF, ``.npy`` or DICOM file.
+        spacing_zyx_mm: voxel size (z, y, x) in mm. Required for image stacks and ``.npy`` unless TIFF tags carry
+            it; for DICOM it may only fill in what the headers lack (a conflicting value is an error).
+        series_uid: the DICOM SeriesInstanceUID to load when the input holds several (default: the largest).
+        limits: safety limits on archive members, sizes, compression ratio and voxel count.
+
+    Returns:
+        The volume: integer data stay integer (uint8/uint16/int16); DICOM CT is in HU (int16 where exact,
+        else float32), resampled onto a regular orthogonal grid when gaps are uneven or the gantry was tilted.
+
+    Raises:
+        InputError: unreadable or unsafe input, missing voxel size, inconsistent slices or series.
+    """
+    spacing = check_spacing(spacing_zyx_mm)
+    limits = limits or InputLimits()
+    label = Path(path).name or str(path)
+    with open_members(path, limits) as members:
+        if has_dicom_images(members):
+            vol = load_dicom(members, label, spacing_zyx_mm=spacing, series_uid=series_uid, limits=limits)
+            if vol is not None:
+                vol.source["container"] = members.kind
+                return vol
+        if series_uid is not None:
+            raise InputError(f"series_uid={series_uid!r} was given, but {label} holds no DICOM images")
+        return load_stack(members, label, spacing, limits)

@@ -123,7 +123,9 @@ def _copy_limited(
                 )
             spool.write(chunk)
         if declared >= 0 and n != declared:
-            raise InputError(f"archive member {name!r} declares {declared:,} bytes but holds {n:,}: the archive is corrupt")
+            raise InputError(
+                f"archive member {name!r} declares {declared:,} bytes but holds {n:,}: the archive is corrupt"
+            )
         spool.seek(0)
         head = spool.read(HEAD_BYTES)
     except BaseException:
@@ -269,7 +271,9 @@ def _read_folder(path: Path, limits: InputLimits) -> Members:
             size = full.stat().st_size
             total += size
             if total > limits.max_total_bytes:
-                raise InputError(f"folder {path} holds more than {limits.max_total_bytes:,} bytes; refusing it as too large")
+                raise InputError(
+                    f"folder {path} holds more than {limits.max_total_bytes:,} bytes; refusing it as too large"
+                )
             with full.open("rb") as fh:
                 head = fh.read(HEAD_BYTES)
             members.append(Member(rel, size, head, _path=full))
@@ -296,7 +300,9 @@ def open_members(path: str | Path, limits: InputLimits | None = None) -> Members
     if _is_tar(path):
         return _read_tar(path, limits)
     if name.endswith((".tar", ".tgz", ".tar.gz", ".tar.bz2", ".tar.xz")):
-        raise InputError(f"{path.name} looks like a tar archive by name but cannot be read as one (corrupt or truncated?)")
+        raise InputError(
+            f"{path.name} looks like a tar archive by name but cannot be read as one (corrupt or truncated?)"
+        )
     size = path.stat().st_size
     if size > limits.max_total_bytes:
         raise InputError(f"{path.name} holds {size:,} bytes, more than the limit of {limits.max_total_bytes:,}")

@@ -1,16 +1,41 @@
-"""Slice stacks (zip of 2-D images) -> (z, y, x) arrays."""
+"""Stacks of 2-D images (PNG, TIFF, JPEG, BMP), multi-page TIFFs and ``.npy`` arrays -> :class:`Volume`."""
 
 from __future__ import annotations
 
 import io
+import math
 import re
-import zipfile
+import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from engine.errors import InputError
+from engine.io.archive import InputLimits, Member, Members, open_members
+from engine.types import Volume
+
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
+_SIGNATURES = (
+    (b"\x89PNG\r\n\x1a\n", "png"),
+    (b"II*\x00", "tiff"),
+    (b"MM\x00*", "tiff"),
+    (b"II+\x00", "tiff"),
+    (b"MM\x00+", "tiff"),
+    (b"\xff\xd8\xff", "jpeg"),
+    (b"BM", "bmp"),
+    (b"\x93NUMPY", "npy"),
+)
+_UNIT_MM = {"mm": 1.0, "millimeter": 1.0, "cm": 10.0, "centimeter": 10.0, "m": 1000.0, "meter": 1000.0,
+            "micron": 1e-3, "um": 1e-3, "\u00b5m": 1e-3, "\u03bcm": 1e-3, "micrometer": 1e-3, "nm": 1e-6,
+            "inch": 25.4, "in": 25.4}  # fmt: skip
+_PRINT_DPI = {72.0, 96.0, 100.0, 150.0, 200.0, 300.0, 600.0, 1200.0}  # screen/print defaults, not scan geometry
+SPACING_HINT = "give it as spacing_zyx_mm=(z, y, x) (CLI: --spacing Z,Y,X), in mm"
+
+
+class StackWarning(UserWarning):
+    """Input that was loaded, but changed on the way (e.g. colour slices reduced to luminance)."""
 
 
 def natural_key(name: str) -> list[object]:
@@ -18,24 +43,229 @@ def natural_key(name: str) -> list[object]:
     return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
 
 
+def image_kind(head: bytes) -> str | None:
+    """The image/array format of a file from its first bytes: png, tiff, jpeg, bmp, npy, or None."""
+    for sig, kind in _SIGNATURES:
+        if head.startswith(sig):
+            return kind
+    return None
+
+
 def load_slice_zip(path: str | Path) -> npt.NDArray[np.generic]:
-    """Read a zip of 2-D grayscale slices (natural name order) into a (z, y, x) array of their dtype.
+    """Read a zip (or tar, or folder) of 2-D grayscale slices (natural name order) into a (z, y, x) array.
 
     Raises:
-        ValueError: the archive holds no images, or slices differ in shape or dtype.
+        InputError (a ValueError): the archive holds no images, or slices differ in shape or dtype.
     """
-    import imageio.v3 as iio
+    with open_members(path) as members:
+        arr, _, _ = _read_slices(members, str(path), InputLimits())
+    return arr
 
-    with zipfile.ZipFile(path) as zf:
-        names = sorted(
-            (n for n in zf.namelist() if n.lower().endswith(IMAGE_SUFFIXES) and not n.endswith("/")),
-            key=natural_key,
+
+def load_stack(
+    members: Members, label: str, spacing_zyx_mm: tuple[float, float, float] | None, limits: InputLimits
+) -> Volume:
+    """Build a Volume from the image members of ``members`` (slices, one multi-page TIFF, or one .npy).
+
+    Raises:
+        InputError: no images, mixed shapes/dtypes, too many voxels, or no voxel size.
+    """
+    data, fmt, geo = _read_slices(members, label, limits)
+    spacing, how = _resolve_spacing(spacing_zyx_mm, geo, label)
+    n_files = len([m for m in members.members if image_kind(m.head)])
+    source: dict[str, Any] = {"format": fmt, "container": members.kind, "files": n_files, "spacing_from": how}
+    return Volume(data=data, spacing_zyx_mm=spacing, units="raw", source=source)
+
+
+def _read_slices(members: Members, label: str, limits: InputLimits) -> tuple[np.ndarray, str, dict[str, Any]]:
+    images = [m for m in members.members if image_kind(m.head)]
+    if not images:
+        seen = ", ".join(m.name for m in members.members[:3]) or "nothing"
+        raise InputError(
+            f"expected PNG/TIFF/JPEG/BMP slices, a .npy volume or DICOM files in {label}, found none "
+            f"({len(members.members)} unrecognised file(s): {seen})"
         )
-        if not names:
-            raise ValueError(f"Expected image slices in {path}, found none")
-        slices = [iio.imread(io.BytesIO(zf.read(n))) for n in names]
-    first = slices[0]
-    for n, s in zip(names, slices, strict=True):
+    images.sort(key=lambda m: natural_key(m.name))
+    kinds = sorted({image_kind(m.head) or "" for m in images})
+    if len(images) == 1:
+        arr, geo = _decode(images[0], limits)
+        arr = arr[None] if arr.ndim == 2 else arr
+        limits.check_voxels(arr.shape, label)
+        _warn_colour(label, [images[0].name] if "colour" in geo else [], geo)
+        return _narrow(arr), kinds[0], geo
+    if "npy" in kinds:
+        raise InputError(f"expected one .npy volume or 2-D image slices in {label}, got {len(images)} files incl. .npy")
+    first, geo = _decode(images[0], limits)
+    if first.ndim != 2:
+        raise InputError(
+            f"expected 2-D slices in {label}, but {images[0].name} holds {first.shape[0]} pages; "
+            "give a multi-page TIFF on its own"
+        )
+    limits.check_voxels((len(images), *first.shape), label)
+    out = np.empty((len(images), *first.shape), dtype=first.dtype)
+    out[0] = first
+    coloured = [images[0].name] if "colour" in geo else []
+    for k, m in enumerate(images[1:], start=1):
+        s, g = _decode(m, limits)
+        if "colour" in g:
+            coloured.append(m.name)
         if s.shape != first.shape or s.dtype != first.dtype:
-            raise ValueError(f"Expected every slice to be {first.shape} {first.dtype}, got {s.shape} {s.dtype} in {n}")
-    return np.stack(slices)
+            raise InputError(
+                f"expected every slice to be {first.shape[1]}x{first.shape[0]} {first.dtype} like {images[0].name}, "
+                f"got {s.shape[-1]}x{s.shape[0]} {s.dtype} in {m.name}"
+            )
+        out[k] = s
+    _warn_colour(label, coloured, geo)
+    return _narrow(out), "+".join(kinds), geo
+
+
+def _warn_colour(label: str, names: list[str], geo: dict[str, Any]) -> None:
+    if names:
+        warnings.warn(
+            f"{label}: {len(names)} image(s) ({names[0]}...) were not grayscale: {geo.get('colour', 'converted')}; "
+            "export grayscale slices to keep the scanner values",
+            StackWarning,
+            stacklevel=5,
+        )
+
+
+def _decode(m: Member, limits: InputLimits) -> tuple[np.ndarray, dict[str, Any]]:
+    """Decode one member into a 2-D (or 3-D for multi-page TIFF / npy) grayscale array plus geometry hints."""
+    kind = image_kind(m.head)
+    data = m.read() if kind != "npy" else b""
+    try:
+        if kind == "npy":
+            arr = _load_npy(m, limits)
+            if arr.ndim not in (2, 3) or arr.dtype.kind not in "biuf":
+                raise InputError(
+                    f"expected a 2-D or 3-D numeric (z, y, x) array in {m.name}, got {arr.shape} {arr.dtype}"
+                )
+            return arr, {}
+        if kind == "tiff":
+            return _decode_tiff(data)
+        import imageio.v3 as iio
+
+        arr = iio.imread(io.BytesIO(data))
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - decoder errors come in many types
+        raise InputError(f"cannot decode {m.name} as {kind.upper() if kind else 'an image'}: {exc}") from None
+    arr, note = _to_gray(arr, colour=arr.ndim == 3)
+    return arr, {"colour": note} if note else {}
+
+
+def _load_npy(m: Member, limits: InputLimits) -> np.ndarray:
+    """A .npy array, its shape checked against the voxel limit before the data are read."""
+    fmt = np.lib.format
+    with (m._path.open("rb") if m._path is not None else io.BytesIO(m.read())) as fh:
+        version = fmt.read_magic(fh)
+        reader = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+        shape, _, _ = reader(fh)
+        limits.check_voxels(tuple(shape), m.name)
+        fh.seek(0)
+        return np.load(fh, allow_pickle=False)
+
+
+def _decode_tiff(data: bytes) -> tuple[np.ndarray, dict[str, Any]]:
+    import tifffile
+
+    with tifffile.TiffFile(io.BytesIO(data)) as tf:
+        page = tf.pages[0]
+        colour = page.samplesperpixel > 1
+        arr = tf.asarray()
+        if colour and int(page.planarconfig) == 2:  # separate colour planes: (..., samples, y, x)
+            arr = np.moveaxis(arr, -3, -1)
+        geo = _tiff_geometry(tf, page)
+    arr, note = _to_gray(arr, colour=colour)
+    if note:
+        geo["colour"] = note
+    return arr, geo
+
+
+def _tiff_geometry(tf: Any, page: Any) -> dict[str, Any]:
+    """(y, x) pixel size and z step in mm from TIFF resolution tags and ImageJ metadata, where they are usable."""
+    geo: dict[str, Any] = {}
+    ij = tf.imagej_metadata or {}
+    unit_mm = None
+    res_unit = int(page.tags["ResolutionUnit"].value) if "ResolutionUnit" in page.tags else 2
+    if res_unit == 2:
+        unit_mm = 25.4
+    elif res_unit == 3:
+        unit_mm = 10.0
+    ij_unit = str(ij.get("unit", "")).strip().lower()
+    if ij_unit in _UNIT_MM:
+        unit_mm = _UNIT_MM[ij_unit]
+    xr, yr = page.tags.get("XResolution"), page.tags.get("YResolution")
+    if xr is not None and yr is not None and unit_mm is not None:
+        per_unit = [num / den if den else 0.0 for num, den in (yr.value, xr.value)]
+        if all(p > 0 and math.isfinite(p) for p in per_unit):
+            if unit_mm == 25.4 and not ij_unit and all(round(p, 3) in _PRINT_DPI for p in per_unit):
+                geo["note"] = f"its {per_unit[1]:g} dpi resolution tag is a screen/print default, not a voxel size"
+            else:
+                geo["yx"] = (unit_mm / per_unit[0], unit_mm / per_unit[1])
+    z = ij.get("spacing")
+    if z is not None and ij_unit in _UNIT_MM and float(z) > 0:
+        geo["z"] = float(z) * _UNIT_MM[ij_unit]
+    return geo
+
+
+def _to_gray(arr: np.ndarray, *, colour: bool) -> tuple[np.ndarray, str | None]:
+    """Reduce colour (last axis 2..4 channels) to luminance, keeping the dtype; also say what was done."""
+    if arr.dtype == bool:
+        arr = arr.astype(np.uint8)
+    if not colour or arr.shape[-1] not in (2, 3, 4):
+        return arr, None
+    if arr.shape[-1] == 2:  # grey + alpha
+        return np.ascontiguousarray(arr[..., 0]), "grey+alpha: the alpha channel was dropped"
+    rgb = arr[..., :3].astype(np.float32)
+    lum = rgb[..., 0] * 0.299 + rgb[..., 1] * 0.587 + rgb[..., 2] * 0.114
+    note = "colour (RGB) converted to luminance 0.299 R + 0.587 G + 0.114 B"
+    if arr.dtype.kind in "iu":
+        info = np.iinfo(arr.dtype)
+        return np.clip(np.rint(lum), info.min, info.max).astype(arr.dtype), note
+    return lum.astype(np.float32), note
+
+
+def _narrow(arr: np.ndarray) -> np.ndarray:
+    """Bring any numeric dtype to one the engine uses (uint8, uint16, int16, float32) without losing values."""
+    if arr.dtype in (np.uint8, np.uint16, np.int16, np.float32):
+        return arr
+    if arr.dtype == np.int8:
+        return arr.astype(np.int16)
+    if arr.dtype.kind in "iu" and arr.size:
+        lo, hi = int(arr.min()), int(arr.max())
+        for dt in (np.uint16, np.int16):
+            info = np.iinfo(dt)
+            if info.min <= lo and hi <= info.max:
+                return arr.astype(dt)
+    return arr.astype(np.float32)
+
+
+def _resolve_spacing(
+    call: tuple[float, float, float] | None, geo: dict[str, Any], label: str
+) -> tuple[tuple[float, float, float], str]:
+    if call is not None:
+        return call, "call"
+    if "yx" in geo and "z" in geo:
+        return (geo["z"], *geo["yx"]), "tiff"
+    if "yx" in geo:
+        y, x = geo["yx"]
+        raise InputError(
+            f"{label}: the TIFF tags give the pixel size (y {y:g} mm, x {x:g} mm) but not the slice spacing; "
+            f"give it as spacing_zyx_mm=(z, {y:g}, {x:g}) (CLI: --spacing Z,{y:g},{x:g}), in mm"
+        )
+    note = f" ({geo['note']})" if "note" in geo else ""
+    raise InputError(f"{label}: an image stack does not carry its voxel size{note}; {SPACING_HINT}")
+
+
+def check_spacing(spacing: object) -> tuple[float, float, float] | None:
+    """Validate a caller's spacing: None or three positive finite numbers (z, y, x) in mm."""
+    if spacing is None:
+        return None
+    try:
+        vals = tuple(float(v) for v in spacing)  # type: ignore[attr-defined]
+    except (TypeError, ValueError):
+        raise InputError(f"expected spacing_zyx_mm as three numbers (z, y, x) in mm, got {spacing!r}") from None
+    if len(vals) != 3 or not all(math.isfinite(v) and v > 0 for v in vals):
+        raise InputError(f"expected spacing_zyx_mm as three positive numbers (z, y, x) in mm, got {spacing!r}")
+    return vals  # type: ignore[return-value]

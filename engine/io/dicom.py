@@ -1,0 +1,412 @@
+"""DICOM series (with or without preamble/file meta, any pydicom-decodable transfer syntax) -> :class:`Volume`.
+
+Slices are ordered by ImagePositionPatient projected on the normal of ImageOrientationPatient. Uneven gaps and
+gantry tilt are resampled onto a regular, orthogonal grid whose axes are the image row/column directions and the
+slice normal (``Volume.direction``): tilted slices are shifted in-plane (shear correction), then interpolated
+linearly along the normal at the median gap.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import warnings
+from collections import defaultdict
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from engine.errors import InputError
+from engine.io.archive import InputLimits, Member, Members
+from engine.io.stack import SPACING_HINT, StackWarning, natural_key
+from engine.types import Volume
+
+_RAW_GROUPS = (b"\x08\x00", b"\x02\x00", b"\x00\x08")  # first tag group of a dataset without preamble
+_NO_UID = "(no SeriesInstanceUID)"
+
+
+def looks_like_dicom(head: bytes) -> bool:
+    """Whether a file's first bytes could start a DICOM file (preamble + DICM, or a raw data set)."""
+    return head[128:132] == b"DICM" or head[:4] == b"DICM" or head[:2] in _RAW_GROUPS
+
+
+@dataclass
+class _Slice:
+    member: Member
+    uid: str
+    rows: int
+    cols: int
+    ipp: np.ndarray | None
+    iop: np.ndarray | None
+    pixel_spacing: tuple[float, float] | None
+    instance: int | None
+    frames: int
+    samples: int
+    thickness: float | None
+    header: dict[str, Any]
+
+
+def _read(member: Member, *, pixels: bool) -> Any | None:
+    """Parse a member as DICOM; None when it is not one."""
+    import pydicom
+    from pydicom.uid import ExplicitVRBigEndian, ExplicitVRLittleEndian, ImplicitVRLittleEndian
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ds = pydicom.dcmread(io.BytesIO(member.read()), force=True, stop_before_pixels=not pixels)
+            if "TransferSyntaxUID" not in ds.file_meta:  # raw data set: say how it was encoded
+                implicit, little = ds.original_encoding
+                ds.file_meta.TransferSyntaxUID = (
+                    ImplicitVRLittleEndian if implicit else ExplicitVRLittleEndian if little else ExplicitVRBigEndian
+                )
+    except Exception:  # noqa: BLE001 - anything pydicom cannot parse is simply not DICOM
+        return None
+    return ds
+
+
+def _floats(value: Any, n: int) -> np.ndarray | None:
+    try:
+        arr = np.array([float(v) for v in value], dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    return arr if arr.size == n and np.all(np.isfinite(arr)) else None
+
+
+def _scan(members: Members) -> tuple[list[_Slice], int]:
+    """Headers of every DICOM image member; also the count of DICOM files without pixel data."""
+    slices: list[_Slice] = []
+    non_image = 0
+    for m in members.members:
+        if not looks_like_dicom(m.head):
+            continue
+        ds = _read(m, pixels=True)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # pydicom's complaints about odd values in legacy headers
+            if ds is None:
+                continue
+            if "PixelData" not in ds or "Rows" not in ds or "Columns" not in ds:
+                non_image += 1  # DICOMDIR, structured report, presentation state...
+                continue
+            ps = _floats(ds.get("PixelSpacing") or ds.get("ImagerPixelSpacing") or (), 2)
+            iop = _floats(ds.get("ImageOrientationPatient") or (), 6)
+            ipp = _floats(ds.get("ImagePositionPatient") or (), 3)
+            inst = ds.get("InstanceNumber")
+            thick = ds.get("SpacingBetweenSlices") or ds.get("SliceThickness")
+            header = {
+                "modality": str(ds.get("Modality", "")),
+                "series_description": str(ds.get("SeriesDescription", "")),
+                "manufacturer": str(ds.get("Manufacturer", "")),
+                "transfer_syntax": ds.file_meta.TransferSyntaxUID.name,
+                "transfer_syntax_uid": str(ds.file_meta.TransferSyntaxUID),
+                "gantry_tilt_deg": float(ds.get("GantryDetectorTilt") or 0.0),
+                "slope": float(ds.get("RescaleSlope", 1) or 1),
+                "intercept": float(ds.get("RescaleIntercept", 0) or 0),
+            }
+            slices.append(
+                _Slice(
+                    member=m,
+                    uid=str(ds.get("SeriesInstanceUID", _NO_UID)),
+                    rows=int(ds.Rows),
+                    cols=int(ds.Columns),
+                    ipp=ipp,
+                    iop=iop,
+                    pixel_spacing=(float(ps[0]), float(ps[1])) if ps is not None and np.all(ps > 0) else None,
+                    instance=int(inst) if inst not in (None, "") else None,
+                    frames=int(ds.get("NumberOfFrames", 1) or 1),
+                    samples=int(ds.get("SamplesPerPixel", 1) or 1),
+                    thickness=float(thick) if thick not in (None, "") and float(thick) > 0 else None,
+                    header=header,
+                )
+            )
+    return slices, non_image
+
+
+def has_dicom_images(members: Members) -> bool:
+    """Whether any member starts like a DICOM file (cheap check on the first bytes only)."""
+    return any(looks_like_dicom(m.head) for m in members.members)
+
+
+def load_dicom(
+    members: Members,
+    label: str,
+    *,
+    spacing_zyx_mm: tuple[float, float, float] | None,
+    series_uid: str | None,
+    limits: InputLimits,
+) -> Volume | None:
+    """Load one DICOM series of ``members``; None when none of them is a DICOM image.
+
+    Raises:
+        InputError: unknown ``series_uid``, inconsistent geometry, undecodable pixels, limits exceeded.
+    """
+    slices, non_image = _scan(members)
+    if not slices:
+        if series_uid is not None:
+            raise InputError(f"series_uid={series_uid!r} was given, but {label} holds no DICOM images")
+        return None
+    series = _pick_series(slices, series_uid, label)
+    return _build(series, label, spacing_zyx_mm, limits, skipped=len(slices) - len(series) + non_image)
+
+
+def _pick_series(slices: list[_Slice], series_uid: str | None, label: str) -> list[_Slice]:
+    groups: dict[str, list[_Slice]] = defaultdict(list)
+    for s in slices:
+        groups[s.uid].append(s)
+    listing = "; ".join(f"{uid} ({len(g)} images)" for uid, g in sorted(groups.items(), key=lambda kv: -len(kv[1])))
+    if series_uid is not None:
+        if series_uid not in groups:
+            raise InputError(f"{label} has no series {series_uid!r}; available: {listing}")
+        return groups[series_uid]
+    best = max(groups.values(), key=len)
+    if len(groups) > 1:
+        warnings.warn(
+            f"{label} holds {len(groups)} DICOM series; loading the largest. Choose with series_uid=: {listing}",
+            StackWarning,
+            stacklevel=4,
+        )
+    return best
+
+
+def _build(
+    series: list[_Slice],
+    label: str,
+    call: tuple[float, float, float] | None,
+    limits: InputLimits,
+    skipped: int,
+) -> Volume:
+    first = series[0]
+    for s in series:
+        if s.frames != 1:
+            raise InputError(
+                f"{s.member.name} is a multi-frame DICOM ({s.frames} frames); expected single-frame images "
+                "(export the series as one image per file)"
+            )
+        if s.samples != 1:
+            raise InputError(f"{s.member.name} is a colour DICOM ({s.samples} samples/pixel); expected grayscale CT/MR")
+        if (s.rows, s.cols) != (first.rows, first.cols):
+            raise InputError(
+                f"expected every image of the series to be {first.cols}x{first.rows} like {first.member.name}, "
+                f"got {s.cols}x{s.rows} in {s.member.name}"
+            )
+    geo = _geometry(series, label, call)
+    order = geo["order"]
+    series = [series[i] for i in order]
+    limits.check_voxels((len(series), first.rows, first.cols), label)
+    data, units, fill = _pixels(series, label)
+    source: dict[str, Any] = {
+        "format": "dicom",
+        "files": len(series),
+        "other_files_skipped": skipped,
+        "series_description": first.header["series_description"],
+        "modality": first.header["modality"],
+        "manufacturer": first.header["manufacturer"],
+        "transfer_syntax": first.header["transfer_syntax"],
+    }
+    d, a, b = geo["d"], geo["a"], geo["b"]
+    gaps = np.diff(d)
+    source["original_gaps_mm"] = [round(float(g), 4) for g in gaps]
+    sy, sx = geo["yx"]
+    if geo["regular"]:
+        sz = geo["z"]
+        origin = geo["p0"]
+        source["resampled"] = False
+    else:
+        data, sz, (oy, ox) = _regularise(data, d, a / sx, b / sy, geo["z"], fill, limits, label)
+        origin = geo["p0"] + ox * sx * geo["row"] + oy * sy * geo["col"]
+        source["resampled"] = True
+        source["gantry_tilt_deg"] = round(geo["tilt_deg"], 3)
+    spacing = (float(sz), float(sy), float(sx))
+    if call is not None and geo["from_file"] and not np.allclose(call, spacing, rtol=0.01):
+        raise InputError(
+            f"{label}: the DICOM series defines its voxel size (z, y, x = {spacing[0]:g}, {spacing[1]:g}, "
+            f"{spacing[2]:g} mm), but spacing_zyx_mm={tuple(call)} was given; leave the spacing out for DICOM input"
+        )
+    direction = tuple(tuple(float(v) for v in row) for row in np.column_stack([geo["row"], geo["col"], geo["n"]]))
+    return Volume(
+        data=data,
+        spacing_zyx_mm=spacing,
+        origin_mm=tuple(float(v) for v in origin),  # type: ignore[arg-type]
+        direction=direction,
+        units=units,
+        source=source,
+    )
+
+
+def _geometry(series: list[_Slice], label: str, call: tuple[float, float, float] | None) -> dict[str, Any]:
+    """Slice order, positions along the normal (d) and in-plane offsets (a along rows, b along columns) in mm."""
+    n_sl = len(series)
+    geo: dict[str, Any] = {"from_file": True, "tilt_deg": 0.0}
+    spacings = {s.pixel_spacing for s in series}
+    if None in spacings or len(spacings) != 1:
+        if None in spacings and call is None:
+            raise InputError(f"{label}: the DICOM images carry no PixelSpacing; {SPACING_HINT}")
+        if None not in spacings:
+            raise InputError(f"{label}: the images of the series have different PixelSpacing values {sorted(spacings)}")
+        geo["from_file"] = False
+    geo["yx"] = next(iter(spacings)) if geo["from_file"] else (call[1], call[2])  # type: ignore[index]
+    if all(s.ipp is not None and s.iop is not None for s in series):
+        iop0 = series[0].iop
+        assert iop0 is not None
+        for s in series:
+            if not np.allclose(s.iop, iop0, atol=1e-3):  # type: ignore[arg-type]
+                raise InputError(
+                    f"{label}: the image orientation changes within the series ({series[0].member.name} vs "
+                    f"{s.member.name}); such a series cannot be put on one grid (localizer mixed in, or a "
+                    "variable-tilt acquisition): export the axial series on its own"
+                )
+        row, col = iop0[:3] / np.linalg.norm(iop0[:3]), iop0[3:] / np.linalg.norm(iop0[3:])
+        if abs(float(row @ col)) > 1e-3:
+            raise InputError(f"{label}: ImageOrientationPatient rows and columns are not perpendicular ({iop0})")
+        normal = np.cross(row, col)
+        pos = np.array([s.ipp for s in series])
+        order = list(np.argsort(pos @ normal, kind="stable"))
+        pos = pos[order]
+        d = pos @ normal
+        rel = pos - pos[0]
+        a, b = rel @ row, rel @ col
+    else:
+        if any(s.instance is None for s in series):
+            raise InputError(
+                f"{label}: the images have neither ImagePositionPatient/ImageOrientationPatient nor InstanceNumber, "
+                "so their order is unknown"
+            )
+        order = sorted(range(n_sl), key=lambda i: (series[i].instance, natural_key(series[i].member.name)))
+        thick = series[0].thickness if call is None else call[0]
+        if thick is None:
+            raise InputError(f"{label}: the DICOM images carry no slice positions or thickness; {SPACING_HINT}")
+        row, col, normal = np.eye(3)
+        d = np.arange(n_sl) * float(thick)
+        a = b = np.zeros(n_sl)
+        pos = np.zeros((1, 3))
+        geo["from_file"] = geo["from_file"] and call is None
+    gaps = np.diff(d)
+    names = [series[i].member.name for i in order]
+    if n_sl > 1 and gaps.min() < 1e-3:
+        k = int(np.argmin(gaps))
+        raise InputError(
+            f"{label}: two images lie at the same slice position ({names[k]} and {names[k + 1]}): the series mixes "
+            "repeated acquisitions; keep one of them"
+        )
+    if n_sl == 1:
+        z = series[0].thickness or (call[0] if call else None)
+        if z is None:
+            raise InputError(f"{label}: a single DICOM image carries no slice thickness; {SPACING_HINT}")
+        gaps = np.array([z])
+    sy, sx = geo["yx"]
+    med = float(np.median(gaps))
+    even = float(gaps.max() - gaps.min()) <= max(0.01 * med, 0.01)
+    straight = float(np.ptp(a)) <= 0.05 * sx and float(np.ptp(b)) <= 0.05 * sy
+    geo["z"] = float(d[-1] - d[0]) / (n_sl - 1) if (even and n_sl > 1) else med
+    if not straight:
+        shear = math.hypot(float(np.ptp(a)), float(np.ptp(b))) / max(float(d[-1] - d[0]), 1e-9)
+        geo["tilt_deg"] = math.degrees(math.atan(shear))
+    geo.update(order=order, d=d, a=a, b=b, row=row, col=col, n=normal, p0=pos[0], regular=even and straight)
+    return geo
+
+
+def _pixels(series: list[_Slice], label: str) -> tuple[np.ndarray, str, float]:
+    """Decode the pixel data into one (z, y, x) array, rescaled to HU (CT) where the headers say so."""
+    slopes = np.array([s.header["slope"] for s in series])
+    inters = np.array([s.header["intercept"] for s in series])
+    is_ct = series[0].header["modality"].upper() == "CT"
+    raw: np.ndarray | None = None
+    lo, hi = math.inf, -math.inf
+    for k, s in enumerate(series):
+        ds = _read(s.member, pixels=True)
+        try:
+            arr = ds.pixel_array  # type: ignore[union-attr]
+        except Exception as exc:  # noqa: BLE001 - decoder plugins raise many types
+            raise InputError(
+                f"cannot decode the pixels of {s.member.name} ({s.header['transfer_syntax']}): {exc}"
+            ) from None
+        if raw is None:
+            raw = np.empty((len(series), s.rows, s.cols), dtype=arr.dtype)
+        if arr.shape != raw.shape[1:] or arr.dtype != raw.dtype:
+            raise InputError(
+                f"expected {raw.shape[1:]} {raw.dtype} pixels in {s.member.name}, got {arr.shape} {arr.dtype}"
+            )
+        raw[k] = arr
+        lo = min(lo, float(arr.min()) * slopes[k] + inters[k], float(arr.max()) * slopes[k] + inters[k])
+        hi = max(hi, float(arr.min()) * slopes[k] + inters[k], float(arr.max()) * slopes[k] + inters[k])
+    assert raw is not None
+    units = "HU" if is_ct else "raw"
+    if np.all(slopes == 1) and np.all(inters == 0):
+        return _narrow_raw(raw), units, float(raw.min())
+    integral = np.all(slopes == np.round(slopes)) and np.all(inters == np.round(inters))
+    if integral and -32768 <= lo and hi <= 32767:
+        out = raw.view(np.int16) if raw.dtype.itemsize == 2 else np.empty(raw.shape, np.int16)
+        for k in range(len(series)):  # in place, slice by slice: no full-size temporary
+            out[k] = (raw[k].astype(np.int32) * int(slopes[k]) + int(inters[k])).astype(np.int16)
+        return out, units, lo
+    out32 = np.empty(raw.shape, np.float32)
+    for k in range(len(series)):
+        out32[k] = raw[k].astype(np.float32) * np.float32(slopes[k]) + np.float32(inters[k])
+    return out32, units, lo
+
+
+def _narrow_raw(raw: np.ndarray) -> np.ndarray:
+    if raw.dtype in (np.uint8, np.uint16, np.int16, np.float32):
+        return raw
+    if raw.dtype.kind not in "iu":
+        return raw.astype(np.float32)
+    lo, hi = int(raw.min()), int(raw.max())
+    for dt in (np.uint16, np.int16):
+        if np.iinfo(dt).min <= lo and hi <= np.iinfo(dt).max:
+            return raw.astype(dt)
+    return raw.astype(np.float32)
+
+
+def _regularise(
+    data: np.ndarray,
+    d: np.ndarray,
+    ox: np.ndarray,
+    oy: np.ndarray,
+    sz: float,
+    fill: float,
+    limits: InputLimits,
+    label: str,
+) -> tuple[np.ndarray, float, tuple[float, float]]:
+    """Resample slices at normal positions ``d`` (mm), shifted in-plane by ``oy``/``ox`` pixels, onto a regular grid.
+
+    Each slice is first shifted onto a canvas large enough for all of them (shear correction of a gantry tilt),
+    then the canvases are interpolated linearly along the normal every ``sz`` mm from ``d[0]``. Integer data stay
+    integer (rounded). Returns the volume, its z step and the (y, x) pixel offset of the canvas origin from
+    slice 0's first pixel.
+    """
+    from scipy import ndimage
+
+    n, rows, cols = data.shape
+    off = (float(oy.min()) if np.ptp(oy) > 0.05 else 0.0, float(ox.min()) if np.ptp(ox) > 0.05 else 0.0)
+    ox = ox - off[1] if np.ptp(ox) > 0.05 else np.zeros(n)
+    oy = oy - off[0] if np.ptp(oy) > 0.05 else np.zeros(n)
+    ny, nx = rows + math.ceil(float(oy.max()) - 1e-6), cols + math.ceil(float(ox.max()) - 1e-6)
+    rel = d - d[0]
+    nz = int(math.floor(float(rel[-1]) / sz + 1e-6)) + 1
+    limits.check_voxels((nz, ny, nx), f"{label} after resampling to a regular grid")
+    out = np.empty((nz, ny, nx), dtype=data.dtype)
+    cache: dict[int, np.ndarray] = {}
+
+    def shifted(k: int) -> np.ndarray:
+        if k not in cache:
+            if len(cache) >= 2:
+                cache.pop(min(cache))
+            canvas = np.full((ny, nx), fill, dtype=np.float32)
+            canvas[:rows, :cols] = data[k]
+            if oy[k] or ox[k]:
+                canvas = ndimage.shift(canvas, (oy[k], ox[k]), order=1, mode="constant", cval=fill, prefilter=False)
+            cache[k] = canvas
+        return cache[k]
+
+    for m in range(nz):
+        z = m * sz
+        k = min(max(int(np.searchsorted(rel, z, side="right")) - 1, 0), n - 2) if n > 1 else 0
+        w = min(max((z - rel[k]) / (rel[k + 1] - rel[k]), 0.0), 1.0) if n > 1 else 0.0
+        sl = shifted(k) if w < 1e-4 else shifted(k + 1) if w > 1 - 1e-4 else (1 - w) * shifted(k) + w * shifted(k + 1)
+        if out.dtype.kind in "iu":
+            info = np.iinfo(out.dtype)
+            out[m] = np.clip(np.rint(sl), info.min, info.max)
+        else:
+            out[m] = sl
+    return out, sz, off
