@@ -79,7 +79,7 @@ def _versions() -> dict[str, str]:
     import importlib.metadata as md
 
     out = {"python": platform.python_version()}
-    for name in ("bonemesh", "warp-lang", "numpy", "scikit-image", "fast-simplification", "DracoPy"):
+    for name in ("bonemesh", "warp-lang", "numpy", "scikit-image", "pymeshlab", "DracoPy"):
         try:
             out[name] = md.version(name)
         except md.PackageNotFoundError:

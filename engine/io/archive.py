@@ -109,7 +109,7 @@ def _copy_limited(
     src: IO[bytes], name: str, declared: int, budget: _Budget, member_ratio_base: int | None
 ) -> tuple[IO[bytes], int, bytes]:
     """Copy ``src`` into a spooled temp file while counting bytes against the limits."""
-    spool: IO[bytes] = tempfile.SpooledTemporaryFile(max_size=_SPOOL_IN_MEMORY)  # noqa: SIM115 - closed by Members
+    spool: IO[bytes] = tempfile.SpooledTemporaryFile(max_size=_SPOOL_IN_MEMORY)
     n = 0
     try:
         while chunk := src.read(_CHUNK):

@@ -61,7 +61,7 @@ def _read(member: Member, *, pixels: bool) -> Any | None:
                 ds.file_meta.TransferSyntaxUID = (
                     ImplicitVRLittleEndian if implicit else ExplicitVRLittleEndian if little else ExplicitVRBigEndian
                 )
-    except Exception:  # noqa: BLE001 - anything pydicom cannot parse is simply not DICOM
+    except Exception:
         return None
     return ds
 
@@ -317,7 +317,7 @@ def _pixels(series: list[_Slice], label: str) -> tuple[np.ndarray, str, float]:
         ds = _read(s.member, pixels=True)
         try:
             arr = ds.pixel_array  # type: ignore[union-attr]
-        except Exception as exc:  # noqa: BLE001 - decoder plugins raise many types
+        except Exception as exc:
             raise InputError(
                 f"cannot decode the pixels of {s.member.name} ({s.header['transfer_syntax']}): {exc}"
             ) from None
@@ -383,7 +383,7 @@ def _regularise(
     oy = oy - off[0] if np.ptp(oy) > 0.05 else np.zeros(n)
     ny, nx = rows + math.ceil(float(oy.max()) - 1e-6), cols + math.ceil(float(ox.max()) - 1e-6)
     rel = d - d[0]
-    nz = int(math.floor(float(rel[-1]) / sz + 1e-6)) + 1
+    nz = math.floor(float(rel[-1]) / sz + 1e-6) + 1
     limits.check_voxels((nz, ny, nx), f"{label} after resampling to a regular grid")
     out = np.empty((nz, ny, nx), dtype=data.dtype)
     cache: dict[int, np.ndarray] = {}

@@ -148,7 +148,7 @@ def _decode(m: Member, limits: InputLimits) -> tuple[np.ndarray, dict[str, Any]]
         arr = iio.imread(io.BytesIO(data))
     except InputError:
         raise
-    except Exception as exc:  # noqa: BLE001 - decoder errors come in many types
+    except Exception as exc:
         raise InputError(f"cannot decode {m.name} as {kind.upper() if kind else 'an image'}: {exc}") from None
     arr, note = _to_gray(arr, colour=arr.ndim == 3)
     return arr, {"colour": note} if note else {}
@@ -157,7 +157,7 @@ def _decode(m: Member, limits: InputLimits) -> tuple[np.ndarray, dict[str, Any]]
 def _load_npy(m: Member, limits: InputLimits) -> np.ndarray:
     """A .npy array, its shape checked against the voxel limit before the data are read."""
     fmt = np.lib.format
-    with (m._path.open("rb") if m._path is not None else io.BytesIO(m.read())) as fh:
+    with m._path.open("rb") if m._path is not None else io.BytesIO(m.read()) as fh:
         version = fmt.read_magic(fh)
         reader = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
         shape, _, _ = reader(fh)

@@ -72,20 +72,28 @@ def face_normals(verts: npt.NDArray[Any], faces: npt.NDArray[Any]) -> npt.NDArra
     return np.cross(v[faces[:, 1]] - a, v[faces[:, 2]] - a)
 
 
-def _surface_area(verts: np.ndarray, faces: np.ndarray) -> float:
-    total = 0.0
+def _volume_area(verts: np.ndarray, faces: np.ndarray) -> tuple[float, float]:
+    """Signed volume and area in one chunked float64 pass."""
+    vol = area = 0.0
     for lo in range(0, len(faces), _CHUNK):
-        total += float(np.linalg.norm(face_normals(verts, faces[lo : lo + _CHUNK]), axis=1).sum()) / 2.0
-    return total
+        f = faces[lo : lo + _CHUNK]
+        a, b, c = (verts[f[:, k]][:, ::-1].astype(np.float64) for k in range(3))
+        vol += float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum()) / 6.0
+        n = np.cross(b - a, c - a)
+        area += float(np.sqrt(np.einsum("ij,ij->i", n, n)).sum()) / 2.0
+    return vol, area
 
 
 def _halfedge_keys(faces: np.ndarray, n_vertices: int) -> npt.NDArray[np.int64]:
     """Key ``(min * V + max) * 2 + (a > b)`` of every half-edge a->b, in order (face 0 edges 01 12 20, face 1...)."""
-    a = faces.astype(np.int64).ravel()
-    b = faces[:, [1, 2, 0]].astype(np.int64).ravel()
-    lo = np.minimum(a, b)
-    hi = np.maximum(a, b)
-    return (lo * n_vertices + hi) * 2 + (a > b)
+    a = faces.reshape(-1)
+    b = np.roll(faces, -1, axis=1).reshape(-1)
+    key = np.minimum(a, b).astype(np.int64)
+    key *= n_vertices
+    key += np.maximum(a, b)
+    key *= 2
+    key += a > b
+    return key
 
 
 def edge_report(faces: npt.NDArray[Any], n_vertices: int) -> dict[str, int]:
@@ -102,37 +110,38 @@ def edge_report(faces: npt.NDArray[Any], n_vertices: int) -> dict[str, int]:
     # sorted: a consistent pair is (key with direction bit 0, key with direction bit 1)
     inconsistent = int(np.count_nonzero((keys[two] & 1) == (keys[two + 1] & 1)))
     return {
-        "edges": int(len(starts)),
+        "edges": len(starts),
         "boundary_edges": int(np.count_nonzero(counts == 1)),
         "nonmanifold_edges": int(np.count_nonzero(counts > 2)),
         "inconsistent_edges": inconsistent,
     }
 
 
-def vertex_fans(faces: npt.NDArray[Any], n_vertices: int) -> int:
-    """Number of face fans around the vertices of a closed, edge-manifold, consistently wound mesh.
+def fan_counts(faces: npt.NDArray[Any], n_vertices: int) -> npt.NDArray[np.int64]:
+    """Number of face fans around each vertex of a closed, edge-manifold, consistently wound mesh.
 
-    The mesh is vertex-manifold exactly when this equals the number of used vertices. Each corner (face f, vertex
-    v) is followed around v by the corner of v in the face across the edge that enters v in f; the fans are the
+    A used vertex is manifold exactly when it has one fan (0 for unused vertices). Each corner (face f, vertex v)
+    is followed around v by the corner of v in the face across the edge that enters v in f; the fans are the
     cycles of that permutation, counted by pointer doubling.
 
     Raises:
-        ValueError: the mesh has a boundary, non-manifold or inconsistent edge (the fans are not cycles).
+        ValueError: the mesh has a boundary or non-manifold edge (the fans are not cycles).
     """
     faces = np.asarray(faces)
     nh = 3 * len(faces)
     if nh == 0:
-        return 0
+        return np.zeros(n_vertices, np.int64)
     keys = _halfedge_keys(faces, n_vertices)
     order = np.argsort(keys)
     und = keys[order] >> 1
     if nh % 2 or np.any(und[0::2] != und[1::2]) or (nh > 2 and np.any(und[2::2] == und[1:-1:2])):
-        raise ValueError("vertex_fans needs a closed edge-manifold mesh (every edge in exactly two faces)")
-    twin = np.empty(nh, np.int64)
+        raise ValueError("fan_counts needs a closed edge-manifold mesh (every edge in exactly two faces)")
+    itype = np.int32 if nh < 2**31 else np.int64
+    twin = np.empty(nh, itype)
     twin[order[0::2]] = order[1::2]
     twin[order[1::2]] = order[0::2]
     del order, und, keys
-    h = np.arange(nh, dtype=np.int64)
+    h = np.arange(nh, dtype=itype)
     prev = h - 1 + 3 * (h % 3 == 0)  # half-edge entering the corner's vertex in the same face
     nxt = twin[prev]  # starts at the same vertex, in the next face around it
     del twin, prev
@@ -143,7 +152,12 @@ def vertex_fans(faces: npt.NDArray[Any], n_vertices: int) -> int:
         if np.array_equal(new, label):
             break
         label = new
-    return int(np.count_nonzero(label == h))
+    return np.bincount(faces.reshape(-1)[label == h], minlength=n_vertices)
+
+
+def vertex_fans(faces: npt.NDArray[Any], n_vertices: int) -> int:
+    """Total number of face fans (see :func:`fan_counts`); equals the used vertex count for a manifold mesh."""
+    return int(fan_counts(faces, n_vertices).sum())
 
 
 def mesh_stats(verts: npt.NDArray[Any], faces: npt.NDArray[Any], *, vertex_manifold: bool = True) -> dict[str, Any]:
@@ -176,6 +190,7 @@ def mesh_stats(verts: npt.NDArray[Any], faces: npt.NDArray[Any], *, vertex_manif
         used = int(np.count_nonzero(np.bincount(faces.ravel(), minlength=nv)))
         vman = vertex_fans(faces, nv) == used
     ncomp, _ = component_labels(faces, nv)
+    volume, area = _volume_area(verts, faces) if nf else (0.0, 0.0)
     if nv:
         xyz = verts[:, ::-1]
         bbox: dict[str, list[float]] | None = {
@@ -197,8 +212,8 @@ def mesh_stats(verts: npt.NDArray[Any], faces: npt.NDArray[Any], *, vertex_manif
         "degenerate_faces": degenerate,
         "components": ncomp,
         "euler": int(nv - edges["edges"] + nf),
-        "volume_mm3": float(face_volumes(verts, faces).sum()) if nf else 0.0,
-        "area_mm2": _surface_area(verts, faces) if nf else 0.0,
+        "volume_mm3": volume,
+        "area_mm2": area,
         "bbox_mm": bbox,
     }
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import os
 import subprocess
 import sys
@@ -90,3 +91,48 @@ def test_bad_input_exits_2_without_output(tmp_path, args, reason):
     assert res.returncode == 2
     assert reason in res.stderr and res.stderr.count("\n") == 1
     assert not out.exists() and not list(tmp_path.glob(".out.stl.*"))
+
+
+# ------------------------------------------------------------------------------------------- reconstruct
+def test_reconstruct_demo_writes_every_output(tmp_path):
+    out = tmp_path / "model"
+    res = run_cli("reconstruct", "--demo", "-o", str(out), "--device", "cpu", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["ar.glb", "model.glb", "model.stl", "phone.glb", "report.json"]
+    for stage in ("isosurface", "decimate", "smooth"):
+        assert stage in res.stdout  # the summary table
+    assert "100.0%" in res.stderr  # the progress bars
+    import json
+
+    report = json.loads((out / "report.json").read_text())
+    assert report["mesh"]["watertight"] and report["iso_level"]["value"] == 1150.0
+
+
+@pytest.mark.parametrize(
+    ("args", "reason"),
+    [
+        (["missing.zip"], "does not exist"),
+        (["bad.zip"], "zip"),
+        (["stack.zip"], "spacing"),
+        (["ball.npy", "--spacing", "1,1,1", "--iso", "1e9"], "no surface"),
+        (["ball.npy", "--spacing", "1,1,1", "--reduction", "1.5"], "reduction"),
+        (["ball.npy", "--spacing", "1,1,1", "--preset", "bone"], "not calibrated in HU"),
+    ],
+)
+def test_reconstruct_bad_input_exits_2_without_outputs(tmp_path, args, reason):
+    import zipfile
+
+    import imageio.v3 as iio
+
+    np.save(tmp_path / "ball.npy", np.random.default_rng(0).random((6, 6, 6)).astype(np.float32))
+    (tmp_path / "bad.zip").write_bytes(b"not a zip")
+    with zipfile.ZipFile(tmp_path / "stack.zip", "w") as zf:
+        for i in range(3):
+            buf = io.BytesIO()
+            iio.imwrite(buf, np.full((8, 8), i * 50, np.uint8), extension=".png")
+            zf.writestr(f"s{i}.png", buf.getvalue())
+    out = tmp_path / "out"
+    res = run_cli("reconstruct", *args, "-o", str(out), "--device", "cpu", "--quiet", cwd=tmp_path)
+    assert res.returncode == 2, res.stderr
+    assert reason in res.stderr and res.stderr.strip().count("\n") == 0
+    assert not out.exists() or not any(out.iterdir())

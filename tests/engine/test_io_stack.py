@@ -130,7 +130,7 @@ def test_tiff_resolution_tags_give_spacing(tmp_path: Path) -> None:
         load_volume(_write(cm, files, "folder"))
     dpi = tmp_path / "dpi.tif"  # 72 dpi is a display default, never a voxel size
     tifffile.imwrite(dpi, vol, photometric="minisblack", resolution=(72.0, 72.0), resolutionunit="INCH")
-    with pytest.raises(InputError, match="72 dpi.*not a voxel size"):
+    with pytest.raises(InputError, match=r"72 dpi.*not a voxel size"):
         load_volume(dpi)
 
 
@@ -232,7 +232,7 @@ def test_bad_inputs_fail_clearly(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="found none"):
         load_volume(tmp_path / "junk.bin", spacing_zyx_mm=SP)
     (tmp_path / "bad.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage")
-    with pytest.raises(InputError, match="cannot decode bad.png"):
+    with pytest.raises(InputError, match=r"cannot decode bad\.png"):
         load_volume(tmp_path / "bad.png", spacing_zyx_mm=SP)
 
 

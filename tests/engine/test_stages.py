@@ -157,4 +157,6 @@ def test_crop_and_threshold():
     with pytest.raises(InputError, match="fewer than 2"):
         crop_volume(vol, ((0.0, 1.0), (0.0, 7.0), (0.0, 2.0)))
     thr = preprocess_volume(vol, PreprocessParams(threshold=200.0))
-    assert thr.data.min() == 0 and (thr.data[data < 200] == 0).all() and (thr.data[data >= 200] == data[data >= 200]).all()
+    assert (
+        thr.data.min() == 0 and (thr.data[data < 200] == 0).all() and (thr.data[data >= 200] == data[data >= 200]).all()
+    )

@@ -1,0 +1,104 @@
+"""Remove small connected pieces ("islands") of a mesh: noise specks, loose fragments, floating debris."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from engine.stages.meshcheck import component_labels, face_volumes
+
+
+def compact_mesh(
+    verts: npt.NDArray[Any], faces: npt.NDArray[Any]
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int32]]:
+    """Drop unused vertices and remap the faces; the kept vertices keep their order."""
+    used = np.zeros(len(verts), bool)
+    used[faces.ravel()] = True
+    remap = np.cumsum(used, dtype=np.int64) - 1
+    return (
+        np.ascontiguousarray(verts[used], dtype=np.float32),
+        remap[faces].astype(np.int32).reshape(-1, 3),
+    )
+
+
+def remove_islands(
+    verts: npt.NDArray[Any],
+    faces: npt.NDArray[Any],
+    *,
+    min_volume_mm3: float | None = None,
+    keep_largest: int | None = None,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int32], dict[str, Any]]:
+    """Drop the connected pieces of a mesh that enclose little volume.
+
+    A piece's volume is the absolute value of its signed volume (vertices in (x, y, z) order); for an open piece
+    that value depends on the origin but is still a usable size measure. Pieces are connected through shared
+    vertices.
+
+    Args:
+        verts: (V, 3) vertices in (z, y, x) order, mm.
+        faces: (F, 3) integer vertex indices.
+        min_volume_mm3: drop pieces whose volume is below this (>= 0).
+        keep_largest: then keep only this many pieces, the largest by volume (>= 1; ties keep the earlier piece).
+
+    Returns:
+        ``(verts, faces, info)``: the kept faces in their original order, unused vertices dropped (the rest keep
+        their order), and ``info`` with ``pieces_before``, ``pieces_after``, ``removed_pieces``,
+        ``removed_faces``, ``removed_volume_mm3`` (sum of the removed pieces' volumes), ``kept_volume_mm3`` and
+        ``largest_removed_mm3``.
+
+    Raises:
+        ValueError: bad arrays or parameter values.
+    """
+    verts = np.asarray(verts)
+    faces = np.asarray(faces)
+    if verts.ndim != 2 or verts.shape[1] != 3:
+        raise ValueError(f"Expected vertices of shape (V, 3), got {verts.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
+        raise ValueError(f"Expected integer faces of shape (F, 3), got {faces.dtype} {faces.shape}")
+    if len(faces) and (faces.min() < 0 or faces.max() >= len(verts)):
+        raise ValueError(f"Face indices must lie in [0, {len(verts) - 1}], got [{faces.min()}, {faces.max()}]")
+    if min_volume_mm3 is not None and not (np.isfinite(min_volume_mm3) and min_volume_mm3 >= 0):
+        raise ValueError(f"min_volume_mm3 must be a finite number >= 0, got {min_volume_mm3}")
+    if keep_largest is not None and (isinstance(keep_largest, bool) or int(keep_largest) != keep_largest
+                                     or keep_largest < 1):
+        raise ValueError(f"keep_largest must be an integer >= 1, got {keep_largest}")
+
+    if len(faces) == 0:
+        info = {"pieces_before": 0, "pieces_after": 0, "removed_pieces": 0, "removed_faces": 0,
+                "removed_volume_mm3": 0.0, "kept_volume_mm3": 0.0, "largest_removed_mm3": 0.0}
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), info
+
+    _, vlabels = component_labels(faces, len(verts))
+    flabels = vlabels[faces[:, 0]]
+    # renumber to the pieces that hold faces (unused vertices are components too), in order of first face
+    pieces, first, flabels = np.unique(flabels, return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    flabels = rank[flabels.ravel()]
+    n = len(pieces)
+    volume = np.abs(np.bincount(flabels, weights=face_volumes(verts, faces), minlength=n))
+
+    keep = np.ones(n, bool)
+    if min_volume_mm3 is not None:
+        keep &= volume >= min_volume_mm3
+    if keep_largest is not None:
+        candidates = np.flatnonzero(keep)
+        by_size = candidates[np.argsort(-volume[candidates], kind="stable")]
+        keep[by_size[int(keep_largest):]] = False
+
+    face_keep = keep[flabels]
+    out_v, out_f = compact_mesh(verts, faces[face_keep])
+    removed = volume[~keep]
+    info = {
+        "pieces_before": int(n),
+        "pieces_after": int(keep.sum()),
+        "removed_pieces": int((~keep).sum()),
+        "removed_faces": int(len(faces) - face_keep.sum()),
+        "removed_volume_mm3": float(removed.sum()),
+        "kept_volume_mm3": float(volume[keep].sum()),
+        "largest_removed_mm3": float(removed.max()) if len(removed) else 0.0,
+    }
+    return out_v, out_f, info

@@ -1,0 +1,94 @@
+"""Quadric decimation: ratio, watertightness, orientation, boundary, real scan."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from engine.io.stack import load_slice_zip
+from engine.isosurface import marching_cubes_33
+from engine.stages.decimate import decimate_mesh
+from engine.stages.meshcheck import mesh_stats
+from tests.conftest import shared_file
+from tests.engine.meshutil import assert_closed_manifold, signed_volume, topology
+
+
+@pytest.fixture(scope="module")
+def ball() -> tuple[np.ndarray, np.ndarray]:
+    z, y, x = np.mgrid[:40, :40, :40].astype(np.float32)
+    field = 16.0 - np.sqrt((z - 19.5) ** 2 + (y - 19.5) ** 2 + (x - 19.5) ** 2)
+    return marching_cubes_33(field, 0.0, spacing=(0.5, 0.5, 0.5), device="cpu", closed=True)
+
+
+def test_ball(ball: tuple[np.ndarray, np.ndarray]) -> None:
+    v, f = ball
+    ov, of, info = decimate_mesh(v, f, reduction=0.2)
+    assert abs(len(of) / (0.2 * len(f)) - 1) <= 0.05, info
+    assert_closed_manifold(ov, of)
+    assert info["closed_output"] and info["folds_after"] == 0
+    assert signed_volume(ov, of) > 0
+    assert signed_volume(ov, of) == pytest.approx(signed_volume(v, f), rel=0.01)
+
+
+def test_max_triangles(ball: tuple[np.ndarray, np.ndarray]) -> None:
+    v, f = ball
+    ov, of, info = decimate_mesh(v, f, max_triangles=2000)
+    assert abs(len(of) / 2000 - 1) <= 0.05, info
+    assert_closed_manifold(ov, of)
+    _, of2, info2 = decimate_mesh(v, f, max_triangles=10 * len(f))
+    assert len(of2) == len(f) and info2["output_faces"] == len(f)
+
+
+def test_open_mesh_boundary(ball: tuple[np.ndarray, np.ndarray]) -> None:
+    v, f = ball
+    keep = v[f].mean(axis=1)[:, 0] < 10.0  # cut off the top: an open cap
+    f = f[keep]
+    topo = topology(v, f)
+    assert topo.boundary_edges > 0
+    ov, of, info = decimate_mesh(v, f, reduction=0.3)
+    assert info["boundary_preserved"] and info["folds_after"] == 0
+    assert topology(ov, of).boundary_edges == topo.boundary_edges
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    uniq, counts = np.unique(e, axis=0, return_counts=True)
+    border_in = {tuple(p) for p in v[np.unique(uniq[counts == 1])]}
+    assert border_in <= {tuple(p) for p in ov}  # every boundary vertex kept, unmoved
+    assert abs(len(of) / (0.3 * len(f)) - 1) <= 0.05, info
+
+
+def _check_scan(vol: np.ndarray, level: float, spacing: tuple[float, float, float], reduction: float) -> None:
+    v, f = marching_cubes_33(vol, level, spacing=spacing, device="cpu", closed=True)
+    ov, of, info = decimate_mesh(v, f, reduction=reduction)
+    s = mesh_stats(ov, of)
+    assert s["watertight"] and s["manifold"] and s["vertex_manifold"], s
+    assert topology(ov, of).components == topology(v, f).components  # the link condition keeps the topology
+    assert topology(ov, of).euler == topology(v, f).euler
+    assert abs(info["volume_change"]) < 0.01
+    assert info["folds_after"] <= info["folds_before"]  # no flipped faces: no new folds
+    assert not info["limited_by_watertightness"]
+    assert abs(len(of) / (reduction * len(f)) - 1) <= 0.05
+
+
+def test_headsq_bundled() -> None:
+    from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
+
+    _check_scan(load_slice_zip(HEADSQ_ZIP), 1150.5, HEADSQ_SPACING_ZYX_MM, 0.2)
+
+
+def test_cranium() -> None:
+    vol = load_slice_zip(shared_file("cranium_ct", "cranium_ct_png16.zip"))
+    _check_scan(vol, 1324.5, (1.5, 0.9570312, 0.9570312), 0.2)
+
+
+def test_invalid_args(ball: tuple[np.ndarray, np.ndarray]) -> None:
+    v, f = ball
+    with pytest.raises(ValueError, match="exactly one"):
+        decimate_mesh(v, f)
+    with pytest.raises(ValueError, match="exactly one"):
+        decimate_mesh(v, f, reduction=0.5, max_triangles=10)
+    for bad in (0.0, 1.5, -0.1, float("nan")):
+        with pytest.raises(ValueError, match="reduction"):
+            decimate_mesh(v, f, reduction=bad)
+    with pytest.raises(ValueError, match="max_triangles"):
+        decimate_mesh(v, f, max_triangles=0)
+    with pytest.raises(ValueError, match="empty"):
+        decimate_mesh(v, np.zeros((0, 3), np.int32), reduction=0.5)

@@ -1,0 +1,144 @@
+"""engine.reconstruct and write_outputs end to end: stages' invariants, report, files, failures."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+
+from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
+from engine.errors import InputError
+from engine.io.stack import load_slice_zip
+from engine.params import DecimateParams, IslandParams, IsoParams, ReconParams, SmoothParams
+from engine.pipeline import STAGES, EmptySurfaceError, reconstruct, write_outputs
+from engine.types import Volume
+from tests.conftest import shared_file
+from tests.engine.meshutil import assert_closed_manifold, signed_volume
+
+HEADSQ_PARAMS = ReconParams(iso=IsoParams(iso=1150.0))
+
+
+@pytest.fixture(scope="module")
+def headsq() -> Volume:
+    return Volume(load_slice_zip(HEADSQ_ZIP), HEADSQ_SPACING_ZYX_MM)
+
+
+@pytest.fixture(scope="module")
+def headsq_recon(headsq):
+    return reconstruct(headsq, HEADSQ_PARAMS, device="cpu")
+
+
+def test_reconstruct_defaults_follow_the_paper(headsq_recon):
+    rep = headsq_recon.report
+    mesh = headsq_recon.mesh
+    assert list(rep["stage_seconds"]) == list(STAGES)
+    mc = rep["counts"]["isosurface"]["faces"]
+    assert abs(len(mesh.faces) / mc - 0.2) < 0.2 * 0.05  # reduction factor 0.2 within 5 %
+    assert_closed_manifold(mesh.vertices, mesh.faces)
+    assert rep["mesh"]["watertight"] and rep["mesh"]["n_faces"] == len(mesh.faces)
+    assert signed_volume(mesh.vertices, mesh.faces) > 0
+    np.testing.assert_allclose(np.linalg.norm(mesh.normals, axis=1), 1.0, rtol=1e-4)
+    assert rep["iso_level"] == {"value": 1150.0, "units": "raw", "chosen_by": "given"}
+    json.dumps(rep, default=str)
+
+
+def test_decimation_and_smoothing_keep_the_volume(headsq):
+    """Against the MC33 surface of the Gaussian-smoothed volume, the final model keeps its volume."""
+    base = reconstruct(headsq, ReconParams(iso=IsoParams(iso=1150.0), decimate=None, smooth=None), device="cpu")
+    final = reconstruct(headsq, HEADSQ_PARAMS, device="cpu")
+    v0 = signed_volume(base.mesh.vertices, base.mesh.faces)
+    v1 = signed_volume(final.mesh.vertices, final.mesh.faces)
+    assert abs(v1 / v0 - 1) < 0.01
+    smoothed = reconstruct(headsq, ReconParams(iso=IsoParams(iso=1150.0), decimate=None), device="cpu")
+    assert abs(signed_volume(smoothed.mesh.vertices, smoothed.mesh.faces) / v0 - 1) < 0.005
+
+
+@pytest.mark.parametrize(
+    ("folder", "name", "spacing"),
+    [
+        ("cranium_ct", "cranium_ct_png16.zip", (1.5, 0.957, 0.957)),
+        ("pelvis_ct", "pelvis_ct_png16.zip", (5.0, 1.663, 1.663)),
+    ],
+)
+def test_default_smoothing_keeps_volume_on_real_scans(folder, name, spacing):
+    vol = Volume(load_slice_zip(shared_file(folder, name)), spacing)
+    iso = IsoParams(preset="bone", hu_offset=1024.0)
+    plain = reconstruct(vol, ReconParams(iso=iso, smooth=None), device="cpu")
+    smooth = reconstruct(vol, ReconParams(iso=iso), device="cpu")
+    np.testing.assert_array_equal(plain.mesh.faces, smooth.mesh.faces)
+    change = (
+        signed_volume(smooth.mesh.vertices, smooth.mesh.faces) / signed_volume(plain.mesh.vertices, plain.mesh.faces)
+        - 1
+    )
+    assert abs(change) < 0.005
+    assert smooth.report["mesh"]["watertight"]
+
+
+def test_island_removal_and_max_triangles(headsq):
+    params = ReconParams(
+        iso=IsoParams(iso=1150.0),
+        islands=IslandParams(keep_largest=1),
+        decimate=DecimateParams(reduction=None, max_triangles=5000),
+        smooth=SmoothParams(iterations=2),
+    )
+    recon = reconstruct(headsq, params, device="cpu")
+    assert recon.report["mesh"]["components"] == 1
+    assert len(recon.mesh.faces) <= 5000 or recon.report["decimate"].get("limited_by_watertightness")
+
+
+def test_empty_surface_is_an_input_error(headsq):
+    with pytest.raises(EmptySurfaceError, match="no surface"):
+        reconstruct(headsq, ReconParams(iso=IsoParams(iso=1e6)), device="cpu")
+    assert issubclass(EmptySurfaceError, InputError)
+
+
+def test_progress_is_reported(headsq):
+    seen = []
+    reconstruct(headsq, HEADSQ_PARAMS, device="cpu", on_progress=lambda s, f: seen.append((s, f)))
+    assert seen[0] == ("preprocess", 0.0) and seen[-1] == ("normals", 1.0)
+    fractions = [f for _, f in seen]
+    assert fractions == sorted(fractions)
+
+
+# ------------------------------------------------------------------------------------------- outputs
+def test_write_outputs(headsq_recon, tmp_path):
+    trimesh = pytest.importorskip("trimesh")
+    import DracoPy
+
+    paths = write_outputs(headsq_recon, tmp_path, HEADSQ_PARAMS, device="cpu")
+    assert set(paths) == {"model.stl", "model.glb", "phone.glb", "ar.glb", "report.json"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(paths)  # no temporary leftovers
+    stl = trimesh.load(paths["model.stl"])
+    assert stl.is_watertight and len(stl.faces) == len(headsq_recon.mesh.faces)
+    mm = headsq_recon.mesh.vertices[:, ::-1]
+    np.testing.assert_allclose(stl.extents, mm.max(axis=0) - mm.min(axis=0), rtol=1e-5)
+    glb = trimesh.load(io.BytesIO(paths["model.glb"].read_bytes()), file_type="glb").to_geometry()
+    np.testing.assert_allclose(sorted(glb.extents), sorted(stl.extents / 1000.0), rtol=1e-4)  # metres
+    assert glb.volume > 0
+    phone = json.loads(
+        paths["phone.glb"].read_bytes()[20 : 20 + int.from_bytes(paths["phone.glb"].read_bytes()[12:16], "little")]
+    )
+    assert "KHR_draco_mesh_compression" in phone["extensionsRequired"]
+    assert phone["accessors"][phone["meshes"][0]["primitives"][0]["indices"]]["count"] // 3 <= 100_000
+    ar = trimesh.load(io.BytesIO(paths["ar.glb"].read_bytes()), file_type="glb").to_geometry()
+    assert len(ar.faces) <= 50_000
+    report = json.loads(paths["report.json"].read_text())
+    for key in ("parameters", "device", "versions", "stage_seconds", "counts", "mesh", "exports"):
+        assert key in report
+    for key in ("watertight", "manifold", "components", "euler", "volume_mm3", "area_mm2", "bbox_mm"):
+        assert key in report["mesh"]
+    assert DracoPy  # imported: the decoder is available for the app-side check
+
+
+def test_failed_export_leaves_no_partial_model(headsq_recon, tmp_path, monkeypatch):
+    import engine.export
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(engine.export, "to_draco_glb", broken)
+    with pytest.raises(RuntimeError, match="disk full"):
+        write_outputs(headsq_recon, tmp_path, HEADSQ_PARAMS, device="cpu")
+    assert list(tmp_path.iterdir()) == []
