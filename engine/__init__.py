@@ -9,8 +9,16 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-__all__ = ["Mesh", "ReconParams", "Reconstruction", "Volume", "load_volume", "marching_cubes_33", "reconstruct",
-           "write_outputs"]
+__all__ = [
+    "Mesh",
+    "ReconParams",
+    "Reconstruction",
+    "Volume",
+    "load_volume",
+    "marching_cubes_33",
+    "reconstruct",
+    "write_outputs",
+]
 
 _WHERE = {
     "reconstruct": "engine.pipeline",

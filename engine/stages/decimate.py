@@ -15,6 +15,7 @@ tetrahedron), the result keeps more faces than asked and ``info["limited_by_wate
 
 from __future__ import annotations
 
+import os
 import time
 from typing import Any
 
@@ -25,6 +26,62 @@ from engine.stages.islands import compact_mesh
 from engine.stages.meshcheck import component_labels, edge_report
 
 TOLERANCE = 0.05  # relative face-count tolerance on the target
+PARALLEL_MIN_FACES = 400_000
+MIN_FACES_PER_WORKER = 100_000
+
+
+def _workers(n_faces: int, workers: int | None) -> int:
+    if workers is None:
+        usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        workers = min(16, usable) if n_faces >= PARALLEL_MIN_FACES else 1
+    return max(1, min(int(workers), n_faces // MIN_FACES_PER_WORKER))
+
+
+def _collapse(pts: np.ndarray, faces: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray]:
+    """MeshLab's topology-preserving quadric edge collapse down to ``target`` faces."""
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts, face_matrix=faces))
+    ms.meshing_decimation_quadric_edge_collapse(
+        targetfacenum=int(target),
+        preservetopology=True,
+        preserveboundary=True,
+        boundaryweight=1.0,
+        preservenormal=True,
+        optimalplacement=True,
+        planarquadric=False,
+        qualitythr=0.3,
+        autoclean=True,
+    )
+    mesh = ms.current_mesh()
+    return np.asarray(mesh.vertex_matrix(), dtype=np.float64), np.asarray(mesh.face_matrix(), dtype=np.int32)
+
+
+def _collapse_in_slabs(pts: np.ndarray, faces: np.ndarray, target: int, workers: int) -> tuple[np.ndarray, np.ndarray]:
+    """Decimate z slabs of the mesh in parallel processes; the cut borders are preserved, so the stitched result
+    is closed and 2-manifold where the input was (the border vertices come back unmoved and are merged)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    cz = pts[faces].mean(axis=1)[:, 2]
+    cuts = np.quantile(cz, np.linspace(0, 1, workers + 1)[1:-1])
+    slab = np.searchsorted(cuts, cz)
+    jobs = []
+    for k in range(workers):
+        sub = faces[slab == k]
+        used, inverse = np.unique(sub.ravel(), return_inverse=True)
+        jobs.append((pts[used], inverse.reshape(-1, 3).astype(np.int32), max(1, round(target * len(sub) / len(faces)))))
+    # fork where available: the children run only MeshLab (never CUDA, so a CUDA context in the parent is safe)
+    # and need not re-import the caller's main module as spawn would
+    ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        parts = list(pool.map(_collapse, *zip(*jobs, strict=True)))
+    all_pts = np.concatenate([p for p, _ in parts])
+    offsets = np.cumsum([0] + [len(p) for p, _ in parts[:-1]])
+    all_faces = np.concatenate([f + off for (_, f), off in zip(parts, offsets, strict=True)])
+    merged, inverse = np.unique(all_pts, axis=0, return_inverse=True)
+    return merged, inverse.reshape(-1)[all_faces].astype(np.int32)
 
 
 def _target(n_faces: int, reduction: float | None, max_triangles: int | None) -> int:
@@ -65,6 +122,7 @@ def decimate_mesh(
     *,
     reduction: float | None = None,
     max_triangles: int | None = None,
+    workers: int | None = None,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int32], dict[str, Any]]:
     """Reduce the face count by topology-preserving quadric-error edge collapses.
 
@@ -73,6 +131,9 @@ def decimate_mesh(
         faces: (F, 3) integer vertex indices, outward normals with vertices in (x, y, z) order.
         reduction: fraction of the faces to keep, in (0, 1] (0.2 keeps about 20 %).
         max_triangles: or the number of faces to reduce to (>= 1); at or above F the mesh is returned as is.
+        workers: processes for large meshes (default: the usable cores, up to 16, for meshes of at least
+            ``PARALLEL_MIN_FACES`` faces): the mesh is cut into z slabs of equal face counts whose cut borders
+            are preserved, decimated side by side and stitched on the unmoved border vertices.
 
     Returns:
         ``(verts, faces, info)``: float32 (z, y, x) vertices, int32 faces, and ``info`` with ``target_faces``,
@@ -111,29 +172,21 @@ def decimate_mesh(
         "components_before": component_labels(faces, len(pts))[0],
         "method": "MeshLab quadric edge collapse (preservetopology, preserveboundary, preservenormal)",
     }
+    n_workers = _workers(len(faces), workers)
+    info["workers"] = n_workers
     if target >= len(faces):
         out_pts, out_faces = pts, faces
+    elif n_workers > 1:
+        out_pts, out_faces = _collapse_in_slabs(pts, faces, target, n_workers)
     else:
-        import pymeshlab
-
-        ms = pymeshlab.MeshSet()
-        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts, face_matrix=faces))
-        ms.meshing_decimation_quadric_edge_collapse(
-            targetfacenum=int(target),
-            preservetopology=True,
-            preserveboundary=True,
-            boundaryweight=1.0,
-            preservenormal=True,
-            optimalplacement=True,
-            planarquadric=False,
-            qualitythr=0.3,
-            autoclean=True,
-        )
-        mesh = ms.current_mesh()
-        out_pts = np.asarray(mesh.vertex_matrix(), dtype=np.float64)
-        out_faces = np.asarray(mesh.face_matrix(), dtype=np.int32)
+        out_pts, out_faces = _collapse(pts, faces, target)
     after = edge_report(out_faces, len(out_pts))
     closed_out = after["boundary_edges"] == 0 and after["nonmanifold_edges"] == 0
+    if n_workers > 1 and closed and not closed_out:  # seams did not close: do it in one piece
+        out_pts, out_faces = _collapse(pts, faces, target)
+        after = edge_report(out_faces, len(out_pts))
+        closed_out = after["boundary_edges"] == 0 and after["nonmanifold_edges"] == 0
+        info["workers"] = 1
     if closed and not closed_out:  # never expected with the link condition; keep the input rather than break it
         out_pts, out_faces, after, closed_out = pts, faces, before, True
     if before["boundary_edges"]:

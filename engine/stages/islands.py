@@ -61,13 +61,21 @@ def remove_islands(
         raise ValueError(f"Face indices must lie in [0, {len(verts) - 1}], got [{faces.min()}, {faces.max()}]")
     if min_volume_mm3 is not None and not (np.isfinite(min_volume_mm3) and min_volume_mm3 >= 0):
         raise ValueError(f"min_volume_mm3 must be a finite number >= 0, got {min_volume_mm3}")
-    if keep_largest is not None and (isinstance(keep_largest, bool) or int(keep_largest) != keep_largest
-                                     or keep_largest < 1):
+    if keep_largest is not None and (
+        isinstance(keep_largest, bool) or int(keep_largest) != keep_largest or keep_largest < 1
+    ):
         raise ValueError(f"keep_largest must be an integer >= 1, got {keep_largest}")
 
     if len(faces) == 0:
-        info = {"pieces_before": 0, "pieces_after": 0, "removed_pieces": 0, "removed_faces": 0,
-                "removed_volume_mm3": 0.0, "kept_volume_mm3": 0.0, "largest_removed_mm3": 0.0}
+        info = {
+            "pieces_before": 0,
+            "pieces_after": 0,
+            "removed_pieces": 0,
+            "removed_faces": 0,
+            "removed_volume_mm3": 0.0,
+            "kept_volume_mm3": 0.0,
+            "largest_removed_mm3": 0.0,
+        }
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), info
 
     _, vlabels = component_labels(faces, len(verts))
@@ -87,7 +95,7 @@ def remove_islands(
     if keep_largest is not None:
         candidates = np.flatnonzero(keep)
         by_size = candidates[np.argsort(-volume[candidates], kind="stable")]
-        keep[by_size[int(keep_largest):]] = False
+        keep[by_size[int(keep_largest) :]] = False
 
     face_keep = keep[flabels]
     out_v, out_f = compact_mesh(verts, faces[face_keep])

@@ -92,3 +92,23 @@ def test_invalid_args(ball: tuple[np.ndarray, np.ndarray]) -> None:
         decimate_mesh(v, f, max_triangles=0)
     with pytest.raises(ValueError, match="empty"):
         decimate_mesh(v, np.zeros((0, 3), np.int32), reduction=0.5)
+
+
+def test_parallel_slabs_stitch_into_a_closed_mesh() -> None:
+    """Balls and a torus, decimated in 3 z slabs side by side: closed, same topology, same target."""
+    z, y, x = np.indices((224, 288, 288), dtype=np.float32) / 3.2
+    balls = np.maximum(
+        20 - np.sqrt((z - 35) ** 2 + (y - 25) ** 2 + (x - 25) ** 2),
+        14 - np.sqrt((z - 35) ** 2 + (y - 62) ** 2 + (x - 62) ** 2),
+    )
+    torus = 6 - np.sqrt((np.sqrt((y - 62) ** 2 + (x - 25) ** 2) - 16) ** 2 + (z - 35) ** 2)
+    v, f = marching_cubes_33(np.maximum(balls, torus), 0.0, spacing=(0.5, 0.5, 0.5), device="cpu", closed=True)
+    assert len(f) >= 300_000
+    ov, of, info = decimate_mesh(v, f, reduction=0.2, workers=3)
+    assert info["workers"] == 3
+    assert_closed_manifold(ov, of)
+    before, after = topology(v, f), topology(ov, of)
+    assert (after.components, after.euler) == (before.components, before.euler)
+    assert before.euler < 2 * before.components  # the shapes include a handle
+    assert abs(len(of) / (0.2 * len(f)) - 1) <= 0.05
+    assert signed_volume(ov, of) == pytest.approx(signed_volume(v, f), rel=0.01)

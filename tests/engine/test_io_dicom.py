@@ -45,9 +45,12 @@ def _patient_points(vol, shape: tuple[int, ...]) -> np.ndarray:
     zz, yy, xx = np.indices(shape, dtype=float)
     sz, sy, sx = vol.spacing_zyx_mm
     axes = np.asarray(vol.direction)  # columns: x, y, z axes
-    return np.asarray(vol.origin_mm) + (xx[..., None] * sx) * axes[:, 0] + (yy[..., None] * sy) * axes[:, 1] + (
-        zz[..., None] * sz
-    ) * axes[:, 2]
+    return (
+        np.asarray(vol.origin_mm)
+        + (xx[..., None] * sx) * axes[:, 0]
+        + (yy[..., None] * sy) * axes[:, 1]
+        + (zz[..., None] * sz) * axes[:, 2]
+    )
 
 
 @pytest.mark.parametrize("preamble", [True, False])
@@ -145,7 +148,10 @@ def test_gantry_tilt_is_shear_corrected(tmp_path: Path) -> None:
 def test_varying_orientation_is_refused(tmp_path: Path) -> None:
     files = series(_ramp, positions_mm=[0, 1, 2])
     files["IM9"] = ct_slice(
-        np.zeros((24, 20), np.uint16), ipp=(0, 0, 3), iop=(1, 0, 0, 0, 0.9, -0.43589), series_uid=_uid(files),
+        np.zeros((24, 20), np.uint16),
+        ipp=(0, 0, 3),
+        iop=(1, 0, 0, 0, 0.9, -0.43589),
+        series_uid=_uid(files),
         instance=9,
     )
     with pytest.raises(InputError, match="orientation changes within the series"):
