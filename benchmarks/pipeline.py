@@ -59,7 +59,11 @@ def _bench(volume: Volume, device: str, repeat: int) -> dict[str, Any]:
     runs = []
     for _ in range(repeat):
         t0 = time.perf_counter()
-        recon = reconstruct(volume, params, device=device)
+
+        def progress(stage: str, fraction: float, t0: float = t0) -> None:
+            print(f"    {time.perf_counter() - t0:8.2f} s  {stage} {fraction:.2f}", flush=True)  # noqa: T201
+
+        recon = reconstruct(volume, params, device=device, on_progress=progress)
         runs.append((time.perf_counter() - t0, recon))
     runs.sort(key=lambda r: r[0])
     seconds, recon = runs[len(runs) // 2]
