@@ -247,14 +247,40 @@ def reconstruct(
 
 
 def _budget_mesh(mesh: Mesh, max_triangles: int, device: Any) -> tuple[Mesh, dict[str, Any]]:
-    """The mesh itself when within budget, else a decimated copy with fresh normals."""
+    """The mesh itself when within budget, else a decimated copy with fresh normals.
+
+    Topology-preserving decimation cannot shrink a closed piece below a tetrahedron, so a scan with thousands of
+    specks cannot reach a phone-sized budget. Then the smallest pieces (by volume) are dropped from this copy,
+    halving the number kept until the budget is met; the report says how many were dropped (the print model
+    keeps them all).
+    """
     if len(mesh.faces) <= max_triangles:
         return mesh, {"faces": len(mesh.faces), "decimated": False}
     from engine.stages.decimate import decimate_mesh
+    from engine.stages.islands import remove_islands
+    from engine.stages.meshcheck import component_labels
     from engine.stages.normals import vertex_normals
 
-    v, f, info = decimate_mesh(mesh.vertices, mesh.faces, max_triangles=max_triangles)
-    return Mesh(v, f, vertex_normals(v, f, device)), {"faces": len(f), "decimated": True, "decimate": info}
+    pieces = component_labels(mesh.faces, len(mesh.vertices))[0]
+    keep: int | None = None
+    dropped = 0
+    while True:
+        v, f = mesh.vertices, mesh.faces
+        if keep is not None:
+            v, f, isl = remove_islands(v, f, keep_largest=keep)
+            dropped = int(isl["removed_pieces"])
+        dv, df, info = decimate_mesh(v, f, max_triangles=max_triangles)
+        if len(df) <= max_triangles or keep == 1:
+            break
+        keep = max(1, min(pieces // 2, max_triangles // 200)) if keep is None else max(1, keep // 2)
+    summary = {
+        "faces": len(df),
+        "decimated": True,
+        "pieces_dropped": dropped,
+        "over_budget": len(df) > max_triangles,
+        "decimate": info,
+    }
+    return Mesh(dv, df, vertex_normals(dv, df, device)), summary
 
 
 def write_outputs(

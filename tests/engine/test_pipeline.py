@@ -142,3 +142,25 @@ def test_failed_export_leaves_no_partial_model(headsq_recon, tmp_path, monkeypat
     with pytest.raises(RuntimeError, match="disk full"):
         write_outputs(headsq_recon, tmp_path, HEADSQ_PARAMS, device="cpu")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_phone_budget_is_met_on_a_speckled_scan(tmp_path):
+    """Specks cannot be decimated below a tetrahedron each: the phone/AR copies drop the smallest pieces."""
+    from engine.params import ExportParams
+
+    rng = np.random.default_rng(4)
+    z, y, x = np.indices((40, 48, 48), dtype=np.float32)
+    vol = (14 - np.sqrt((z - 20) ** 2 + (y - 24) ** 2 + (x - 24) ** 2)) * 100
+    specks = rng.integers(2, 38, size=(400, 3))
+    specks = specks[np.linalg.norm(specks - [20, 24, 24], axis=1) > 18]
+    vol[specks[:, 0], specks[:, 1], specks[:, 2]] = 500.0
+    volume = Volume(vol.astype(np.float32), (1.0, 1.0, 1.0))
+    params = ReconParams(
+        iso=IsoParams(iso=0.0), gaussian=None, export=ExportParams(phone_max_triangles=600, ar_max_triangles=300)
+    )
+    recon = reconstruct(volume, params, device="cpu")
+    assert recon.report["mesh"]["components"] > 100
+    write_outputs(recon, tmp_path, params, device="cpu")
+    exports = recon.report["exports"]
+    assert exports["phone.glb"]["faces"] <= 600 and exports["ar.glb"]["faces"] <= 300
+    assert exports["phone.glb"]["pieces_dropped"] > 0 and not exports["phone.glb"]["over_budget"]
