@@ -61,7 +61,7 @@ def _bench(volume: Volume, device: str, repeat: int) -> dict[str, Any]:
         t0 = time.perf_counter()
 
         def progress(stage: str, fraction: float, t0: float = t0) -> None:
-            print(f"    {time.perf_counter() - t0:8.2f} s  {stage} {fraction:.2f}", flush=True)  # noqa: T201
+            print(f"    {time.perf_counter() - t0:8.2f} s  {stage} {fraction:.2f}", flush=True)
 
         recon = reconstruct(volume, params, device=device, on_progress=progress)
         runs.append((time.perf_counter() - t0, recon))
