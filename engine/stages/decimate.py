@@ -59,7 +59,9 @@ def _collapse(pts: np.ndarray, faces: np.ndarray, target: int) -> tuple[np.ndarr
     return np.asarray(mesh.vertex_matrix(), dtype=np.float64), np.asarray(mesh.face_matrix(), dtype=np.int32)
 
 
-def _collapse_in_slabs(pts: np.ndarray, faces: np.ndarray, target: int, workers: int) -> tuple[np.ndarray, np.ndarray]:
+def _collapse_in_slabs(
+    pts: np.ndarray, faces: np.ndarray, target: int, workers: int, closed: bool
+) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """Decimate z slabs of the mesh in parallel processes; the cut borders are preserved, so the stitched result
     is closed and 2-manifold where the input was (the border vertices come back unmoved and are merged)."""
     import multiprocessing as mp
@@ -78,11 +80,43 @@ def _collapse_in_slabs(pts: np.ndarray, faces: np.ndarray, target: int, workers:
     ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
         parts = list(pool.map(_collapse, *zip(*jobs, strict=True)))
+    return _stitch_slabs(parts, [(p, f) for p, f, _ in jobs], closed)
+
+
+def _stitch_slabs(
+    parts: list[tuple[np.ndarray, np.ndarray]], originals: list[tuple[np.ndarray, np.ndarray]], closed: bool
+) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """Stitch decimated slabs; on a closed input, a slab whose border did not come back intact is replaced by
+    its original faces, so the result stays closed. Returns points, faces and the slabs kept whole."""
+    parts = list(parts)
+    kept_whole: list[int] = []
+    while True:
+        merged, faces_out, owner = _stitch(parts)
+        bad = [k for k in _defective_slabs(faces_out, owner, len(merged)) if k not in kept_whole] if closed else []
+        if not bad:
+            return merged, faces_out, kept_whole
+        for k in bad:
+            parts[k] = originals[k]
+            kept_whole.append(k)
+
+
+def _stitch(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Concatenate slab meshes and merge their identical (border) vertices; also each face's slab."""
     all_pts = np.concatenate([p for p, _ in parts])
     offsets = np.cumsum([0] + [len(p) for p, _ in parts[:-1]])
     all_faces = np.concatenate([f + off for (_, f), off in zip(parts, offsets, strict=True)])
+    owner = np.concatenate([np.full(len(f), k, np.int32) for k, (_, f) in enumerate(parts)])
     merged, inverse = _merge_identical_points(all_pts)
-    return merged, inverse[all_faces].astype(np.int32)
+    return merged, inverse[all_faces].astype(np.int32), owner
+
+
+def _defective_slabs(faces: np.ndarray, owner: np.ndarray, n_vertices: int) -> list[int]:
+    """Slabs owning a face on an edge that is not shared by exactly two faces."""
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
+    key = np.minimum(e[:, 0], e[:, 1]) * n_vertices + np.maximum(e[:, 0], e[:, 1])
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    bad_face = (counts[inverse.reshape(-1)] != 2).reshape(3, -1).any(axis=0)
+    return sorted(set(owner[bad_face].tolist()))
 
 
 def _merge_identical_points(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -196,7 +230,8 @@ def decimate_mesh(
     if target >= len(faces):
         out_pts, out_faces = pts, faces
     elif n_workers > 1:
-        out_pts, out_faces = _collapse_in_slabs(pts, faces, target, n_workers)
+        out_pts, out_faces, kept_whole = _collapse_in_slabs(pts, faces, target, n_workers, closed)
+        info["slabs_kept_whole"] = kept_whole
     else:
         out_pts, out_faces = _collapse(pts, faces, target)
     after = edge_report(out_faces, len(out_pts))

@@ -112,3 +112,26 @@ def test_parallel_slabs_stitch_into_a_closed_mesh() -> None:
     assert before.euler < 2 * before.components  # the shapes include a handle
     assert abs(len(of) / (0.2 * len(f)) - 1) <= 0.05
     assert signed_volume(ov, of) == pytest.approx(signed_volume(v, f), rel=0.01)
+
+
+def test_a_slab_that_breaks_its_border_is_kept_whole() -> None:
+    """If a slab came back with its cut border changed, stitching would leave a hole: that slab stays as it was."""
+    from engine.stages.decimate import _collapse, _stitch_slabs
+
+    z, y, x = np.indices((40, 40, 40), dtype=np.float32)
+    v, f = marching_cubes_33(16 - np.sqrt((z - 20) ** 2 + (y - 20) ** 2 + (x - 20) ** 2), 0.0, device="cpu")
+    pts = v[:, ::-1].astype(np.float64)
+    lower = pts[f].mean(axis=1)[:, 2] < 20
+    originals = []
+    for mask in (lower, ~lower):
+        used, inverse = np.unique(f[mask].ravel(), return_inverse=True)
+        originals.append((pts[used], inverse.reshape(-1, 3).astype(np.int32)))
+    good = [_collapse(p, q, len(q) // 4) for p, q in originals]
+    merged, faces, kept = _stitch_slabs(good, originals, closed=True)
+    assert kept == [] and len(faces) < len(f) // 2
+    assert_closed_manifold(merged[:, ::-1].astype(np.float32), faces)
+    broken = [(good[0][0], good[0][1][1:]), good[1]]  # slab 0 lost a face: a hole
+    merged, faces, kept = _stitch_slabs(broken, originals, closed=True)
+    assert kept == [0]
+    assert_closed_manifold(merged[:, ::-1].astype(np.float32), faces)
+    assert topology(merged, faces).euler == topology(v, f).euler
