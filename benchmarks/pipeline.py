@@ -81,6 +81,7 @@ def _bench(volume: Volume, device: str, repeat: int) -> dict[str, Any]:
         "write_outputs_seconds": write_s,
         "counts": rep["counts"],
         "exports": rep.get("exports"),
+        "decimate": rep.get("decimate"),
         "mesh": rep["mesh"],
         "iso_level": rep["iso_level"],
         "device": rep["device"],
