@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from engine.stages.islands import compact_mesh
-from engine.stages.meshcheck import component_labels, edge_report
+from engine.stages.meshcheck import component_labels, edge_report, validate_mesh
 
 TOLERANCE = 0.05  # relative face-count tolerance on the target
 PARALLEL_MIN_FACES = 400_000
@@ -200,16 +200,9 @@ def decimate_mesh(
         ValueError: bad arrays or arguments.
     """
     t0 = time.perf_counter()
-    verts = np.asarray(verts)
-    faces = np.asarray(faces)
-    if verts.ndim != 2 or verts.shape[1] != 3:
-        raise ValueError(f"Expected vertices of shape (V, 3), got {verts.shape}")
-    if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
-        raise ValueError(f"Expected integer faces of shape (F, 3), got {faces.dtype} {faces.shape}")
+    verts, faces = validate_mesh(verts, faces)
     if len(faces) == 0:
         raise ValueError("Cannot decimate an empty mesh")
-    if faces.min() < 0 or faces.max() >= len(verts):
-        raise ValueError(f"Face indices must lie in [0, {len(verts) - 1}], got [{faces.min()}, {faces.max()}]")
     if not np.isfinite(verts).all():
         raise ValueError("Vertices must be finite")
     target = _target(len(faces), reduction, max_triangles)

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from engine.stages.meshcheck import component_labels, face_volumes
+from engine.stages.meshcheck import component_labels, face_volumes, validate_mesh
 
 
 def compact_mesh(
@@ -51,14 +51,7 @@ def remove_islands(
     Raises:
         ValueError: bad arrays or parameter values.
     """
-    verts = np.asarray(verts)
-    faces = np.asarray(faces)
-    if verts.ndim != 2 or verts.shape[1] != 3:
-        raise ValueError(f"Expected vertices of shape (V, 3), got {verts.shape}")
-    if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
-        raise ValueError(f"Expected integer faces of shape (F, 3), got {faces.dtype} {faces.shape}")
-    if len(faces) and (faces.min() < 0 or faces.max() >= len(verts)):
-        raise ValueError(f"Face indices must lie in [0, {len(verts) - 1}], got [{faces.min()}, {faces.max()}]")
+    verts, faces = validate_mesh(verts, faces)
     if min_volume_mm3 is not None and not (np.isfinite(min_volume_mm3) and min_volume_mm3 >= 0):
         raise ValueError(f"min_volume_mm3 must be a finite number >= 0, got {min_volume_mm3}")
     if keep_largest is not None and (

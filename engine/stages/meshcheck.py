@@ -231,3 +231,21 @@ def is_closed_manifold(verts: npt.NDArray[Any], faces: npt.NDArray[Any]) -> bool
         return False
     used = int(np.count_nonzero(np.bincount(faces.ravel(), minlength=nv)))
     return vertex_fans(faces, nv) == used
+
+
+def validate_mesh(verts: npt.NDArray[Any], faces: npt.NDArray[Any]) -> tuple[npt.NDArray[Any], npt.NDArray[Any]]:
+    """Check (V, 3) vertices and (F, 3) integer faces with indices in range; return them as arrays.
+
+    Raises:
+        ValueError: what was expected and what arrived.
+    """
+    verts = np.asarray(verts)
+    faces = np.asarray(faces)
+    if verts.ndim != 2 or verts.shape[1] != 3:
+        raise ValueError(f"Expected vertices of shape (V, 3), got {verts.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
+        raise ValueError(f"Expected integer faces of shape (F, 3), got {faces.dtype} {faces.shape}")
+    if len(faces) and (faces.min() < 0 or faces.max() >= len(verts)):
+        raise ValueError(f"Face indices must lie in [0, {len(verts) - 1}], got [{faces.min()}, {faces.max()}]")
+    return verts, faces
+
