@@ -157,8 +157,6 @@ def reconstruct(
         data = state["volume"].data
         if data.dtype not in (np.uint8, np.uint16, np.int16, np.float32):
             data = data.astype(np.float32)
-        if data.dtype == np.float32 and np.isnan(data).any():
-            raise InputError("the volume contains NaN values")
         state["field"] = wp.array(np.ascontiguousarray(data), device=dev)
         level, how = choose_level(state["volume"], params)
         report["iso_level"] = {"value": level, "units": state["volume"].units, "chosen_by": how}
@@ -174,9 +172,16 @@ def reconstruct(
         from engine.stages.isosurface import IsosurfaceStats, extract_isosurface
 
         st = IsosurfaceStats()
-        v, f = extract_isosurface(
-            state["field"], state["level"], spacing=state["volume"].spacing_zyx_mm, closed=params.iso.closed, stats=st
-        )
+        try:  # its ValueErrors are about the data (NaN, checked on the device in the extraction's own pass)
+            v, f = extract_isosurface(
+                state["field"],
+                state["level"],
+                spacing=state["volume"].spacing_zyx_mm,
+                closed=params.iso.closed,
+                stats=st,
+            )
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
         verts = v.numpy().reshape(-1, 3).astype(np.float32)  # sync point (the mesh goes to the host stages)
         faces = f.numpy().reshape(-1, 3).astype(np.int32)
         del state["field"]

@@ -164,3 +164,11 @@ def test_phone_budget_is_met_on_a_speckled_scan(tmp_path):
     exports = recon.report["exports"]
     assert exports["phone.glb"]["faces"] <= 600 and exports["ar.glb"]["faces"] <= 300
     assert exports["phone.glb"]["pieces_dropped"] > 0 and not exports["phone.glb"]["over_budget"]
+
+
+def test_nan_in_the_volume_is_an_input_error():
+    vol = np.zeros((8, 8, 8), np.float32)
+    vol[2:6, 2:6, 2:6] = 1.0
+    vol[4, 4, 4] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        reconstruct(Volume(vol, (1.0, 1.0, 1.0)), ReconParams(iso=IsoParams(iso=0.5)), device="cpu")
