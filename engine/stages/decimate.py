@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -59,55 +60,131 @@ def _collapse(pts: np.ndarray, faces: np.ndarray, target: int) -> tuple[np.ndarr
     return np.asarray(mesh.vertex_matrix(), dtype=np.float64), np.asarray(mesh.face_matrix(), dtype=np.int32)
 
 
+@dataclass(frozen=True)
+class Slab:
+    """A piece of the input mesh: its points, faces (local indices) and each point's index in the input."""
+
+    points: np.ndarray
+    faces: np.ndarray
+    global_ids: np.ndarray
+
+
 def _collapse_in_slabs(
     pts: np.ndarray, faces: np.ndarray, target: int, workers: int, closed: bool
 ) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """Decimate z slabs of the mesh in parallel processes; the cut borders are preserved, so the stitched result
-    is closed and 2-manifold where the input was (the border vertices come back unmoved and are merged)."""
+    is closed and 2-manifold where the input was (the border vertices come back unmoved and are joined)."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
     cz = pts[faces].mean(axis=1)[:, 2]
     cuts = np.quantile(cz, np.linspace(0, 1, workers + 1)[1:-1])
     slab = np.searchsorted(cuts, cz)
-    jobs = []
+    slabs, targets = [], []
     for k in range(workers):
         sub = faces[slab == k]
         used, inverse = np.unique(sub.ravel(), return_inverse=True)
-        jobs.append((pts[used], inverse.reshape(-1, 3).astype(np.int32), max(1, round(target * len(sub) / len(faces)))))
+        slabs.append(Slab(pts[used], inverse.reshape(-1, 3).astype(np.int32), used))
+        targets.append(max(1, round(target * len(sub) / len(faces))))
     # fork where available: the children run only MeshLab (never CUDA, so a CUDA context in the parent is safe)
     # and need not re-import the caller's main module as spawn would
     ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-        parts = list(pool.map(_collapse, *zip(*jobs, strict=True)))
-    return _stitch_slabs(parts, [(p, f) for p, f, _ in jobs], closed)
+        parts = list(pool.map(_collapse, [s.points for s in slabs], [s.faces for s in slabs], targets))
+    return _stitch_slabs(parts, slabs, closed)
 
 
 def _stitch_slabs(
-    parts: list[tuple[np.ndarray, np.ndarray]], originals: list[tuple[np.ndarray, np.ndarray]], closed: bool
+    parts: list[tuple[np.ndarray, np.ndarray]], slabs: list[Slab], closed: bool
 ) -> tuple[np.ndarray, np.ndarray, list[int]]:
-    """Stitch decimated slabs; on a closed input, a slab whose border did not come back intact is replaced by
-    its original faces, so the result stays closed. Returns points, faces and the slabs kept whole."""
-    parts = list(parts)
+    """Join decimated slabs on their cut borders.
+
+    Only a slab's border vertices (on its boundary edges: the cut, and any border of the input) are joined, to
+    their input vertex, by exact coordinates; every other vertex stays its own, even where two coincide. A slab
+    that did not return each border vertex exactly once, or (closed input) owns a face on an edge of the result
+    that is not in exactly two faces, is replaced by its original faces, which join through their input indices,
+    until none is left: with every slab whole the result is the input itself. Returns points, faces and the
+    slabs kept whole.
+    """
+    borders = [_border_vertices(s.faces, len(s.points)) for s in slabs]
+    gids = np.unique(np.concatenate([s.global_ids[b] for s, b in zip(slabs, borders, strict=True)]))
+    slots = [np.searchsorted(gids, s.global_ids[b]) for s, b in zip(slabs, borders, strict=True)]
+    border_pts = np.zeros((len(gids), 3))
+    for s, b, slot in zip(slabs, borders, slots, strict=True):
+        border_pts[slot] = s.points[b]
+    pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     kept_whole: list[int] = []
+    for k, ((p, f), b, slot) in enumerate(zip(parts, borders, slots, strict=True)):
+        where = _match_points(p, border_pts[slot], slot)
+        if where is None:
+            kept_whole.append(k)
+        pieces.append((p, f, where) if where is not None else _whole(slabs[k], b, slot))
     while True:
-        merged, faces_out, owner = _stitch(parts)
+        merged, faces_out, owner = _assemble(border_pts, pieces)
         bad = [k for k in _defective_slabs(faces_out, owner, len(merged)) if k not in kept_whole] if closed else []
         if not bad:
-            return merged, faces_out, kept_whole
+            return merged, faces_out, sorted(kept_whole)
         for k in bad:
-            parts[k] = originals[k]
+            pieces[k] = _whole(slabs[k], borders[k], slots[k])
             kept_whole.append(k)
 
 
-def _stitch(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Concatenate slab meshes and merge their identical (border) vertices; also each face's slab."""
-    all_pts = np.concatenate([p for p, _ in parts])
-    offsets = np.cumsum([0] + [len(p) for p, _ in parts[:-1]])
-    all_faces = np.concatenate([f + off for (_, f), off in zip(parts, offsets, strict=True)])
-    owner = np.concatenate([np.full(len(f), k, np.int32) for k, (_, f) in enumerate(parts)])
-    merged, inverse = _merge_identical_points(all_pts)
-    return merged, inverse[all_faces].astype(np.int32), owner
+def _border_vertices(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Vertices on edges that are in one face only."""
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
+    key = np.minimum(e[:, 0], e[:, 1]) * n_vertices + np.maximum(e[:, 0], e[:, 1])
+    _, first, counts = np.unique(key, return_index=True, return_counts=True)
+    return np.unique(e[first[counts == 1]])
+
+
+def _whole(slab: Slab, border: np.ndarray, slot: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    where = np.full(len(slab.points), -1, np.int64)
+    where[border] = slot
+    return slab.points, slab.faces, where
+
+
+def _match_points(points: np.ndarray, wanted: np.ndarray, slot: np.ndarray) -> np.ndarray | None:
+    """Per point, the slot of the wanted point it equals exactly (-1 for none); None unless every wanted point is
+    found exactly once."""
+    where = np.full(len(points), -1, np.int64)
+    if len(wanted) == 0:
+        return where
+    hw, hp = _hash_rows(wanted), _hash_rows(points)
+    order = np.argsort(hw)
+    pos = np.minimum(np.searchsorted(hw[order], hp), len(wanted) - 1)
+    cand = order[pos]
+    hit = (hw[cand] == hp) & (wanted[cand] == points).all(axis=1)
+    if np.count_nonzero(hit) != len(wanted) or len(np.unique(cand[hit])) != len(wanted):
+        return None
+    where[hit] = slot[cand[hit]]
+    return where
+
+
+def _hash_rows(points: np.ndarray) -> np.ndarray:
+    """A 64-bit hash of the exact bits of each (x, y, z) float64 row."""
+    bits = np.ascontiguousarray(points, dtype=np.float64).view(np.uint64).reshape(-1, 3)
+    with np.errstate(over="ignore"):
+        key = (bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)) ^ (bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F))
+        key ^= bits[:, 2] * np.uint64(0x165667B19E3779F9)
+    return key
+
+
+def _assemble(
+    border_pts: np.ndarray, pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One mesh from the pieces: the shared border points first, then each piece's own points; and each face's
+    piece."""
+    out_pts, out_faces, owner = [border_pts], [], []
+    n = len(border_pts)
+    for k, (p, f, where) in enumerate(pieces):
+        own = where < 0
+        index = where.copy()
+        index[own] = n + np.arange(np.count_nonzero(own))
+        n += np.count_nonzero(own)
+        out_pts.append(p[own])
+        out_faces.append(index[f])
+        owner.append(np.full(len(f), k, np.int32))
+    return np.concatenate(out_pts), np.concatenate(out_faces).astype(np.int32), np.concatenate(owner)
 
 
 def _defective_slabs(faces: np.ndarray, owner: np.ndarray, n_vertices: int) -> list[int]:
@@ -117,21 +194,6 @@ def _defective_slabs(faces: np.ndarray, owner: np.ndarray, n_vertices: int) -> l
     _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     bad_face = (counts[inverse.reshape(-1)] != 2).reshape(3, -1).any(axis=0)
     return sorted(set(owner[bad_face].tolist()))
-
-
-def _merge_identical_points(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unique rows of an (N, 3) float64 array and the inverse map, by a 64-bit hash of the exact bits (numpy's
-    row-wise unique sorts structured values and takes minutes at millions of rows); verified, with the exact
-    row-wise method as the fallback on a hash collision."""
-    bits = np.ascontiguousarray(points).view(np.uint64).reshape(-1, 3)
-    with np.errstate(over="ignore"):
-        key = (bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)) ^ (bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F))
-        key ^= bits[:, 2] * np.uint64(0x165667B19E3779F9)
-    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-    merged = points[first]
-    if not np.array_equal(merged[inverse.reshape(-1)], points):
-        merged, inverse = np.unique(points, axis=0, return_inverse=True)
-    return merged, inverse.reshape(-1)
 
 
 def _target(n_faces: int, reduction: float | None, max_triangles: int | None) -> int:
@@ -229,11 +291,6 @@ def decimate_mesh(
         out_pts, out_faces = _collapse(pts, faces, target)
     after = edge_report(out_faces, len(out_pts))
     closed_out = after["boundary_edges"] == 0 and after["nonmanifold_edges"] == 0
-    if n_workers > 1 and closed and not closed_out:  # seams did not close: do it in one piece
-        out_pts, out_faces = _collapse(pts, faces, target)
-        after = edge_report(out_faces, len(out_pts))
-        closed_out = after["boundary_edges"] == 0 and after["nonmanifold_edges"] == 0
-        info["workers"] = 1
     if closed and not closed_out:  # never expected with the link condition; keep the input rather than break it
         out_pts, out_faces, after, closed_out = pts, faces, before, True
     if before["boundary_edges"]:
