@@ -403,11 +403,19 @@ def triangulate_tube(l1: list[int], l2: list[int], new_vertex) -> list[tuple[int
         rungs.append((i, j))
     m = len(rungs)
     centre = dict.fromkeys(u + w, 0.5 / (n1 + n2))
-    ring = []
-    for i, j in rungs:
+    ring, seen = [], set()
+    for k, (i, j) in enumerate(rungs):
+        # half the loops' centroid, half this rung and the next: a rung pair alone can repeat (when one loop's
+        # steps all come in one run, rungs (0, j) and (n1, j) join the same two points) and would stack two ring
+        # vertices on one spot
         wts = dict(centre)
-        wts[u[i % n1]] = wts[u[i % n1]] + 0.25
-        wts[w[j % n2]] = wts[w[j % n2]] + 0.25
+        i2, j2 = rungs[(k + 1) % m]
+        for e in (u[i % n1], w[j % n2], u[i2 % n1], w[j2 % n2]):
+            wts[e] = wts[e] + 0.125
+        key = tuple(sorted(wts.items()))
+        if key in seen:
+            raise AssertionError(f"two ring vertices at one place in the tube between {l1} and {l2}")
+        seen.add(key)
         ring.append(new_vertex(wts))
     tris = []
     for k in range(m):

@@ -54,10 +54,15 @@ def _collapse(pts: np.ndarray, faces: np.ndarray, target: int) -> tuple[np.ndarr
         optimalplacement=True,
         planarquadric=False,
         qualitythr=0.3,
-        autoclean=True,
+        autoclean=False,  # its duplicate-vertex merge would pinch two vertices that merely coincide
     )
     mesh = ms.current_mesh()
-    return np.asarray(mesh.vertex_matrix(), dtype=np.float64), np.asarray(mesh.face_matrix(), dtype=np.int32)
+    out_pts = np.asarray(mesh.vertex_matrix(), dtype=np.float64)
+    out_faces = np.asarray(mesh.face_matrix(), dtype=np.int32)
+    used = np.unique(out_faces)
+    if len(used) == len(out_pts):
+        return out_pts, out_faces
+    return out_pts[used], np.searchsorted(used, out_faces).astype(np.int32)
 
 
 @dataclass(frozen=True)

@@ -64,3 +64,12 @@ def test_complement_and_orientation():
         loop_a = {e for e in edges_a if (e[1], e[0]) not in edges_a}
         loop_b = {e for e in edges_b if (e[1], e[0]) not in edges_b}
         assert loop_a == loop_b, config
+
+
+def test_interior_vertices_of_an_entry_never_coincide():
+    """Two interior vertices with the same edge weights would sit on one spot (a degenerate pinch that cleaning
+    tools merge into a non-manifold vertex); every entry's interior vertices differ."""
+    weights = np.asarray(tables.IVERT_WEIGHTS).reshape(-1, 12)
+    for tid in range(len(tables.TRI_COUNT)):
+        rows = weights[tables.IVERT_OFFSET[tid] : tables.IVERT_OFFSET[tid] + tables.IVERT_COUNT[tid]]
+        assert len(np.unique(rows, axis=0)) == len(rows), tid
