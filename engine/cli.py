@@ -66,6 +66,10 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default auto)")
     rec.add_argument("--demo", action="store_true", help="use the bundled VTK headsq CT head")
     rec.add_argument("--quiet", action="store_true", help="no progress bars")
+
+    from engine.sweep import add_parser as add_sweep_parser
+
+    add_sweep_parser(sub)
     return parser
 
 
@@ -233,6 +237,10 @@ def main(argv: list[str] | None = None) -> int:
             return _isosurface(args)
         if args.command == "reconstruct":
             return _reconstruct(args)
+        if args.command == "sweep":
+            from engine.sweep import run as run_sweep
+
+            return run_sweep(args)
     except InputError as exc:
         print(f"bonemesh: error: {exc}", file=sys.stderr)  # noqa: T201
         return 2

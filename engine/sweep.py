@@ -1,0 +1,709 @@
+"""The paper's parameter sweep (its Tables 1 and 2) on one scan: ``bonemesh sweep``.
+
+    bonemesh sweep INPUT --spacing Z,Y,X (--iso V | --preset bone --hu-offset 1024) -o OUTDIR
+                   [--reductions 0.2,0.3,...] [--iterations 1,5,...] [--repeats 3] [--slices 64] [--points 200000]
+                   [--crop Z0:Z1,Y0:Y1,X0:X1] [--stride N] [--no-mc33] [--full-runs] [--resume] [--device ...]
+    bonemesh sweep --demo -o OUTDIR            (bundled headsq CT at level 1150)
+    bonemesh sweep --phantom 952,1024,1024 -o OUTDIR   (benchmarks.phantom, repository checkout only)
+
+Rows (Table 1): **MC33**, scikit-image's Lewiner marching cubes on the CPU without enhancements (the volume is
+padded by one sample below the level so its surface is closed too); **MC33GPU**, this engine's MC33 without
+enhancements (no Gaussian, decimation or smoothing); **GMC33GPU** (ours, not in the paper), the Gaussian-smoothed
+volume's MC33 surface before decimation, which is also the reference of the distances; **EMC33GPU** for every
+reduction x iterations pair (Gaussian, MC33, decimation to the reduction factor, ``iterations`` surface-preserving
+Laplacian steps). "GPU" is the paper's name: the rows run on the ``--device`` given, CPU included. Columns: the
+paper's (RMSE %, SSIM %, reconstruct s, rendering s, faces, vertices) and ours (Dice, distances to the
+undecimated surface, mesh quality); see :mod:`engine.metrics` and ``docs/metrics.md``.
+
+Times: the median of ``repeats`` runs after one warm-up on a thin slab. *Reconstruct* is the sum of the pipeline's
+stage times (upload to normals; loading and writing files excluded, as in the paper); *rendering* is our stand-in
+for the paper's: encoding the GLB, writing it, reading it back and decoding its arrays. By default an EMC33GPU row's
+time is composed: the pipeline without smoothing runs once per reduction (its median), and the smoothing and
+normal stages are timed per iteration count on that decimated mesh (the stages are deterministic, so the meshes
+are those of full runs); ``--full-runs`` runs the whole pipeline for every pair instead.
+
+Table 2: the paper's enhancement score ``0.6 * accuracy + 0.3 * size + 0.1 * time`` of each pair against the
+MC33GPU row (see :func:`enhancement_score`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from engine.errors import InputError
+from engine.params import ISO_PRESETS_HU
+from engine.types import Volume
+
+DEFAULT_REDUCTIONS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7)
+DEFAULT_ITERATIONS = (1, 5, 10, 25, 50)
+WEIGHTS = {"accuracy": 0.6, "size": 0.3, "time": 0.1}
+Log = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """What the sweep runs.
+
+    Args:
+        reductions: decimation reduction factors (fraction of faces kept), each in (0, 1].
+        iterations: Laplacian smoothing iteration counts, each >= 1.
+        repeats: timed runs per row (the median is reported).
+        max_slices: slices compared for RMSE / SSIM / Dice, evenly spread; None: all.
+        n_points: surface samples per mesh for the distances.
+        seed: sampling seed.
+        mc33_reference: run the scikit-image (Lewiner) MC33 row.
+        full_runs: time the whole pipeline for every pair instead of composing stage times.
+        angle_deg: smoothing threshold angle.
+    """
+
+    reductions: tuple[float, ...] = DEFAULT_REDUCTIONS
+    iterations: tuple[int, ...] = DEFAULT_ITERATIONS
+    repeats: int = 3
+    max_slices: int | None = 64
+    n_points: int = 200_000
+    seed: int = 0
+    mc33_reference: bool = True
+    full_runs: bool = False
+    angle_deg: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not self.reductions or not all(0 < r <= 1 for r in self.reductions):
+            raise ValueError(f"Expected reduction factors in (0, 1], got {self.reductions}")
+        if not self.iterations or not all(i >= 1 for i in self.iterations):
+            raise ValueError(f"Expected iteration counts >= 1, got {self.iterations}")
+        if self.repeats < 1 or self.n_points < 1 or (self.max_slices is not None and self.max_slices < 1):
+            raise ValueError(
+                f"Expected repeats, points and slices >= 1, got {self.repeats}, {self.n_points}, {self.max_slices}"
+            )
+
+
+def enhancement_score(row: dict[str, Any], base: dict[str, Any]) -> dict[str, float]:
+    """The paper's enhancement score of a row against the baseline row, as decimals.
+
+    ``accuracy`` is the mean relative gain of RMSE % and SSIM %, ``size`` the mean relative decrease of faces and
+    vertices, ``time`` the relative decrease of the total time (reconstruct + rendering);
+    ``score = 0.6 * accuracy + 0.3 * size + 0.1 * time``. (The paper's best pair: 0.2641.)
+    """
+    acc = ((row["rmse_pct"] / base["rmse_pct"] - 1) + (row["ssim_pct"] / base["ssim_pct"] - 1)) / 2
+    size = ((1 - row["faces"] / base["faces"]) + (1 - row["vertices"] / base["vertices"])) / 2
+    t_row = row["reconstruct_s"] + row["rendering_s"]
+    t_base = base["reconstruct_s"] + base["rendering_s"]
+    tm = 1 - t_row / t_base
+    score = WEIGHTS["accuracy"] * acc + WEIGHTS["size"] * size + WEIGHTS["time"] * tm
+    return {"accuracy": acc, "size": size, "time": tm, "score": score}
+
+
+def read_glb(data: bytes) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.uint32]]:
+    """Decode the POSITION, NORMAL and index arrays of a one-primitive GLB (as :func:`engine.export.to_glb` writes).
+
+    Raises:
+        ValueError: not a GLB of that shape.
+    """
+    if len(data) < 20 or data[:4] != b"glTF":
+        raise ValueError("Expected GLB bytes starting with 'glTF'")
+    json_len = int.from_bytes(data[12:16], "little")
+    doc = json.loads(data[20 : 20 + json_len])
+    bin_start = 20 + json_len + 8
+    prim = doc["meshes"][0]["primitives"][0]
+    dtypes = {5126: np.float32, 5123: np.uint16, 5125: np.uint32}
+    width = {"VEC3": 3, "SCALAR": 1}
+
+    def accessor(i: int) -> np.ndarray:
+        acc = doc["accessors"][i]
+        view = doc["bufferViews"][acc["bufferView"]]
+        n = acc["count"] * width[acc["type"]]
+        arr = np.frombuffer(data, dtypes[acc["componentType"]], n, bin_start + view.get("byteOffset", 0))
+        return arr.reshape(-1, 3)
+
+    pos = accessor(prim["attributes"]["POSITION"])
+    nrm = accessor(prim["attributes"]["NORMAL"])
+    return pos, nrm, accessor(prim["indices"]).astype(np.uint32)
+
+
+def rendering_seconds(verts: np.ndarray, faces: np.ndarray, normals: np.ndarray | None, folder: Path) -> float:
+    """Our stand-in for the paper's rendering time: encode the GLB, write it, read it back and decode it."""
+    from engine.export import to_glb
+
+    path = folder / ".sweep-render.glb"
+    t0 = time.perf_counter()
+    path.write_bytes(to_glb(verts, faces, normals))
+    pos, _, idx = read_glb(path.read_bytes())
+    seconds = time.perf_counter() - t0
+    path.unlink()
+    if len(pos) != len(verts) or len(idx) != len(faces):
+        raise RuntimeError("the GLB read back does not hold the mesh that was written")
+    return seconds
+
+
+def lewiner_mc33(volume: npt.NDArray[Any], level: float, spacing: tuple[float, float, float]) -> tuple[Any, ...]:
+    """scikit-image's Lewiner MC33 of the volume padded by one sample below the level (a closed surface).
+
+    Returns:
+        (vertices (V, 3) float32 (z, y, x) mm from the first sample, faces (F, 3) int32 outward, normals).
+    """
+    from skimage.measure import marching_cubes
+
+    low = min(float(volume.min()), level) - max(1.0, abs(level))
+    padded = np.pad(volume.astype(np.float32), 1, constant_values=np.float32(low))
+    v, f, n, _ = marching_cubes(padded, level, spacing=spacing, method="lewiner")
+    v = (v - np.asarray(spacing, np.float32)).astype(np.float32)
+    f = f.astype(np.int32)
+    from engine.metrics import volume_area
+
+    if volume_area(v, f)[0] < 0:  # make the faces outward in the engine's (x, y, z) convention
+        f = f[:, ::-1].copy()
+    return v, f, n.astype(np.float32)
+
+
+def _median(values: list[float]) -> float:
+    return float(statistics.median(values))
+
+
+class _Sweep:
+    """One sweep: the volume, its level, the reference surface, and the rows measured so far."""
+
+    def __init__(self, volume: Volume, level: float, config: SweepConfig, device: str, outdir: Path, log: Log):
+        from engine.device import resolve_device
+
+        self.volume, self.level, self.cfg, self.device, self.out, self.log = volume, level, config, device, outdir, log
+        self.dev = resolve_device(device)
+        self.spacing = tuple(float(s) for s in volume.spacing_zyx_mm)
+
+    def params(self, enhanced: bool, reduction: float | None = None, iterations: int | None = None) -> Any:
+        from engine.params import DecimateParams, GaussianParams, IsoParams, ReconParams, SmoothParams
+
+        return ReconParams(
+            iso=IsoParams(iso=self.level, closed=True),
+            gaussian=GaussianParams() if enhanced else None,
+            decimate=DecimateParams(reduction=reduction) if reduction is not None else None,
+            smooth=SmoothParams(iterations=iterations, angle_deg=self.cfg.angle_deg) if iterations else None,
+        )
+
+    def reconstruct(self, params: Any) -> tuple[Any, list[float]]:
+        from engine.pipeline import reconstruct
+
+        runs, recon = [], None
+        for _ in range(self.cfg.repeats):
+            recon = reconstruct(self.volume, params, device=self.device)
+            runs.append(float(sum(recon.report["stage_seconds"].values())))
+        return recon, runs
+
+    def warm_up(self) -> None:
+        """Compile and load every kernel on a thin slab, so that no timed run pays for it."""
+        from engine.metrics import SurfaceQuery
+        from engine.pipeline import reconstruct
+
+        nz = self.volume.data.shape[0]
+        lo = max(0, nz // 2 - 8)
+        slab = dataclasses.replace(self.volume, data=self.volume.data[lo : lo + 16])
+        try:
+            recon = reconstruct(slab, self.params(True, 0.5, 1), device=self.device)
+            SurfaceQuery(recon.mesh.vertices, recon.mesh.faces, self.device).distances(recon.mesh.vertices[:4])
+        except InputError:  # no surface in the slab: the kernels compile on the first timed run instead
+            self.log("warm-up slab has no surface; the first timed run includes kernel loading")
+
+    def reference(self) -> None:
+        """The undecimated surface of the enhanced pipeline (Gaussian + MC33): distances and changes refer to it."""
+        from engine.metrics import DistanceReference
+
+        recon, _ = self.reconstruct_once(self.params(True))
+        self.ref_stats = recon.report["mesh"]
+        self.ref = DistanceReference(
+            recon.mesh.vertices, recon.mesh.faces, n_points=self.cfg.n_points, seed=self.cfg.seed, device=self.device
+        )
+
+    def reconstruct_once(self, params: Any) -> tuple[Any, float]:
+        from engine.pipeline import reconstruct
+
+        recon = reconstruct(self.volume, params, device=self.device)
+        return recon, float(sum(recon.report["stage_seconds"].values()))
+
+    def evaluate(
+        self, key: dict[str, Any], verts: np.ndarray, faces: np.ndarray, normals: Any, stats: dict[str, Any]
+    ) -> dict[str, Any]:
+        from engine.metrics import mesh_quality, slice_similarity
+
+        t0 = time.perf_counter()
+        sim = slice_similarity(verts, faces, self.volume.data, self.level, self.spacing, max_slices=self.cfg.max_slices)
+        dist = self.ref.compare(verts, faces)
+        quality = mesh_quality(verts, faces, stats=stats, reference_stats=self.ref_stats)
+        render = [rendering_seconds(verts, faces, normals, self.out) for _ in range(self.cfg.repeats)]
+        row = {
+            **key,
+            "rmse_pct": sim["rmse_pct"],
+            "ssim_pct": sim["ssim_pct"],
+            "rendering_s": _median(render),
+            "faces": len(faces),
+            "vertices": len(verts),
+            "dice": sim["dice"],
+            "mean_mm": dist["mean_mm"],
+            "p95_mm": dist["p95_mm"],
+            "hausdorff_mm": dist["hausdorff_mm"],
+            **{k: quality[k] for k in ("watertight", "manifold", "components", "euler")},
+            "min_angle_p5_deg": quality["min_angle_deg"]["p5"],
+            "below_10deg": quality["below_10deg"],
+            "volume_change_pct": quality["volume_change_pct"],
+            "area_change_pct": quality["area_change_pct"],
+            "slices_compared": len(sim["slices"]),
+            "rendering_s_all": render,
+            "distances": {"to_reference": dist["to_reference"], "from_reference": dist["from_reference"]},
+            "metrics_s": time.perf_counter() - t0,
+        }
+        self.log(
+            f"  {row['method']:<8} R={row['reduction']} it={row['iterations']}: RMSE {row['rmse_pct']:.2f} % SSIM "
+            f"{row['ssim_pct']:.2f} % Dice {row['dice']:.4f}, {row['reconstruct_s']:.3f} s + {row['rendering_s']:.3f}"
+            f" s, {row['faces']:,} faces, mean {row['mean_mm']:.4f} mm, Hausdorff {row['hausdorff_mm']:.3f} mm"
+        )
+        return row
+
+    def rows(self, done: set[tuple[Any, ...]]) -> Any:
+        """Yield the rows not in ``done`` (keys ``(method, reduction, iterations)``), measuring each."""
+        from engine.metrics import volume_area
+        from engine.stages.meshcheck import mesh_stats
+        from engine.stages.normals import vertex_normals
+        from engine.stages.smooth import smooth_mesh
+
+        if self.cfg.mc33_reference and ("MC33", None, None) not in done:
+            runs, res = [], None
+            for _ in range(self.cfg.repeats):
+                t0 = time.perf_counter()
+                res = lewiner_mc33(self.volume.data, self.level, self.spacing)  # type: ignore[arg-type]
+                runs.append(time.perf_counter() - t0)
+            v, f, n = res  # type: ignore[misc]
+            key = {"method": "MC33", "reduction": None, "iterations": None, "reconstruct_s": _median(runs)}
+            yield self.evaluate({**key, "reconstruct_s_all": runs}, v, f, n, mesh_stats(v, f))
+        if ("MC33GPU", None, None) not in done:
+            recon, runs = self.reconstruct(self.params(False))
+            m = recon.mesh
+            key = {"method": "MC33GPU", "reduction": None, "iterations": None, "reconstruct_s": _median(runs)}
+            yield self.evaluate(
+                {**key, "reconstruct_s_all": runs}, m.vertices, m.faces, m.normals, recon.report["mesh"]
+            )
+        if ("GMC33GPU", None, None) not in done:  # Gaussian + MC33: the effect of the volume smoothing alone
+            recon, runs = self.reconstruct(self.params(True))
+            m = recon.mesh
+            key = {"method": "GMC33GPU", "reduction": None, "iterations": None, "reconstruct_s": _median(runs)}
+            yield self.evaluate(
+                {**key, "reconstruct_s_all": runs}, m.vertices, m.faces, m.normals, recon.report["mesh"]
+            )
+        for r in self.cfg.reductions:
+            todo = [i for i in self.cfg.iterations if ("EMC33GPU", r, i) not in done]
+            if not todo:
+                continue
+            if self.cfg.full_runs:
+                for i in todo:
+                    recon, runs = self.reconstruct(self.params(True, r, i))
+                    m = recon.mesh
+                    key = {"method": "EMC33GPU", "reduction": r, "iterations": i, "reconstruct_s": _median(runs)}
+                    yield self.evaluate(
+                        {**key, "reconstruct_s_all": runs}, m.vertices, m.faces, m.normals, recon.report["mesh"]
+                    )
+                continue
+            base, runs = self.reconstruct(self.params(True, r, None))
+            before = [t - base.report["stage_seconds"]["normals"] for t in runs]  # upload .. decimate
+            topo = base.report["mesh"]
+            v_dec, f_dec = base.mesh.vertices, base.mesh.faces
+            for i in todo:
+                tail, verts, normals = [], v_dec, base.mesh.normals
+                for _ in range(self.cfg.repeats):
+                    t0 = time.perf_counter()
+                    verts, _ = smooth_mesh(v_dec, f_dec, self.params(True, r, i).smooth, self.dev)
+                    normals = vertex_normals(verts, f_dec, self.dev)
+                    tail.append(time.perf_counter() - t0)
+                vol, area = volume_area(verts, f_dec)
+                stats = {**topo, "volume_mm3": vol, "area_mm2": area}
+                total = [_median(before) + t for t in tail]
+                key = {"method": "EMC33GPU", "reduction": r, "iterations": i, "reconstruct_s": _median(total)}
+                yield self.evaluate({**key, "reconstruct_s_all": total}, verts, f_dec, normals, stats)
+
+
+def _row_key(row: dict[str, Any]) -> tuple[Any, ...]:
+    return (row["method"], row["reduction"], row["iterations"])
+
+
+def run_sweep(
+    volume: Volume,
+    level: float,
+    outdir: str | Path,
+    config: SweepConfig | None = None,
+    *,
+    device: str = "auto",
+    resume: bool = False,
+    meta: dict[str, Any] | None = None,
+    log: Log | None = None,
+) -> list[dict[str, Any]]:
+    """Run the sweep on a volume and write its tables and plots into ``outdir``.
+
+    Args:
+        volume: the scan (after any crop); ground truth and meshes refer to it.
+        level: iso level in the volume's units.
+        outdir: output folder: ``meta.json``, ``rows.jsonl`` (one row per line, appended as measured),
+            ``table1.csv``, ``table2.csv``, ``tables.md``, ``accuracy_vs_faces.png``, ``time_vs_iterations.png``
+            (the tables and plots are rewritten after every row).
+        config: the grid and measurement settings.
+        device: "auto", "cpu", "cuda" or "cuda:N".
+        resume: keep the rows already in ``outdir/rows.jsonl`` (same input) and measure only the missing ones.
+        meta: extra facts for ``meta.json`` (e.g. the command line).
+        log: progress lines (default: stderr).
+
+    Returns:
+        The rows of Table 1 (dicts; keys as in ``table1.csv``).
+
+    Raises:
+        InputError: no surface at the level, or ``resume`` on an outdir of another input.
+    """
+    from engine.pipeline import _versions
+
+    cfg = config or SweepConfig()
+    out = Path(outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    say = log or (lambda s: print(s, file=sys.stderr, flush=True))  # noqa: T201 - progress
+    info = {
+        "input": {
+            "shape_zyx": list(volume.data.shape),
+            "spacing_zyx_mm": list(volume.spacing_zyx_mm),
+            "dtype": str(volume.data.dtype),
+            "level": level,
+            "source": volume.source,
+        },
+        "config": dataclasses.asdict(cfg),
+        "device_spec": device,
+        "timing": f"median of {cfg.repeats} run(s) after a warm-up; "
+        + ("full pipeline per pair" if cfg.full_runs else "EMC33GPU rows composed per reduction (see engine.sweep)"),
+        "baseline": "MC33GPU",
+        **(meta or {}),
+    }
+    rows_path = out / "rows.jsonl"
+    rows: list[dict[str, Any]] = []
+    if resume and rows_path.exists():
+        old = json.loads((out / "meta.json").read_text())
+        if old.get("input", {}).get("shape_zyx") != info["input"]["shape_zyx"] or old["input"]["level"] != level:
+            raise InputError(f"--resume: {out} holds a sweep of another input ({old.get('input')})")
+        rows = [json.loads(line) for line in rows_path.read_text().splitlines() if line.strip()]
+    else:
+        rows_path.write_text("")
+    sw = _Sweep(volume, level, cfg, device, out, say)
+    info["device"] = str(sw.dev)
+    info["device_name"] = getattr(sw.dev, "name", str(sw.dev))
+    info["versions"] = _versions()
+    (out / "meta.json").write_text(json.dumps(info, indent=2, default=_json_default) + "\n")
+    say(f"[sweep] {volume.data.shape} at level {level:g} on {sw.dev}: warm-up and reference surface")
+    sw.warm_up()
+    sw.reference()
+    for row in sw.rows({_row_key(r) for r in rows}):
+        rows.append(row)
+        with rows_path.open("a") as fh:
+            fh.write(json.dumps(row, default=_json_default) + "\n")
+        write_tables(rows, out, info)  # after every row: a run stopped at a time limit keeps its tables
+    if rows:
+        write_tables(rows, out, info)
+    return rows
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    return str(obj)
+
+
+TABLE1_COLUMNS = (
+    "method", "reduction", "iterations", "rmse_pct", "ssim_pct", "reconstruct_s", "rendering_s", "faces", "vertices",
+    "dice", "mean_mm", "p95_mm", "hausdorff_mm", "watertight", "manifold", "components", "euler", "min_angle_p5_deg",
+    "below_10deg", "volume_change_pct", "area_change_pct", "slices_compared",
+)  # fmt: skip
+
+
+def _order(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    rank = {"MC33": 0, "MC33GPU": 1, "GMC33GPU": 2, "EMC33GPU": 3}
+    return sorted(rows, key=lambda r: (rank[r["method"]], r["reduction"] or 0, r["iterations"] or 0))
+
+
+def scores(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Table 2: the enhancement score of every EMC33GPU row against MC33GPU; the best has ``best: True``."""
+    base = next((r for r in rows if r["method"] == "MC33GPU"), None)
+    if base is None:
+        return []
+    out = [
+        {"reduction": r["reduction"], "iterations": r["iterations"], **enhancement_score(r, base), "best": False}
+        for r in _order(rows)
+        if r["method"] == "EMC33GPU"
+    ]
+    if out:
+        max(out, key=lambda s: s["score"])["best"] = True
+    return out
+
+
+def _fmt(value: Any, digits: int = 2) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return f"{value:,}"
+    if isinstance(value, float):
+        return "nan" if math.isnan(value) else f"{value:.{digits}f}"
+    return str(value)
+
+
+def tables_markdown(rows: list[dict[str, Any]], info: dict[str, Any]) -> str:
+    """Tables 1 and 2 as markdown, with the facts needed to read them."""
+    inp = info["input"]
+    cfg = info["config"]
+    lines = [
+        f"Input: {inp['shape_zyx']} (z, y, x) {inp['dtype']}, spacing {inp['spacing_zyx_mm']} mm, level "
+        f"{inp['level']:g}; device {info.get('device_name', info.get('device'))}.",
+        f"Times: {info['timing']}. Similarity over {rows[0]['slices_compared'] if rows else 0} slice(s); distances "
+        f"from {cfg['n_points']:,} samples per surface to the undecimated Gaussian + MC33 surface.",
+        "",
+        "Table 1.",
+        "",
+        "| Method | R | It | RMSE (%) | SSIM (%) | Reconstruct (s) | Rendering (s) | Faces | Vertices | Dice "
+        "| Mean (mm) | Hausdorff (mm) | Watertight |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in _order(rows):
+        lines.append(
+            f"| {r['method']} | {_fmt(r['reduction'], 1)} | {_fmt(r['iterations'])} | {_fmt(r['rmse_pct'])} | "
+            f"{_fmt(r['ssim_pct'])} | {_fmt(r['reconstruct_s'], 3)} | {_fmt(r['rendering_s'], 3)} | "
+            f"{_fmt(r['faces'])} | {_fmt(r['vertices'])} | {_fmt(r['dice'], 4)} | {r['mean_mm']:.3g} | "
+            f"{r['hausdorff_mm']:.3g} | {_fmt(r['watertight'])} |"
+        )
+    sc = scores(rows)
+    if sc:
+        its = sorted({s["iterations"] for s in sc})
+        lines += [
+            "",
+            "Table 2. Enhancement score against MC33GPU (0.6 accuracy + 0.3 size + 0.1 time; best in bold).",
+            "",
+            "| R | " + " | ".join(f"{i} it" for i in its) + " |",
+            "|---|" + "---|" * len(its),
+        ]
+        for red in sorted({s["reduction"] for s in sc}):
+            cells = []
+            for i in its:
+                s = next((x for x in sc if x["reduction"] == red and x["iterations"] == i), None)
+                text = "-" if s is None else f"{s['score']:.4f}"
+                cells.append(f"**{text}**" if s is not None and s["best"] else text)
+            lines.append(f"| {red:g} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_tables(rows: list[dict[str, Any]], outdir: Path, info: dict[str, Any]) -> dict[str, Path]:
+    """Write ``table1.csv``, ``table2.csv``, ``tables.md`` and the two PNG plots; returns their paths."""
+    import csv
+
+    paths = {name: outdir / name for name in ("table1.csv", "table2.csv", "tables.md")}
+    with paths["table1.csv"].open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(TABLE1_COLUMNS)
+        for r in _order(rows):
+            w.writerow(["" if r[c] is None else r[c] for c in TABLE1_COLUMNS])
+    with paths["table2.csv"].open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(("reduction", "iterations", "accuracy", "size", "time", "score", "best"))
+        for s in scores(rows):
+            w.writerow([s[k] for k in ("reduction", "iterations", "accuracy", "size", "time", "score", "best")])
+    paths["tables.md"].write_text(tables_markdown(rows, info))
+    paths.update(plot(rows, outdir))
+    return paths
+
+
+def plot(rows: list[dict[str, Any]], outdir: Path) -> dict[str, Path]:
+    """``accuracy_vs_faces.png`` (RMSE % and SSIM % against faces) and ``time_vs_iterations.png``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    emc = [r for r in _order(rows) if r["method"] == "EMC33GPU"]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for ax, metric, label in zip(axes, ("rmse_pct", "ssim_pct"), ("RMSE (%)", "SSIM (%)"), strict=True):
+        for it in sorted({r["iterations"] for r in emc}):
+            sel = sorted((r for r in emc if r["iterations"] == it), key=lambda r: r["faces"])
+            ax.plot([r["faces"] for r in sel], [r[metric] for r in sel], "o-", label=f"EMC33GPU, {it} it")
+        for r in rows:
+            if r["method"] != "EMC33GPU":
+                ax.plot(r["faces"], r[metric], "s" if r["method"] == "MC33" else "D", ms=8, label=r["method"])
+        ax.set_xlabel("faces")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    if axes[0].get_legend_handles_labels()[0]:
+        axes[0].legend(fontsize=8)
+    fig.suptitle("Accuracy against model size")
+    fig.tight_layout()
+    paths = {"accuracy_vs_faces.png": outdir / "accuracy_vs_faces.png"}
+    fig.savefig(paths["accuracy_vs_faces.png"], dpi=110)
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    for red in sorted({r["reduction"] for r in emc}):
+        sel = sorted((r for r in emc if r["reduction"] == red), key=lambda r: r["iterations"])
+        ax.plot(
+            [r["iterations"] for r in sel],
+            [r["reconstruct_s"] + r["rendering_s"] for r in sel],
+            "o-",
+            label=f"R={red:g}",
+        )
+    for r in rows:
+        if r["method"] == "MC33GPU":
+            ax.axhline(r["reconstruct_s"] + r["rendering_s"], color="k", ls="--", label="MC33GPU")
+    ax.set_xlabel("Laplacian iterations")
+    ax.set_ylabel("reconstruct + rendering (s)")
+    ax.grid(alpha=0.3)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    paths["time_vs_iterations.png"] = outdir / "time_vs_iterations.png"
+    fig.savefig(paths["time_vs_iterations.png"], dpi=110)
+    plt.close(fig)
+    return paths
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(p) for p in text.split(",") if p.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def _ints(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(p) for p in text.split(",") if p.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+
+
+def _crop(text: str) -> tuple[slice, slice, slice]:
+    try:
+        parts = [p.split(":") for p in text.split(",")]
+        slices = tuple(slice(int(a) if a else None, int(b) if b else None) for a, b in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected Z0:Z1,Y0:Y1,X0:X1 voxel ranges, got {text!r}") from None
+    if len(slices) != 3:
+        raise argparse.ArgumentTypeError(f"expected three ranges Z0:Z1,Y0:Y1,X0:X1, got {text!r}")
+    return slices  # type: ignore[return-value]
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Register ``bonemesh sweep`` on an ``argparse`` subparsers object."""
+    from engine.cli import _spacing
+
+    p = subparsers.add_parser("sweep", help="the paper's parameter sweep (Tables 1 and 2) with accuracy metrics")
+    p.add_argument("input", nargs="?", help="slice archive or folder, DICOM series, TIFF or .npy (z, y, x)")
+    p.add_argument("-o", "--output", required=True, help="output folder")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--demo", action="store_true", help="the bundled headsq CT at level 1150")
+    src.add_argument("--phantom", type=_ints, help="bone phantom Z,Y,X from benchmarks.phantom (repo checkout)")
+    level = p.add_mutually_exclusive_group()
+    level.add_argument("--iso", type=float, help="iso level in the volume's units")
+    level.add_argument("--preset", choices=sorted(ISO_PRESETS_HU), help="HU preset (bone = 300 HU)")
+    p.add_argument("--hu-offset", type=float, help="the stack stores HU + this offset (e.g. 1024), for --preset")
+    p.add_argument("--spacing", type=_spacing, help="voxel size Z,Y,X in mm")
+    p.add_argument("--crop", type=_crop, help="keep voxels Z0:Z1,Y0:Y1,X0:X1 (python ranges, before --stride)")
+    p.add_argument("--stride", type=int, default=1, help="keep every Nth sample along each axis (default 1)")
+    p.add_argument("--reductions", type=_floats, default=DEFAULT_REDUCTIONS, help="default 0.2,0.3,...,0.7")
+    p.add_argument("--iterations", type=_ints, default=DEFAULT_ITERATIONS, help="default 1,5,10,25,50")
+    p.add_argument("--repeats", type=int, default=3, help="timed runs per row; the median is reported (default 3)")
+    p.add_argument("--slices", type=int, default=64, help="slices compared, evenly spread; 0 = all (default 64)")
+    p.add_argument("--points", type=int, default=200_000, help="surface samples per mesh (default 200000)")
+    p.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
+    p.add_argument("--no-mc33", action="store_true", help="skip the scikit-image (Lewiner) MC33 CPU row")
+    p.add_argument("--full-runs", action="store_true", help="run the whole pipeline for every pair")
+    p.add_argument("--resume", action="store_true", help="keep the rows already in OUTDIR (same input)")
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default auto)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    return p
+
+
+def _input(args: argparse.Namespace) -> tuple[Volume, float]:
+    from engine.params import IsoParams, ReconParams
+    from engine.pipeline import choose_level
+
+    iso = args.iso
+    if args.demo:
+        from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
+        from engine.io import load_volume
+
+        volume = load_volume(HEADSQ_ZIP, spacing_zyx_mm=args.spacing or HEADSQ_SPACING_ZYX_MM)
+        iso = 1150.0 if iso is None and args.preset is None else iso
+    elif args.phantom:
+        if len(args.phantom) != 3 or min(args.phantom) < 8:
+            raise InputError(f"--phantom expects Z,Y,X sizes of at least 8, got {args.phantom}")
+        try:
+            from benchmarks.phantom import BONE_LEVEL, bone_phantom
+        except ImportError:
+            raise InputError("--phantom needs the repository checkout (benchmarks.phantom) on the path") from None
+        volume = Volume(
+            bone_phantom(tuple(args.phantom)),
+            args.spacing or (0.05, 0.05, 0.05),
+            units="raw",
+            source={"generator": "benchmarks.phantom.bone_phantom", "shape_zyx": list(args.phantom)},
+        )
+        iso = BONE_LEVEL if iso is None and args.preset is None else iso
+    else:
+        from engine.io import load_volume
+
+        if not args.input:
+            raise InputError("no INPUT given (or use --demo or --phantom)")
+        if not Path(args.input).exists():
+            raise InputError(f"{args.input} does not exist")
+        volume = load_volume(args.input, spacing_zyx_mm=args.spacing)
+    if args.stride < 1:
+        raise InputError(f"--stride must be >= 1, got {args.stride}")
+    data = volume.data[args.crop] if args.crop else volume.data
+    if args.stride > 1:
+        data = data[:: args.stride, :: args.stride, :: args.stride]
+    if min(data.shape) < 8:
+        raise InputError(f"the cropped volume {data.shape} is too small (at least 8 samples per axis)")
+    spacing = tuple(float(s) * args.stride for s in volume.spacing_zyx_mm)
+    volume = dataclasses.replace(volume, data=np.ascontiguousarray(data), spacing_zyx_mm=spacing)
+    try:
+        params = ReconParams(iso=IsoParams(iso=iso, preset=args.preset, hu_offset=args.hu_offset))
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    if iso is None and args.preset is None:
+        raise InputError("--iso LEVEL or --preset is required: the sweep's ground truth is the voxels >= level")
+    return volume, choose_level(volume, params)[0]
+
+
+def run(args: argparse.Namespace) -> int:
+    """``bonemesh sweep``: run the sweep and print where the tables are. Returns the exit code (0)."""
+    try:
+        config = SweepConfig(
+            reductions=tuple(args.reductions),
+            iterations=tuple(args.iterations),
+            repeats=args.repeats,
+            max_slices=None if args.slices == 0 else args.slices,
+            n_points=args.points,
+            seed=args.seed,
+            mc33_reference=not args.no_mc33,
+            full_runs=args.full_runs,
+        )
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    volume, level = _input(args)
+    meta = {"arguments": {k: v for k, v in vars(args).items() if k not in ("command", "func")}}
+    quiet: Log = lambda s: None  # noqa: E731
+    rows = run_sweep(
+        volume, level, args.output, config, device=args.device, resume=args.resume, meta=meta,
+        log=quiet if args.quiet else None,
+    )  # fmt: skip
+    best = next((s for s in scores(rows) if s["best"]), None)
+    print(f"{len(rows)} rows -> {Path(args.output) / 'tables.md'}")  # noqa: T201 - the command's summary
+    if best:
+        print(f"best: R={best['reduction']:g}, {best['iterations']} it, score {best['score']:.4f}")  # noqa: T201
+    return 0
