@@ -248,4 +248,3 @@ def validate_mesh(verts: npt.NDArray[Any], faces: npt.NDArray[Any]) -> tuple[npt
     if len(faces) and (faces.min() < 0 or faces.max() >= len(verts)):
         raise ValueError(f"Face indices must lie in [0, {len(verts) - 1}], got [{faces.min()}, {faces.max()}]")
     return verts, faces
-
