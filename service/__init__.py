@@ -1,1 +1,1 @@
-"""FastAPI service (filled by the "service + worker" issue). Never imports Warp."""
+"""The bonemesh web service (FastAPI): jobs, uploads, signed downloads. Never imports Warp or the worker."""

@@ -1,1 +1,1 @@
-"""Celery worker (filled by the "service + worker" issue). Calls the engine."""
+"""The Celery worker: thin tasks that run ``engine.reconstruct`` on queued jobs (``bonemesh worker``)."""

@@ -8,6 +8,7 @@ files, a multi-page TIFF, a ``.npy`` (z, y, x) array, or a single DICOM file. DI
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from engine.errors import InputError
@@ -16,7 +17,45 @@ from engine.io.dicom import has_dicom_images, load_dicom
 from engine.io.stack import StackWarning, check_spacing, load_stack, natural_key
 from engine.types import Volume
 
-__all__ = ["InputLimits", "StackWarning", "load_volume", "natural_key"]
+__all__ = ["InputLimits", "InputSummary", "StackWarning", "inspect_input", "load_volume", "natural_key"]
+
+
+@dataclass(frozen=True)
+class InputSummary:
+    """What a quick look at an input found: container kind, files, image slices and DICOM files."""
+
+    kind: str
+    files: int
+    images: int
+    dicom: int
+
+
+def inspect_input(path: str | Path, limits: InputLimits | None = None) -> InputSummary:
+    """A quick check of an upload before it is queued: the container opens, its member names are safe, its member
+    count and declared sizes and ratios are within ``limits``, and it holds image slices or DICOM files (by their
+    first bytes). Loading checks the rest (actual bytes, slice shapes, spacing).
+
+    Raises:
+        InputError: not a readable archive or volume file, unsafe or too large, or nothing to build from.
+    """
+    from engine.io.dicom import looks_like_dicom
+    from engine.io.stack import image_kind
+
+    label = Path(path).name or str(path)
+    with open_members(path, limits, heads_only=True) as members:
+        images = sum(1 for m in members.members if image_kind(m.head))
+        dicom = sum(1 for m in members.members if looks_like_dicom(m.head))
+        summary = InputSummary(members.kind, len(members.members), images, dicom)
+    if summary.kind == "file" and not (images or dicom):
+        raise InputError(
+            f"{label} is neither an archive (zip, tar, tar.gz) nor a volume file (.npy, TIFF, DICOM) that "
+            "bonemesh reads"
+        )
+    if not (images or dicom):
+        raise InputError(
+            f"{label} holds {summary.files} file(s) but no image slices (PNG, TIFF, JPEG, BMP, .npy) and no DICOM files"
+        )
+    return summary
 
 
 def load_volume(

@@ -67,7 +67,9 @@ class Member:
     _path: Path | None = field(default=None, repr=False)
 
     def read(self) -> bytes:
-        """The member's whole content."""
+        """The member's whole content (not available in a ``heads_only`` listing of an archive)."""
+        if self._spool is None and self._path is None:
+            raise RuntimeError(f"{self.name}: only the head of this member was read")
         if self._spool is not None:
             self._spool.seek(0)
             return self._spool.read()
@@ -180,7 +182,13 @@ class _Budget:
             )
 
 
-def _read_zip(path: Path, limits: InputLimits) -> Members:
+def _head_only(src: IO[bytes], name: str, declared: int, budget: _Budget) -> tuple[IO[bytes] | None, int, bytes]:
+    """The first bytes of a member (for ``heads_only`` listings); the declared size stands for its size."""
+    head = src.read(HEAD_BYTES)
+    return None, max(declared, len(head)), head
+
+
+def _read_zip(path: Path, limits: InputLimits, heads_only: bool = False) -> Members:
     budget = _Budget(limits, path, path.stat().st_size)
     members: list[Member] = []
     ignored: list[str] = []
@@ -204,7 +212,10 @@ def _read_zip(path: Path, limits: InputLimits) -> Members:
                     raise InputError(f"{path.name}: member {info.filename!r} is encrypted; give an unencrypted archive")
                 budget.declare(info.filename, info.file_size, info.compress_size)
                 with zf.open(info) as src:
-                    spool, n, head = _copy_limited(src, info.filename, info.file_size, budget, info.compress_size)
+                    if heads_only:
+                        spool, n, head = _head_only(src, info.filename, info.file_size, budget)
+                    else:
+                        spool, n, head = _copy_limited(src, info.filename, info.file_size, budget, info.compress_size)
                 members.append(Member(info.filename, n, head, _spool=spool))
     except InputError:
         Members("zip", members).close()
@@ -215,7 +226,7 @@ def _read_zip(path: Path, limits: InputLimits) -> Members:
     return Members("zip", members, ignored)
 
 
-def _read_tar(path: Path, limits: InputLimits) -> Members:
+def _read_tar(path: Path, limits: InputLimits, heads_only: bool = False) -> Members:
     budget = _Budget(limits, path, path.stat().st_size)
     members: list[Member] = []
     ignored: list[str] = []
@@ -239,7 +250,10 @@ def _read_tar(path: Path, limits: InputLimits) -> Members:
                     budget.declare(ti.name, ti.size, None)
                     src = tf.extractfile(ti)
                     assert src is not None
-                    spool, n, head = _copy_limited(src, ti.name, ti.size, budget, None)
+                    if heads_only:
+                        spool, n, head = _head_only(src, ti.name, ti.size, budget)
+                    else:
+                        spool, n, head = _copy_limited(src, ti.name, ti.size, budget, None)
                     members.append(Member(ti.name, n, head, _spool=spool))
     except InputError:
         Members(kind, members).close()
@@ -280,8 +294,12 @@ def _read_folder(path: Path, limits: InputLimits) -> Members:
     return Members("folder", members, ignored)
 
 
-def open_members(path: str | Path, limits: InputLimits | None = None) -> Members:
+def open_members(path: str | Path, limits: InputLimits | None = None, *, heads_only: bool = False) -> Members:
     """List the files of an input: a zip, tar(.gz/.bz2/.xz), a folder, or one plain file.
+
+    With ``heads_only`` the members of an archive keep only their first bytes (``Member.head``; ``read`` is not
+    available) and sizes are the declared ones: a quick listing that checks names, counts and declared sizes and
+    ratios but not the bytes actually decompressed.
 
     Raises:
         InputError: the path is missing, or a corrupt archive, or an archive/folder beyond ``limits``.
@@ -293,12 +311,12 @@ def open_members(path: str | Path, limits: InputLimits | None = None) -> Members
     if not path.is_file():
         raise InputError(f"{path} does not exist (expected a zip/tar archive, a folder, or a volume file)")
     if zipfile.is_zipfile(path):
-        return _read_zip(path, limits)
+        return _read_zip(path, limits, heads_only)
     name = path.name.lower()
     if name.endswith(".zip"):
         raise InputError(f"{path.name} ends in .zip but is not a readable zip archive (corrupt or truncated?)")
     if _is_tar(path):
-        return _read_tar(path, limits)
+        return _read_tar(path, limits, heads_only)
     if name.endswith((".tar", ".tgz", ".tar.gz", ".tar.bz2", ".tar.xz")):
         raise InputError(
             f"{path.name} looks like a tar archive by name but cannot be read as one (corrupt or truncated?)"

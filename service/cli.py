@@ -1,0 +1,75 @@
+"""The ``bonemesh`` command: ``serve`` (the API) and ``worker`` (a Celery worker) here; every other command
+(``reconstruct``, ``isosurface``, ``sweep``) is the engine's (:mod:`engine.cli`).
+
+    bonemesh serve [--host 127.0.0.1] [--port 8000]
+    bonemesh worker [--loglevel INFO] [--device auto|cpu|cuda:N]
+
+Both read their settings from ``BONEMESH_*`` environment variables (:mod:`service.settings`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+
+def _serve(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="bonemesh serve", description="Start the bonemesh API (uvicorn).")
+    parser.add_argument("--host", default="127.0.0.1")
+    parser.add_argument("--port", type=int, default=8000)
+    parser.add_argument("--log-level", default="info")
+    args = parser.parse_args(argv)
+    import uvicorn
+
+    uvicorn.run("service.app:create_app", factory=True, host=args.host, port=args.port, log_level=args.log_level)
+    return 0
+
+
+def _worker(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="bonemesh worker", description="Start a Celery worker: one job at a time (run one per GPU)."
+    )
+    parser.add_argument("--loglevel", default="INFO")
+    parser.add_argument("--device", help="auto, cpu or cuda:N (default BONEMESH_DEVICE, else auto)")
+    parser.add_argument("--hostname", help="Celery node name (default bonemesh@<host>-<pid>)")
+    args = parser.parse_args(argv)
+    if args.device:
+        os.environ["BONEMESH_DEVICE"] = args.device
+    from service.settings import get_settings
+
+    settings = get_settings()
+    from worker.app import app
+
+    node = args.hostname or f"bonemesh@%h-{os.getpid()}"
+    app.worker_main(
+        [
+            "worker",
+            "--pool=prefork",
+            "--concurrency=1",
+            "--prefetch-multiplier=1",
+            f"--queues={settings.queue}",
+            f"--loglevel={args.loglevel}",
+            f"--hostname={node}",
+            "--without-gossip",
+            "--without-mingle",
+        ]
+    )
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "serve":
+        return _serve(argv[1:])
+    if argv and argv[0] == "worker":
+        return _worker(argv[1:])
+    from engine.cli import main as engine_main
+
+    if not argv or argv[0] in ("-h", "--help"):
+        print("bonemesh serve | worker: the web service and its worker (see bonemesh serve --help)")  # noqa: T201
+    return engine_main(argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,206 @@
+"""Job records (SQLAlchemy; SQLite by default, any SQLAlchemy URL such as PostgreSQL works): the truth about
+every job. The broker only carries wake-up calls; a job whose message is lost is re-enqueued from here.
+
+A worker *claims* a job with one conditional UPDATE (queued, or running with a stale heartbeat), so a duplicate
+message never runs a job twice at once, and writes progress, heartbeat and the result only while its claim holds.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+from sqlalchemy import JSON, DateTime, Float, Integer, String, Text, create_engine, event, func, select, update
+from sqlalchemy.engine import Engine
+from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
+
+STATES = ("queued", "running", "succeeded", "failed", "cancelled")
+ACTIVE = ("queued", "running")
+
+
+def utcnow() -> dt.datetime:
+    """Now, in UTC, without tzinfo (as stored)."""
+    return dt.datetime.now(dt.UTC).replace(tzinfo=None)
+
+
+def owner_of(api_key: str) -> str:
+    """The stored owner of a key's jobs: a hash, never the key itself."""
+    return hashlib.sha256(api_key.encode()).hexdigest()[:32]
+
+
+class Base(DeclarativeBase):
+    pass
+
+
+class Job(Base):
+    """One reconstruction job."""
+
+    __tablename__ = "jobs"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    owner: Mapped[str] = mapped_column(String(64), index=True)
+    state: Mapped[str] = mapped_column(String(16), index=True, default="queued")
+    stage: Mapped[str | None] = mapped_column(String(32), default=None)
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    upload_name: Mapped[str] = mapped_column(String(255), default="")
+    upload_bytes: Mapped[int] = mapped_column(Integer, default=0)
+    error_code: Mapped[str | None] = mapped_column(String(32), default=None)
+    error_message: Mapped[str | None] = mapped_column(Text, default=None)
+    outputs: Mapped[list[dict[str, Any]] | None] = mapped_column(JSON, default=None)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    worker: Mapped[str | None] = mapped_column(String(128), default=None)
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow, index=True)
+    enqueued_at: Mapped[dt.datetime | None] = mapped_column(DateTime, default=None)
+    started_at: Mapped[dt.datetime | None] = mapped_column(DateTime, default=None)
+    heartbeat_at: Mapped[dt.datetime | None] = mapped_column(DateTime, default=None)
+    finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime, default=None)
+
+
+class Database:
+    """The engine, sessions and the job operations used by the API and the worker."""
+
+    def __init__(self, url: str) -> None:
+        kwargs: dict[str, Any] = {}
+        if url.startswith("sqlite"):
+            kwargs["connect_args"] = {"timeout": 30, "check_same_thread": False}
+        self.engine: Engine = create_engine(url, pool_pre_ping=True, **kwargs)
+        if url.startswith("sqlite"):
+            event.listen(self.engine, "connect", _sqlite_pragmas)
+        self._sessions = sessionmaker(self.engine, expire_on_commit=False)
+        Base.metadata.create_all(self.engine)
+
+    @contextmanager
+    def session(self) -> Iterator[Session]:
+        with self._sessions() as s, s.begin():
+            yield s
+
+    def ping(self) -> None:
+        with self.session() as s:
+            s.execute(select(1))
+
+    # --- API side -----------------------------------------------------------------------------------------------
+    def create(self, owner: str, params: dict[str, Any], upload_name: str, job_id: str | None = None) -> Job:
+        job = Job(id=job_id or uuid.uuid4().hex, owner=owner, state="queued", params=params, upload_name=upload_name)
+        with self.session() as s:
+            s.add(job)
+        return job
+
+    @staticmethod
+    def new_id() -> str:
+        return uuid.uuid4().hex
+
+    def get(self, job_id: str, owner: str | None = None) -> Job | None:
+        with self.session() as s:
+            job = s.get(Job, job_id)
+            if job is None or (owner is not None and job.owner != owner):
+                return None
+            return job
+
+    def list(self, owner: str, limit: int, offset: int) -> tuple[list[Job], int]:
+        with self.session() as s:
+            total = s.scalar(select(func.count()).select_from(Job).where(Job.owner == owner)) or 0
+            query = select(Job).where(Job.owner == owner).order_by(Job.created_at.desc(), Job.id)
+            rows = s.scalars(query.limit(limit).offset(offset)).all()
+            return list(rows), int(total)
+
+    def set_upload(self, job_id: str, size: int) -> None:
+        with self.session() as s:
+            s.execute(update(Job).where(Job.id == job_id).values(upload_bytes=size))
+
+    def mark_enqueued(self, job_id: str) -> None:
+        with self.session() as s:
+            s.execute(update(Job).where(Job.id == job_id).values(enqueued_at=utcnow()))
+
+    def cancel(self, job_id: str) -> bool:
+        """Cancel a queued or running job; True if it was active."""
+        with self.session() as s:
+            res = s.execute(
+                update(Job)
+                .where(Job.id == job_id, Job.state.in_(ACTIVE))
+                .values(state="cancelled", finished_at=utcnow(), outputs=None)
+            )
+            return res.rowcount == 1
+
+    def lost_jobs(self, queued_before: dt.datetime, stale_before: dt.datetime) -> tuple[list[str], list[str]]:
+        """Queued jobs enqueued before ``queued_before`` (their message may be gone) and running jobs whose
+        heartbeat is older than ``stale_before`` (their worker is gone)."""
+        with self.session() as s:
+            queued = s.scalars(
+                select(Job.id).where(
+                    Job.state == "queued", (Job.enqueued_at.is_(None)) | (Job.enqueued_at < queued_before)
+                )
+            ).all()
+            stale = s.scalars(select(Job.id).where(Job.state == "running", Job.heartbeat_at < stale_before)).all()
+            return list(queued), list(stale)
+
+    def requeue_stale(self, job_id: str, stale_before: dt.datetime) -> bool:
+        """Put a running job whose heartbeat stopped back in the queue."""
+        with self.session() as s:
+            res = s.execute(
+                update(Job)
+                .where(Job.id == job_id, Job.state == "running", Job.heartbeat_at < stale_before)
+                .values(state="queued", stage="queued", worker=None)
+            )
+            return res.rowcount == 1
+
+    # --- worker side --------------------------------------------------------------------------------------------
+    def claim(self, job_id: str, worker: str, stale_before: dt.datetime) -> Job | None:
+        """Take a job for ``worker``: it must be queued, or running with a heartbeat older than ``stale_before``.
+        Counts an attempt. None when another worker holds it or it is finished or cancelled."""
+        now = utcnow()
+        with self.session() as s:
+            res = s.execute(
+                update(Job)
+                .where(
+                    Job.id == job_id,
+                    (Job.state == "queued") | ((Job.state == "running") & (Job.heartbeat_at < stale_before)),
+                )
+                .values(
+                    state="running",
+                    worker=worker,
+                    attempts=Job.attempts + 1,
+                    started_at=now,
+                    heartbeat_at=now,
+                    stage="starting",
+                    progress=0.0,
+                    error_code=None,
+                    error_message=None,
+                )
+            )
+            if res.rowcount != 1:
+                return None
+            return s.get(Job, job_id)
+
+    def beat(self, job_id: str, worker: str, stage: str | None = None, progress: float | None = None) -> bool:
+        """Heartbeat (and progress) of the holder; False when the claim is gone (cancelled or taken over)."""
+        values: dict[str, Any] = {"heartbeat_at": utcnow()}
+        if stage is not None:
+            values["stage"] = stage
+        if progress is not None:
+            values["progress"] = progress
+        with self.session() as s:
+            res = s.execute(
+                update(Job).where(Job.id == job_id, Job.worker == worker, Job.state == "running").values(**values)
+            )
+            return res.rowcount == 1
+
+    def finish(self, job_id: str, worker: str | None, state: str, **values: Any) -> bool:
+        """Final state, written only while ``worker`` holds the job (any holder when ``worker`` is None)."""
+        cond = [Job.id == job_id, Job.state.in_(ACTIVE)]
+        if worker is not None:
+            cond += [Job.worker == worker, Job.state == "running"]
+        with self.session() as s:
+            res = s.execute(update(Job).where(*cond).values(state=state, finished_at=utcnow(), **values))
+            return res.rowcount == 1
+
+
+def _sqlite_pragmas(dbapi_conn: Any, _record: Any) -> None:
+    cur = dbapi_conn.cursor()
+    cur.execute("PRAGMA journal_mode=WAL")
+    cur.execute("PRAGMA busy_timeout=30000")
+    cur.close()

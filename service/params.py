@@ -1,0 +1,69 @@
+"""The job parameters a client sends (flat JSON), validated field by field, and their engine form."""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class JobParams(BaseModel):
+    """Reconstruction parameters of a job (all optional; defaults are the paper's best combination).
+
+    The iso level: ``iso`` in the scan's units, or a HU ``preset`` (DICOM is in HU; image stacks that store
+    HU + an offset need ``hu_offset``, e.g. 1024), or none: 300 HU for DICOM, Otsu's level for image stacks.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    iso: float | None = Field(default=None, description="iso level in the scan's units")
+    preset: Literal["bone", "compact-bone", "spongy-bone"] | None = Field(default=None, description="HU preset")
+    hu_offset: float | None = Field(default=None, description="the stack stores HU + this offset (for preset)")
+    spacing: list[float] | None = Field(
+        default=None, min_length=3, max_length=3, description="voxel size [z, y, x] in mm (image stacks without it)"
+    )
+    reduction: float | None = Field(default=None, gt=0, le=1, description="fraction of faces kept (default 0.2)")
+    max_triangles: int | None = Field(default=None, ge=4, description="decimate to at most this many instead")
+    iterations: int = Field(default=1, ge=1, le=200, description="surface-preserving Laplacian iterations")
+    angle: float = Field(default=0.5, gt=0, lt=90, description="smoothing threshold angle, degrees")
+    min_island_mm3: float | None = Field(default=None, ge=0, description="drop pieces smaller than this volume")
+    keep_largest: int | None = Field(default=None, ge=1, description="keep only the N largest pieces")
+    phone_max_triangles: int = Field(default=100_000, ge=100, le=2_000_000, description="phone.glb budget")
+    ar_max_triangles: int = Field(default=50_000, ge=100, le=2_000_000, description="ar.glb budget")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> JobParams:
+        if self.iso is not None and not math.isfinite(self.iso):
+            raise ValueError("iso must be a finite number")
+        if self.iso is not None and self.preset is not None:
+            raise ValueError("give iso or preset, not both")
+        if self.reduction is not None and self.max_triangles is not None:
+            raise ValueError("give reduction or max_triangles, not both")
+        if self.spacing is not None and not all(math.isfinite(v) and v > 0 for v in self.spacing):
+            raise ValueError("spacing must be three positive numbers [z, y, x] in mm")
+        return self
+
+    def engine_params(self) -> dict[str, Any]:
+        """The engine's ``ReconParams.to_dict()`` form of these parameters."""
+        from engine.params import (
+            DecimateParams,
+            ExportParams,
+            IslandParams,
+            IsoParams,
+            ReconParams,
+            SmoothParams,
+        )
+
+        islands = None
+        if self.min_island_mm3 is not None or self.keep_largest is not None:
+            islands = IslandParams(min_volume_mm3=self.min_island_mm3, keep_largest=self.keep_largest)
+        return ReconParams(
+            iso=IsoParams(iso=self.iso, preset=self.preset, hu_offset=self.hu_offset),
+            islands=islands,
+            decimate=DecimateParams(
+                reduction=None if self.max_triangles else (self.reduction or 0.2), max_triangles=self.max_triangles
+            ),
+            smooth=SmoothParams(iterations=self.iterations, angle_deg=self.angle),
+            export=ExportParams(phone_max_triangles=self.phone_max_triangles, ar_max_triangles=self.ar_max_triangles),
+        ).to_dict()

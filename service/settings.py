@@ -1,0 +1,84 @@
+"""Settings of the service and the worker, from ``BONEMESH_*`` environment variables (one object, read once).
+
+Embedded defaults run on one machine with nothing else installed but Redis: job records in SQLite under the data
+folder, files on local disk, the worker on the CPU when no GPU is present.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from functools import lru_cache
+from pathlib import Path
+from typing import Annotated
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+DEV_API_KEY = "bonemesh-dev-key"
+
+
+class Settings(BaseSettings):
+    """All settings; each field ``name`` is read from ``BONEMESH_NAME``."""
+
+    model_config = SettingsConfigDict(env_prefix="BONEMESH_", extra="ignore")
+
+    redis_url: str = "redis://127.0.0.1:6379/0"
+    data_dir: Path = Path("bonemesh-data")
+    database_url: str | None = Field(default=None, description="SQLAlchemy URL; default SQLite in data_dir")
+    api_keys: Annotated[list[str], NoDecode] = Field(default_factory=lambda: [DEV_API_KEY])
+    secret_key: str | None = Field(default=None, description="signs download links; default: a key file in data_dir")
+    device: str = "auto"
+    max_upload_bytes: int = 4 << 30
+    url_ttl_seconds: int = 3600
+    queue: str = "bonemesh"
+    stale_seconds: float = 60.0
+    reconcile_seconds: float = 15.0
+    heartbeat_seconds: float = 2.0
+    job_soft_time_limit: int = 3600
+    job_time_limit: int = 3900
+    max_attempts: int = 3
+    public_url: str | None = Field(default=None, description="base URL of download links (default: the request's)")
+
+    @field_validator("api_keys", mode="before")
+    @classmethod
+    def _split_keys(cls, value: object) -> object:
+        if isinstance(value, str):
+            return [k.strip() for k in value.split(",") if k.strip()]
+        return value
+
+    @field_validator("api_keys")
+    @classmethod
+    def _some_key(cls, value: list[str]) -> list[str]:
+        if not value:
+            raise ValueError("BONEMESH_API_KEYS holds no key")
+        return value
+
+    @property
+    def db_url(self) -> str:
+        """The database URL (SQLite file in the data folder unless ``BONEMESH_DATABASE_URL`` is set)."""
+        return self.database_url or f"sqlite:///{(self.data_dir / 'bonemesh.db').resolve()}"
+
+    def signing_key(self) -> bytes:
+        """``BONEMESH_SECRET_KEY``, or a random key kept in ``data_dir/secret.key`` (created once, mode 600)."""
+        if self.secret_key:
+            return self.secret_key.encode()
+        path = self.data_dir / "secret.key"
+        if not path.exists():
+            self.data_dir.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{secrets.token_hex(4)}.tmp")
+            tmp.write_text(secrets.token_hex(32))
+            tmp.chmod(0o600)
+            try:
+                os.link(tmp, path)  # first writer wins; a concurrent process reads the same key
+            except FileExistsError:
+                pass
+            finally:
+                tmp.unlink()
+        return path.read_text().strip().encode()
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """The settings of this process (read from the environment once)."""
+    return Settings()

@@ -1,0 +1,196 @@
+"""The reconstruction task: claim the job, load the upload, run ``engine.reconstruct``, stage the outputs and
+publish them in one rename, then record success. Idempotent per job id: a duplicate or redelivered message finds
+the job claimed or finished and does nothing; a rerun after a killed worker rebuilds the outputs from the upload.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import os
+import shutil
+import socket
+import threading
+import uuid
+from pathlib import Path
+from typing import Any
+
+from celery.exceptions import SoftTimeLimitExceeded
+
+from service.db import Database, utcnow
+from service.settings import get_settings
+from service.storage import storage_from_settings
+from service.uploads import relabel
+from worker.app import app
+
+log = logging.getLogger("bonemesh.worker")
+MEDIA = {
+    "model.stl": ("print", "model/stl"),
+    "model.glb": ("model", "model/gltf-binary"),
+    "phone.glb": ("phone", "model/gltf-binary"),
+    "ar.glb": ("ar", "model/gltf-binary"),
+    "report.json": ("report", "application/json"),
+}
+# job progress (percent) at each point: loading 0-5, pipeline 5-90, writing the files 90-100
+LOAD_END, PIPELINE_END = 5.0, 90.0
+
+
+class Cancelled(Exception):
+    """The job was cancelled (or taken over) while it ran."""
+
+
+class _Holder:
+    """The claim of one run: heartbeats in a thread, progress from the pipeline, cancellation noticed."""
+
+    def __init__(self, db: Database, job_id: str, worker: str, every: float) -> None:
+        self.db, self.job_id, self.worker, self.every = db, job_id, worker, every
+        self.lost = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"heartbeat-{job_id[:8]}", daemon=True)
+
+    def __enter__(self) -> _Holder:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.every):
+            try:
+                if not self.db.beat(self.job_id, self.worker):
+                    self.lost.set()
+            except Exception as exc:  # the database busy for a moment
+                log.warning("heartbeat of %s: %s", self.job_id, exc)
+
+    def progress(self, stage: str, percent: float) -> None:
+        if self.lost.is_set() or not self.db.beat(self.job_id, self.worker, stage=stage, progress=percent):
+            self.lost.set()
+            raise Cancelled(self.job_id)
+
+
+@app.task(name="bonemesh.reconstruct", bind=True)
+def reconstruct_job(self: Any, job_id: str) -> str:
+    """Run one job (see the module docstring); returns what happened, for the worker's log."""
+    settings = get_settings()
+    db = Database(settings.db_url)
+    storage = storage_from_settings(settings.data_dir)
+    worker = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
+    stale_before = utcnow() - dt.timedelta(seconds=settings.stale_seconds)
+    job = db.claim(job_id, worker, stale_before)
+    if job is None:
+        log.info("job %s: already taken, finished or cancelled; message dropped", job_id)
+        return "skipped"
+    if job.attempts > settings.max_attempts:
+        db.finish(
+            job_id,
+            worker,
+            "failed",
+            error_code="worker_lost",
+            error_message=f"the job stopped its worker {job.attempts - 1} times (out of memory or a crash); "
+            "try a smaller scan or crop it",
+        )
+        return "failed"
+    staged: Path | None = None
+    try:
+        with _Holder(db, job_id, worker, settings.heartbeat_seconds) as holder:
+            staged = storage.staging_dir(job_id)
+            outputs = _run(job, storage.upload_path(job_id), staged, holder, settings.device)
+            if holder.lost.is_set():
+                raise Cancelled(job_id)
+            storage.publish(job_id, staged)
+            staged = None
+            if not db.finish(job_id, worker, "succeeded", outputs=outputs, stage="done", progress=100.0):
+                raise Cancelled(job_id)
+        return "succeeded"
+    except Cancelled:
+        log.info("job %s: cancelled or taken over while running; its files are dropped", job_id)
+        current = db.get(job_id)
+        if current is not None and current.state == "cancelled":
+            storage.delete_job(job_id)
+        return "cancelled"
+    except SoftTimeLimitExceeded:
+        db.finish(
+            job_id,
+            worker,
+            "failed",
+            error_code="time_limit",
+            error_message=f"the reconstruction took longer than {settings.job_soft_time_limit} s and was stopped; "
+            "try a larger reduction, a crop, or a GPU worker",
+        )
+        return "failed"
+    except Exception as exc:
+        code, message = _explain(exc, job.upload_name)
+        log.log(logging.INFO if code != "internal_error" else logging.ERROR, "job %s failed: %s", job_id, message)
+        db.finish(job_id, worker, "failed", error_code=code, error_message=message)
+        return "failed"
+    finally:
+        if staged is not None:
+            shutil.rmtree(staged, ignore_errors=True)
+
+
+def _run(job: Any, upload: Path, staged: Path, holder: _Holder, device: str) -> list[dict[str, Any]]:
+    """Load, reconstruct and write the files into ``staged``; returns the output descriptions."""
+    from engine.io import load_volume
+    from engine.params import ReconParams
+    from engine.pipeline import reconstruct, write_outputs
+
+    params = ReconParams.from_dict(_engine_params(job.params))
+    holder.progress("loading", 1.0)
+    spacing = job.params.get("spacing")
+    volume = load_volume(upload, spacing_zyx_mm=tuple(spacing) if spacing else None)
+    holder.progress("loading", LOAD_END)
+
+    def on_progress(stage: str, fraction: float) -> None:
+        holder.progress(stage, LOAD_END + (PIPELINE_END - LOAD_END) * fraction)
+
+    recon = reconstruct(volume, params, device=device, on_progress=on_progress)
+    holder.progress("writing", PIPELINE_END)
+    paths = write_outputs(recon, staged, params, device=device)
+    report = recon.report
+    triangles = {
+        "model.stl": report["mesh"]["n_faces"],
+        "model.glb": report["mesh"]["n_faces"],
+        "phone.glb": report["exports"]["phone.glb"]["faces"],
+        "ar.glb": report["exports"]["ar.glb"]["faces"],
+        "report.json": None,
+    }
+    return [
+        {
+            "name": name,
+            "kind": MEDIA[name][0],
+            "media_type": MEDIA[name][1],
+            "bytes": path.stat().st_size,
+            "triangles": triangles[name],
+        }
+        for name, path in paths.items()
+    ]
+
+
+def _engine_params(flat: dict[str, Any]) -> dict[str, Any]:
+    from service.params import JobParams
+
+    return JobParams.model_validate(flat).engine_params()
+
+
+def _explain(exc: Exception, filename: str) -> tuple[str, str]:
+    """An error code and a message a clinician can act on."""
+    from engine.errors import InputError
+    from engine.pipeline import EmptySurfaceError, StageError
+
+    if isinstance(exc, EmptySurfaceError):
+        return "no_surface", relabel(str(exc), filename)
+    if isinstance(exc, InputError):
+        message = relabel(str(exc), filename)
+        if "does not carry its voxel size" in message or "not the slice spacing" in message:
+            return "no_spacing", (
+                f'{filename}: the image slices do not say how large a voxel is; send "spacing": [z, y, x] in '
+                "millimetres in the job's params"
+            )
+        return "bad_input", message
+    if isinstance(exc, MemoryError):
+        return "too_large", "the scan needs more memory than this worker has; crop or downsample it"
+    if isinstance(exc, StageError):
+        return "internal_error", f"the reconstruction failed in stage '{exc.stage}'; the team has the details"
+    return "internal_error", f"the reconstruction failed unexpectedly ({type(exc).__name__}); the team has the details"
