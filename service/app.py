@@ -189,6 +189,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         svc = Services(settings)
         holder["svc"] = svc
+        app.state.data_dir = settings.data_dir
         thread = threading.Thread(target=svc.run_reconciler, name="reconciler", daemon=True)
         thread.start()
         yield
