@@ -1,13 +1,8 @@
 #!/usr/bin/env bash
-# Set up a virtual environment with the project, then run the EMC33 pipeline on the bundled CT head (VTK headsq):
-# out/headsq/ gets model.stl (watertight, mm), model.glb, phone.glb (Draco), ar.glb and report.json.
-set -ex
+# Set up, then run the product on one machine: Redis, the API (http://127.0.0.1:8000) and a worker (GPU when
+# present, else CPU); upload the bundled CT head (VTK headsq) over HTTP, wait for the job, print the download
+# links (model.stl in mm, model.glb, phone.glb with Draco, ar.glb, report.json). Ctrl-C stops everything.
+set -e
 cd "$(dirname "$0")/.."
-python3 -m venv .venv
-.venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e .
-# MeshLab (pymeshlab, the decimation) needs the system's OpenGL loader; install it where a slim image lacks it
-if ! .venv/bin/python -c "import pymeshlab" 2>/dev/null && command -v apt-get >/dev/null; then
-  apt-get update -qq && apt-get install -y -qq libgl1 libglib2.0-0 >/dev/null
-fi
-.venv/bin/bonemesh reconstruct --demo -o out/headsq "$@"
+source scripts/_setup.sh
+exec .venv/bin/python -m service.demo "$@"

@@ -1,0 +1,14 @@
+# Sourced by demo.sh and test.sh: a virtual environment with the project (extras in $BONEMESH_EXTRAS), the
+# system libraries MeshLab needs, and redis-server (the broker), installed with apt-get where missing.
+python3 -m venv .venv
+.venv/bin/python -m pip install -q --upgrade pip
+.venv/bin/python -m pip install -q -e ".${BONEMESH_EXTRAS:-}"
+SUDO=""
+if [ "$(id -u)" != 0 ] && command -v sudo >/dev/null; then SUDO=sudo; fi
+need=""
+# MeshLab (pymeshlab, the decimation) needs the system's OpenGL loader where a slim image lacks it
+.venv/bin/python -c "import pymeshlab" 2>/dev/null || need="$need libgl1 libglib2.0-0"
+command -v redis-server >/dev/null || need="$need redis-server"
+if [ -n "$need" ] && command -v apt-get >/dev/null; then
+  $SUDO apt-get install -y -qq $need >/dev/null 2>&1 || { $SUDO apt-get update -qq && $SUDO apt-get install -y -qq $need >/dev/null; }
+fi
