@@ -425,7 +425,8 @@ def _inspect(path: Any, filename: str | None) -> None:
         summary = inspect_input(path)
     except InputError as exc:
         detail = relabel(str(exc), filename)
-        status = 415 if "neither an archive" in detail or "not a readable" in detail else 422
+        unreadable = ("neither an archive", "not a readable", "single 2-D image")
+        status = 415 if any(s in detail for s in unreadable) else 422
         raise Problem(status, _title(status), detail) from None
     log.info("upload %s: %s", filename, summary)
 

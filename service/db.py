@@ -117,13 +117,15 @@ class Database:
             s.execute(update(Job).where(Job.id == job_id).values(enqueued_at=utcnow()))
 
     def cancel(self, job_id: str) -> bool:
-        """Cancel a queued or running job; True if it was active."""
+        """Cancel a job (its files are being deleted): a queued or running one stops, a finished one loses its
+        outputs; the record stays, as cancelled. True if it was active."""
         with self.session() as s:
             res = s.execute(
                 update(Job)
                 .where(Job.id == job_id, Job.state.in_(ACTIVE))
                 .values(state="cancelled", finished_at=utcnow(), outputs=None)
             )
+            s.execute(update(Job).where(Job.id == job_id).values(state="cancelled", outputs=None))
             return res.rowcount == 1
 
     def lost_jobs(self, queued_before: dt.datetime, stale_before: dt.datetime) -> tuple[list[str], list[str]]:
@@ -132,7 +134,9 @@ class Database:
         with self.session() as s:
             queued = s.scalars(
                 select(Job.id).where(
-                    Job.state == "queued", (Job.enqueued_at.is_(None)) | (Job.enqueued_at < queued_before)
+                    Job.state == "queued",
+                    Job.created_at < queued_before,
+                    (Job.enqueued_at.is_(None)) | (Job.enqueued_at < queued_before),
                 )
             ).all()
             stale = s.scalars(select(Job.id).where(Job.state == "running", Job.heartbeat_at < stale_before)).all()

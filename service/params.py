@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 
 class JobParams(BaseModel):
@@ -32,6 +32,13 @@ class JobParams(BaseModel):
     phone_max_triangles: int = Field(default=100_000, ge=100, le=2_000_000, description="phone.glb budget")
     ar_max_triangles: int = Field(default=50_000, ge=100, le=2_000_000, description="ar.glb budget")
 
+    @field_validator("spacing")
+    @classmethod
+    def _positive(cls, value: list[float] | None) -> list[float] | None:
+        if value is not None and not all(math.isfinite(v) and v > 0 for v in value):
+            raise ValueError("spacing must be three positive numbers [z, y, x] in mm")
+        return value
+
     @model_validator(mode="after")
     def _consistent(self) -> JobParams:
         if self.iso is not None and not math.isfinite(self.iso):
@@ -40,8 +47,6 @@ class JobParams(BaseModel):
             raise ValueError("give iso or preset, not both")
         if self.reduction is not None and self.max_triangles is not None:
             raise ValueError("give reduction or max_triangles, not both")
-        if self.spacing is not None and not all(math.isfinite(v) and v > 0 for v in self.spacing):
-            raise ValueError("spacing must be three positive numbers [z, y, x] in mm")
         return self
 
     def engine_params(self) -> dict[str, Any]:

@@ -7,7 +7,10 @@ process after the fork, so CUDA is initialised there and never in the parent.
 
 from __future__ import annotations
 
+import multiprocessing
+
 from celery import Celery
+from celery.signals import worker_process_init
 
 from service.queue import celery_config
 from service.settings import get_settings
@@ -32,3 +35,10 @@ def make_app() -> Celery:
 
 
 app = make_app()
+
+
+@worker_process_init.connect
+def _allow_children(**_: object) -> None:
+    """Celery's pool children are daemonic, and a daemonic process may not start processes; the decimation stage
+    runs MeshLab in a process pool, so the child drops the flag (its own children are reaped by the pool)."""
+    multiprocessing.current_process()._config["daemon"] = False  # the setter refuses on a started process

@@ -122,7 +122,10 @@ def reconstruct_job(self: Any, job_id: str) -> str:
         return "failed"
     except Exception as exc:
         code, message = _explain(exc, job.upload_name)
-        log.log(logging.INFO if code != "internal_error" else logging.ERROR, "job %s failed: %s", job_id, message)
+        if code == "internal_error":
+            log.exception("job %s failed: %s", job_id, message)
+        else:
+            log.info("job %s failed: %s", job_id, message)
         db.finish(job_id, worker, "failed", error_code=code, error_message=message)
         return "failed"
     finally:

@@ -46,11 +46,14 @@ def inspect_input(path: str | Path, limits: InputLimits | None = None) -> InputS
         images = sum(1 for m in members.members if image_kind(m.head))
         dicom = sum(1 for m in members.members if looks_like_dicom(m.head))
         summary = InputSummary(members.kind, len(members.members), images, dicom)
+        flat = summary.kind == "file" and image_kind(members.members[0].head) in ("png", "jpeg", "bmp")
     if summary.kind == "file" and not (images or dicom):
         raise InputError(
             f"{label} is neither an archive (zip, tar, tar.gz) nor a volume file (.npy, TIFF, DICOM) that "
             "bonemesh reads"
         )
+    if flat:
+        raise InputError(f"{label} is a single 2-D image, not a scan: send all the slices in one zip or tar archive")
     if not (images or dicom):
         raise InputError(
             f"{label} holds {summary.files} file(s) but no image slices (PNG, TIFF, JPEG, BMP, .npy) and no DICOM files"
