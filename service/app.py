@@ -26,18 +26,11 @@ from service.db import Database, Job, owner_of, utcnow
 from service.params import JobParams
 from service.queue import Queue
 from service.settings import Settings, get_settings
-from service.storage import Storage, UploadTooLarge, storage_from_settings
+from service.storage import OUTPUTS, Storage, UploadTooLarge, storage_from_settings
 from service.uploads import UploadError, read_multipart, relabel
 
 log = logging.getLogger("bonemesh.api")
 PROBLEM = "application/problem+json"
-MEDIA = {
-    "model.stl": ("print", "model/stl"),
-    "model.glb": ("model", "model/gltf-binary"),
-    "phone.glb": ("phone", "model/gltf-binary"),
-    "ar.glb": ("ar", "model/gltf-binary"),
-    "report.json": ("report", "application/json"),
-}
 MULTIPART_SLACK = 1 << 20  # multipart headers and boundaries around the file
 
 
@@ -384,7 +377,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         path = s.storage.output_path(job_id, name) if job is not None and job.state == "succeeded" else None
         if path is None:
             raise Problem(404, "Not Found", "this file no longer exists (the job was deleted)")
-        media = MEDIA.get(name, ("file", "application/octet-stream"))[1]
+        media = OUTPUTS.get(name, ("file", "application/octet-stream"))[1]
         return FileResponse(path, media_type=media, filename=name, content_disposition_type="attachment")
 
     return app

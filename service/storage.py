@@ -14,6 +14,14 @@ import uuid
 from abc import ABC, abstractmethod
 from pathlib import Path
 
+# a job's output files: kind and media type
+OUTPUTS = {
+    "model.stl": ("print", "model/stl"),
+    "model.glb": ("model", "model/gltf-binary"),
+    "phone.glb": ("phone", "model/gltf-binary"),
+    "ar.glb": ("ar", "model/gltf-binary"),
+    "report.json": ("report", "application/json"),
+}
 _ID = re.compile(r"^[0-9a-f]{32}$")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 

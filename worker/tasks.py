@@ -19,18 +19,11 @@ from celery.exceptions import SoftTimeLimitExceeded
 
 from service.db import Database, utcnow
 from service.settings import get_settings
-from service.storage import storage_from_settings
+from service.storage import OUTPUTS, storage_from_settings
 from service.uploads import relabel
 from worker.app import app
 
 log = logging.getLogger("bonemesh.worker")
-MEDIA = {
-    "model.stl": ("print", "model/stl"),
-    "model.glb": ("model", "model/gltf-binary"),
-    "phone.glb": ("phone", "model/gltf-binary"),
-    "ar.glb": ("ar", "model/gltf-binary"),
-    "report.json": ("report", "application/json"),
-}
 # job progress (percent) at each point: loading 0-5, pipeline 5-90, writing the files 90-100
 LOAD_END, PIPELINE_END = 5.0, 90.0
 
@@ -162,8 +155,8 @@ def _run(job: Any, upload: Path, staged: Path, holder: _Holder, device: str) -> 
     return [
         {
             "name": name,
-            "kind": MEDIA[name][0],
-            "media_type": MEDIA[name][1],
+            "kind": OUTPUTS[name][0],
+            "media_type": OUTPUTS[name][1],
             "bytes": path.stat().st_size,
             "triangles": triangles[name],
         }
