@@ -10,7 +10,8 @@ import pytest
 
 from engine.cli import main
 from engine.export import to_glb
-from engine.sweep import SweepConfig, enhancement_score, read_glb, run_sweep, scores
+from engine.sweep import SweepConfig, read_glb, run_sweep
+from engine.sweep_report import enhancement_score, scores
 from engine.types import Volume
 
 
