@@ -255,9 +255,10 @@ def _budget_mesh(mesh: Mesh, max_triangles: int, device: Any) -> tuple[Mesh, dic
     """The mesh itself when within budget, else a decimated copy with fresh normals.
 
     Topology-preserving decimation cannot shrink a closed piece below a tetrahedron, so a scan with thousands of
-    specks cannot reach a phone-sized budget. Then the smallest pieces (by volume) are dropped from this copy,
-    halving the number kept until the budget is met; the report says how many were dropped (the print model
-    keeps them all).
+    specks cannot reach a phone-sized budget. Then the smallest pieces (by volume) of the decimated copy are
+    dropped, halving the number kept, and the rest decimated again, until the budget is met; each round works on
+    the already reduced copy, so a 30 M-face model costs one large decimation. The report says how many pieces
+    were dropped (the print model keeps them all).
     """
     if len(mesh.faces) <= max_triangles:
         return mesh, {"faces": len(mesh.faces), "decimated": False}
@@ -266,18 +267,17 @@ def _budget_mesh(mesh: Mesh, max_triangles: int, device: Any) -> tuple[Mesh, dic
     from engine.stages.meshcheck import component_labels
     from engine.stages.normals import vertex_normals
 
-    pieces = component_labels(mesh.faces, len(mesh.vertices))[0]
+    dv, df, info = decimate_mesh(mesh.vertices, mesh.faces, max_triangles=max_triangles)
     keep: int | None = None
     dropped = 0
-    while True:
-        v, f = mesh.vertices, mesh.faces
-        if keep is not None:
-            v, f, isl = remove_islands(v, f, keep_largest=keep)
-            dropped = int(isl["removed_pieces"])
-        dv, df, info = decimate_mesh(v, f, max_triangles=max_triangles)
-        if len(df) <= max_triangles or keep == 1:
+    while len(df) > max_triangles and keep != 1:
+        pieces = component_labels(df, len(dv))[0]
+        if pieces <= 1:
             break
-        keep = max(1, min(pieces // 2, max_triangles // 200)) if keep is None else max(1, keep // 2)
+        keep = max(1, min(pieces // 2, max_triangles // 200)) if keep is None else max(1, min(keep // 2, pieces - 1))
+        dv, df, isl = remove_islands(dv, df, keep_largest=keep)
+        dropped += int(isl["removed_pieces"])
+        dv, df, info = decimate_mesh(dv, df, max_triangles=max_triangles)
     summary = {
         "faces": len(df),
         "decimated": True,
