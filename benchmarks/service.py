@@ -1,0 +1,271 @@
+"""Service benchmark: upload-to-links latency of the web service, per stage, with real processes.
+
+    python -m benchmarks.service --device cpu|cuda:0 [--data ../shared/data] [--phantom Z,Y,X] [--repeat N]
+                                 [--redis-server PATH] [--timeout S] [--workdir DIR] --out result.json
+
+It starts a redis-server on a free loopback port, ``bonemesh serve`` and one ``bonemesh worker`` (device
+``--device``) with a fresh data folder (the helpers of ``tests/service/procs.py``), then for each input POSTs the
+archive and polls ``GET /v1/jobs/{id}`` every 0.1 s until the job has succeeded and its links are out. One
+warm-up job (the bundled headsq scan) runs first, so Warp's kernel compilation is not counted.
+
+Inputs: the cranium CT (PNG zip of HU + 1024, bone preset via ``hu_offset``) when the data folder holds it, and a
+slice archive of the bone phantom of ``benchmarks.phantom`` (952 x 1024 x 1024 by default, as in the issue; a zip
+of 16-bit PNG slices written beforehand and not timed).
+
+Per run it records, from the client's side: the upload (POST until 202), the wait in the queue (created_at to
+started_at), the job (started_at to finished_at) and upload-to-links (POST start until the first GET that shows
+the succeeded job with its links); the time the client first saw each stage (loading, the pipeline's stages,
+writing); and from ``report.json`` the pipeline's own stage seconds and counts. A run that does not finish within
+``--timeout`` is recorded with the stage it had reached.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import io
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+import zipfile
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from tests.service.procs import RedisServer, ServiceStack
+
+CRANIUM = (
+    "cranium_ct",
+    "cranium_ct_png16.zip",
+    {"preset": "bone", "hu_offset": 1024, "spacing": [1.5, 0.9570312, 0.9570312]},
+)
+PHANTOM_SPACING_MM = [0.05, 0.05, 0.05]  # micro-CT-like voxels, as in benchmarks/pipeline.py
+
+
+def _png(plane: np.ndarray) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(plane).save(buf, format="PNG", compress_level=1)
+    return buf.getvalue()
+
+
+def write_phantom_zip(shape: tuple[int, int, int], path: Path) -> dict[str, Any]:
+    """The bone phantom as a zip of 16-bit PNG slices; returns how long it took and the archive's size."""
+    from benchmarks.phantom import BONE_LEVEL, bone_phantom
+
+    t0 = time.perf_counter()
+    volume = bone_phantom(shape)
+    t1 = time.perf_counter()
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as zf, ThreadPoolExecutor(os.cpu_count() or 1) as pool:
+        for z, data in enumerate(pool.map(_png, volume)):  # encoded in parallel, written in order
+            zf.writestr(f"phantom/phantom_{z:04d}.png", data)
+    return {
+        "generate_seconds": t1 - t0,
+        "encode_seconds": time.perf_counter() - t1,
+        "archive_bytes": path.stat().st_size,
+        "iso": BONE_LEVEL,
+    }
+
+
+def run_job(
+    base_url: str, key: str, archive: Path, params: dict[str, Any], timeout: float, label: str
+) -> dict[str, Any]:
+    """Upload, poll to the links; the timings of one job."""
+    stages_seen: dict[str, float] = {}
+    with httpx.Client(base_url=base_url, headers={"X-API-Key": key}, timeout=3600) as client:
+        t0 = time.perf_counter()
+        with open(archive, "rb") as fh:
+            resp = client.post(
+                "/v1/jobs",
+                files={"file": (archive.name, fh, "application/zip")},
+                data={"params": json.dumps(params)},
+            )
+        upload_s = time.perf_counter() - t0
+        if resp.status_code != 202:
+            return {"label": label, "error": f"POST -> {resp.status_code}: {resp.text[:1000]}"}
+        job_id = resp.json()["id"]
+        job: dict[str, Any] = resp.json()
+        last_print = 0.0
+        while True:
+            now = time.perf_counter() - t0
+            job = client.get(f"/v1/jobs/{job_id}").json()
+            stage = job.get("stage") or job["state"]
+            if job["state"] == "running" and stage not in stages_seen:
+                stages_seen[stage] = now
+                print(f"    {now:8.2f} s  {stage} ({job['progress']:.0f} %)", flush=True)
+            if job["state"] in ("succeeded", "failed", "cancelled"):
+                break
+            if now > timeout:
+                return {
+                    "label": label,
+                    "job_id": job_id,
+                    "error": f"not finished after {timeout:.0f} s",
+                    "last_seen": job,
+                    "upload_seconds": upload_s,
+                    "stages_first_seen_seconds": stages_seen,
+                }
+            if now - last_print > 30:
+                last_print = now
+                print(f"    {now:8.2f} s  ... {job['state']} {stage} {job['progress']:.0f} %", flush=True)
+            time.sleep(0.1)
+        links_s = time.perf_counter() - t0
+        if job["state"] != "succeeded":
+            return {"label": label, "job_id": job_id, "error": job.get("error"), "state": job["state"]}
+        outputs = {o["name"]: o for o in job["outputs"]}
+        report = httpx.get(outputs["report.json"]["url"], timeout=60).json()
+
+    pipeline_first = [t for s, t in stages_seen.items() if s not in ("starting", "loading", "writing", "done")]
+    phases = {}  # client-side, to the 0.1 s polling step
+    if "loading" in stages_seen and pipeline_first:
+        phases["loading"] = min(pipeline_first) - stages_seen["loading"]
+    if "writing" in stages_seen:
+        phases["writing"] = links_s - stages_seen["writing"]
+
+    def ts(key: str) -> float:
+        return dt.datetime.fromisoformat(job[key].replace("Z", "+00:00")).timestamp()
+
+    return {
+        "label": label,
+        "job_id": job_id,
+        "upload_bytes": archive.stat().st_size,
+        "upload_seconds": upload_s,
+        "queue_seconds": ts("started_at") - ts("created_at"),
+        "job_seconds": ts("finished_at") - ts("started_at"),
+        "upload_to_links_seconds": links_s,
+        "attempts": job["attempts"],
+        "stages_first_seen_seconds": stages_seen,
+        "phase_seconds": phases,
+        "pipeline_stage_seconds": report["stage_seconds"],
+        "pipeline_seconds": report["total_seconds"],
+        "input": report["input"],
+        "counts": report["counts"],
+        "mesh_faces": report["mesh"]["n_faces"],
+        "outputs": {n: {"bytes": o["bytes"], "triangles": o["triangles"]} for n, o in outputs.items()},
+        "device": report["device"],
+    }
+
+
+def _summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    ok = [r for r in runs if "error" not in r]
+    if not ok:
+        return {"runs": runs}
+    ok.sort(key=lambda r: r["upload_to_links_seconds"])
+    median = ok[len(ok) // 2]
+    return {
+        "upload_to_links_seconds": median["upload_to_links_seconds"],
+        "upload_to_links_seconds_all": [r["upload_to_links_seconds"] for r in runs if "error" not in r],
+        "median_run": median,
+        "failed_runs": [r for r in runs if "error" in r],
+        "median_upload_to_links_spread": statistics.pstdev(r["upload_to_links_seconds"] for r in ok),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cpu", help="the worker's BONEMESH_DEVICE: cpu, cuda:0, auto")
+    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
+    parser.add_argument("--phantom", default="952,1024,1024", help="phantom shape Z,Y,X; 'none' to skip")
+    parser.add_argument("--repeat", type=int, default=1, help="runs per input (the median is reported)")
+    parser.add_argument("--redis-server", default=None, help="redis-server executable (default: PATH or apt-get)")
+    parser.add_argument("--timeout", type=float, default=1800, help="seconds one job may take before giving up")
+    parser.add_argument("--workdir", type=Path, default=None, help="data, logs and archives (default: a temp dir)")
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args(argv)
+
+    workdir = args.workdir or Path(tempfile.mkdtemp(prefix="bonemesh-bench-"))
+    workdir.mkdir(parents=True, exist_ok=True)
+    inputs: dict[str, tuple[Path, dict[str, Any]]] = {}
+    prep: dict[str, Any] = {}
+    cranium = args.data / CRANIUM[0] / CRANIUM[1]
+    if cranium.exists():
+        inputs["cranium_ct"] = (cranium, CRANIUM[2])
+    else:
+        print(f"[service] {cranium} is absent: no cranium run", flush=True)
+    if args.phantom.lower() != "none":
+        shape = tuple(int(s) for s in args.phantom.split(","))
+        name = f"phantom_{'x'.join(map(str, shape))}"
+        path = workdir / f"{name}.zip"
+        print(f"[service] writing the {shape} phantom archive to {path}", flush=True)
+        prep[name] = write_phantom_zip(shape, path)  # type: ignore[arg-type]
+        print(f"  {prep[name]}", flush=True)
+        inputs[name] = (path, {"iso": prep[name]["iso"], "spacing": PHANTOM_SPACING_MM})
+
+    from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
+
+    results: dict[str, Any] = {}
+    with (
+        RedisServer(workdir / "redis", args.redis_server) as redis,
+        ServiceStack(
+            workdir / "stack",
+            redis.url,
+            device=args.device,
+            stale_seconds=120,
+            reconcile_seconds=15,
+            max_upload_bytes=16 << 30,
+            extra_env={
+                "BONEMESH_JOB_SOFT_TIME_LIMIT": str(int(args.timeout)),
+                "BONEMESH_JOB_TIME_LIMIT": str(int(args.timeout) + 60),
+            },
+        ) as stack,
+    ):
+        stack.start_server()
+        stack.start_worker()
+        try:
+            key = "key-a"
+            print("[service] warm-up: headsq (kernel compilation)", flush=True)
+            warm = run_job(
+                stack.base_url, key, HEADSQ_ZIP, {"iso": 1150, "spacing": list(HEADSQ_SPACING_ZYX_MM)}, 600, "warmup"
+            )
+            print(f"  warm-up {warm.get('upload_to_links_seconds', warm.get('error'))}", flush=True)
+            for name, (path, params) in inputs.items():
+                runs = []
+                for i in range(args.repeat):
+                    print(f"[service] {name} run {i + 1}/{args.repeat} ({path.stat().st_size:,} bytes)", flush=True)
+                    run = run_job(stack.base_url, key, path, params, args.timeout, f"{name}#{i + 1}")
+                    runs.append(run)
+                    if "error" in run:
+                        print(f"  FAILED: {run['error']}", flush=True)
+                        break
+                    stages = ", ".join(f"{k} {v:.2f}" for k, v in run["pipeline_stage_seconds"].items())
+                    print(
+                        f"  upload {run['upload_seconds']:.2f} s, queue {run['queue_seconds']:.2f} s, job"
+                        f" {run['job_seconds']:.2f} s, upload-to-links {run['upload_to_links_seconds']:.2f} s"
+                        f" (loading/writing {run['phase_seconds']}; pipeline: {stages})",
+                        flush=True,
+                    )
+                results[name] = _summary(runs)
+        except BaseException:
+            print(stack.logs(20000), file=sys.stderr)
+            raise
+        if any("error" in r for res in results.values() for r in res.get("failed_runs", res.get("runs", []))):
+            print(stack.logs(20000), file=sys.stderr)
+
+    report = {
+        "benchmark": "service",
+        "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "device": args.device,
+        "host": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
+        "timing": (
+            f"median of {args.repeat} per input after one warm-up job; client-side times from POST start; "
+            "pipeline stage seconds from report.json of the median run"
+        ),
+        "preparation": prep,
+        "warmup": warm,
+        "results": results,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=2, default=str) + "\n")
+    print(f"[service] wrote {args.out}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""Service tests: real redis-server, ``bonemesh serve`` and ``bonemesh worker`` processes."""
