@@ -257,8 +257,10 @@ def _budget_mesh(mesh: Mesh, max_triangles: int, device: Any) -> tuple[Mesh, dic
     Topology-preserving decimation cannot shrink a closed piece below a tetrahedron, so a scan with thousands of
     specks cannot reach a phone-sized budget. Then the smallest pieces (by volume) of the decimated copy are
     dropped, halving the number kept, and the rest decimated again, until the budget is met; each round works on
-    the already reduced copy, so a 30 M-face model costs one large decimation. The report says how many pieces
-    were dropped (the print model keeps them all).
+    the already reduced copy, so a 30 M-face model costs one large decimation. Where one piece of high genus
+    still keeps the copy over budget, the copy is decimated without the topology guard (``topology_preserved``
+    false: it may close small tunnels). The report says how many pieces were dropped (the print model keeps them
+    all and is never decimated without the guard).
     """
     if len(mesh.faces) <= max_triangles:
         return mesh, {"faces": len(mesh.faces), "decimated": False}
@@ -278,10 +280,17 @@ def _budget_mesh(mesh: Mesh, max_triangles: int, device: Any) -> tuple[Mesh, dic
         dv, df, isl = remove_islands(dv, df, keep_largest=keep)
         dropped += int(isl["removed_pieces"])
         dv, df, info = decimate_mesh(dv, df, max_triangles=max_triangles)
+    topology_kept = True
+    if len(df) > max_triangles:  # a piece of high genus: this viewing copy may close tunnels to meet the budget
+        from engine.stages.decimate import decimate_for_viewing
+
+        dv, df = decimate_for_viewing(dv, df, max_triangles)
+        topology_kept = False
     summary = {
         "faces": len(df),
         "decimated": True,
         "pieces_dropped": dropped,
+        "topology_preserved": topology_kept,
         "over_budget": len(df) > max_triangles,
         "decimate": info,
     }

@@ -74,6 +74,32 @@ class Slab:
     global_ids: np.ndarray
 
 
+def decimate_for_viewing(
+    verts: npt.NDArray[Any], faces: npt.NDArray[Any], max_triangles: int
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int32]]:
+    """Quadric decimation to ``max_triangles`` *without* the topology guard, for viewing copies only.
+
+    A piece of high genus (a trabecular network) cannot be decimated far with the link condition; a phone or AR
+    model may then close small tunnels and lose watertightness. Never used for the print model.
+    """
+    import pymeshlab
+
+    verts, faces = validate_mesh(verts, faces)
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=verts[:, ::-1].astype(np.float64), face_matrix=faces.astype(np.int32)))
+    ms.meshing_decimation_quadric_edge_collapse(
+        targetfacenum=int(max_triangles),
+        preservetopology=False,
+        preservenormal=True,
+        optimalplacement=True,
+        qualitythr=0.3,
+        autoclean=True,
+    )
+    mesh = ms.current_mesh()
+    v, f = compact_mesh(np.asarray(mesh.vertex_matrix(), np.float64), np.asarray(mesh.face_matrix(), np.int32))
+    return np.ascontiguousarray(v[:, ::-1], dtype=np.float32), f.astype(np.int32)
+
+
 def _collapse_in_slabs(
     pts: np.ndarray, faces: np.ndarray, target: int, workers: int, closed: bool
 ) -> tuple[np.ndarray, np.ndarray, list[int]]:

@@ -172,3 +172,27 @@ def test_nan_in_the_volume_is_an_input_error():
     vol[4, 4, 4] = np.nan
     with pytest.raises(InputError, match="NaN"):
         reconstruct(Volume(vol, (1.0, 1.0, 1.0)), ReconParams(iso=IsoParams(iso=0.5)), device="cpu")
+
+
+def test_phone_budget_is_met_on_a_piece_of_high_genus(tmp_path):
+    """A perforated plate (one piece, 144 tunnels) cannot shrink far under the topology guard: the phone and AR
+    copies are decimated without it, and the print model keeps every tunnel."""
+    from engine.params import ExportParams
+
+    z, y, x = np.indices((20, 100, 100), dtype=np.float32)
+    plate = np.minimum(4.5 - np.abs(z - 10), 45 - np.maximum(np.abs(y - 50), np.abs(x - 50)))
+    holes = 2.2 - np.hypot((y - 50 + 33) % 6 - 3, (x - 50 + 33) % 6 - 3)  # a 12 x 12 grid of 2.2-voxel holes
+    holes[:, (np.abs(np.arange(100) - 50) > 35), :] = -1
+    holes[:, :, (np.abs(np.arange(100) - 50) > 35)] = -1
+    vol = np.minimum(plate, -holes) * 100
+    params = ReconParams(
+        iso=IsoParams(iso=0.0), gaussian=None, export=ExportParams(phone_max_triangles=1000, ar_max_triangles=500)
+    )
+    recon = reconstruct(Volume(vol.astype(np.float32), (1.0, 1.0, 1.0)), params, device="cpu")
+    mesh = recon.report["mesh"]
+    assert mesh["components"] == 1 and mesh["watertight"] and mesh["euler"] <= 2 - 2 * 100  # genus >= 100
+    write_outputs(recon, tmp_path, params, device="cpu")
+    exports = recon.report["exports"]
+    assert exports["phone.glb"]["faces"] <= 1000 and exports["ar.glb"]["faces"] <= 500
+    assert exports["phone.glb"]["topology_preserved"] is False and not exports["phone.glb"]["over_budget"]
+    assert recon.report["mesh"]["euler"] == mesh["euler"]  # the print model is untouched
