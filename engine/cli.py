@@ -36,6 +36,14 @@ def _spacing(text: str) -> tuple[float, float, float]:
     return parts  # type: ignore[return-value]
 
 
+def add_level_args(parser: argparse.ArgumentParser) -> None:
+    """``--iso`` or ``--preset`` (with ``--hu-offset``): the iso level, for ``reconstruct`` and ``sweep``."""
+    level = parser.add_mutually_exclusive_group()
+    level.add_argument("--iso", type=float, help="iso level in the volume's units")
+    level.add_argument("--preset", choices=sorted(ISO_PRESETS_HU), help="HU preset (bone = 300 HU)")
+    parser.add_argument("--hu-offset", type=float, help="the stack stores HU + this offset (e.g. 1024), for --preset")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="bonemesh", description="Bone surface models from CT slice stacks.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -51,10 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec = sub.add_parser("reconstruct", help="the EMC33 pipeline: model.stl, model.glb, phone.glb, ar.glb, report")
     rec.add_argument("input", nargs="?", help="slice archive or folder, DICOM series (zip or folder), TIFF or .npy")
     rec.add_argument("-o", "--output", required=True, help="output folder")
-    level = rec.add_mutually_exclusive_group()
-    level.add_argument("--iso", type=float, help="iso level in the volume's units")
-    level.add_argument("--preset", choices=sorted(ISO_PRESETS_HU), help="HU preset (bone = 300 HU)")
-    rec.add_argument("--hu-offset", type=float, help="the stack stores HU + this offset (e.g. 1024), for --preset")
+    add_level_args(rec)
     rec.add_argument("--spacing", type=_spacing, help="voxel size Z,Y,X in mm (image stacks without it)")
     rec.add_argument("--reduction", type=float, help="fraction of faces kept by decimation (default 0.2)")
     rec.add_argument("--max-triangles", type=int, help="decimate to at most this many triangles instead")

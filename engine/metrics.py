@@ -22,18 +22,15 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from engine.stages.meshcheck import validate_mesh
+
 _CHUNK = 1 << 21  # faces per chunk
 
 
 def _check_mesh(verts: npt.ArrayLike, faces: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
-    v = np.asarray(verts)
-    f = np.asarray(faces)
-    if v.ndim != 2 or v.shape[1] != 3 or not np.issubdtype(v.dtype, np.floating):
+    v, f = validate_mesh(verts, faces)
+    if not np.issubdtype(v.dtype, np.floating):
         raise ValueError(f"Expected float vertices of shape (V, 3), got {v.dtype} {v.shape}")
-    if f.ndim != 2 or f.shape[1] != 3 or not np.issubdtype(f.dtype, np.integer):
-        raise ValueError(f"Expected integer faces of shape (F, 3), got {f.dtype} {f.shape}")
-    if len(f) and (f.min() < 0 or f.max() >= len(v)):
-        raise ValueError(f"Face indices must lie in [0, {len(v) - 1}], got [{f.min()}, {f.max()}]")
     return v, f
 
 

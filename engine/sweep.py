@@ -44,7 +44,6 @@ import numpy as np
 import numpy.typing as npt
 
 from engine.errors import InputError
-from engine.params import ISO_PRESETS_HU
 from engine.sweep_report import json_default, scores, write_tables
 from engine.types import Volume
 
@@ -424,7 +423,7 @@ def _crop(text: str) -> tuple[slice, slice, slice]:
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``bonemesh sweep`` on an ``argparse`` subparsers object."""
-    from engine.cli import _spacing
+    from engine.cli import _spacing, add_level_args
 
     p = subparsers.add_parser("sweep", help="the paper's parameter sweep (Tables 1 and 2) with accuracy metrics")
     p.add_argument("input", nargs="?", help="slice archive or folder, DICOM series, TIFF or .npy (z, y, x)")
@@ -432,10 +431,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--demo", action="store_true", help="the bundled headsq CT at level 1150")
     src.add_argument("--phantom", type=_ints, help="bone phantom Z,Y,X from benchmarks.phantom (repo checkout)")
-    level = p.add_mutually_exclusive_group()
-    level.add_argument("--iso", type=float, help="iso level in the volume's units")
-    level.add_argument("--preset", choices=sorted(ISO_PRESETS_HU), help="HU preset (bone = 300 HU)")
-    p.add_argument("--hu-offset", type=float, help="the stack stores HU + this offset (e.g. 1024), for --preset")
+    add_level_args(p)
     p.add_argument("--spacing", type=_spacing, help="voxel size Z,Y,X in mm")
     p.add_argument("--crop", type=_crop, help="keep voxels Z0:Z1,Y0:Y1,X0:X1 (python ranges, before --stride)")
     p.add_argument("--stride", type=int, default=1, help="keep every Nth sample along each axis (default 1)")
