@@ -296,29 +296,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             parsed = await read_multipart(request.headers.get("content-type", ""), request.stream(), writer)
             params = _parse_params(parsed.fields.get("params"))
             writer.commit()
-        except UploadTooLarge as exc:
-            s.storage.delete_job(job_id)
-            raise Problem(413, "Content Too Large", str(exc)) from None
-        except UploadError as exc:
-            writer.abort()
-            s.storage.delete_job(job_id)
-            raise Problem(exc.status, _title(exc.status), exc.detail) from None
-        except Problem:
-            writer.abort()
-            s.storage.delete_job(job_id)
-            raise
-        except BaseException:
-            writer.abort()
-            s.storage.delete_job(job_id)
-            raise
-        try:
             await run_in_threadpool(_inspect, s.storage.upload_path(job_id), parsed.filename)
-        except Problem:
+        except BaseException as exc:  # nothing of a refused upload is kept
+            writer.abort()
             s.storage.delete_job(job_id)
+            if isinstance(exc, UploadTooLarge):
+                raise Problem(413, "Content Too Large", str(exc)) from None
+            if isinstance(exc, UploadError):
+                raise Problem(exc.status, _title(exc.status), exc.detail) from None
             raise
         name = parsed.filename or "upload"
-        job = s.db.create(who, params.model_dump(exclude_none=True), name, job_id=job_id)
-        s.db.set_upload(job_id, writer.size)
+        job = s.db.create(who, params.model_dump(exclude_none=True), name, writer.size, job_id=job_id)
         await run_in_threadpool(s.enqueue, job_id)
         job = s.db.get(job_id) or job
         body = s.job_out(job, _base(request, settings)).model_dump(mode="json")

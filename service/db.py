@@ -84,8 +84,17 @@ class Database:
             s.execute(select(1))
 
     # --- API side -----------------------------------------------------------------------------------------------
-    def create(self, owner: str, params: dict[str, Any], upload_name: str, job_id: str | None = None) -> Job:
-        job = Job(id=job_id or uuid.uuid4().hex, owner=owner, state="queued", params=params, upload_name=upload_name)
+    def create(
+        self, owner: str, params: dict[str, Any], upload_name: str, upload_bytes: int = 0, job_id: str | None = None
+    ) -> Job:
+        job = Job(
+            id=job_id or uuid.uuid4().hex,
+            owner=owner,
+            state="queued",
+            params=params,
+            upload_name=upload_name,
+            upload_bytes=upload_bytes,
+        )
         with self.session() as s:
             s.add(job)
         return job
@@ -107,10 +116,6 @@ class Database:
             query = select(Job).where(Job.owner == owner).order_by(Job.created_at.desc(), Job.id)
             rows = s.scalars(query.limit(limit).offset(offset)).all()
             return list(rows), int(total)
-
-    def set_upload(self, job_id: str, size: int) -> None:
-        with self.session() as s:
-            s.execute(update(Job).where(Job.id == job_id).values(upload_bytes=size))
 
     def mark_enqueued(self, job_id: str) -> None:
         with self.session() as s:

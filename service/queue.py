@@ -56,20 +56,17 @@ class Queue:
         found: set[str] = set()
         keys = [self.queue, *(k.decode() for k in self._redis.scan_iter(match=f"{self.queue}\x06\x16*"))]
         for key in keys:
-            for raw in self._redis.lrange(key, 0, -1):
-                found.update(_task_ids(raw))
-        for raw in self._redis.hvals("unacked"):
-            try:
-                message = json.loads(raw)[0]
-            except (ValueError, IndexError, TypeError):
-                continue
-            found.update(_task_ids(json.dumps(message)))
+            found.update(_task_id(raw) for raw in self._redis.lrange(key, 0, -1))
+        # a delivered, unacknowledged message is stored as [message, exchange, routing key]
+        found.update(_task_id(raw, unacked=True) for raw in self._redis.hvals("unacked"))
+        found.discard("")
         return found
 
 
-def _task_ids(raw: bytes | str) -> set[str]:
+def _task_id(raw: bytes | str, unacked: bool = False) -> str:
+    """The task (= job) id of a stored Kombu message, or "" for anything else."""
     try:
         message = json.loads(raw)
-        return {str(message["headers"]["id"])}
-    except (ValueError, KeyError, TypeError):
-        return set()
+        return str((message[0] if unacked else message)["headers"]["id"])
+    except (ValueError, KeyError, IndexError, TypeError):
+        return ""

@@ -39,15 +39,18 @@ def _workers(n_faces: int, workers: int | None) -> int:
     return max(1, min(int(workers), n_faces // MIN_FACES_PER_WORKER))
 
 
-def _collapse(pts: np.ndarray, faces: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray]:
-    """MeshLab's topology-preserving quadric edge collapse down to ``target`` faces."""
+def _collapse(
+    pts: np.ndarray, faces: np.ndarray, target: int, preserve_topology: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """MeshLab's quadric edge collapse down to ``target`` faces (with the link condition unless told otherwise);
+    unreferenced points are dropped."""
     import pymeshlab
 
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts, face_matrix=faces))
     ms.meshing_decimation_quadric_edge_collapse(
         targetfacenum=int(target),
-        preservetopology=True,
+        preservetopology=preserve_topology,
         preserveboundary=True,
         boundaryweight=1.0,
         preservenormal=True,
@@ -82,22 +85,9 @@ def decimate_for_viewing(
     A piece of high genus (a trabecular network) cannot be decimated far with the link condition; a phone or AR
     model may then close small tunnels and lose watertightness. Never used for the print model.
     """
-    import pymeshlab
-
     verts, faces = validate_mesh(verts, faces)
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=verts[:, ::-1].astype(np.float64), face_matrix=faces.astype(np.int32)))
-    ms.meshing_decimation_quadric_edge_collapse(
-        targetfacenum=int(max_triangles),
-        preservetopology=False,
-        preservenormal=True,
-        optimalplacement=True,
-        qualitythr=0.3,
-        autoclean=True,
-    )
-    mesh = ms.current_mesh()
-    v, f = compact_mesh(np.asarray(mesh.vertex_matrix(), np.float64), np.asarray(mesh.face_matrix(), np.int32))
-    return np.ascontiguousarray(v[:, ::-1], dtype=np.float32), f.astype(np.int32)
+    pts, f = _collapse(verts[:, ::-1].astype(np.float64), faces.astype(np.int32), max_triangles, False)
+    return np.ascontiguousarray(pts[:, ::-1], dtype=np.float32), f
 
 
 def _collapse_in_slabs(
