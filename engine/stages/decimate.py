@@ -1,223 +1,75 @@
-"""Quadric-error decimation that keeps a closed mesh closed (MeshLab's edge collapse, through pymeshlab).
+"""Stage: topology-preserving quadric-error decimation on the device (the paper's step 3), Warp kernels in
+``engine.kernels.decimate``.
 
-The paper's remeshing step: Garland-Heckbert quadric edge collapses down to a *reduction factor* (the fraction
-of faces kept). MeshLab's implementation is used with
+Garland-Heckbert edge collapses, many per pass: every pass prices every edge, lets the edges under a cost quantile
+compete for vertex-disjoint neighbourhoods (atomic claims of ``(cost, hashed id)`` keys), collapses the winners and
+repeats until the face count reaches the target. The guards are those of MeshLab's ``preservetopology``,
+``preserveboundary`` and ``preservenormal``:
 
-* ``preservetopology``: a collapse is done only if it passes the link condition, so a watertight 2-manifold
-  input stays watertight and 2-manifold, with the same components and Euler characteristic (a plain collapse
-  library such as fast-simplification pinches sheets onto one edge and leaves duplicate fins on bone surfaces);
-* ``preserveboundary``: open borders keep their vertices;
-* ``preservenormal``: a collapse that would flip a face is rejected.
+* link condition (the ends of an edge share exactly the two vertices opposite it), and no opposite vertex left
+  with fewer than three faces: a watertight 2-manifold input stays watertight and 2-manifold with the same
+  components and Euler characteristic, and no closed piece falls below a tetrahedron;
+* open borders keep every vertex, unmoved (a free vertex may collapse onto a border vertex); non-manifold or
+  inconsistently wound neighbourhoods are never touched;
+* no face turns by more than ``max_normal_turn_deg`` (so none flips or folds) and none becomes degenerate.
 
-Where the link condition stops the collapses above the target (tiny closed pieces cannot shrink below a
-tetrahedron), the result keeps more faces than asked and ``info["limited_by_watertightness"]`` says so.
+The result depends only on the input and the device: incidence lists are sorted, ties are broken by a hash of the
+edge slot, and every floating-point sum runs in a fixed order.
+
+``decimate_device`` works on Warp arrays (the pipeline's device-resident path); ``decimate_mesh`` takes and returns
+numpy arrays with a full report, and is also the entry point of the MeshLab path (``method="meshlab"``).
 """
 
 from __future__ import annotations
 
-import os
+import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from engine.stages.islands import compact_mesh
 from engine.stages.meshcheck import component_labels, edge_report, validate_mesh
 
-TOLERANCE = 0.05  # relative face-count tolerance on the target
-PARALLEL_MIN_FACES = 400_000
+TOLERANCE = 0.05  # a closed result this far over the target is reported as limited by the guards
+STOP_TOLERANCE = 0.005  # passes stop within this fraction over the target
+MAX_NORMAL_TURN_DEG = 60.0  # largest turn of a face normal in one collapse (a flip turns 180)
+CANDIDATE_FRACTION = 0.2  # share of the collapsible edges (cheapest first) that compete in a pass
+CLAIM_ROUNDS = 3
+MAX_PASSES = 400
+HIST_BINS = 1 << 16
 FOLDS_MAX_FACES = 10_000_000
-MIN_FACES_PER_WORKER = 100_000
 
 
-def _workers(n_faces: int, workers: int | None) -> int:
-    if workers is None:
-        usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-        workers = min(16, usable) if n_faces >= PARALLEL_MIN_FACES else 1
-    return max(1, min(int(workers), n_faces // MIN_FACES_PER_WORKER))
+@dataclass
+class DecimationStats:
+    """What a device decimation did: passes, collapses per pass, why it stopped."""
+
+    input_faces: int = 0
+    target_faces: int = 0
+    output_faces: int = 0
+    passes: int = 0
+    collapses: list[int] = field(default_factory=list)
+    vertex_classes: dict[str, int] = field(default_factory=dict)
+    stopped: str = ""
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "input_faces": self.input_faces,
+            "target_faces": self.target_faces,
+            "output_faces": self.output_faces,
+            "passes": self.passes,
+            "collapses_per_pass": self.collapses,
+            "vertex_classes": self.vertex_classes,
+            "stopped": self.stopped,
+            "seconds": self.seconds,
+        }
 
 
-def _collapse(
-    pts: np.ndarray, faces: np.ndarray, target: int, preserve_topology: bool = True
-) -> tuple[np.ndarray, np.ndarray]:
-    """MeshLab's quadric edge collapse down to ``target`` faces (with the link condition unless told otherwise);
-    unreferenced points are dropped."""
-    import pymeshlab
-
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts, face_matrix=faces))
-    ms.meshing_decimation_quadric_edge_collapse(
-        targetfacenum=int(target),
-        preservetopology=preserve_topology,
-        preserveboundary=True,
-        boundaryweight=1.0,
-        preservenormal=True,
-        optimalplacement=True,
-        planarquadric=False,
-        qualitythr=0.3,
-        autoclean=False,  # its duplicate-vertex merge would pinch two vertices that merely coincide
-    )
-    mesh = ms.current_mesh()
-    out_pts = np.asarray(mesh.vertex_matrix(), dtype=np.float64)
-    out_faces = np.asarray(mesh.face_matrix(), dtype=np.int32)
-    used = np.unique(out_faces)
-    if len(used) == len(out_pts):
-        return out_pts, out_faces
-    return out_pts[used], np.searchsorted(used, out_faces).astype(np.int32)
-
-
-@dataclass(frozen=True)
-class Slab:
-    """A piece of the input mesh: its points, faces (local indices) and each point's index in the input."""
-
-    points: np.ndarray
-    faces: np.ndarray
-    global_ids: np.ndarray
-
-
-def decimate_for_viewing(
-    verts: npt.NDArray[Any], faces: npt.NDArray[Any], max_triangles: int
-) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int32]]:
-    """Quadric decimation to ``max_triangles`` *without* the topology guard, for viewing copies only.
-
-    A piece of high genus (a trabecular network) cannot be decimated far with the link condition; a phone or AR
-    model may then close small tunnels and lose watertightness. Never used for the print model.
-    """
-    verts, faces = validate_mesh(verts, faces)
-    pts, f = _collapse(verts[:, ::-1].astype(np.float64), faces.astype(np.int32), max_triangles, False)
-    return np.ascontiguousarray(pts[:, ::-1], dtype=np.float32), f
-
-
-def _collapse_in_slabs(
-    pts: np.ndarray, faces: np.ndarray, target: int, workers: int, closed: bool
-) -> tuple[np.ndarray, np.ndarray, list[int]]:
-    """Decimate z slabs of the mesh in parallel processes; the cut borders are preserved, so the stitched result
-    is closed and 2-manifold where the input was (the border vertices come back unmoved and are joined)."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    cz = pts[faces].mean(axis=1)[:, 2]
-    cuts = np.quantile(cz, np.linspace(0, 1, workers + 1)[1:-1])
-    slab = np.searchsorted(cuts, cz)
-    slabs, targets = [], []
-    for k in range(workers):
-        sub = faces[slab == k]
-        used, inverse = np.unique(sub.ravel(), return_inverse=True)
-        slabs.append(Slab(pts[used], inverse.reshape(-1, 3).astype(np.int32), used))
-        targets.append(max(1, round(target * len(sub) / len(faces))))
-    # fork where available: the children run only MeshLab (never CUDA, so a CUDA context in the parent is safe)
-    # and need not re-import the caller's main module as spawn would
-    ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-        parts = list(pool.map(_collapse, [s.points for s in slabs], [s.faces for s in slabs], targets))
-    return _stitch_slabs(parts, slabs, closed)
-
-
-def _stitch_slabs(
-    parts: list[tuple[np.ndarray, np.ndarray]], slabs: list[Slab], closed: bool
-) -> tuple[np.ndarray, np.ndarray, list[int]]:
-    """Join decimated slabs on their cut borders.
-
-    Only a slab's border vertices (on its boundary edges: the cut, and any border of the input) are joined, to
-    their input vertex, by exact coordinates; every other vertex stays its own, even where two coincide. A slab
-    that did not return each border vertex exactly once, or (closed input) owns a face on an edge of the result
-    that is not in exactly two faces, is replaced by its original faces, which join through their input indices,
-    until none is left: with every slab whole the result is the input itself. Returns points, faces and the
-    slabs kept whole.
-    """
-    borders = [_border_vertices(s.faces, len(s.points)) for s in slabs]
-    gids = np.unique(np.concatenate([s.global_ids[b] for s, b in zip(slabs, borders, strict=True)]))
-    slots = [np.searchsorted(gids, s.global_ids[b]) for s, b in zip(slabs, borders, strict=True)]
-    border_pts = np.zeros((len(gids), 3))
-    for s, b, slot in zip(slabs, borders, slots, strict=True):
-        border_pts[slot] = s.points[b]
-    pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-    kept_whole: list[int] = []
-    for k, ((p, f), b, slot) in enumerate(zip(parts, borders, slots, strict=True)):
-        where = _match_points(p, border_pts[slot], slot)
-        if where is None:
-            kept_whole.append(k)
-        pieces.append((p, f, where) if where is not None else _whole(slabs[k], b, slot))
-    while True:
-        merged, faces_out, owner = _assemble(border_pts, pieces)
-        bad = [k for k in _defective_slabs(faces_out, owner, len(merged)) if k not in kept_whole] if closed else []
-        if not bad:
-            return merged, faces_out, sorted(kept_whole)
-        for k in bad:
-            pieces[k] = _whole(slabs[k], borders[k], slots[k])
-            kept_whole.append(k)
-
-
-def _border_vertices(faces: np.ndarray, n_vertices: int) -> np.ndarray:
-    """Vertices on edges that are in one face only."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
-    key = np.minimum(e[:, 0], e[:, 1]) * n_vertices + np.maximum(e[:, 0], e[:, 1])
-    _, first, counts = np.unique(key, return_index=True, return_counts=True)
-    return np.unique(e[first[counts == 1]])
-
-
-def _whole(slab: Slab, border: np.ndarray, slot: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    where = np.full(len(slab.points), -1, np.int64)
-    where[border] = slot
-    return slab.points, slab.faces, where
-
-
-def _match_points(points: np.ndarray, wanted: np.ndarray, slot: np.ndarray) -> np.ndarray | None:
-    """Per point, the slot of the wanted point it equals exactly (-1 for none); None unless every wanted point is
-    found exactly once."""
-    where = np.full(len(points), -1, np.int64)
-    if len(wanted) == 0:
-        return where
-    hw, hp = _hash_rows(wanted), _hash_rows(points)
-    order = np.argsort(hw)
-    pos = np.minimum(np.searchsorted(hw[order], hp), len(wanted) - 1)
-    cand = order[pos]
-    hit = (hw[cand] == hp) & (wanted[cand] == points).all(axis=1)
-    if np.count_nonzero(hit) != len(wanted) or len(np.unique(cand[hit])) != len(wanted):
-        return None
-    where[hit] = slot[cand[hit]]
-    return where
-
-
-def _hash_rows(points: np.ndarray) -> np.ndarray:
-    """A 64-bit hash of the exact bits of each (x, y, z) float64 row."""
-    bits = np.ascontiguousarray(points, dtype=np.float64).view(np.uint64).reshape(-1, 3)
-    with np.errstate(over="ignore"):
-        key = (bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)) ^ (bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F))
-        key ^= bits[:, 2] * np.uint64(0x165667B19E3779F9)
-    return key
-
-
-def _assemble(
-    border_pts: np.ndarray, pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One mesh from the pieces: the shared border points first, then each piece's own points; and each face's
-    piece."""
-    out_pts, out_faces, owner = [border_pts], [], []
-    n = len(border_pts)
-    for k, (p, f, where) in enumerate(pieces):
-        own = where < 0
-        index = where.copy()
-        index[own] = n + np.arange(np.count_nonzero(own))
-        n += np.count_nonzero(own)
-        out_pts.append(p[own])
-        out_faces.append(index[f])
-        owner.append(np.full(len(f), k, np.int32))
-    return np.concatenate(out_pts), np.concatenate(out_faces).astype(np.int32), np.concatenate(owner)
-
-
-def _defective_slabs(faces: np.ndarray, owner: np.ndarray, n_vertices: int) -> list[int]:
-    """Slabs owning a face on an edge that is not shared by exactly two faces."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
-    key = np.minimum(e[:, 0], e[:, 1]) * n_vertices + np.maximum(e[:, 0], e[:, 1])
-    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-    bad_face = (counts[inverse.reshape(-1)] != 2).reshape(3, -1).any(axis=0)
-    return sorted(set(owner[bad_face].tolist()))
-
-
-def _target(n_faces: int, reduction: float | None, max_triangles: int | None) -> int:
+def target_faces(n_faces: int, reduction: float | None, max_triangles: int | None) -> int:
+    """The face count asked for: ``reduction`` (fraction kept, in (0, 1]) or ``max_triangles`` (>= 1)."""
     if (reduction is None) == (max_triangles is None):
         raise ValueError("Give exactly one of reduction (fraction of faces kept) or max_triangles")
     if reduction is not None:
@@ -229,6 +81,238 @@ def _target(n_faces: int, reduction: float | None, max_triangles: int | None) ->
     return int(max_triangles)
 
 
+class _Incidence:
+    """Every vertex's star (the faces around it) as CSR: ``offset``, ``count``, ``star`` (sorted per vertex)."""
+
+    def __init__(self, n_vertices: int) -> None:
+        import warp as wp
+
+        self.count = wp.zeros(n_vertices, dtype=wp.int32)
+        self.offset = wp.zeros(n_vertices, dtype=wp.int32)
+        self.cursor = wp.zeros(n_vertices, dtype=wp.int32)
+        self.star = wp.empty(0, dtype=wp.int32)
+
+    def build(self, faces: Any, n_alive: int) -> None:
+        import warp as wp
+
+        from engine.kernels import decimate as kd
+
+        n = len(self.count)
+        self.count.zero_()
+        self.cursor.zero_()
+        wp.launch(kd.count_incidence, dim=len(faces), inputs=[faces, self.count])
+        wp.utils.array_scan(self.count, self.offset, inclusive=False)
+        if len(self.star) < 3 * n_alive:
+            self.star = wp.empty(3 * n_alive, dtype=wp.int32)
+        wp.launch(kd.fill_incidence, dim=len(faces), inputs=[faces, self.offset, self.cursor, self.star])
+        wp.launch(kd.sort_incidence, dim=n, inputs=[self.offset, self.count, self.star])
+
+    @property
+    def inputs(self) -> list[Any]:
+        return [self.offset, self.count, self.star]
+
+
+def _compact_faces(faces: Any, n_alive: int) -> Any:
+    import warp as wp
+
+    from engine.kernels import decimate as kd
+
+    flag = wp.empty(len(faces), dtype=wp.int32)
+    slot = wp.empty(len(faces), dtype=wp.int32)
+    wp.launch(kd.alive_flags, dim=len(faces), inputs=[faces, flag])
+    wp.utils.array_scan(flag, slot, inclusive=False)
+    out = wp.empty(n_alive, dtype=wp.vec3i)
+    wp.launch(kd.scatter_faces, dim=len(faces), inputs=[faces, slot, out])
+    return out
+
+
+def _origin(pos: Any) -> Any:
+    """The centre of the vertices' bounding box (float64), the quadrics' local origin."""
+    import warp as wp
+
+    if len(pos) == 0:
+        return wp.vec3d(0.0, 0.0, 0.0)
+    p = pos.numpy()  # sync point: 12 bytes a vertex; TODO a device reduction once the mesh never leaves the device
+    lo, hi = p.min(axis=0).astype(np.float64), p.max(axis=0).astype(np.float64)
+    c = 0.5 * (lo + hi)
+    return wp.vec3d(float(c[0]), float(c[1]), float(c[2]))
+
+
+def decimate_device(
+    pos: Any,
+    faces: Any,
+    target: int,
+    *,
+    max_normal_turn_deg: float = MAX_NORMAL_TURN_DEG,
+    candidate_fraction: float = CANDIDATE_FRACTION,
+    claim_rounds: int = CLAIM_ROUNDS,
+    stop_tolerance: float = STOP_TOLERANCE,
+    on_pass: Any = None,
+) -> tuple[Any, Any, DecimationStats]:
+    """Decimate a device mesh to about ``target`` faces (never fewer).
+
+    Args:
+        pos: ``wp.array(dtype=wp.vec3)`` (z, y, x) mm; not modified.
+        faces: ``wp.array(dtype=wp.vec3i)``; not modified.
+        target: faces to reach; passes stop within ``stop_tolerance`` above it, or when no edge may collapse.
+        max_normal_turn_deg: the largest turn of a face's normal in one collapse.
+        candidate_fraction: share of the collapsible edges, cheapest first, that compete in one pass.
+        claim_rounds: claim rounds per pass.
+        on_pass: called as ``on_pass(faces_now)`` after each pass.
+
+    Returns:
+        ``(pos, faces, stats)``: new compact device arrays (unused vertices dropped, order kept) and the stats.
+    """
+    import warp as wp
+
+    from engine.kernels import decimate as kd
+
+    t0 = time.perf_counter()
+    dev = pos.device
+    stats = DecimationStats(input_faces=len(faces), target_faces=int(target))
+    with wp.ScopedDevice(dev):
+        pos = wp.clone(pos)
+        faces = wp.clone(faces)
+        nv = len(pos)
+        alive = len(faces)
+        inc = _Incidence(nv)
+        inc.build(faces, alive)
+        state = wp.empty(nv, dtype=wp.int32)
+        wp.launch(kd.classify_vertices, dim=nv, inputs=[faces, *inc.inputs, state])
+        classes = np.bincount(state.numpy(), minlength=4)  # sync point
+        stats.vertex_classes = {
+            name: int(c) for name, c in zip(("free", "border", "locked", "unused"), classes, strict=True)
+        }
+        origin = _origin(pos)
+        quad = wp.empty(nv, dtype=kd.quadric)
+        wp.launch(kd.vertex_quadrics, dim=nv, inputs=[pos, faces, *inc.inputs, origin, quad])
+        cos_max = wp.float64(math.cos(math.radians(max_normal_turn_deg)))
+        hist = wp.zeros(HIST_BINS, dtype=wp.int32)
+        counter = wp.zeros(1, dtype=wp.int32)
+        removed = wp.zeros(1, dtype=wp.int32)
+        key = target_pos = cand = None
+        stats.stopped = "target reached"
+        while True:
+            needed = (alive - target) // 2
+            if needed <= 0 or alive <= target * (1 + stop_tolerance):
+                break
+            if stats.passes >= MAX_PASSES:
+                stats.stopped = "pass limit"
+                break
+            if stats.passes:
+                inc.build(faces, alive)
+            slots = 3 * len(faces)
+            if key is None or len(key) < slots:
+                key = wp.empty(slots, dtype=wp.int32)
+                target_pos = wp.empty(slots, dtype=wp.vec3)
+                cand = wp.empty(slots, dtype=wp.int32)
+            wp.launch(
+                kd.edge_costs,
+                dim=slots,
+                inputs=[pos, faces, *inc.inputs, state, quad, origin, cos_max, key, target_pos],
+            )
+            hist.zero_()
+            wp.launch(kd.cost_histogram, dim=slots, inputs=[key, hist])
+            h = hist.numpy()  # sync point: 256 KB
+            n_valid = int(h.sum())
+            if n_valid == 0:
+                stats.stopped = "no edge may collapse (guards)"
+                break
+            m = max(1, min(int(candidate_fraction * n_valid), needed))
+            cum = np.cumsum(h, dtype=np.int64)
+            kbin = int(np.searchsorted(cum, m))
+            below = int(cum[kbin - 1]) if kbin else 0
+            frac_bits = min((m - below) * (1 << 32) // max(int(h[kbin]), 1), 1 << 32)
+            wp.launch(kd.select_candidates, dim=slots, inputs=[key, kbin, wp.int64(frac_bits), cand])
+            claim = wp.full(len(faces), kd.CLAIM_FREE, dtype=wp.int64)
+            counter.zero_()
+            for _ in range(claim_rounds):
+                wp.launch(kd.claim_stars, dim=slots, inputs=[cand, key, faces, *inc.inputs, claim])
+                wp.launch(kd.settle_claims, dim=slots, inputs=[cand, key, faces, *inc.inputs, claim, counter])
+                wp.launch(kd.release_claims, dim=len(claim), inputs=[claim])
+            removed.zero_()
+            wp.launch(
+                kd.apply_collapses,
+                dim=slots,
+                inputs=[cand, target_pos, faces, *inc.inputs, state, quad, pos, removed],
+            )
+            n_removed = int(removed.numpy()[0])  # sync point
+            stats.passes += 1
+            stats.collapses.append(int(counter.numpy()[0]))
+            alive -= n_removed
+            if on_pass is not None:
+                on_pass(alive)
+            if alive < len(faces) // 2:
+                faces = _compact_faces(faces, alive)
+        if alive < len(faces):
+            faces = _compact_faces(faces, alive)
+        out_pos, out_faces = compact_vertices(pos, faces)
+    stats.output_faces = len(out_faces)
+    stats.seconds = time.perf_counter() - t0
+    return out_pos, out_faces, stats
+
+
+def compact_vertices(pos: Any, faces: Any) -> tuple[Any, Any]:
+    """Drop the vertices no face uses (device arrays; the kept ones keep their order)."""
+    import warp as wp
+
+    from engine.kernels import decimate as kd
+
+    with wp.ScopedDevice(pos.device):
+        count = wp.zeros(len(pos), dtype=wp.int32)
+        wp.launch(kd.count_incidence, dim=len(faces), inputs=[faces, count])
+        flag = wp.empty(len(pos), dtype=wp.int32)
+        slot = wp.empty(len(pos), dtype=wp.int32)
+        wp.launch(kd.used_flags, dim=len(pos), inputs=[count, flag])
+        wp.utils.array_scan(flag, slot, inclusive=False)
+        n_used = int(slot.numpy()[-1] + flag.numpy()[-1]) if len(pos) else 0  # sync point
+        if n_used == len(pos):
+            return pos, faces
+        out = wp.empty(n_used, dtype=wp.vec3)
+        wp.launch(kd.scatter_vertices, dim=len(pos), inputs=[pos, count, slot, out])
+        wp.launch(kd.remap_faces, dim=len(faces), inputs=[faces, slot])
+    return out, faces
+
+
+def price_edges(
+    verts: npt.NDArray[Any],
+    faces: npt.NDArray[Any],
+    *,
+    max_normal_turn_deg: float = MAX_NORMAL_TURN_DEG,
+    device: Any = "cpu",
+) -> tuple[dict[tuple[int, int], int], int]:
+    """One pricing pass of the kernels on a small mesh: ``({(a, b): cost code}, NO_KEY)`` for every edge (a < b),
+    the code being ``NO_KEY`` where a guard refuses the collapse. For tests and diagnosis."""
+    import warp as wp
+
+    from engine.device import resolve_device
+    from engine.kernels import decimate as kd
+
+    verts, faces = validate_mesh(verts, faces)
+    with wp.ScopedDevice(resolve_device(device)):
+        pos = wp.array(np.asarray(verts, np.float32), dtype=wp.vec3)
+        f = wp.array(np.asarray(faces, np.int32), dtype=wp.vec3i)
+        inc = _Incidence(len(verts))
+        inc.build(f, len(faces))
+        state = wp.empty(len(verts), dtype=wp.int32)
+        wp.launch(kd.classify_vertices, dim=len(verts), inputs=[f, *inc.inputs, state])
+        origin = _origin(pos)
+        quad = wp.empty(len(verts), dtype=kd.quadric)
+        wp.launch(kd.vertex_quadrics, dim=len(verts), inputs=[pos, f, *inc.inputs, origin, quad])
+        key = wp.empty(3 * len(faces), dtype=wp.int32)
+        target = wp.empty(3 * len(faces), dtype=wp.vec3)
+        cos_max = wp.float64(math.cos(math.radians(max_normal_turn_deg)))
+        wp.launch(kd.edge_costs, dim=len(key), inputs=[pos, f, *inc.inputs, state, quad, origin, cos_max, key, target])
+        codes = key.numpy()
+    out: dict[tuple[int, int], int] = {}
+    for h, c in enumerate(codes):
+        a, b = int(faces[h // 3][h % 3]), int(faces[h // 3][(h % 3 + 1) % 3])
+        e = (min(a, b), max(a, b))
+        out[e] = min(out.get(e, int(kd.NO_KEY)), int(c))
+    return out, int(kd.NO_KEY)
+
+
+# ------------------------------------------------------------------------------------------------ numpy entry point
 def _signed_volume(pts_xyz: np.ndarray, faces: np.ndarray) -> float:
     a, b, c = (pts_xyz[faces[:, k]] for k in range(3))
     return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
@@ -252,12 +336,25 @@ def _folds(pts_xyz: np.ndarray, faces: np.ndarray) -> int | None:
     return int(np.count_nonzero(np.einsum("ij,ij->i", n[a], n[b]) < 0))
 
 
+def _boundary_kept(pts: np.ndarray, faces: np.ndarray, out_pts: np.ndarray) -> bool:
+    from engine.stages.smooth import unique_edges
+
+    edges, on_border = unique_edges(faces)
+    border = pts[np.unique(edges[on_border])]
+    if len(border) == 0:
+        return True
+    kept = {tuple(p) for p in out_pts}
+    return all(tuple(p) in kept for p in border)
+
+
 def decimate_mesh(
     verts: npt.NDArray[Any],
     faces: npt.NDArray[Any],
     *,
     reduction: float | None = None,
     max_triangles: int | None = None,
+    device: Any = "auto",
+    method: str = "auto",
     workers: int | None = None,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int32], dict[str, Any]]:
     """Reduce the face count by topology-preserving quadric-error edge collapses.
@@ -267,31 +364,35 @@ def decimate_mesh(
         faces: (F, 3) integer vertex indices, outward normals with vertices in (x, y, z) order.
         reduction: fraction of the faces to keep, in (0, 1] (0.2 keeps about 20 %).
         max_triangles: or the number of faces to reduce to (>= 1); at or above F the mesh is returned as is.
-        workers: processes for large meshes (default: the usable cores, up to 16, for meshes of at least
-            ``PARALLEL_MIN_FACES`` faces): the mesh is cut into z slabs of equal face counts whose cut borders
-            are preserved, decimated side by side and stitched on the unmoved border vertices.
+        device: Warp device (or spec) for the Warp kernels.
+        method: ``"warp"`` (the Warp kernels), ``"meshlab"`` (MeshLab's collapse in CPU processes) or ``"auto"``
+            (Warp: the faster on every device measured, see ``docs/benchmarks.md``).
+        workers: MeshLab processes (``method="meshlab"`` only).
 
     Returns:
-        ``(verts, faces, info)``: float32 (z, y, x) vertices, int32 faces, and ``info`` with ``target_faces``,
-        ``input_faces``, ``output_faces``, ``achieved_ratio``, ``limited_by_watertightness`` (closed input whose
-        result keeps more than 5 % over the target), ``closed_input``, ``closed_output``, ``boundary_preserved``,
-        ``folds_before`` / ``folds_after`` (edges whose faces turn by more than 90 degrees: flips would add
-        some), ``components_before``, ``components_after``, ``volume_change`` (relative) and
-        ``seconds``.
+        ``(verts, faces, info)``: float32 (z, y, x) vertices, int32 faces, and ``info`` with ``method``,
+        ``target_faces``, ``input_faces``, ``output_faces``, ``achieved_ratio``, ``limited_by_watertightness``
+        (closed input whose result keeps more than 5 % over the target), ``closed_input``, ``closed_output``,
+        ``boundary_preserved``, ``folds_before`` / ``folds_after`` (edges whose faces turn by more than 90
+        degrees), ``components_before``, ``components_after``, ``volume_change`` (relative), ``seconds``, and for
+        the Warp path ``passes`` and ``stopped``.
 
     Raises:
         ValueError: bad arrays or arguments.
     """
+    from engine.stages.islands import compact_mesh
+
     t0 = time.perf_counter()
     verts, faces = validate_mesh(verts, faces)
     if len(faces) == 0:
         raise ValueError("Cannot decimate an empty mesh")
     if not np.isfinite(verts).all():
         raise ValueError("Vertices must be finite")
-    target = _target(len(faces), reduction, max_triangles)
+    if method not in ("auto", "warp", "meshlab"):
+        raise ValueError(f"method must be auto, warp or meshlab, got {method!r}")
+    target = target_faces(len(faces), reduction, max_triangles)
     verts, faces = compact_mesh(verts, faces)
     pts = verts[:, ::-1].astype(np.float64)
-    faces = faces.astype(np.int32)
     before = edge_report(faces, len(pts))
     closed = before["boundary_edges"] == 0 and before["nonmanifold_edges"] == 0
     info: dict[str, Any] = {
@@ -299,43 +400,41 @@ def decimate_mesh(
         "input_faces": len(faces),
         "closed_input": bool(closed),
         "components_before": component_labels(faces, len(pts))[0],
-        "method": "MeshLab quadric edge collapse (preservetopology, preserveboundary, preservenormal)",
     }
-    n_workers = _workers(len(faces), workers)
-    info["workers"] = n_workers
     if target >= len(faces):
-        out_pts, out_faces = pts, faces
-    elif n_workers > 1:
-        out_pts, out_faces, kept_whole = _collapse_in_slabs(pts, faces, target, n_workers, closed)
-        info["slabs_kept_whole"] = kept_whole
+        out_v, out_faces = verts, faces
+        info["method"] = "none (at or under the target)"
+    elif method == "meshlab":
+        from engine.stages.decimate_meshlab import collapse_meshlab
+
+        out_v, out_faces, extra = collapse_meshlab(pts, faces, target, closed, workers)
+        info.update(extra)
     else:
-        out_pts, out_faces = _collapse(pts, faces, target)
+        import warp as wp
+
+        from engine.device import resolve_device
+
+        dev = resolve_device(device)
+        with wp.ScopedDevice(dev):
+            p, f, st = decimate_device(wp.array(verts, dtype=wp.vec3), wp.array(faces, dtype=wp.vec3i), target)
+            out_v, out_faces = p.numpy(), f.numpy().astype(np.int32)  # sync point
+        info.update(method="warp quadric edge collapse", device=str(dev), passes=st.passes, stopped=st.stopped)
+        info["vertex_classes"] = st.vertex_classes
+    out_pts = out_v[:, ::-1].astype(np.float64)
     after = edge_report(out_faces, len(out_pts))
     closed_out = after["boundary_edges"] == 0 and after["nonmanifold_edges"] == 0
-    if closed and not closed_out:  # never expected with the link condition; keep the input rather than break it
-        out_pts, out_faces, after, closed_out = pts, faces, before, True
-    if before["boundary_edges"]:
-        from engine.stages.smooth import unique_edges
-
-        edges, on_border = unique_edges(faces)
-        border = np.unique(edges[on_border])
-        kept = {tuple(p) for p in out_pts}
-        boundary_ok = all(tuple(p) in kept for p in pts[border])
-    else:
-        boundary_ok = True
     vol_in = _signed_volume(pts, faces)
     vol_out = _signed_volume(out_pts, out_faces)
-    vout = np.ascontiguousarray(out_pts[:, ::-1], dtype=np.float32)
     info.update(
         output_faces=len(out_faces),
         achieved_ratio=len(out_faces) / len(faces),
         limited_by_watertightness=bool(closed and len(out_faces) > target * (1 + TOLERANCE)),
         closed_output=bool(closed_out),
-        boundary_preserved=bool(boundary_ok),
+        boundary_preserved=bool(before["boundary_edges"] == 0 or _boundary_kept(pts, faces, out_pts)),
         folds_before=_folds(pts, faces),
         folds_after=_folds(out_pts, out_faces),
         components_after=component_labels(out_faces, len(out_pts))[0],
         volume_change=(vol_out - vol_in) / vol_in if vol_in else 0.0,
         seconds=time.perf_counter() - t0,
     )
-    return vout, out_faces, info
+    return np.ascontiguousarray(out_v, dtype=np.float32), out_faces, info

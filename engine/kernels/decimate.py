@@ -1,0 +1,651 @@
+"""Warp kernels for parallel, topology-preserving quadric-error edge collapse (host loop: ``engine.stages.decimate``).
+
+The mesh lives on the device as ``pos`` (V) ``vec3`` (z, y, x) mm and ``faces`` (F) ``vec3i``; a collapsed face is
+marked ``(-1, -1, -1)`` and a collapsed vertex ``DEAD``. One pass:
+
+1. incidence: every vertex's *star* (the faces around it) as CSR, counted, scanned, filled and sorted per vertex
+   (sorted so that every later sum runs in a fixed order: the result is deterministic);
+2. ``edge_costs``: every collapsible edge (once, from its half-edge ``a < b``) gets its Garland-Heckbert cost, its
+   new position and every guard (link condition, valences, face flips, degenerate faces); it writes a 31-bit cost
+   code (monotonic in the cost) or ``NO_KEY``;
+3. a histogram of the codes gives the host the cost quantile under which edges compete;
+4. claims: each competing edge does an atomic min of its key ``(cost code << 32) | mix32(edge slot)`` onto every
+   face of its two stars and wins only where it holds all of them (a few rounds; winners take their faces for
+   the rest of the pass). Winners' stars are face-disjoint, so their collapses and guards are independent;
+5. ``apply_collapses`` moves the survivor, adds the quadrics (``Q_s += Q_r``) and rewrites the removed vertex's star.
+
+Quadrics are float64, taken about a local origin (the mesh's centre) so that they do not cancel at scan scale.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+quadric = wp.types.vector(length=10, dtype=wp.float64)
+
+FREE = wp.constant(0)  # interior vertex with one closed fan of faces: may move or be removed
+BORDER = wp.constant(1)  # on an open border with one open fan: never moves, may absorb a free neighbour
+LOCKED = wp.constant(2)  # non-manifold, inconsistently wound or degenerate surroundings: never touched
+DEAD = wp.constant(3)  # collapsed away, or used by no face
+
+NO_KEY = wp.constant(0x7FFFFFFF)  # int32: not collapsible this pass
+CLAIM_FREE = wp.constant(wp.int64(0x7FFFFFFFFFFFFFFF))
+CLAIM_TAKEN = wp.constant(wp.int64(-1))
+HIST_SHIFT = wp.constant(15)  # 2^31 cost codes -> 65536 histogram bins
+QUALITY_MIN = wp.constant(wp.float64(1.0e-3))  # new faces below this quality are degenerate (unless not worse)
+QUALITY_SOFT = wp.constant(wp.float64(0.3))  # below this a collapse's cost is raised (MeshLab's qualitythr)
+
+
+# ------------------------------------------------------------------------------------------------ helpers
+@wp.func
+def next_of(t: wp.vec3i, v: int) -> int:
+    """The vertex after ``v`` in face ``t`` (its winding)."""
+    r = t[0]
+    if t[0] == v:
+        r = t[1]
+    elif t[1] == v:
+        r = t[2]
+    return r
+
+
+@wp.func
+def prev_of(t: wp.vec3i, v: int) -> int:
+    r = t[1]
+    if t[0] == v:
+        r = t[2]
+    elif t[1] == v:
+        r = t[0]
+    return r
+
+
+@wp.func
+def has_vertex(t: wp.vec3i, v: int) -> bool:
+    return t[0] == v or t[1] == v or t[2] == v
+
+
+@wp.func
+def local(p: wp.vec3, origin: wp.vec3d) -> wp.vec3d:
+    return wp.vec3d(wp.float64(p[0]), wp.float64(p[1]), wp.float64(p[2])) - origin
+
+
+MIX_A = wp.constant(wp.uint32(0x7FEB352D))
+MIX_B = wp.constant(wp.uint32(0x846CA68B))
+
+
+@wp.func
+def mix32(x: int) -> wp.int64:
+    """A bijective 32-bit integer hash (tie-break of equal costs: neighbours must not tie in index order)."""
+    h = wp.uint32(x)
+    h = h ^ (h >> wp.uint32(16))
+    h = h * MIX_A
+    h = h ^ (h >> wp.uint32(15))
+    h = h * MIX_B
+    h = h ^ (h >> wp.uint32(16))
+    return wp.int64(h)
+
+
+@wp.func
+def plane_quadric(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d) -> quadric:
+    """Area-weighted quadric of the plane through a, b, c (zero for a degenerate face)."""
+    n = wp.cross(b - a, c - a)
+    length = wp.length(n)
+    q = quadric()
+    if length > wp.float64(0.0):
+        u = n / length
+        d = -wp.dot(u, a)
+        w = wp.float64(0.5) * length
+        q = w * quadric(
+            u[0] * u[0], u[0] * u[1], u[0] * u[2], u[0] * d,
+            u[1] * u[1], u[1] * u[2], u[1] * d,
+            u[2] * u[2], u[2] * d,
+            d * d,
+        )  # fmt: skip
+    return q
+
+
+@wp.func
+def q_eval(q: quadric, p: wp.vec3d) -> wp.float64:
+    x = p[0]
+    y = p[1]
+    z = p[2]
+    two = wp.float64(2.0)
+    return (
+        q[0] * x * x
+        + two * q[1] * x * y
+        + two * q[2] * x * z
+        + two * q[3] * x
+        + q[4] * y * y
+        + two * q[5] * y * z
+        + two * q[6] * y
+        + q[7] * z * z
+        + two * q[8] * z
+        + q[9]
+    )
+
+
+@wp.func
+def quality(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d) -> wp.float64:
+    """2 sqrt(3) |n| / (sum of squared edges): 1 for an equilateral triangle, 0 for a degenerate one."""
+    s = wp.length_sq(b - a) + wp.length_sq(c - b) + wp.length_sq(a - c)
+    q = wp.float64(0.0)
+    if s > wp.float64(0.0):
+        q = wp.float64(3.4641016151377544) * wp.length(wp.cross(b - a, c - a)) / s
+    return q
+
+
+@wp.func
+def cost_code(cost: wp.float64) -> int:
+    """31-bit code, monotonic in the cost: 0 for (nearly) zero, then 2^22 steps per octave."""
+    c = int(0)
+    if cost > wp.float64(1.0e-30):
+        x = (wp.log2(cost) + wp.float64(110.0)) * wp.float64(4194304.0)
+        x = wp.clamp(x, wp.float64(0.0), wp.float64(2147483000.0))
+        c = int(x) + 1
+    return c
+
+
+# ------------------------------------------------------------------------------------------------ incidence
+@wp.kernel
+def count_incidence(faces: wp.array(dtype=wp.vec3i), count: wp.array(dtype=wp.int32)):
+    f = wp.tid()
+    t = faces[f]
+    if t[0] >= 0:
+        wp.atomic_add(count, t[0], 1)
+        wp.atomic_add(count, t[1], 1)
+        wp.atomic_add(count, t[2], 1)
+
+
+@wp.kernel
+def fill_incidence(
+    faces: wp.array(dtype=wp.vec3i),
+    offset: wp.array(dtype=wp.int32),
+    cursor: wp.array(dtype=wp.int32),
+    star: wp.array(dtype=wp.int32),
+):
+    f = wp.tid()
+    t = faces[f]
+    if t[0] >= 0:
+        for k in range(3):
+            v = t[k]
+            slot = wp.atomic_add(cursor, v, 1)
+            star[offset[v] + slot] = f
+
+
+@wp.kernel
+def sort_incidence(offset: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), star: wp.array(dtype=wp.int32)):
+    """Insertion sort of each star (short lists) so that results do not depend on the fill's atomic order."""
+    v = wp.tid()
+    lo = offset[v]
+    n = count[v]
+    for i in range(1, n):
+        x = star[lo + i]
+        j = int(i - 1)
+        while j >= 0:
+            y = star[lo + j]
+            if y > x:
+                star[lo + j + 1] = y
+                j -= 1
+            else:
+                break
+        star[lo + j + 1] = x
+
+
+@wp.kernel
+def classify_vertices(
+    faces: wp.array(dtype=wp.vec3i),
+    offset: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    star: wp.array(dtype=wp.int32),
+    state: wp.array(dtype=wp.int32),
+):
+    """FREE (one closed fan), BORDER (one open fan), LOCKED (anything else) or DEAD (no face)."""
+    v = wp.tid()
+    n = count[v]
+    if n == 0:
+        state[v] = DEAD
+        return
+    lo = offset[v]
+    bad = int(0)
+    open_fwd = int(0)
+    open_bwd = int(0)
+    start = int(0)
+    for i in range(n):
+        t = faces[star[lo + i]]
+        if t[0] == t[1] or t[1] == t[2] or t[0] == t[2]:
+            bad = 1
+        nx = next_of(t, v)
+        pv = prev_of(t, v)
+        same_next = int(0)
+        same_prev = int(0)
+        fwd = int(0)  # faces across the edge v-nx (they run nx -> v)
+        bwd = int(0)  # faces across the edge v-pv (they run v -> pv)
+        for j in range(n):
+            u = faces[star[lo + j]]
+            nj = next_of(u, v)
+            pj = prev_of(u, v)
+            if nj == nx:
+                same_next += 1
+            if pj == pv:
+                same_prev += 1
+            if pj == nx:
+                fwd += 1
+            if nj == pv:
+                bwd += 1
+        if same_next != 1 or same_prev != 1 or fwd > 1 or bwd > 1:
+            bad = 1
+        if fwd == 0:
+            open_fwd += 1
+        if bwd == 0:
+            open_bwd += 1
+            start = i
+    if bad != 0 or open_fwd > 1 or open_fwd != open_bwd:
+        state[v] = LOCKED
+        return
+    # walk the fan from its start: it must visit every face (one fan only)
+    i = int(start)
+    steps = int(0)
+    while steps < n:
+        steps += 1
+        nx = next_of(faces[star[lo + i]], v)
+        found = int(-1)
+        for j in range(n):
+            if prev_of(faces[star[lo + j]], v) == nx:
+                found = j
+        if found < 0 or found == start:
+            break
+        i = found
+    if steps != n:
+        state[v] = LOCKED
+    elif open_fwd == 0:
+        state[v] = FREE
+    else:
+        state[v] = BORDER
+
+
+@wp.kernel
+def vertex_quadrics(
+    pos: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    offset: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    star: wp.array(dtype=wp.int32),
+    origin: wp.vec3d,
+    quad: wp.array(dtype=quadric),
+):
+    v = wp.tid()
+    q = quadric()
+    lo = offset[v]
+    for i in range(count[v]):
+        t = faces[star[lo + i]]
+        q = q + plane_quadric(local(pos[t[0]], origin), local(pos[t[1]], origin), local(pos[t[2]], origin))
+    quad[v] = q
+
+
+# ------------------------------------------------------------------------------------------------ costs and guards
+@wp.func
+def placement(q: quadric, pa: wp.vec3d, pb: wp.vec3d) -> wp.vec3d:
+    """The point minimising the quadric (3x3 solve) when it is well defined and near the edge, else the best of
+    the endpoints and the midpoint."""
+    m = wp.mat33d(q[0], q[1], q[2], q[1], q[4], q[5], q[2], q[5], q[7])
+    scale = (q[0] + q[4] + q[7]) / wp.float64(3.0)
+    det = wp.determinant(m)
+    mid = wp.float64(0.5) * (pa + pb)
+    best = wp.vec3d(mid)
+    found = bool(False)
+    if scale > wp.float64(0.0) and wp.abs(det) > wp.float64(1.0e-9) * scale * scale * scale:
+        x = -(wp.inverse(m) @ wp.vec3d(q[3], q[6], q[8]))
+        if wp.length_sq(x - mid) <= wp.length_sq(pb - pa):
+            best = x
+            found = True
+    if not found:
+        ca = q_eval(q, pa)
+        cb = q_eval(q, pb)
+        cm = q_eval(q, mid)
+        if ca < cm and ca <= cb:
+            best = pa
+        elif cb < cm:
+            best = pb
+    return best
+
+
+@wp.func
+def star_turns(
+    pos: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    star: wp.array(dtype=wp.int32),
+    lo: int,
+    n: int,
+    moved: int,
+    other: int,
+    p: wp.vec3d,
+    origin: wp.vec3d,
+    cos_max: wp.float64,
+) -> wp.float64:
+    """Worst quality of the faces of ``moved``'s star (those without ``other``) once ``moved`` is at ``p``; -1 if
+    one of them would flip or turn by more than the angle, or become degenerate while it was not."""
+    worst = wp.float64(1.0)
+    worst = worst + wp.float64(0.0)  # a dynamic variable (mutated in the loop)
+    for i in range(n):
+        t = faces[star[lo + i]]
+        if has_vertex(t, other):
+            continue
+        a = local(pos[t[0]], origin)
+        b = local(pos[t[1]], origin)
+        c = local(pos[t[2]], origin)
+        n_old = wp.cross(b - a, c - a)
+        q_old = quality(a, b, c)
+        if t[0] == moved:
+            a = p
+        elif t[1] == moved:
+            b = p
+        else:
+            c = p
+        n_new = wp.cross(b - a, c - a)
+        q_new = quality(a, b, c)
+        lo_n = wp.length(n_old)
+        ln_n = wp.length(n_new)
+        if ln_n <= wp.float64(0.0):
+            return wp.float64(-1.0)
+        if lo_n > wp.float64(0.0) and wp.dot(n_old, n_new) < cos_max * lo_n * ln_n:
+            return wp.float64(-1.0)
+        if q_new < QUALITY_MIN and q_new < q_old:
+            return wp.float64(-1.0)
+        worst = wp.min(worst, q_new)
+    return worst
+
+
+@wp.func
+def adjacent(faces: wp.array(dtype=wp.vec3i), star: wp.array(dtype=wp.int32), lo: int, n: int, w: int) -> bool:
+    """Whether ``w`` is a vertex of one of the ``n`` faces of the star starting at ``lo``."""
+    hit = bool(False)
+    for i in range(n):
+        if has_vertex(faces[star[lo + i]], w):
+            hit = True
+            break
+    return hit
+
+
+@wp.kernel
+def edge_costs(
+    pos: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    offset: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    star: wp.array(dtype=wp.int32),
+    state: wp.array(dtype=wp.int32),
+    quad: wp.array(dtype=quadric),
+    origin: wp.vec3d,
+    cos_max: wp.float64,
+    key: wp.array(dtype=wp.int32),
+    target: wp.array(dtype=wp.vec3),
+):
+    """Per half-edge slot ``3 f + k``: the cost code of collapsing edge (a, b) = (t[k], t[k+1]) when a < b and every
+    guard passes, else ``NO_KEY``; and the new position."""
+    h = wp.tid()
+    key[h] = NO_KEY
+    f = h // 3
+    k = h - 3 * f
+    t = faces[f]
+    if t[0] < 0:
+        return
+    a = t[k]
+    b = t[(k + 1) % 3]
+    if a > b:
+        return
+    sa = state[a]
+    sb = state[b]
+    # r: the removed vertex (always FREE, so its star is one closed fan); s: the survivor
+    if not ((sa == FREE and (sb == FREE or sb == BORDER)) or (sa == BORDER and sb == FREE)):
+        return
+    s = a
+    r = b
+    if sb == BORDER:
+        s = b
+        r = a
+    lo_r = offset[r]
+    n_r = count[r]
+    lo_s = offset[s]
+    n_s = count[s]
+    # link condition: the common neighbours of r and s are exactly the two vertices opposite the edge. Every
+    # neighbour of r shows up in two faces of its closed fan, so the count over its faces must be 4.
+    common = int(0)
+    for i in range(n_r):
+        u = faces[star[lo_r + i]]
+        for j in range(3):
+            w = u[j]
+            if w != r and w != s:
+                if adjacent(faces, star, lo_s, n_s, w):
+                    common += 1
+    if common != 4:
+        return
+    # each opposite vertex loses a face: an interior one keeps at least three (else a closed piece would fall
+    # below a tetrahedron), a border one at least one
+    for i in range(n_r):
+        u = faces[star[lo_r + i]]
+        if has_vertex(u, s):
+            x = u[0] + u[1] + u[2] - r - s
+            least = 4
+            if state[x] == BORDER:
+                least = 2
+            if count[x] < least:
+                return
+    if sa == FREE and sb == FREE and n_r + n_s - 4 < 3:
+        return
+    pa = local(pos[a], origin)
+    pb = local(pos[b], origin)
+    q = quad[a] + quad[b]
+    p = local(pos[s], origin)
+    if sa == FREE and sb == FREE:
+        p = placement(q, pa, pb)
+    worst = star_turns(pos, faces, star, lo_r, n_r, r, s, p, origin, cos_max)
+    if worst < wp.float64(0.0):
+        return
+    if sa == FREE and sb == FREE:
+        worst = wp.min(worst, star_turns(pos, faces, star, lo_s, n_s, s, r, p, origin, cos_max))
+        if worst < wp.float64(0.0):
+            return
+    length_sq = wp.length_sq(pb - pa)
+    # a tiny length term orders collapses in flat regions (zero quadric error) shortest first
+    cost = wp.max(q_eval(q, p), wp.float64(0.0)) + wp.float64(1.0e-8) * length_sq * length_sq
+    if worst < QUALITY_SOFT:
+        cost = cost * QUALITY_SOFT / wp.max(worst, QUALITY_MIN)
+    key[h] = cost_code(cost)
+    target[h] = wp.vec3(wp.float32(p[0] + origin[0]), wp.float32(p[1] + origin[1]), wp.float32(p[2] + origin[2]))
+
+
+@wp.kernel
+def cost_histogram(key: wp.array(dtype=wp.int32), hist: wp.array(dtype=wp.int32)):
+    h = wp.tid()
+    c = key[h]
+    if c != NO_KEY:
+        wp.atomic_add(hist, c >> HIST_SHIFT, 1)
+
+
+@wp.kernel
+def select_candidates(
+    key: wp.array(dtype=wp.int32), bin_below: int, frac_bits: wp.int64, cand: wp.array(dtype=wp.int32)
+):
+    """Edges in cost bins below ``bin_below`` compete; in that bin, a hashed share (``frac_bits`` / 2^32)."""
+    h = wp.tid()
+    c = key[h]
+    cand[h] = 0
+    if c == NO_KEY:
+        return
+    b = c >> HIST_SHIFT
+    if b < bin_below or (b == bin_below and mix32(h) < frac_bits):
+        cand[h] = 1
+
+
+# ------------------------------------------------------------------------------------------------ claims
+@wp.func
+def edge_ends(faces: wp.array(dtype=wp.vec3i), h: int) -> wp.vec2i:
+    f = h // 3
+    k = h - 3 * f
+    t = faces[f]
+    return wp.vec2i(t[k], t[(k + 1) % 3])
+
+
+@wp.kernel
+def claim_stars(
+    cand: wp.array(dtype=wp.int32),
+    key: wp.array(dtype=wp.int32),
+    faces: wp.array(dtype=wp.vec3i),
+    offset: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    star: wp.array(dtype=wp.int32),
+    claim: wp.array(dtype=wp.int64),
+):
+    """Each competing edge bids its key on every face of its two stars."""
+    h = wp.tid()
+    if cand[h] != 1:
+        return
+    mine = (wp.int64(key[h]) << wp.int64(32)) | mix32(h)
+    ends = edge_ends(faces, h)
+    for e in range(2):
+        v = ends[e]
+        lo = offset[v]
+        for i in range(count[v]):
+            wp.atomic_min(claim, star[lo + i], mine)
+
+
+@wp.kernel
+def settle_claims(
+    cand: wp.array(dtype=wp.int32),
+    key: wp.array(dtype=wp.int32),
+    faces: wp.array(dtype=wp.vec3i),
+    offset: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    star: wp.array(dtype=wp.int32),
+    claim: wp.array(dtype=wp.int64),
+    winners: wp.array(dtype=wp.int32),
+):
+    """An edge holding every face of its stars wins and takes them for the pass; one that meets a taken face drops
+    out; the rest compete again in the next round.
+
+    Winners' stars share no face, hence no winner's end is a neighbour of another's: every collapse reads and
+    writes only its own stars, the vertices it reads do not move, and a vertex opposite several winners has at
+    least three faces per winner around it, so the guards of each hold together.
+    """
+    h = wp.tid()
+    if cand[h] != 1:
+        return
+    mine = (wp.int64(key[h]) << wp.int64(32)) | mix32(h)
+    ends = edge_ends(faces, h)
+    won = int(1)
+    for e in range(2):
+        v = ends[e]
+        lo = offset[v]
+        for i in range(count[v]):
+            c = claim[star[lo + i]]
+            if c == CLAIM_TAKEN:
+                won = -1
+            elif c != mine and won == 1:
+                won = 0
+    if won == 1:
+        cand[h] = 2
+        wp.atomic_add(winners, 0, 1)
+        for e in range(2):
+            v = ends[e]
+            lo = offset[v]
+            for i in range(count[v]):
+                claim[star[lo + i]] = CLAIM_TAKEN
+    elif won == -1:
+        cand[h] = 0
+
+
+@wp.kernel
+def release_claims(claim: wp.array(dtype=wp.int64)):
+    i = wp.tid()
+    if claim[i] != CLAIM_TAKEN:
+        claim[i] = CLAIM_FREE
+
+
+# ------------------------------------------------------------------------------------------------ collapse
+@wp.kernel
+def apply_collapses(
+    cand: wp.array(dtype=wp.int32),
+    target: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    offset: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    star: wp.array(dtype=wp.int32),
+    state: wp.array(dtype=wp.int32),
+    quad: wp.array(dtype=quadric),
+    pos: wp.array(dtype=wp.vec3),
+    removed_faces: wp.array(dtype=wp.int32),
+):
+    h = wp.tid()
+    if cand[h] != 2:
+        return
+    ends = edge_ends(faces, h)
+    a = ends[0]
+    b = ends[1]
+    s = a
+    r = b
+    if state[b] == BORDER:
+        s = b
+        r = a
+    if state[a] == FREE and state[b] == FREE:
+        pos[s] = target[h]  # a border survivor keeps its position bit for bit
+    quad[s] = quad[s] + quad[r]
+    state[r] = DEAD
+    lo = offset[r]
+    for i in range(count[r]):
+        fi = star[lo + i]
+        u = faces[fi]
+        if has_vertex(u, s):
+            faces[fi] = wp.vec3i(-1, -1, -1)
+            wp.atomic_add(removed_faces, 0, 1)
+        else:
+            for j in range(3):
+                if u[j] == r:
+                    u[j] = s
+            faces[fi] = u
+
+
+# ------------------------------------------------------------------------------------------------ compaction
+@wp.kernel
+def alive_flags(faces: wp.array(dtype=wp.vec3i), flag: wp.array(dtype=wp.int32)):
+    f = wp.tid()
+    flag[f] = 0
+    if faces[f][0] >= 0:
+        flag[f] = 1
+
+
+@wp.kernel
+def scatter_faces(
+    faces: wp.array(dtype=wp.vec3i),
+    slot: wp.array(dtype=wp.int32),
+    out: wp.array(dtype=wp.vec3i),
+):
+    f = wp.tid()
+    t = faces[f]
+    if t[0] >= 0:
+        out[slot[f]] = t
+
+
+@wp.kernel
+def used_flags(count: wp.array(dtype=wp.int32), flag: wp.array(dtype=wp.int32)):
+    v = wp.tid()
+    flag[v] = 0
+    if count[v] > 0:
+        flag[v] = 1
+
+
+@wp.kernel
+def scatter_vertices(
+    pos: wp.array(dtype=wp.vec3),
+    count: wp.array(dtype=wp.int32),
+    slot: wp.array(dtype=wp.int32),
+    out: wp.array(dtype=wp.vec3),
+):
+    v = wp.tid()
+    if count[v] > 0:
+        out[slot[v]] = pos[v]
+
+
+@wp.kernel
+def remap_faces(faces: wp.array(dtype=wp.vec3i), slot: wp.array(dtype=wp.int32)):
+    f = wp.tid()
+    t = faces[f]
+    faces[f] = wp.vec3i(slot[t[0]], slot[t[1]], slot[t[2]])
