@@ -103,6 +103,7 @@ def _one(name: str, pos: Any, faces: Any, reductions: list[float], args: argpars
             "input_faces_per_s": len(f_in) / statistics.median(times),
             "passes": st.passes,
             "stopped": st.stopped,
+            "collapses_per_pass": st.collapses,
             **mem.result(),
             **_check(wv, wf, ref),
             "distance": dist.compare(wv, wf),
@@ -123,6 +124,10 @@ def _one(name: str, pos: Any, faces: Any, reductions: list[float], args: argpars
             }
             print(f"         meshlab {ml['seconds']:.2f} s, {len(mf):,} faces, mean {ml['distance']['mean_mm']:.5f}"
                   f" mm", flush=True)  # fmt: skip
+        if args.profile:
+            _, _, stp = decimate_device(pos, faces, target, profile=True)
+            row["warp"]["profile_seconds"] = stp.profile
+            print(f"         profile {stp.profile}", flush=True)
         rows.append(row)
     return {"mc33": ref, "rows": rows}
 
@@ -137,6 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--points", type=int, default=400_000, help="surface samples each way for the distances")
     ap.add_argument("--no-meshlab", dest="meshlab", action="store_false")
+    ap.add_argument("--profile", action="store_true", help="one more run, synchronised per step, timed per step")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
 

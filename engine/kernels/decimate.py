@@ -406,17 +406,15 @@ def edge_costs(
     n_r = count[r]
     lo_s = offset[s]
     n_s = count[s]
-    # link condition: the common neighbours of r and s are exactly the two vertices opposite the edge. Every
-    # neighbour of r shows up in two faces of its closed fan, so the count over its faces must be 4.
+    # link condition: the common neighbours of r and s are exactly the two vertices opposite the edge. r's star
+    # is one closed fan, so each neighbour of r is the next vertex after r in exactly one of its faces.
     common = int(0)
     for i in range(n_r):
-        u = faces[star[lo_r + i]]
-        for j in range(3):
-            w = u[j]
-            if w != r and w != s:
-                if adjacent(faces, star, lo_s, n_s, w):
-                    common += 1
-    if common != 4:
+        w = next_of(faces[star[lo_r + i]], r)
+        if w != s:
+            if adjacent(faces, star, lo_s, n_s, w):
+                common += 1
+    if common != 2:
         return
     # each opposite vertex loses a face: an interior one keeps at least three (else a closed piece would fall
     # below a tetrahedron), a border one at least one

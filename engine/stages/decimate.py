@@ -54,6 +54,7 @@ class DecimationStats:
     vertex_classes: dict[str, int] = field(default_factory=dict)
     stopped: str = ""
     seconds: float = 0.0
+    profile: dict[str, float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -65,6 +66,7 @@ class DecimationStats:
             "vertex_classes": self.vertex_classes,
             "stopped": self.stopped,
             "seconds": self.seconds,
+            **({"profile_seconds": self.profile} if self.profile is not None else {}),
         }
 
 
@@ -126,6 +128,26 @@ def _compact_faces(faces: Any, n_alive: int) -> Any:
     return out
 
 
+class _Clock:
+    """Per-step wall times for ``profile=True`` (synchronises the device at each tick); does nothing otherwise."""
+
+    def __init__(self, device: Any, stats: DecimationStats | None) -> None:
+        self.device, self.stats = device, stats
+        if stats is not None:
+            stats.profile = {}
+        self.t = time.perf_counter()
+
+    def tick(self, name: str) -> None:
+        if self.stats is None or self.stats.profile is None:
+            return
+        import warp as wp
+
+        wp.synchronize_device(self.device)
+        now = time.perf_counter()
+        self.stats.profile[name] = self.stats.profile.get(name, 0.0) + now - self.t
+        self.t = now
+
+
 def _origin(pos: Any) -> Any:
     """The centre of the vertices' bounding box (float64), the quadrics' local origin."""
     import warp as wp
@@ -148,6 +170,7 @@ def decimate_device(
     claim_rounds: int = CLAIM_ROUNDS,
     stop_tolerance: float = STOP_TOLERANCE,
     on_pass: Any = None,
+    profile: bool = False,
 ) -> tuple[Any, Any, DecimationStats]:
     """Decimate a device mesh to about ``target`` faces (never fewer).
 
@@ -159,6 +182,7 @@ def decimate_device(
         candidate_fraction: share of the collapsible edges, cheapest first, that compete in one pass.
         claim_rounds: claim rounds per pass.
         on_pass: called as ``on_pass(faces_now)`` after each pass.
+        profile: synchronise after each step and add its time to ``stats.profile`` (slower; for benchmarks).
 
     Returns:
         ``(pos, faces, stats)``: new compact device arrays (unused vertices dropped, order kept) and the stats.
@@ -170,6 +194,7 @@ def decimate_device(
     t0 = time.perf_counter()
     dev = pos.device
     stats = DecimationStats(input_faces=len(faces), target_faces=int(target))
+    clock = _Clock(dev, stats if profile else None)
     with wp.ScopedDevice(dev):
         pos = wp.clone(pos)
         faces = wp.clone(faces)
@@ -180,6 +205,7 @@ def decimate_device(
         state = wp.empty(nv, dtype=wp.int32)
         wp.launch(kd.classify_vertices, dim=nv, inputs=[faces, *inc.inputs, state])
         classes = np.bincount(state.numpy(), minlength=4)  # sync point
+        clock.tick("setup")
         stats.vertex_classes = {
             name: int(c) for name, c in zip(("free", "border", "locked", "unused"), classes, strict=True)
         }
@@ -201,6 +227,7 @@ def decimate_device(
                 break
             if stats.passes:
                 inc.build(faces, alive)
+                clock.tick("incidence")
             slots = 3 * len(faces)
             if key is None or len(key) < slots:
                 key = wp.empty(slots, dtype=wp.int32)
@@ -211,9 +238,11 @@ def decimate_device(
                 dim=slots,
                 inputs=[pos, faces, *inc.inputs, state, quad, origin, cos_max, key, target_pos],
             )
+            clock.tick("edge_costs")
             hist.zero_()
             wp.launch(kd.cost_histogram, dim=slots, inputs=[key, hist])
             h = hist.numpy()  # sync point: 256 KB
+            clock.tick("histogram")
             n_valid = int(h.sum())
             if n_valid == 0:
                 stats.stopped = "no edge may collapse (guards)"
@@ -230,6 +259,7 @@ def decimate_device(
                 wp.launch(kd.claim_stars, dim=slots, inputs=[cand, key, faces, *inc.inputs, claim])
                 wp.launch(kd.settle_claims, dim=slots, inputs=[cand, key, faces, *inc.inputs, claim, counter])
                 wp.launch(kd.release_claims, dim=len(claim), inputs=[claim])
+            clock.tick("claims")
             removed.zero_()
             wp.launch(
                 kd.apply_collapses,
@@ -240,6 +270,7 @@ def decimate_device(
             stats.passes += 1
             stats.collapses.append(int(counter.numpy()[0]))
             alive -= n_removed
+            clock.tick("apply")
             if on_pass is not None:
                 on_pass(alive)
             if alive < len(faces) // 2:
@@ -247,6 +278,7 @@ def decimate_device(
         if alive < len(faces):
             faces = _compact_faces(faces, alive)
         out_pos, out_faces = compact_vertices(pos, faces)
+        clock.tick("compact")
     stats.output_faces = len(out_faces)
     stats.seconds = time.perf_counter() - t0
     return out_pos, out_faces, stats
