@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 import re
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # pragma: no cover
     import warp as wp
@@ -38,15 +38,17 @@ def init_runtime(kernel_cache_dir: str | None = None) -> None:
     _initialized = True
 
 
-def resolve_device(spec: str = "auto") -> wp.context.Device:
+def resolve_device(spec: Any = "auto") -> wp.context.Device:
     """Return the Warp device for ``spec``.
 
     Args:
-        spec: "auto" (CUDA when present, else CPU), "cpu", "cuda" or "cuda:N".
+        spec: "auto" (CUDA when present, else CPU), "cpu", "cuda" or "cuda:N", or a Warp device (returned as is).
 
     Raises:
         ValueError: the spec is malformed or names a CUDA device that is not present.
     """
+    if type(spec).__name__ == "Device" and hasattr(spec, "is_cuda"):
+        return spec
     if not isinstance(spec, str) or not _SPEC.match(spec):
         raise ValueError(f"Expected device 'auto', 'cpu', 'cuda' or 'cuda:N', got {spec!r}")
     init_runtime(os.environ.get("WARP_CACHE_PATH"))

@@ -1,7 +1,9 @@
 """Engine exceptions.
 
 EngineError
-└── InputError      the caller's input cannot be processed (bad file, bad parameters); exit code 2
+├── InputError            the caller's input cannot be processed (bad file, bad parameters); exit code 2
+│   └── EmptySurfaceError the iso level does not cross the data: there is no surface to build
+└── StageError            a pipeline stage failed for a reason that is not the input's fault (names the stage)
 """
 
 from __future__ import annotations
@@ -13,3 +15,15 @@ class EngineError(Exception):
 
 class InputError(EngineError, ValueError):
     """Input that the engine cannot process, with a reason a person can act on."""
+
+
+class EmptySurfaceError(InputError):
+    """The iso level does not cross the data: there is no surface to build."""
+
+
+class StageError(EngineError):
+    """A pipeline stage failed for a reason that is not the input's fault."""
+
+    def __init__(self, stage: str, cause: BaseException) -> None:
+        super().__init__(f"stage '{stage}' failed: {type(cause).__name__}: {cause}")
+        self.stage = stage

@@ -1,9 +1,10 @@
 """The EMC33 pipeline: volume in, mesh and report out (``reconstruct``), and the output files (``write_outputs``).
 
-Stages, in order (``STAGES``): preprocess (host, optional), upload, gaussian (device), isosurface (MC33, device),
-islands (host, optional), decimate (host, quadric error), smooth (device, surface-preserving Laplacian),
-normals (device). A failing stage raises ``StageError`` naming it (or the raw error with ``BONEMESH_DEBUG=1``);
-bad input raises ``InputError``.
+Stages, in order (``STAGES``): preprocess (host, optional), upload (the volume, once), gaussian, isosurface
+(MC33), decimate (quadric edge collapse), islands (optional, on the decimated mesh: host), smooth
+(surface-preserving Laplacian), normals. Everything but preprocess and islands runs on the device where the data
+already is; only the finished mesh comes back. A failing stage raises ``StageError`` naming it (or the raw error
+with ``BONEMESH_DEBUG=1``); bad input raises ``InputError``.
 """
 
 from __future__ import annotations
@@ -20,24 +21,12 @@ from typing import Any
 
 import numpy as np
 
-from engine.errors import EngineError, InputError
+from engine.errors import EmptySurfaceError, InputError, StageError
 from engine.params import ISO_PRESETS_HU, ReconParams
 from engine.types import Mesh, Volume
 
-STAGES = ("preprocess", "upload", "gaussian", "isosurface", "islands", "decimate", "smooth", "normals")
+STAGES = ("preprocess", "upload", "gaussian", "isosurface", "decimate", "islands", "smooth", "normals")
 Progress = Callable[[str, float], None]
-
-
-class StageError(EngineError):
-    """A pipeline stage failed for a reason that is not the input's fault."""
-
-    def __init__(self, stage: str, cause: BaseException) -> None:
-        super().__init__(f"stage '{stage}' failed: {type(cause).__name__}: {cause}")
-        self.stage = stage
-
-
-class EmptySurfaceError(InputError):
-    """The iso level does not cross the data: there is no surface to build."""
 
 
 @dataclass
@@ -87,6 +76,19 @@ def _versions() -> dict[str, str]:
     return out
 
 
+@dataclass
+class _State:
+    """What the stages hand on: the volume, then the device field, then the device mesh (and its stars)."""
+
+    volume: Volume
+    field: Any = None
+    level: float = 0.0
+    pos: Any = None  # wp.array(dtype=wp.vec3), (z, y, x) mm
+    faces: Any = None  # wp.array(dtype=wp.vec3i)
+    incidence: Any = None  # devmesh.Incidence of the current mesh, when built
+    normals: Any = None
+
+
 def reconstruct(
     volume: Volume, params: ReconParams | None = None, *, device: str = "auto", on_progress: Progress | None = None
 ) -> Reconstruction:
@@ -96,7 +98,8 @@ def reconstruct(
         volume: the scan (see ``engine.types.Volume``).
         params: pipeline parameters (defaults: the paper's best combination).
         device: "auto", "cpu", "cuda" or "cuda:N".
-        on_progress: called as ``on_progress(stage, fraction_done)`` when a stage starts and ends.
+        on_progress: called as ``on_progress(stage, fraction_done)`` when a stage starts and ends (and between the
+            decimation's passes).
 
     Returns:
         The final mesh (vertices (z, y, x) mm, outward faces, unit vertex normals) and the report.
@@ -105,6 +108,8 @@ def reconstruct(
         InputError: the volume or parameters cannot give a model (EmptySurfaceError: no surface at the level).
         StageError: a stage failed otherwise.
     """
+    import warp as wp
+
     from engine.device import resolve_device
 
     params = params or ReconParams()
@@ -123,132 +128,157 @@ def reconstruct(
         "stage_seconds": {},
         "counts": {},
     }
-    state: dict[str, Any] = {"volume": volume}
-    done = 0
+    st = _State(volume)
+    stages: dict[str, Callable[[_State, ReconParams, dict[str, Any], Progress], None]] = {
+        "preprocess": _preprocess,
+        "upload": _upload,
+        "gaussian": _gaussian,
+        "isosurface": _isosurface,
+        "decimate": _decimate,
+        "islands": _islands,
+        "smooth": _smooth,
+        "normals": _normals,
+    }
+    with wp.ScopedDevice(dev):
+        for k, name in enumerate(STAGES):
 
-    def run(name: str, fn: Callable[[], None]) -> None:
-        nonlocal done
-        if on_progress:
-            on_progress(name, done / len(STAGES))
-        t0 = time.perf_counter()
-        try:
-            fn()
-        except (InputError, StageError):
-            raise
-        except Exception as exc:
-            if os.environ.get("BONEMESH_DEBUG") == "1":
+            def within(fraction: float, k: int = k, name: str = name) -> None:
+                if on_progress:
+                    on_progress(name, (k + min(max(fraction, 0.0), 1.0)) / len(STAGES))
+
+            within(0.0)
+            t0 = time.perf_counter()
+            try:
+                stages[name](st, params, report, within)
+            except (InputError, StageError):
                 raise
-            raise StageError(name, exc) from exc
-        report["stage_seconds"][name] = time.perf_counter() - t0
-        done += 1
-        if on_progress:
-            on_progress(name, done / len(STAGES))
-
-    def preprocess() -> None:
-        from engine.stages.preprocess import preprocess_volume
-
-        if params.preprocess is not None:
-            state["volume"] = preprocess_volume(state["volume"], params.preprocess)
-        report["counts"]["voxels"] = int(state["volume"].data.size)
-
-    def upload() -> None:
-        import warp as wp
-
-        data = state["volume"].data
-        if data.dtype not in (np.uint8, np.uint16, np.int16, np.float32):
-            data = data.astype(np.float32)
-        state["field"] = wp.array(np.ascontiguousarray(data), device=dev)
-        level, how = choose_level(state["volume"], params)
-        report["iso_level"] = {"value": level, "units": state["volume"].units, "chosen_by": how}
-        state["level"] = level
-
-    def gaussian() -> None:
-        from engine.stages.gaussian import smooth_volume
-
-        if params.gaussian is not None:
-            state["field"] = smooth_volume(state["field"], params.gaussian)
-
-    def isosurface() -> None:
-        from engine.stages.isosurface import IsosurfaceStats, extract_isosurface
-
-        st = IsosurfaceStats()
-        try:  # its ValueErrors are about the data (NaN, checked on the device in the extraction's own pass)
-            v, f = extract_isosurface(
-                state["field"],
-                state["level"],
-                spacing=state["volume"].spacing_zyx_mm,
-                closed=params.iso.closed,
-                stats=st,
-            )
-        except ValueError as exc:
-            raise InputError(str(exc)) from None
-        verts = v.numpy().reshape(-1, 3).astype(np.float32)  # sync point (the mesh goes to the host stages)
-        faces = f.numpy().reshape(-1, 3).astype(np.int32)
-        del state["field"]
-        if len(faces) == 0:
-            lo, hi = float(state["volume"].data.min()), float(state["volume"].data.max())
-            raise EmptySurfaceError(
-                f"no surface at level {state['level']:g} {state['volume'].units}: the scan's values run from "
-                f"{lo:g} to {hi:g}; choose a level inside that range"
-            )
-        state["verts"], state["faces"] = verts, faces
-        report["counts"]["isosurface"] = {"vertices": len(verts), "faces": len(faces)}
-        report["isosurface"] = {"slabs": st.slabs, "active_blocks": st.active_blocks, "blocks": st.blocks}
-
-    def islands() -> None:
-        if params.islands is None:
-            return
-        from engine.stages.islands import remove_islands
-
-        v, f, info = remove_islands(
-            state["verts"],
-            state["faces"],
-            min_volume_mm3=params.islands.min_volume_mm3,
-            keep_largest=params.islands.keep_largest,
-        )
-        if len(f) == 0:
-            raise EmptySurfaceError("island removal left nothing: lower --min-island-mm3 or keep more pieces")
-        state["verts"], state["faces"] = v, f
-        report["islands"] = info
-        report["counts"]["islands"] = {"vertices": len(v), "faces": len(f)}
-
-    def decimate() -> None:
-        if params.decimate is None:
-            return
-        from engine.stages.decimate import decimate_mesh
-
-        v, f, info = decimate_mesh(
-            state["verts"],
-            state["faces"],
-            reduction=params.decimate.reduction,
-            max_triangles=params.decimate.max_triangles,
-        )
-        state["verts"], state["faces"] = v, f
-        report["decimate"] = info
-        report["counts"]["decimate"] = {"vertices": len(v), "faces": len(f)}
-
-    def smooth() -> None:
-        if params.smooth is None:
-            return
-        from engine.stages.smooth import smooth_mesh
-
-        state["verts"], info = smooth_mesh(state["verts"], state["faces"], params.smooth, dev)
-        report["smooth"] = info
-
-    def normals() -> None:
-        from engine.stages.normals import vertex_normals
-
-        state["normals"] = vertex_normals(state["verts"], state["faces"], dev)
-
-    for name, fn in zip(
-        STAGES, (preprocess, upload, gaussian, isosurface, islands, decimate, smooth, normals), strict=True
-    ):
-        run(name, fn)
+            except Exception as exc:
+                if os.environ.get("BONEMESH_DEBUG") == "1":
+                    raise
+                raise StageError(name, exc) from exc
+            report["stage_seconds"][name] = time.perf_counter() - t0
+            within(1.0)
+        verts = st.pos.numpy().astype(np.float32)  # sync point: the finished mesh comes back
+        faces = st.faces.numpy().astype(np.int32).reshape(-1, 3)
+        normals = st.normals.numpy().astype(np.float32)
     from engine.stages.meshcheck import mesh_stats
 
-    report["mesh"] = mesh_stats(state["verts"], state["faces"])
+    report["mesh"] = mesh_stats(verts, faces)
     report["total_seconds"] = sum(report["stage_seconds"].values())
-    return Reconstruction(Mesh(state["verts"], state["faces"], state["normals"]), report)
+    return Reconstruction(Mesh(verts, faces, normals), report)
+
+
+def _preprocess(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    from engine.stages.preprocess import preprocess_volume
+
+    if params.preprocess is not None:
+        st.volume = preprocess_volume(st.volume, params.preprocess)
+    report["counts"]["voxels"] = int(st.volume.data.size)
+
+
+def _upload(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    import warp as wp
+
+    data = st.volume.data
+    if data.dtype not in (np.uint8, np.uint16, np.int16, np.float32):
+        data = data.astype(np.float32)
+    st.field = wp.array(np.ascontiguousarray(data))
+    st.level, how = choose_level(st.volume, params)
+    report["iso_level"] = {"value": st.level, "units": st.volume.units, "chosen_by": how}
+
+
+def _gaussian(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    from engine.stages.gaussian import smooth_volume
+
+    if params.gaussian is not None:
+        st.field = smooth_volume(st.field, params.gaussian)
+
+
+def _isosurface(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    from engine.stages.isosurface import IsosurfaceStats, extract_isosurface
+
+    stats = IsosurfaceStats()
+    try:  # its ValueErrors are about the data (NaN, checked on the device in the extraction's own pass)
+        v, f = extract_isosurface(
+            st.field, st.level, spacing=st.volume.spacing_zyx_mm, closed=params.iso.closed, stats=stats
+        )
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    st.field = None
+    if len(f) == 0:
+        lo, hi = float(st.volume.data.min()), float(st.volume.data.max())
+        raise EmptySurfaceError(
+            f"no surface at level {st.level:g} {st.volume.units}: the scan's values run from "
+            f"{lo:g} to {hi:g}; choose a level inside that range"
+        )
+    st.pos, st.faces = v, f
+    report["counts"]["isosurface"] = {"vertices": len(v), "faces": len(f)}
+    report["isosurface"] = {"slabs": stats.slabs, "active_blocks": stats.active_blocks, "blocks": stats.blocks}
+
+
+def _decimate(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    if params.decimate is None:
+        return
+    from engine.stages.decimate import TOLERANCE, decimate_device, target_faces
+
+    n_in = len(st.faces)
+    target = target_faces(n_in, params.decimate.reduction, params.decimate.max_triangles)
+    if target >= n_in:
+        report["decimate"] = {"input_faces": n_in, "target_faces": target, "output_faces": n_in, "passes": 0}
+        return
+
+    def on_pass(faces_now: int) -> None:
+        progress((n_in - faces_now) / max(n_in - target, 1))
+
+    st.pos, st.faces, stats = decimate_device(st.pos, st.faces, target, on_pass=on_pass)
+    info = stats.to_dict()
+    info["achieved_ratio"] = stats.output_faces / n_in
+    info["limited_by_guards"] = stats.output_faces > target * (1 + TOLERANCE)
+    info["method"] = "warp quadric edge collapse (link condition, border kept, normal turn guard)"
+    report["decimate"] = info
+    report["counts"]["decimate"] = {"vertices": len(st.pos), "faces": stats.output_faces}
+
+
+def _islands(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    if params.islands is None:
+        return
+    import warp as wp
+
+    from engine.stages.islands import remove_islands
+
+    v, f, info = remove_islands(
+        st.pos.numpy(),  # sync point: on the decimated mesh, host side (connected components)
+        st.faces.numpy(),
+        min_volume_mm3=params.islands.min_volume_mm3,
+        keep_largest=params.islands.keep_largest,
+    )
+    if len(f) == 0:
+        raise EmptySurfaceError("island removal left nothing: lower --min-island-mm3 or keep more pieces")
+    st.pos, st.faces = wp.array(v, dtype=wp.vec3), wp.array(f, dtype=wp.vec3i)
+    report["islands"] = info
+    report["counts"]["islands"] = {"vertices": len(v), "faces": len(f)}
+
+
+def _incidence(st: _State) -> Any:
+    from engine.stages.devmesh import Incidence
+
+    if st.incidence is None:
+        st.incidence = Incidence(len(st.pos)).build(st.faces, len(st.faces))
+    return st.incidence
+
+
+def _smooth(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    if params.smooth is None:
+        return
+    from engine.stages.smooth import smooth_device
+
+    st.pos, report["smooth"] = smooth_device(st.pos, st.faces, params.smooth, _incidence(st))
+
+
+def _normals(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    from engine.stages.normals import normals_device
+
+    st.normals = normals_device(st.pos, st.faces, _incidence(st))
 
 
 def _budget_mesh(mesh: Mesh, max_triangles: int, device: Any) -> tuple[Mesh, dict[str, Any]]:
@@ -269,7 +299,7 @@ def _budget_mesh(mesh: Mesh, max_triangles: int, device: Any) -> tuple[Mesh, dic
     from engine.stages.meshcheck import component_labels
     from engine.stages.normals import vertex_normals
 
-    dv, df, info = decimate_mesh(mesh.vertices, mesh.faces, max_triangles=max_triangles)
+    dv, df, info = decimate_mesh(mesh.vertices, mesh.faces, max_triangles=max_triangles, device=device)
     keep: int | None = None
     dropped = 0
     while len(df) > max_triangles and keep != 1:
@@ -279,10 +309,10 @@ def _budget_mesh(mesh: Mesh, max_triangles: int, device: Any) -> tuple[Mesh, dic
         keep = max(1, min(pieces // 2, max_triangles // 200)) if keep is None else max(1, min(keep // 2, pieces - 1))
         dv, df, isl = remove_islands(dv, df, keep_largest=keep)
         dropped += int(isl["removed_pieces"])
-        dv, df, info = decimate_mesh(dv, df, max_triangles=max_triangles)
+        dv, df, info = decimate_mesh(dv, df, max_triangles=max_triangles, device=device)
     topology_kept = True
     if len(df) > max_triangles:  # a piece of high genus: this viewing copy may close tunnels to meet the budget
-        from engine.stages.decimate import decimate_for_viewing
+        from engine.stages.decimate_meshlab import decimate_for_viewing
 
         dv, df = decimate_for_viewing(dv, df, max_triangles)
         topology_kept = False

@@ -647,3 +647,11 @@ def remap_faces(faces: wp.array(dtype=wp.vec3i), slot: wp.array(dtype=wp.int32))
     f = wp.tid()
     t = faces[f]
     faces[f] = wp.vec3i(slot[t[0]], slot[t[1]], slot[t[2]])
+
+
+@wp.kernel
+def bounds_kernel(pos: wp.array(dtype=wp.vec3), box: wp.array(dtype=wp.vec3)):
+    """``box[0]`` = component-wise minimum, ``box[1]`` = maximum (atomic per component)."""
+    v = wp.tid()
+    wp.atomic_min(box, 0, pos[v])
+    wp.atomic_max(box, 1, pos[v])

@@ -16,54 +16,58 @@ def face_normal_zyx(a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec3:
 
 
 @wp.kernel
-def vertex_normals_kernel(pos: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.vec3i), acc: wp.array(dtype=wp.vec3)):
-    f = wp.tid()
-    t = faces[f]
-    n = face_normal_zyx(pos[t[0]], pos[t[1]], pos[t[2]])
-    wp.atomic_add(acc, t[0], n)
-    wp.atomic_add(acc, t[1], n)
-    wp.atomic_add(acc, t[2], n)
-
-
-@wp.kernel
-def normalize_kernel(acc: wp.array(dtype=wp.vec3)):
-    i = wp.tid()
-    n = acc[i]
-    length = wp.length(n)
-    if length > 0.0:
-        acc[i] = n / length
-
-
-@wp.kernel
-def neighbour_sum_kernel(
+def star_neighbour_mean_kernel(
     pos: wp.array(dtype=wp.vec3),
-    edges: wp.array(dtype=wp.vec2i),
-    acc: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    offset: wp.array(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
-):
-    """Each undirected edge adds each end to the other's neighbour sum."""
-    e = wp.tid()
-    a = edges[e][0]
-    b = edges[e][1]
-    wp.atomic_add(acc, a, pos[b])
-    wp.atomic_add(acc, b, pos[a])
-    wp.atomic_add(count, a, 1)
-    wp.atomic_add(count, b, 1)
-
-
-@wp.kernel
-def candidate_kernel(
-    pos: wp.array(dtype=wp.vec3),
-    acc: wp.array(dtype=wp.vec3),
-    count: wp.array(dtype=wp.int32),
+    star: wp.array(dtype=wp.int32),
     cand: wp.array(dtype=wp.vec3),
 ):
+    """Mean of the other two vertices of every face around v (a fixed order: stars are sorted). Around a closed
+    fan every neighbour appears twice, so this is the neighbours' mean; other vertices stay fixed anyway."""
+    v = wp.tid()
+    lo = offset[v]
+    n = count[v]
+    acc = wp.vec3(0.0)
+    for i in range(n):
+        t = faces[star[lo + i]]
+        acc = acc + pos[t[0]] + pos[t[1]] + pos[t[2]] - pos[v]
+    p = pos[v]
+    if n > 0:
+        p = acc / float(2 * n)
+    cand[v] = p
+
+
+@wp.kernel
+def star_normals_kernel(
+    pos: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    offset: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    star: wp.array(dtype=wp.int32),
+    out: wp.array(dtype=wp.vec3),
+):
+    """Area-weighted unit vertex normal, summed over the vertex's star in a fixed order."""
+    v = wp.tid()
+    lo = offset[v]
+    acc = wp.vec3(0.0)
+    for i in range(count[v]):
+        t = faces[star[lo + i]]
+        acc = acc + face_normal_zyx(pos[t[0]], pos[t[1]], pos[t[2]])
+    length = wp.length(acc)
+    if length > 0.0:
+        acc = acc / length
+    out[v] = acc
+
+
+@wp.kernel
+def fixed_from_classes(state: wp.array(dtype=wp.int32), fixed: wp.array(dtype=wp.int32)):
+    """Only vertices with one closed fan (class 0, FREE) may move."""
     i = wp.tid()
-    c = count[i]
-    p = pos[i]
-    if c > 0:
-        p = acc[i] / float(c)
-    cand[i] = p
+    fixed[i] = 0
+    if state[i] != 0:
+        fixed[i] = 1
 
 
 @wp.func

@@ -30,6 +30,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from engine.stages.devmesh import (
+    CLASS_NAMES,
+    Incidence,
+    bbox_centre,
+    compact_faces,
+    compact_vertices,
+    vertex_classes,
+)
 from engine.stages.meshcheck import component_labels, edge_report, validate_mesh
 
 TOLERANCE = 0.05  # a closed result this far over the target is reported as limited by the guards
@@ -83,51 +91,6 @@ def target_faces(n_faces: int, reduction: float | None, max_triangles: int | Non
     return int(max_triangles)
 
 
-class _Incidence:
-    """Every vertex's star (the faces around it) as CSR: ``offset``, ``count``, ``star`` (sorted per vertex)."""
-
-    def __init__(self, n_vertices: int) -> None:
-        import warp as wp
-
-        self.count = wp.zeros(n_vertices, dtype=wp.int32)
-        self.offset = wp.zeros(n_vertices, dtype=wp.int32)
-        self.cursor = wp.zeros(n_vertices, dtype=wp.int32)
-        self.star = wp.empty(0, dtype=wp.int32)
-
-    def build(self, faces: Any, n_alive: int) -> None:
-        import warp as wp
-
-        from engine.kernels import decimate as kd
-
-        n = len(self.count)
-        self.count.zero_()
-        self.cursor.zero_()
-        wp.launch(kd.count_incidence, dim=len(faces), inputs=[faces, self.count])
-        wp.utils.array_scan(self.count, self.offset, inclusive=False)
-        if len(self.star) < 3 * n_alive:
-            self.star = wp.empty(3 * n_alive, dtype=wp.int32)
-        wp.launch(kd.fill_incidence, dim=len(faces), inputs=[faces, self.offset, self.cursor, self.star])
-        wp.launch(kd.sort_incidence, dim=n, inputs=[self.offset, self.count, self.star])
-
-    @property
-    def inputs(self) -> list[Any]:
-        return [self.offset, self.count, self.star]
-
-
-def _compact_faces(faces: Any, n_alive: int) -> Any:
-    import warp as wp
-
-    from engine.kernels import decimate as kd
-
-    flag = wp.empty(len(faces), dtype=wp.int32)
-    slot = wp.empty(len(faces), dtype=wp.int32)
-    wp.launch(kd.alive_flags, dim=len(faces), inputs=[faces, flag])
-    wp.utils.array_scan(flag, slot, inclusive=False)
-    out = wp.empty(n_alive, dtype=wp.vec3i)
-    wp.launch(kd.scatter_faces, dim=len(faces), inputs=[faces, slot, out])
-    return out
-
-
 class _Clock:
     """Per-step wall times for ``profile=True`` (synchronises the device at each tick); does nothing otherwise."""
 
@@ -146,18 +109,6 @@ class _Clock:
         now = time.perf_counter()
         self.stats.profile[name] = self.stats.profile.get(name, 0.0) + now - self.t
         self.t = now
-
-
-def _origin(pos: Any) -> Any:
-    """The centre of the vertices' bounding box (float64), the quadrics' local origin."""
-    import warp as wp
-
-    if len(pos) == 0:
-        return wp.vec3d(0.0, 0.0, 0.0)
-    p = pos.numpy()  # sync point: 12 bytes a vertex; TODO a device reduction once the mesh never leaves the device
-    lo, hi = p.min(axis=0).astype(np.float64), p.max(axis=0).astype(np.float64)
-    c = 0.5 * (lo + hi)
-    return wp.vec3d(float(c[0]), float(c[1]), float(c[2]))
 
 
 def decimate_device(
@@ -200,16 +151,13 @@ def decimate_device(
         faces = wp.clone(faces)
         nv = len(pos)
         alive = len(faces)
-        inc = _Incidence(nv)
+        inc = Incidence(nv)
         inc.build(faces, alive)
-        state = wp.empty(nv, dtype=wp.int32)
-        wp.launch(kd.classify_vertices, dim=nv, inputs=[faces, *inc.inputs, state])
+        state = vertex_classes(faces, inc)
         classes = np.bincount(state.numpy(), minlength=4)  # sync point
         clock.tick("setup")
-        stats.vertex_classes = {
-            name: int(c) for name, c in zip(("free", "border", "locked", "unused"), classes, strict=True)
-        }
-        origin = _origin(pos)
+        stats.vertex_classes = {name: int(c) for name, c in zip(CLASS_NAMES, classes, strict=True)}
+        origin = bbox_centre(pos)
         quad = wp.empty(nv, dtype=kd.quadric)
         wp.launch(kd.vertex_quadrics, dim=nv, inputs=[pos, faces, *inc.inputs, origin, quad])
         cos_max = wp.float64(math.cos(math.radians(max_normal_turn_deg)))
@@ -274,36 +222,14 @@ def decimate_device(
             if on_pass is not None:
                 on_pass(alive)
             if alive < len(faces) // 2:
-                faces = _compact_faces(faces, alive)
+                faces = compact_faces(faces, alive)
         if alive < len(faces):
-            faces = _compact_faces(faces, alive)
+            faces = compact_faces(faces, alive)
         out_pos, out_faces = compact_vertices(pos, faces)
         clock.tick("compact")
     stats.output_faces = len(out_faces)
     stats.seconds = time.perf_counter() - t0
     return out_pos, out_faces, stats
-
-
-def compact_vertices(pos: Any, faces: Any) -> tuple[Any, Any]:
-    """Drop the vertices no face uses (device arrays; the kept ones keep their order)."""
-    import warp as wp
-
-    from engine.kernels import decimate as kd
-
-    with wp.ScopedDevice(pos.device):
-        count = wp.zeros(len(pos), dtype=wp.int32)
-        wp.launch(kd.count_incidence, dim=len(faces), inputs=[faces, count])
-        flag = wp.empty(len(pos), dtype=wp.int32)
-        slot = wp.empty(len(pos), dtype=wp.int32)
-        wp.launch(kd.used_flags, dim=len(pos), inputs=[count, flag])
-        wp.utils.array_scan(flag, slot, inclusive=False)
-        n_used = int(slot.numpy()[-1] + flag.numpy()[-1]) if len(pos) else 0  # sync point
-        if n_used == len(pos):
-            return pos, faces
-        out = wp.empty(n_used, dtype=wp.vec3)
-        wp.launch(kd.scatter_vertices, dim=len(pos), inputs=[pos, count, slot, out])
-        wp.launch(kd.remap_faces, dim=len(faces), inputs=[faces, slot])
-    return out, faces
 
 
 def price_edges(
@@ -324,11 +250,10 @@ def price_edges(
     with wp.ScopedDevice(resolve_device(device)):
         pos = wp.array(np.asarray(verts, np.float32), dtype=wp.vec3)
         f = wp.array(np.asarray(faces, np.int32), dtype=wp.vec3i)
-        inc = _Incidence(len(verts))
+        inc = Incidence(len(verts))
         inc.build(f, len(faces))
-        state = wp.empty(len(verts), dtype=wp.int32)
-        wp.launch(kd.classify_vertices, dim=len(verts), inputs=[f, *inc.inputs, state])
-        origin = _origin(pos)
+        state = vertex_classes(f, inc)
+        origin = bbox_centre(pos)
         quad = wp.empty(len(verts), dtype=kd.quadric)
         wp.launch(kd.vertex_quadrics, dim=len(verts), inputs=[pos, f, *inc.inputs, origin, quad])
         key = wp.empty(3 * len(faces), dtype=wp.int32)

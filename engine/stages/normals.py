@@ -8,19 +8,30 @@ import numpy as np
 import numpy.typing as npt
 
 
+def normals_device(pos: Any, faces: Any, inc: Any = None) -> Any:
+    """Unit vertex normals of a device mesh (``wp.array(dtype=wp.vec3)``, (z, y, x), outward), each a sum over the
+    vertex's star in a fixed order. ``inc``: the mesh's ``devmesh.Incidence`` if already built."""
+    import warp as wp
+
+    from engine.kernels import mesh as km
+    from engine.stages.devmesh import Incidence
+
+    with wp.ScopedDevice(pos.device):
+        if inc is None:
+            inc = Incidence(len(pos)).build(faces, len(faces))
+        out = wp.empty(len(pos), dtype=wp.vec3)
+        wp.launch(km.star_normals_kernel, dim=len(pos), inputs=[pos, faces, *inc.inputs, out])
+    return out
+
+
 def vertex_normals(
     verts: npt.NDArray[np.float32], faces: npt.NDArray[np.int32], device: Any
 ) -> npt.NDArray[np.float32]:
     """(V, 3) float32 unit normals in (z, y, x) order, pointing outward (toward values below the level)."""
     import warp as wp
 
-    from engine.kernels import mesh as km
-
     if len(faces) == 0:
         return np.zeros_like(verts)
     with wp.ScopedDevice(device):
-        pos = wp.array(verts, dtype=wp.vec3)
-        acc = wp.zeros(len(verts), dtype=wp.vec3)
-        wp.launch(km.vertex_normals_kernel, dim=len(faces), inputs=[pos, wp.array(faces, dtype=wp.vec3i), acc])
-        wp.launch(km.normalize_kernel, dim=len(verts), inputs=[acc])
-        return acc.numpy().astype(np.float32)  # sync point
+        n = normals_device(wp.array(verts, dtype=wp.vec3), wp.array(faces, dtype=wp.vec3i))
+        return n.numpy().astype(np.float32)  # sync point

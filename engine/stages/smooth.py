@@ -18,11 +18,53 @@ from engine.params import SmoothParams
 
 
 def unique_edges(faces: npt.NDArray[np.int32]) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.bool_]]:
-    """Undirected edges (E, 2) and, per edge, whether it lies on the boundary (in one face only)."""
+    """Undirected edges (E, 2) and, per edge, whether it lies on the boundary (in one face only) (numpy)."""
     e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1).astype(np.int64)
     key = e[:, 0] * (int(faces.max()) + 1) + e[:, 1]
     _, first, counts = np.unique(key, return_index=True, return_counts=True)
     return e[first].astype(np.int32), counts == 1
+
+
+def smooth_device(pos: Any, faces: Any, params: SmoothParams, inc: Any = None) -> tuple[Any, dict[str, Any]]:
+    """Smooth a device mesh in place (``pos`` ``wp.array(dtype=wp.vec3)``, ``faces`` ``wp.array(dtype=wp.vec3i)``);
+    returns ``pos`` and a summary (moves per iteration). Only vertices with one closed fan of faces move (border
+    and non-manifold vertices stay). ``inc``: the mesh's ``devmesh.Incidence`` if already built."""
+    import warp as wp
+
+    from engine.kernels import mesh as km
+    from engine.stages.devmesh import Incidence, vertex_classes
+
+    n = len(pos)
+    if len(faces) == 0 or n == 0:
+        return pos, {"moved_per_iteration": []}
+    cos_max = math.cos(math.radians(params.angle_deg))
+    with wp.ScopedDevice(pos.device):
+        if inc is None:
+            inc = Incidence(n).build(faces, len(faces))
+        fixed = wp.empty(n, dtype=wp.int32)
+        wp.launch(km.fixed_from_classes, dim=n, inputs=[vertex_classes(faces, inc), fixed])
+        old = wp.empty_like(pos)
+        cand = wp.empty(n, dtype=wp.vec3)
+        flag = wp.empty(n, dtype=wp.int32)
+        counter = wp.zeros(1, dtype=wp.int32)
+        viol = wp.zeros(1, dtype=wp.int32)
+        moved: list[int] = []
+        for _ in range(params.iterations):
+            wp.copy(old, pos)
+            flag.zero_()
+            counter.zero_()
+            wp.launch(km.star_neighbour_mean_kernel, dim=n, inputs=[pos, faces, *inc.inputs, cand])
+            wp.launch(km.reject_kernel, dim=len(faces), inputs=[pos, cand, faces, cos_max, flag])
+            wp.launch(km.accept_kernel, dim=n, inputs=[pos, cand, flag, fixed, counter])
+            flag.zero_()
+            for _pass in range(50):
+                viol.zero_()
+                wp.launch(km.violation_kernel, dim=len(faces), inputs=[old, pos, faces, cos_max, flag, viol])
+                if int(viol.numpy()[0]) == 0:  # sync point
+                    break
+                wp.launch(km.revert_kernel, dim=n, inputs=[old, pos, flag])
+            moved.append(int(counter.numpy()[0]))  # sync point
+    return pos, {"moved_per_iteration": moved}
 
 
 def smooth_mesh(
@@ -38,44 +80,8 @@ def smooth_mesh(
     """
     import warp as wp
 
-    from engine.kernels import mesh as km
-
     if len(faces) == 0:
         return verts.copy(), {"moved_per_iteration": []}
-    edges, boundary = unique_edges(faces)
-    fixed = np.zeros(len(verts), np.int32)
-    fixed[edges[boundary].ravel()] = 1
-    cos_max = math.cos(math.radians(params.angle_deg))
-    n = len(verts)
     with wp.ScopedDevice(device):
-        pos = wp.array(verts, dtype=wp.vec3)
-        old = wp.empty_like(pos)
-        f = wp.array(faces, dtype=wp.vec3i)
-        e = wp.array(edges, dtype=wp.vec2i)
-        fx = wp.array(fixed, dtype=wp.int32)
-        acc = wp.empty(n, dtype=wp.vec3)
-        cand = wp.empty(n, dtype=wp.vec3)
-        count = wp.empty(n, dtype=wp.int32)
-        flag = wp.empty(n, dtype=wp.int32)
-        counter = wp.zeros(1, dtype=wp.int32)
-        moved: list[int] = []
-        for _ in range(params.iterations):
-            wp.copy(old, pos)
-            acc.zero_()
-            count.zero_()
-            flag.zero_()
-            counter.zero_()
-            wp.launch(km.neighbour_sum_kernel, dim=len(edges), inputs=[pos, e, acc, count])
-            wp.launch(km.candidate_kernel, dim=n, inputs=[pos, acc, count, cand])
-            wp.launch(km.reject_kernel, dim=len(faces), inputs=[pos, cand, f, cos_max, flag])
-            wp.launch(km.accept_kernel, dim=n, inputs=[pos, cand, flag, fx, counter])
-            flag.zero_()
-            for _pass in range(50):
-                viol = wp.zeros(1, dtype=wp.int32)
-                wp.launch(km.violation_kernel, dim=len(faces), inputs=[old, pos, f, cos_max, flag, viol])
-                if int(viol.numpy()[0]) == 0:  # sync point
-                    break
-                wp.launch(km.revert_kernel, dim=n, inputs=[old, pos, flag])
-            moved.append(int(counter.numpy()[0]))  # sync point
-        out = pos.numpy().astype(np.float32)  # sync point
-    return out, {"moved_per_iteration": moved}
+        pos, info = smooth_device(wp.array(verts, dtype=wp.vec3), wp.array(faces, dtype=wp.vec3i), params)
+        return pos.numpy().astype(np.float32), info  # sync point
