@@ -158,12 +158,14 @@ def reconstruct(
                 raise StageError(name, exc) from exc
             report["stage_seconds"][name] = time.perf_counter() - t0
             within(1.0)
+        t0 = time.perf_counter()
+        from engine.stages.devmesh import mesh_stats_device
+
+        report["mesh"] = mesh_stats_device(st.pos, st.faces, _incidence(st))
         verts = st.pos.numpy().astype(np.float32)  # sync point: the finished mesh comes back
         faces = st.faces.numpy().astype(np.int32).reshape(-1, 3)
         normals = st.normals.numpy().astype(np.float32)
-    from engine.stages.meshcheck import mesh_stats
-
-    report["mesh"] = mesh_stats(verts, faces)
+        report["finish_seconds"] = time.perf_counter() - t0
     report["total_seconds"] = sum(report["stage_seconds"].values())
     return Reconstruction(Mesh(verts, faces, normals), report)
 
@@ -282,49 +284,68 @@ def _normals(st: _State, params: ReconParams, report: dict[str, Any], progress: 
 
 
 def _budget_mesh(mesh: Mesh, max_triangles: int, device: Any) -> tuple[Mesh, dict[str, Any]]:
-    """The mesh itself when within budget, else a decimated copy with fresh normals.
+    """The mesh itself when within budget, else a decimated copy with fresh normals (on the device).
 
-    Topology-preserving decimation cannot shrink a closed piece below a tetrahedron, so a scan with thousands of
-    specks cannot reach a phone-sized budget. Then the smallest pieces (by volume) of the decimated copy are
-    dropped, halving the number kept, and the rest decimated again, until the budget is met; each round works on
-    the already reduced copy, so a 30 M-face model costs one large decimation. Where one piece of high genus
-    still keeps the copy over budget, the copy is decimated without the topology guard (``topology_preserved``
-    false: it may close small tunnels). The report says how many pieces were dropped (the print model keeps them
-    all and is never decimated without the guard).
+    The copy continues the print model's decimation on the device, with every guard. Topology-preserving
+    decimation cannot shrink a closed piece below a tetrahedron, so a scan with thousands of specks cannot reach a
+    phone-sized budget: then the smallest pieces (by volume) of the decimated copy are dropped, halving the number
+    kept, and the rest decimated again, until the budget is met (each round works on the already small copy).
+    Where one piece of high genus still keeps the copy over budget, the copy is decimated without the topology
+    guard (MeshLab; ``topology_preserved`` false: it may close small tunnels). The report says how many pieces
+    were dropped (the print model keeps them all and is never decimated without the guard).
     """
     if len(mesh.faces) <= max_triangles:
         return mesh, {"faces": len(mesh.faces), "decimated": False}
-    from engine.stages.decimate import decimate_mesh
+    import warp as wp
+
+    from engine.stages.decimate import decimate_device
     from engine.stages.islands import remove_islands
-    from engine.stages.meshcheck import component_labels
-    from engine.stages.normals import vertex_normals
+    from engine.stages.normals import normals_device
 
-    dv, df, info = decimate_mesh(mesh.vertices, mesh.faces, max_triangles=max_triangles, device=device)
-    keep: int | None = None
-    dropped = 0
-    while len(df) > max_triangles and keep != 1:
-        pieces = component_labels(df, len(dv))[0]
-        if pieces <= 1:
-            break
-        keep = max(1, min(pieces // 2, max_triangles // 200)) if keep is None else max(1, min(keep // 2, pieces - 1))
-        dv, df, isl = remove_islands(dv, df, keep_largest=keep)
-        dropped += int(isl["removed_pieces"])
-        dv, df, info = decimate_mesh(dv, df, max_triangles=max_triangles, device=device)
-    topology_kept = True
-    if len(df) > max_triangles:  # a piece of high genus: this viewing copy may close tunnels to meet the budget
-        from engine.stages.decimate_meshlab import decimate_for_viewing
+    with wp.ScopedDevice(device):
+        pos, faces, stats = decimate_device(
+            wp.array(mesh.vertices, dtype=wp.vec3), wp.array(mesh.faces, dtype=wp.vec3i), max_triangles
+        )
+        passes = stats.passes
+        dv, df = pos.numpy(), faces.numpy().astype(np.int32)  # sync point: the copy is small now
+        keep: int | None = None
+        pieces: int | None = None
+        dropped = 0
+        while len(df) > max_triangles and keep != 1:
+            if pieces is None:
+                from engine.stages.meshcheck import component_labels
 
-        dv, df = decimate_for_viewing(dv, df, max_triangles)
-        topology_kept = False
+                pieces = component_labels(df, len(dv))[0]
+            if pieces <= 1:
+                break
+            keep = (
+                max(1, min(pieces // 2, max_triangles // 200)) if keep is None else max(1, min(keep // 2, pieces - 1))
+            )
+            dv, df, isl = remove_islands(dv, df, keep_largest=keep)
+            dropped += int(isl["removed_pieces"])
+            pieces = int(isl["pieces_after"])
+            pos, faces, stats = decimate_device(
+                wp.array(dv, dtype=wp.vec3), wp.array(df, dtype=wp.vec3i), max_triangles
+            )
+            passes += stats.passes
+            dv, df = pos.numpy(), faces.numpy().astype(np.int32)
+        topology_kept = True
+        if len(df) > max_triangles:  # a piece of high genus: this viewing copy may close tunnels to meet the budget
+            from engine.stages.decimate_meshlab import decimate_for_viewing
+
+            dv, df = decimate_for_viewing(dv, df, max_triangles)
+            topology_kept = False
+            pos, faces = wp.array(dv, dtype=wp.vec3), wp.array(df, dtype=wp.vec3i)
+        normals = normals_device(pos, faces).numpy()
     summary = {
         "faces": len(df),
         "decimated": True,
+        "passes": passes,
         "pieces_dropped": dropped,
         "topology_preserved": topology_kept,
         "over_budget": len(df) > max_triangles,
-        "decimate": info,
     }
-    return Mesh(dv, df, vertex_normals(dv, df, device)), summary
+    return Mesh(np.ascontiguousarray(dv, np.float32), df, normals.astype(np.float32)), summary
 
 
 def write_outputs(

@@ -655,3 +655,113 @@ def bounds_kernel(pos: wp.array(dtype=wp.vec3), box: wp.array(dtype=wp.vec3)):
     v = wp.tid()
     wp.atomic_min(box, 0, pos[v])
     wp.atomic_max(box, 1, pos[v])
+
+
+# ------------------------------------------------------------------------------------------------ diagnostics
+@wp.kernel
+def edge_census(
+    faces: wp.array(dtype=wp.vec3i),
+    offset: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    star: wp.array(dtype=wp.int32),
+    totals: wp.array(dtype=wp.int64),
+):
+    """Per vertex v, over its distinct neighbours w > v: edges, edges in one face (border), in three or more
+    (non-manifold), and in two faces that run them the same way (inconsistent); summed into ``totals[0..3]``."""
+    v = wp.tid()
+    lo = offset[v]
+    n = count[v]
+    edges = int(0)
+    border = int(0)
+    nonmanifold = int(0)
+    inconsistent = int(0)
+    for i in range(n):
+        t = faces[star[lo + i]]
+        for side in range(2):
+            w = next_of(t, v)
+            if side == 1:
+                w = prev_of(t, v)
+            if w <= v or w == v:
+                continue
+            seen = int(0)
+            for j in range(i):
+                if has_vertex(faces[star[lo + j]], w):
+                    seen = 1
+            if side == 1 and next_of(t, v) == w:
+                seen = 1
+            if seen != 0:
+                continue
+            c = int(0)
+            fwd = int(0)
+            for j in range(n):
+                u = faces[star[lo + j]]
+                if has_vertex(u, w):
+                    c += 1
+                    if next_of(u, v) == w:
+                        fwd += 1
+            edges += 1
+            if c == 1:
+                border += 1
+            elif c > 2:
+                nonmanifold += 1
+            elif fwd != 1:
+                inconsistent += 1
+    if edges > 0:
+        wp.atomic_add(totals, 0, wp.int64(edges))
+        wp.atomic_add(totals, 1, wp.int64(border))
+        wp.atomic_add(totals, 2, wp.int64(nonmanifold))
+        wp.atomic_add(totals, 3, wp.int64(inconsistent))
+
+
+@wp.kernel
+def face_measures(
+    pos: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    volume: wp.array(dtype=wp.float64),
+    area: wp.array(dtype=wp.float64),
+    degenerate: wp.array(dtype=wp.float32),
+):
+    """Per face: signed volume a.(b x c)/6 with vertices in (x, y, z) order, area, and whether a vertex repeats."""
+    f = wp.tid()
+    t = faces[f]
+    pa = pos[t[0]]
+    pb = pos[t[1]]
+    pc = pos[t[2]]
+    a = wp.vec3d(wp.float64(pa[2]), wp.float64(pa[1]), wp.float64(pa[0]))
+    b = wp.vec3d(wp.float64(pb[2]), wp.float64(pb[1]), wp.float64(pb[0]))
+    c = wp.vec3d(wp.float64(pc[2]), wp.float64(pc[1]), wp.float64(pc[0]))
+    volume[f] = wp.dot(a, wp.cross(b, c)) / wp.float64(6.0)
+    area[f] = wp.float64(0.5) * wp.length(wp.cross(b - a, c - a))
+    degenerate[f] = 0.0
+    if t[0] == t[1] or t[1] == t[2] or t[0] == t[2]:
+        degenerate[f] = 1.0
+
+
+@wp.kernel
+def hook_labels(faces: wp.array(dtype=wp.vec3i), label: wp.array(dtype=wp.int32), changed: wp.array(dtype=wp.int32)):
+    """Connected components: every face pulls its vertices' labels, and their roots, down to the smallest."""
+    f = wp.tid()
+    t = faces[f]
+    m = wp.min(wp.min(label[t[0]], label[t[1]]), label[t[2]])
+    for k in range(3):
+        r = label[t[k]]
+        if r > m:
+            wp.atomic_min(label, r, m)
+            wp.atomic_min(label, t[k], m)
+            changed[0] = 1
+
+
+@wp.kernel
+def jump_labels(label: wp.array(dtype=wp.int32)):
+    v = wp.tid()
+    r = label[v]
+    while label[r] != r:
+        r = label[r]
+    label[v] = r
+
+
+@wp.kernel
+def count_roots(label: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), roots: wp.array(dtype=wp.int32)):
+    v = wp.tid()
+    if count[v] > 0 and label[v] == v:
+        wp.atomic_add(roots, 0, 1)

@@ -107,3 +107,77 @@ def bbox_centre(pos: Any) -> Any:
     lo, hi = box.numpy().astype(np.float64)  # sync point
     c = 0.5 * (lo + hi)
     return wp.vec3d(float(c[0]), float(c[1]), float(c[2]))
+
+
+def component_labels_device(faces: Any, n_vertices: int) -> Any:
+    """Connected components of a device mesh: per vertex the smallest vertex index of its piece (min-label hooking
+    with pointer jumping; a handful of rounds for any mesh). An unused vertex is its own piece."""
+    import numpy as np
+    import warp as wp
+
+    from engine.kernels import decimate as kd
+
+    label = wp.array(np.arange(n_vertices, dtype=np.int32), device=faces.device)
+    changed = wp.zeros(1, dtype=wp.int32, device=faces.device)
+    while True:
+        changed.zero_()
+        wp.launch(kd.hook_labels, dim=len(faces), inputs=[faces, label, changed], device=faces.device)
+        wp.launch(kd.jump_labels, dim=n_vertices, inputs=[label], device=faces.device)
+        if int(changed.numpy()[0]) == 0:  # sync point
+            return label
+
+
+def mesh_stats_device(pos: Any, faces: Any, inc: Incidence | None = None) -> dict[str, Any]:
+    """``engine.stages.meshcheck.mesh_stats`` of a device mesh, computed on its device (same keys and meaning):
+    only counts and a few numbers come back to the host."""
+    import numpy as np
+    import warp as wp
+
+    from engine.kernels import decimate as kd
+
+    nv, nf = len(pos), len(faces)
+    with wp.ScopedDevice(pos.device):
+        if inc is None:
+            inc = Incidence(nv).build(faces, nf)
+        totals = wp.zeros(4, dtype=wp.int64)
+        wp.launch(kd.edge_census, dim=nv, inputs=[faces, *inc.inputs, totals])
+        vol = wp.empty(nf, dtype=wp.float64)
+        area = wp.empty(nf, dtype=wp.float64)
+        degen = wp.empty(nf, dtype=wp.float32)
+        if nf:
+            wp.launch(kd.face_measures, dim=nf, inputs=[pos, faces, vol, area, degen])
+        volume = float(wp.utils.array_sum(vol)) if nf else 0.0
+        area_sum = float(wp.utils.array_sum(area)) if nf else 0.0
+        degenerate = round(float(wp.utils.array_sum(degen))) if nf else 0
+        classes = np.bincount(vertex_classes(faces, inc).numpy(), minlength=4)
+        label = component_labels_device(faces, nv)
+        roots = wp.zeros(1, dtype=wp.int32)
+        wp.launch(kd.count_roots, dim=nv, inputs=[label, inc.count, roots])
+        components = int(roots.numpy()[0]) + int(classes[3])  # unused vertices count as pieces, as on the host
+        edges, border, nonmanifold, inconsistent = (int(x) for x in totals.numpy())
+        bbox = None
+        if nv:
+            box = wp.array(np.array([[np.inf] * 3, [-np.inf] * 3], np.float32), dtype=wp.vec3)
+            wp.launch(kd.bounds_kernel, dim=nv, inputs=[pos, box])
+            lo, hi = box.numpy()
+            bbox = {"min": [float(x) for x in lo[::-1]], "max": [float(x) for x in hi[::-1]]}
+    edge_ok = nonmanifold == 0 and inconsistent == 0 and degenerate == 0
+    watertight = nf > 0 and border == 0 and nonmanifold == 0
+    vman = bool(classes[2] == 0) if edge_ok and watertight else None
+    return {
+        "n_vertices": nv,
+        "n_faces": nf,
+        "n_edges": edges,
+        "watertight": bool(watertight),
+        "manifold": bool(edge_ok and vman is not False),
+        "vertex_manifold": vman,
+        "boundary_edges": border,
+        "nonmanifold_edges": nonmanifold,
+        "inconsistent_edges": inconsistent,
+        "degenerate_faces": degenerate,
+        "components": components,
+        "euler": int(nv - edges + nf),
+        "volume_mm3": volume,
+        "area_mm2": area_sum,
+        "bbox_mm": bbox,
+    }
