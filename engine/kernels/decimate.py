@@ -376,22 +376,28 @@ def edge_costs(
     quad: wp.array(dtype=quadric),
     origin: wp.vec3d,
     cos_max: wp.float64,
+    dirty: wp.array(dtype=wp.int32),
     key: wp.array(dtype=wp.int32),
     target: wp.array(dtype=wp.vec3),
 ):
     """Per half-edge slot ``3 f + k``: the cost code of collapsing edge (a, b) = (t[k], t[k+1]) when a < b and every
-    guard passes, else ``NO_KEY``; and the new position."""
+    guard passes, else ``NO_KEY``; and the new position. An edge whose ends are both clean (nothing it reads has
+    changed since the last pass, see ``apply_collapses``) keeps its code and position."""
     h = wp.tid()
-    key[h] = NO_KEY
     f = h // 3
     k = h - 3 * f
     t = faces[f]
     if t[0] < 0:
+        key[h] = NO_KEY
         return
     a = t[k]
     b = t[(k + 1) % 3]
     if a > b:
+        key[h] = NO_KEY
         return
+    if dirty[a] == 0 and dirty[b] == 0:
+        return
+    key[h] = NO_KEY
     sa = state[a]
     sb = state[b]
     # r: the removed vertex (always FREE, so its star is one closed fan); s: the survivor
@@ -558,6 +564,25 @@ def release_claims(claim: wp.array(dtype=wp.int64)):
         claim[i] = CLAIM_FREE
 
 
+@wp.kernel
+def winner_histogram(cand: wp.array(dtype=wp.int32), key: wp.array(dtype=wp.int32), hist: wp.array(dtype=wp.int32)):
+    h = wp.tid()
+    if cand[h] == 2:
+        wp.atomic_add(hist, key[h] >> HIST_SHIFT, 1)
+
+
+@wp.kernel
+def trim_winners(cand: wp.array(dtype=wp.int32), key: wp.array(dtype=wp.int32), bin_below: int, frac_bits: wp.int64):
+    """Keep only the cheapest winners (bins below ``bin_below``, a hashed share of that bin): near the target a
+    pass may collapse no more than what is left to do."""
+    h = wp.tid()
+    if cand[h] != 2:
+        return
+    b = key[h] >> HIST_SHIFT
+    if b > bin_below or (b == bin_below and mix32(h) >= frac_bits):
+        cand[h] = 0
+
+
 # ------------------------------------------------------------------------------------------------ collapse
 @wp.kernel
 def apply_collapses(
@@ -571,7 +596,11 @@ def apply_collapses(
     quad: wp.array(dtype=quadric),
     pos: wp.array(dtype=wp.vec3),
     removed_faces: wp.array(dtype=wp.int32),
+    dirty: wp.array(dtype=wp.int32),
 ):
+    """Collapse every winner: the survivor takes the position and both quadrics, the removed vertex's star is
+    rewritten. Marks dirty every vertex of the survivor's new star and their neighbours: exactly the edges whose
+    stars, positions, quadrics or opposite vertices' face counts changed have a dirty end."""
     h = wp.tid()
     if cand[h] != 2:
         return
@@ -599,6 +628,21 @@ def apply_collapses(
                 if u[j] == r:
                     u[j] = s
             faces[fi] = u
+    # the changed stars' vertices (r's and s's old stars: s, r and their neighbours) and their neighbours
+    for e in range(2):
+        c = ends[e]
+        for i in range(count[c]):
+            u = faces[star[offset[c] + i]]
+            for j in range(3):
+                w = u[j]
+                if w >= 0:
+                    dirty[w] = 1
+                    for m in range(count[w]):
+                        x = faces[star[offset[w] + m]]
+                        if x[0] >= 0:
+                            dirty[x[0]] = 1
+                            dirty[x[1]] = 1
+                            dirty[x[2]] = 1
 
 
 # ------------------------------------------------------------------------------------------------ compaction

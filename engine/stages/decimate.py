@@ -41,9 +41,10 @@ from engine.stages.devmesh import (
 from engine.stages.meshcheck import component_labels, edge_report, validate_mesh
 
 TOLERANCE = 0.05  # a closed result this far over the target is reported as limited by the guards
-STOP_TOLERANCE = 0.005  # passes stop within this fraction over the target
+STOP_TOLERANCE = 0.0  # passes stop within this fraction over the target
+OVERSHOOT = 4  # near the target, this many candidates per collapse still needed (the surplus winners are trimmed)
 MAX_NORMAL_TURN_DEG = 60.0  # largest turn of a face normal in one collapse (a flip turns 180)
-CANDIDATE_FRACTION = 0.2  # share of the collapsible edges (cheapest first) that compete in a pass
+CANDIDATE_FRACTION = 0.3  # share of the collapsible edges (cheapest first) that compete in a pass
 CLAIM_ROUNDS = 3
 MAX_PASSES = 400
 HIST_BINS = 1 << 16
@@ -89,6 +90,16 @@ def target_faces(n_faces: int, reduction: float | None, max_triangles: int | Non
     if isinstance(max_triangles, bool) or int(max_triangles) != max_triangles or max_triangles < 1:
         raise ValueError(f"max_triangles must be an integer >= 1, got {max_triangles}")
     return int(max_triangles)
+
+
+def _quantile(hist: np.ndarray, m: int) -> tuple[int, int]:
+    """The cost bin holding the ``m``-th cheapest entry of a histogram, and the share of that bin (of 2^32) that
+    brings the count to about ``m``."""
+    cum = np.cumsum(hist, dtype=np.int64)
+    kbin = min(int(np.searchsorted(cum, m)), len(hist) - 1)
+    below = int(cum[kbin - 1]) if kbin else 0
+    frac_bits = min(max(m - below, 0) * (1 << 32) // max(int(hist[kbin]), 1), 1 << 32)
+    return kbin, frac_bits
 
 
 class _Clock:
@@ -165,6 +176,7 @@ def decimate_device(
         counter = wp.zeros(1, dtype=wp.int32)
         removed = wp.zeros(1, dtype=wp.int32)
         key = target_pos = cand = None
+        dirty = wp.ones(nv, dtype=wp.int32)
         stats.stopped = "target reached"
         while True:
             needed = (alive - target) // 2
@@ -184,7 +196,7 @@ def decimate_device(
             wp.launch(
                 kd.edge_costs,
                 dim=slots,
-                inputs=[pos, faces, *inc.inputs, state, quad, origin, cos_max, key, target_pos],
+                inputs=[pos, faces, *inc.inputs, state, quad, origin, cos_max, dirty, key, target_pos],
             )
             clock.tick("edge_costs")
             hist.zero_()
@@ -195,11 +207,8 @@ def decimate_device(
             if n_valid == 0:
                 stats.stopped = "no edge may collapse (guards)"
                 break
-            m = max(1, min(int(candidate_fraction * n_valid), needed))
-            cum = np.cumsum(h, dtype=np.int64)
-            kbin = int(np.searchsorted(cum, m))
-            below = int(cum[kbin - 1]) if kbin else 0
-            frac_bits = min((m - below) * (1 << 32) // max(int(h[kbin]), 1), 1 << 32)
+            m = max(1, min(int(candidate_fraction * n_valid), OVERSHOOT * needed))
+            kbin, frac_bits = _quantile(h, m)
             wp.launch(kd.select_candidates, dim=slots, inputs=[key, kbin, wp.int64(frac_bits), cand])
             claim = wp.full(len(faces), kd.CLAIM_FREE, dtype=wp.int64)
             counter.zero_()
@@ -207,22 +216,35 @@ def decimate_device(
                 wp.launch(kd.claim_stars, dim=slots, inputs=[cand, key, faces, *inc.inputs, claim])
                 wp.launch(kd.settle_claims, dim=slots, inputs=[cand, key, faces, *inc.inputs, claim, counter])
                 wp.launch(kd.release_claims, dim=len(claim), inputs=[claim])
+            won = int(counter.numpy()[0])  # sync point
+            for _ in range(3):  # keep no more than the collapses still needed, cheapest first
+                if won <= needed:
+                    break
+                hist.zero_()
+                wp.launch(kd.winner_histogram, dim=slots, inputs=[cand, key, hist])
+                kbin, frac_bits = _quantile(hist.numpy(), needed)
+                wp.launch(kd.trim_winners, dim=slots, inputs=[cand, key, kbin, wp.int64(frac_bits)])
+                hist.zero_()
+                wp.launch(kd.winner_histogram, dim=slots, inputs=[cand, key, hist])
+                won = int(hist.numpy().sum())
             clock.tick("claims")
+            dirty.zero_()
             removed.zero_()
             wp.launch(
                 kd.apply_collapses,
                 dim=slots,
-                inputs=[cand, target_pos, faces, *inc.inputs, state, quad, pos, removed],
+                inputs=[cand, target_pos, faces, *inc.inputs, state, quad, pos, removed, dirty],
             )
             n_removed = int(removed.numpy()[0])  # sync point
             stats.passes += 1
-            stats.collapses.append(int(counter.numpy()[0]))
+            stats.collapses.append(won)
             alive -= n_removed
             clock.tick("apply")
             if on_pass is not None:
                 on_pass(alive)
             if alive < len(faces) // 2:
                 faces = compact_faces(faces, alive)
+                dirty.fill_(1)  # new slots: every edge is priced again
         if alive < len(faces):
             faces = compact_faces(faces, alive)
         out_pos, out_faces = compact_vertices(pos, faces)
@@ -259,7 +281,10 @@ def price_edges(
         key = wp.empty(3 * len(faces), dtype=wp.int32)
         target = wp.empty(3 * len(faces), dtype=wp.vec3)
         cos_max = wp.float64(math.cos(math.radians(max_normal_turn_deg)))
-        wp.launch(kd.edge_costs, dim=len(key), inputs=[pos, f, *inc.inputs, state, quad, origin, cos_max, key, target])
+        dirty = wp.ones(len(verts), dtype=wp.int32)
+        wp.launch(
+            kd.edge_costs, dim=len(key), inputs=[pos, f, *inc.inputs, state, quad, origin, cos_max, dirty, key, target]
+        )
         codes = key.numpy()
     out: dict[tuple[int, int], int] = {}
     for h, c in enumerate(codes):
