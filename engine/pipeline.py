@@ -1,6 +1,7 @@
 """The EMC33 pipeline: volume in, mesh and report out (``reconstruct``), and the output files (``write_outputs``).
 
-Stages, in order (``STAGES``): preprocess (host, optional), upload, gaussian (device), isosurface (MC33, device),
+Stages, in order (``STAGES``): preprocess (host: optional crop and slice filters, then the body mask of
+``engine.stages.bodymask`` for HU data), upload, gaussian (device), isosurface (MC33, device),
 islands (host, optional), decimate (host, quadric error), smooth (device, surface-preserving Laplacian),
 normals (device). A failing stage raises ``StageError`` naming it (or the raw error with ``BONEMESH_DEBUG=1``);
 bad input raises ``InputError``.
@@ -21,7 +22,9 @@ from typing import Any
 import numpy as np
 
 from engine.errors import EngineError, InputError
-from engine.params import ISO_PRESETS_HU, ReconParams
+from engine.level import EmptySurfaceError, choose_level, hu_offset
+from engine.params import ReconParams
+from engine.progress import StageProgress
 from engine.types import Mesh, Volume
 
 STAGES = ("preprocess", "upload", "gaussian", "isosurface", "islands", "decimate", "smooth", "normals")
@@ -36,43 +39,12 @@ class StageError(EngineError):
         self.stage = stage
 
 
-class EmptySurfaceError(InputError):
-    """The iso level does not cross the data: there is no surface to build."""
-
-
 @dataclass
 class Reconstruction:
     """The result: the final mesh (with normals) and a JSON-able report."""
 
     mesh: Mesh
     report: dict[str, Any] = field(default_factory=dict)
-
-
-def choose_level(volume: Volume, params: ReconParams) -> tuple[float, str]:
-    """The iso level in the volume's units and how it was chosen."""
-    iso = params.iso
-    if iso.iso is not None:
-        return float(iso.iso), "given"
-    preset = iso.preset
-    if preset is None and volume.units == "HU":
-        preset = "bone"
-    if preset is not None:
-        hu = ISO_PRESETS_HU[preset]
-        if volume.units == "HU":
-            return hu, f"preset {preset} ({hu:g} HU)"
-        if iso.hu_offset is not None:
-            return hu + iso.hu_offset, f"preset {preset} ({hu:g} HU + offset {iso.hu_offset:g})"
-        raise InputError(
-            f"preset '{preset}' is in HU but this volume is not calibrated in HU: give --iso in its units, "
-            "or --hu-offset if it stores HU plus an offset (1024 for most PNG exports)"
-        )
-    from skimage.filters import threshold_otsu
-
-    step = max(1, round((volume.data.size / 4_000_000) ** (1 / 3)))
-    sample = volume.data[::step, ::step, ::step]
-    if sample.min() == sample.max():
-        raise EmptySurfaceError(f"the volume is constant ({sample.min()}): there is no surface to build")
-    return float(threshold_otsu(sample.ravel())), "Otsu"
 
 
 def _versions() -> dict[str, str]:
@@ -96,10 +68,12 @@ def reconstruct(
         volume: the scan (see ``engine.types.Volume``).
         params: pipeline parameters (defaults: the paper's best combination).
         device: "auto", "cpu", "cuda" or "cuda:N".
-        on_progress: called as ``on_progress(stage, fraction_done)`` when a stage starts and ends.
+        on_progress: called as ``on_progress(stage, fraction_done)`` when a stage starts and ends (and inside long
+            stages); the fraction weights stages by their expected time (``engine.progress``).
 
     Returns:
-        The final mesh (vertices (z, y, x) mm, outward faces, unit vertex normals) and the report.
+        The final mesh (vertices (z, y, x) mm in the grid, outward faces, unit vertex normals) and the report; the
+        report's ``frame`` maps the grid to the patient frame (``engine.orient``, applied by ``write_outputs``).
 
     Raises:
         InputError: the volume or parameters cannot give a model (EmptySurfaceError: no surface at the level).
@@ -124,12 +98,10 @@ def reconstruct(
         "counts": {},
     }
     state: dict[str, Any] = {"volume": volume}
-    done = 0
+    progress = StageProgress(STAGES, on_progress)  # weighted by expected time; progress.inside(stage) for passes
 
     def run(name: str, fn: Callable[[], None]) -> None:
-        nonlocal done
-        if on_progress:
-            on_progress(name, done / len(STAGES))
+        progress.start(name)
         t0 = time.perf_counter()
         try:
             fn()
@@ -140,16 +112,22 @@ def reconstruct(
                 raise
             raise StageError(name, exc) from exc
         report["stage_seconds"][name] = time.perf_counter() - t0
-        done += 1
-        if on_progress:
-            on_progress(name, done / len(STAGES))
+        progress.end(name)
 
     def preprocess() -> None:
+        from engine.orient import patient_frame
         from engine.stages.preprocess import preprocess_volume
 
         if params.preprocess is not None:
             state["volume"] = preprocess_volume(state["volume"], params.preprocess)
         report["counts"]["voxels"] = int(state["volume"].data.size)
+        report["frame"] = patient_frame(state["volume"], params.orient).to_dict()  # engine.orient: STL/glTF frames
+        if params.body is not None:  # bone of the body only (HU data): engine.stages.bodymask
+            from engine.stages.bodymask import isolate_bone
+
+            level = choose_level(state["volume"], params)[0]
+            offset = hu_offset(state["volume"], params)
+            state["volume"], report["body_mask"] = isolate_bone(state["volume"], level, params.body, offset)
 
     def upload() -> None:
         import warp as wp
@@ -203,13 +181,13 @@ def reconstruct(
         v, f, info = remove_islands(
             state["verts"],
             state["faces"],
-            min_volume_mm3=params.islands.min_volume_mm3,
+            min_volume_mm3=params.islands.min_volume_for(state["volume"].spacing_zyx_mm),
             keep_largest=params.islands.keep_largest,
         )
         if len(f) == 0:
             raise EmptySurfaceError("island removal left nothing: lower --min-island-mm3 or keep more pieces")
         state["verts"], state["faces"] = v, f
-        report["islands"] = info
+        report["islands"] = {**info, "min_volume_mm3": params.islands.min_volume_for(state["volume"].spacing_zyx_mm)}
         report["counts"]["islands"] = {"vertices": len(v), "faces": len(f)}
 
     def decimate() -> None:
@@ -316,12 +294,15 @@ def write_outputs(
     out.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".bonemesh-", dir=out))
     try:
-        m = recon.mesh
+        from engine.orient import export_meshes
+
+        # the STL in patient LPS mm, the glTF files in patient axes centred on the model (engine.orient)
+        p, m, recon.report["frame"] = export_meshes(recon.mesh, recon.report.get("frame"))
         phone, phone_info = _budget_mesh(m, params.export.phone_max_triangles, dev)
         ar, ar_info = _budget_mesh(phone, params.export.ar_max_triangles, dev)
         recon.report["exports"] = {"phone.glb": phone_info, "ar.glb": ar_info}
         files = {
-            "model.stl": to_stl(m.vertices, m.faces),
+            "model.stl": to_stl(p.vertices, p.faces, header="bonemesh model, patient LPS frame, mm"),
             "model.glb": to_glb(m.vertices, m.faces, m.normals),
             "phone.glb": to_draco_glb(phone.vertices, phone.faces, phone.normals),
             "ar.glb": to_glb(ar.vertices, ar.faces, ar.normals),

@@ -231,6 +231,7 @@ def _build(
         direction=direction,
         units=units,
         source=source,
+        patient_frame=bool(geo.get("oriented", False)),
     )
 
 
@@ -256,6 +257,7 @@ def _geometry(series: list[_Slice], label: str, call: tuple[float, float, float]
                     f"{s.member.name}); such a series cannot be put on one grid (localizer mixed in, or a "
                     "variable-tilt acquisition): export the axial series on its own"
                 )
+        geo["oriented"] = True  # origin and axes in the patient frame (LPS), from the headers
         row, col = iop0[:3] / np.linalg.norm(iop0[:3]), iop0[3:] / np.linalg.norm(iop0[3:])
         if abs(float(row @ col)) > 1e-3:
             raise InputError(f"{label}: ImageOrientationPatient rows and columns are not perpendicular ({iop0})")
