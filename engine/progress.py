@@ -42,10 +42,10 @@ class StageProgress:
         w = STAGE_WEIGHTS if weights is None else weights
         self._weight = {s: max(0.0, float(w.get(s, 1.0))) for s in stages}
         total = sum(self._weight.values()) or 1.0
-        self._start: dict[str, float] = {}
+        self._start: dict[str, float] = {}  # weight done before each stage
         acc = 0.0
         for s in stages:
-            self._start[s] = acc / total
+            self._start[s] = acc
             acc += self._weight[s]
         self._total = total
         self._cb = on_progress
@@ -58,12 +58,12 @@ class StageProgress:
 
     def start(self, stage: str) -> None:
         """The stage begins."""
-        self._emit(stage, self._start[stage])
+        self._emit(stage, self._start[stage] / self._total)
 
     def within(self, stage: str, fraction: float) -> None:
         """The stage is ``fraction`` (0..1) done: the callback a long stage calls (slices, passes)."""
         f = min(1.0, max(0.0, float(fraction)))
-        self._emit(stage, self._start[stage] + f * self._weight[stage] / self._total)
+        self._emit(stage, (self._start[stage] + f * self._weight[stage]) / self._total)  # exactly 1.0 at the end
 
     def end(self, stage: str) -> None:
         """The stage is done."""

@@ -45,7 +45,7 @@ def test_couch_and_holder_are_removed_and_reported():
 def test_hu_plus_offset_stacks_use_the_offset_and_raw_data_are_left_alone():
     stored = (patient_on_a_couch() + 1024).astype(np.uint16)
     vol = Volume(stored, SP)
-    out, info = isolate_bone(vol, 1324.0, BodyMaskParams(), hu_offset=1024.0)
+    _out, info = isolate_bone(vol, 1324.0, BodyMaskParams(), hu_offset=1024.0)
     assert info["pieces_removed"] == 2 and info["outline_stored"] == 524.0
     same, skipped = isolate_bone(vol, 1324.0, BodyMaskParams(), hu_offset=None)
     assert same is vol and not skipped["applied"] and "not in HU" in skipped["reason"]

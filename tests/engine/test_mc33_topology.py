@@ -10,8 +10,8 @@ import pytest
 from engine.io.stack import load_slice_zip
 from engine.isosurface import IsosurfaceStats, marching_cubes_33
 from tests.conftest import shared_file
-from tests.engine.scans import scan_file
 from tests.engine.meshutil import assert_closed_manifold, assert_valid_mesh, refine_trilinear, topology
+from tests.engine.scans import scan_file
 
 # (folder, zip, level, components, Euler characteristic): closed surfaces, trilinear truth from the issue
 CT_TRUTH = [
