@@ -142,8 +142,10 @@ class _Sweep:
     def params(self, enhanced: bool, reduction: float | None = None, iterations: int | None = None) -> Any:
         from engine.params import DecimateParams, GaussianParams, IsoParams, ReconParams, SmoothParams
 
-        return ReconParams(
+        return ReconParams(  # the paper's rows: every piece kept (no body mask, no speck removal)
             iso=IsoParams(iso=self.level, closed=True),
+            islands=None,
+            body=None,
             gaussian=GaussianParams() if enhanced else None,
             decimate=DecimateParams(reduction=reduction) if reduction is not None else None,
             smooth=SmoothParams(iterations=iterations, angle_deg=self.cfg.angle_deg) if iterations else None,
