@@ -106,7 +106,7 @@ def test_rgb_becomes_luminance_with_one_warning(tmp_path: Path) -> None:
 
 
 def test_missing_spacing_says_how_to_give_it(tmp_path: Path) -> None:
-    with pytest.raises(InputError, match=r"spacing_zyx_mm=\(z, y, x\) \(CLI: --spacing Z,Y,X\)"):
+    with pytest.raises(InputError, match=r"spacing_zyx_mm=\(z, y, x\) \(CLI: --voxel-size X,Y,Z or --spacing Z,Y,X\)"):
         load_volume(_write(tmp_path / "s.zip", _slices(_vol(2), ".png"), "zip"))
     with pytest.raises(InputError, match="three positive numbers"):
         load_volume(tmp_path / "s.zip", spacing_zyx_mm=(1, 0, 1))
