@@ -8,7 +8,8 @@ Frames, all right-handed:
   ``model.stl`` is written in it. A DICOM series places its grid there with ImagePositionPatient (the origin) and
   ImageOrientationPatient (the axes): ``p = origin + direction @ (x, y, z)``. An image stack carries no
   orientation and follows ``OrientParams``: by default the DICOM axial display (column index toward the
-  patient's left, row index posterior) with the first slice superior; the stack's first sample is the origin.
+  patient's left, row index posterior) with the first slice superior; its box keeps its place, from 0 to its
+  extent on every axis (a reversed axis counts from the far end).
 * **glTF**: metres, +Y superior, +Z anterior (the patient faces +Z, toward the default camera), +X the patient's
   left, centred on the model's bounding box: ``g = 0.001 * R @ (p - centre)`` with ``R`` the rotation of
   ``engine.export.glb`` (x, y, z) -> (x, z, -y). ``model.glb``, ``phone.glb`` and ``ar.glb`` share the centre,
@@ -95,10 +96,11 @@ def patient_frame(volume: Volume, orient: OrientParams | None = None) -> Frame:
         return Frame(matrix, np.asarray(volume.origin_mm, dtype=np.float64), "DICOM ImagePositionPatient/Orientation")
     o = orient or OrientParams()
     superior_first = o.first_slice == "superior"
-    matrix = np.diag([-1.0 if o.flip_lr else 1.0, -1.0 if o.flip_ap else 1.0, -1.0 if superior_first else 1.0])
-    # a stack's origin_mm is a shift along its own axes (a crop): keep it, in the stack's frame
-    offset = matrix @ np.asarray(volume.origin_mm, dtype=np.float64)
-    return Frame(matrix, offset, describe_stack_convention(o))
+    signs = np.array([-1.0 if o.flip_lr else 1.0, -1.0 if o.flip_ap else 1.0, -1.0 if superior_first else 1.0])
+    # the stack's box stays where it was, from 0 to its extent on every axis: a reversed axis starts at the far end
+    extent_xyz = np.array([(n - 1) * s for n, s in zip(volume.data.shape, volume.spacing_zyx_mm, strict=True)])[::-1]
+    offset = np.where(signs < 0, extent_xyz, 0.0) + signs * np.asarray(volume.origin_mm, dtype=np.float64)
+    return Frame(np.diag(signs), offset, describe_stack_convention(o))
 
 
 def to_patient(mesh: Mesh, frame: Frame) -> Mesh:

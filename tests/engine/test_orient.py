@@ -42,6 +42,9 @@ def test_stack_convention_puts_the_head_up_and_the_face_forward(orient, up, fron
     patient = to_patient(grid, frame)
     assert signed_volume(patient.vertices, patient.faces) > 0  # outward after the map, mirrored or not
     np.testing.assert_allclose(signed_volume(patient.vertices, patient.faces), signed_volume(v, f), rtol=1e-5)
+    extent_xyz = (np.array(vol.data.shape) - 1)[::-1] * np.array(SPACING)[::-1]
+    lps = patient.vertices[:, ::-1]
+    assert (lps.min(axis=0) >= -1e-4).all() and (lps.max(axis=0) <= extent_xyz + 1e-4).all()  # the stack's box
     g = zyx_to_gltf(patient.vertices)  # glTF X, Y, Z
     idx = {axis: int(np.argmin(v[:, k])) for k, axis in enumerate("zyx")}
     if up is not None:
