@@ -48,10 +48,17 @@ def _inputs(data_dir: Path, phantom_shape: tuple[int, int, int] | None) -> dict[
     return out
 
 
-def _bench(volume: Volume, device: str, repeat: int) -> dict[str, Any]:
+# "paper": the paper's pipeline (Gaussian, MC33, decimation 0.2, one smoothing iteration), no cleaning;
+# "product": the product's defaults (also the body mask and speck removal)
+CONFIGS = {
+    "paper": ReconParams(iso=IsoParams(preset="bone", hu_offset=1024.0), body=None, islands=None),
+    "product": ReconParams(iso=IsoParams(preset="bone", hu_offset=1024.0)),
+}
+
+
+def _bench(volume: Volume, device: str, repeat: int, params: ReconParams) -> dict[str, Any]:
     from engine.pipeline import reconstruct, write_outputs
 
-    params = ReconParams(iso=IsoParams(preset="bone", hu_offset=1024.0))
     # warm-up (kernel compilation) on the first slices only: a full extra run of a 1 G voxel job costs minutes
     nz = volume.data.shape[0]
     warm = dataclasses.replace(volume, data=volume.data[nz // 2 - min(24, nz // 2) : nz // 2 + min(24, nz // 2)])
@@ -61,7 +68,8 @@ def _bench(volume: Volume, device: str, repeat: int) -> dict[str, Any]:
         t0 = time.perf_counter()
 
         def progress(stage: str, fraction: float, t0: float = t0) -> None:
-            print(f"    {time.perf_counter() - t0:8.2f} s  {stage} {fraction:.2f}", flush=True)
+            if fraction in (0.0, 1.0) or stage != "decimate":
+                print(f"    {time.perf_counter() - t0:8.2f} s  {stage} {fraction:.2f}", flush=True)
 
         recon = reconstruct(volume, params, device=device, on_progress=progress)
         runs.append((time.perf_counter() - t0, recon))
@@ -78,11 +86,14 @@ def _bench(volume: Volume, device: str, repeat: int) -> dict[str, Any]:
         "reconstruct_seconds": seconds,
         "reconstruct_seconds_all": [r[0] for r in runs],
         "stage_seconds": rep["stage_seconds"],
+        "finish_seconds": rep.get("finish_seconds"),
         "write_outputs_seconds": write_s,
         "counts": rep["counts"],
         "exports": rep.get("exports"),
         "decimate": rep.get("decimate"),
         "mesh": rep["mesh"],
+        "islands": rep.get("islands"),
+        "body_mask": rep.get("body_mask"),
         "iso_level": rep["iso_level"],
         "device": rep["device"],
     }
@@ -98,13 +109,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
     parser.add_argument("--phantom", default=None, help="phantom shape Z,Y,X (default: none)")
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--config", default="paper", choices=sorted(CONFIGS), help="parameters (see CONFIGS)")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     shape = tuple(int(s) for s in args.phantom.split(",")) if args.phantom else None
     results = {}
     for name, vol in _inputs(args.data, shape).items():  # type: ignore[arg-type]
         print(f"[pipeline] {name} {vol.data.shape}", flush=True)
-        results[name] = _bench(vol, args.device, args.repeat)
+        results[name] = _bench(vol, args.device, args.repeat, CONFIGS[args.config])
         r = results[name]
         stages = ", ".join(f"{k} {v:.3f}" for k, v in r["stage_seconds"].items())
         print(
@@ -117,7 +129,8 @@ def main(argv: list[str] | None = None) -> int:
         "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "device": args.device,
         "timing": f"median of {args.repeat} after 1 warm-up; stage times of the median run",
-        "parameters": ReconParams(iso=IsoParams(preset="bone", hu_offset=1024.0)).to_dict(),
+        "config": args.config,
+        "parameters": CONFIGS[args.config].to_dict(),
         "results": results,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -1,18 +1,22 @@
-"""The ``bonemesh`` command line.
+"""The ``bonemesh`` command line (the engine's commands; ``service.cli`` adds ``serve`` and ``worker``).
 
-    bonemesh reconstruct INPUT -o OUTDIR [--iso V | --preset bone] [--spacing Z,Y,X] [--reduction R]
-                         [--max-triangles N] [--iterations N] [--angle DEG] [--min-island-mm3 V] [--device ...]
+    bonemesh reconstruct INPUT -o OUTDIR [--voxel-size X,Y,Z | --spacing Z,Y,X] [--iso V | --preset bone ...]
+                         [--first-slice superior|inferior] [--flip-lr] [--flip-ap] [--reduction R] ...
     bonemesh reconstruct --demo -o OUTDIR
-    bonemesh isosurface INPUT -o OUT.stl --iso LEVEL [--spacing Z,Y,X] [--device auto|cpu|cuda:N] [--open]
+    bonemesh isosurface INPUT -o OUT.stl --iso LEVEL [--voxel-size X,Y,Z | --spacing Z,Y,X] [--device ...] [--open]
     bonemesh isosurface --demo -o OUT.stl
+    bonemesh sweep ...   (engine.cli_sweep)
 
-INPUT is a zip of 2-D slices (natural name order) or a ``.npy`` volume in (z, y, x) order. Exit codes: 0 done,
-2 bad input (one-line reason on stderr, no output file), 1 internal error.
+INPUT is anything ``engine.io.load_volume`` reads: a DICOM series (zip or folder), an archive or folder of
+slice images, a multi-page TIFF or a ``.npy`` (z, y, x) volume. Arguments are parsed in ``engine.cli_args`` (their
+defaults come from ``engine.params``). Exit codes: 0 done, 2 bad input (one-line reason on stderr, no output
+file), 1 internal error.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import tempfile
@@ -20,201 +24,179 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from engine.cli_args import (
+    add_input_args,
+    add_orient_args,
+    add_recon_args,
+    describe_voxel_size,
+    load_input,
+    orient_params,
+    output_file,
+    output_folder,
+    recon_params,
+)
 from engine.errors import InputError
-from engine.params import ISO_PRESETS_HU
+from engine.progress import Progress
+from engine.types import Volume
 
-
-def _spacing(text: str) -> tuple[float, float, float]:
-    try:
-        parts = tuple(float(p) for p in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected Z,Y,X in mm, got {text!r}") from None
-    if len(parts) != 3 or not all(p > 0 for p in parts):
-        raise argparse.ArgumentTypeError(f"expected three positive numbers Z,Y,X in mm, got {text!r}")
-    return parts  # type: ignore[return-value]
-
-
-def add_level_args(parser: argparse.ArgumentParser) -> None:
-    """``--iso`` or ``--preset`` (with ``--hu-offset``): the iso level, for ``reconstruct`` and ``sweep``."""
-    level = parser.add_mutually_exclusive_group()
-    level.add_argument("--iso", type=float, help="iso level in the volume's units")
-    level.add_argument("--preset", choices=sorted(ISO_PRESETS_HU), help="HU preset (bone = 300 HU)")
-    parser.add_argument("--hu-offset", type=float, help="the stack stores HU + this offset (e.g. 1024), for --preset")
+LOAD_SHARE = 0.1  # the bar's share for loading the input (the pipeline weights its own stages)
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``bonemesh`` parser with the engine's subcommands."""
+    from engine.cli_sweep import add_parser as add_sweep_parser
+
     parser = argparse.ArgumentParser(prog="bonemesh", description="Bone surface models from CT slice stacks.")
     sub = parser.add_subparsers(dest="command", required=True)
     iso = sub.add_parser("isosurface", help="extract a Marching Cubes 33 surface and write a binary STL (mm)")
-    iso.add_argument("input", nargs="?", help="zip of slice images, or a .npy volume (z, y, x)")
-    iso.add_argument("-o", "--output", required=True, help="output .stl path")
+    add_input_args(iso, "output .stl path")
     iso.add_argument("--iso", type=float, help="iso level in the volume's units")
-    iso.add_argument("--spacing", type=_spacing, help="voxel size Z,Y,X in mm (required for slice stacks)")
-    iso.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default auto)")
+    add_orient_args(iso)
     iso.add_argument("--open", action="store_true", help="do not close the surface at the volume's borders")
     iso.add_argument("--demo", action="store_true", help="use the bundled VTK headsq CT head at its bone level")
 
     rec = sub.add_parser("reconstruct", help="the EMC33 pipeline: model.stl, model.glb, phone.glb, ar.glb, report")
-    rec.add_argument("input", nargs="?", help="slice archive or folder, DICOM series (zip or folder), TIFF or .npy")
-    rec.add_argument("-o", "--output", required=True, help="output folder")
-    add_level_args(rec)
-    rec.add_argument("--spacing", type=_spacing, help="voxel size Z,Y,X in mm (image stacks without it)")
-    rec.add_argument("--reduction", type=float, help="fraction of faces kept by decimation (default 0.2)")
-    rec.add_argument("--max-triangles", type=int, help="decimate to at most this many triangles instead")
-    rec.add_argument("--iterations", type=int, default=1, help="Laplacian smoothing iterations (default 1)")
-    rec.add_argument("--angle", type=float, default=0.5, help="smoothing threshold angle in degrees (default 0.5)")
-    rec.add_argument("--min-island-mm3", type=float, help="drop pieces smaller than this volume")
-    rec.add_argument("--keep-largest", type=int, help="keep only the N largest pieces")
-    rec.add_argument("--open", action="store_true", help="do not close the surface at the volume's borders")
-    rec.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default auto)")
+    add_input_args(rec, "output folder")
+    add_recon_args(rec)
     rec.add_argument("--demo", action="store_true", help="use the bundled VTK headsq CT head")
-    rec.add_argument("--quiet", action="store_true", help="no progress bars")
-
-    from engine.sweep import add_parser as add_sweep_parser
-
+    rec.add_argument("--quiet", action="store_true", help="no progress bar")
     add_sweep_parser(sub)
     return parser
 
 
-def _load(args: argparse.Namespace) -> tuple[np.ndarray, float, tuple[float, float, float]]:
-    if args.demo:
-        from engine.data import HEADSQ_BONE_LEVEL, HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
-        from engine.io.stack import load_slice_zip
-
-        level = HEADSQ_BONE_LEVEL if args.iso is None else args.iso
-        return load_slice_zip(HEADSQ_ZIP), level, args.spacing or HEADSQ_SPACING_ZYX_MM
-    if not args.input:
-        raise InputError("no INPUT given (or use --demo)")
-    path = Path(args.input)
-    if not path.is_file():
-        raise InputError(f"{path} does not exist or is not a file")
-    if args.iso is None:
-        raise InputError("--iso LEVEL is required (the iso value in the volume's units)")
-    if path.suffix.lower() == ".npy":
-        try:
-            volume = np.load(path, allow_pickle=False)
-        except ValueError as exc:
-            raise InputError(f"{path} is not a readable .npy array: {exc}") from None
-    else:
-        import zipfile
-
-        from engine.io.stack import load_slice_zip
-
-        if not zipfile.is_zipfile(path):
-            raise InputError(f"{path} is neither a zip of slice images nor a .npy volume")
-        try:
-            volume = load_slice_zip(path)
-        except ValueError as exc:
-            raise InputError(str(exc)) from None
-    if args.spacing is None:
-        raise InputError("--spacing Z,Y,X (mm) is required: the voxel size decides the model's size")
-    return volume, args.iso, args.spacing
-
-
-def _isosurface(args: argparse.Namespace) -> int:
-    from engine.export.stl import to_stl
-    from engine.isosurface import marching_cubes_33
-
-    volume, level, spacing = _load(args)
-    out = Path(args.output)
-    if out.suffix.lower() != ".stl":
-        raise InputError(f"expected an output path ending in .stl, got {out}")
-    start = time.perf_counter()
-    try:
-        verts, faces = marching_cubes_33(volume, level, spacing=spacing, device=args.device, closed=not args.open)
-    except ValueError as exc:
-        raise InputError(str(exc)) from None
-    seconds = time.perf_counter() - start
-    if len(faces) == 0:
-        raise InputError(f"no surface at level {level}: the volume's values do not cross it")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.name}.", suffix=".part")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(to_stl(verts, faces))
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    print(  # noqa: T201 - the command's report
-        f"{out}: {len(verts):,} vertices, {len(faces):,} triangles from a {volume.shape} volume "
-        f"at level {level} in {seconds:.2f} s"
-    )
-    return 0
-
-
-def _recon_params(args: argparse.Namespace) -> Any:
-    from engine.params import DecimateParams, IslandParams, IsoParams, ReconParams, SmoothParams
-
-    try:
-        decimate = DecimateParams(
-            reduction=None if args.max_triangles else (args.reduction or 0.2), max_triangles=args.max_triangles
-        )
-        if args.reduction is not None and args.max_triangles is not None:
-            raise ValueError("give --reduction or --max-triangles, not both")
-        islands = None
-        if args.min_island_mm3 is not None or args.keep_largest is not None:
-            islands = IslandParams(min_volume_mm3=args.min_island_mm3, keep_largest=args.keep_largest)
-        return ReconParams(
-            iso=IsoParams(iso=args.iso, preset=args.preset, hu_offset=args.hu_offset, closed=not args.open),
-            islands=islands,
-            decimate=decimate,
-            smooth=SmoothParams(iterations=args.iterations, angle_deg=args.angle),
-        )
-    except ValueError as exc:
-        raise InputError(str(exc)) from None
-
-
 class _Bar:
-    """One progress bar per stage on stderr."""
+    """One progress bar on stderr for the whole run; errors printed after it start on a new line."""
+
+    open_line = False  # a bar line is on stderr without its newline
 
     def __init__(self, quiet: bool) -> None:
         self.quiet = quiet
         self.t0 = time.perf_counter()
+        self.last: tuple[str, int] | None = None
 
     def __call__(self, stage: str, fraction: float) -> None:
-        if self.quiet:
+        key = (stage, round(fraction * 1000))
+        if self.quiet or key == self.last:
             return
+        self.last = key
         width = 30
         filled = round(fraction * width)
         sys.stderr.write(
             f"\r[{'#' * filled}{'.' * (width - filled)}] {fraction * 100:5.1f}%  {stage:<12s}"
             f" {time.perf_counter() - self.t0:7.2f} s"
         )
-        if fraction >= 1.0:
+        _Bar.open_line = fraction < 1.0
+        if not _Bar.open_line:
             sys.stderr.write("\n")
         sys.stderr.flush()
 
+    @classmethod
+    def end_line(cls) -> None:
+        """End an unfinished bar line, so that what follows starts on its own line."""
+        if cls.open_line:
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+            cls.open_line = False
+
+
+def _isosurface(args: argparse.Namespace) -> int:
+    from engine.export.stl import to_stl
+    from engine.isosurface import marching_cubes_33
+    from engine.orient import patient_frame, to_patient
+    from engine.types import Mesh
+
+    out = output_file(args.output, ".stl")
+    volume, _ = load_input(args)
+    level = args.iso
+    if args.demo and level is None:
+        from engine.data import HEADSQ_BONE_LEVEL
+
+        level = HEADSQ_BONE_LEVEL
+    if level is None:
+        raise InputError("--iso LEVEL is required (the iso value in the volume's units)")
+    start = time.perf_counter()
+    try:
+        verts, faces = marching_cubes_33(
+            volume.data, level, spacing=volume.spacing_zyx_mm, device=args.device, closed=not args.open
+        )
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    seconds = time.perf_counter() - start
+    if len(faces) == 0:
+        raise InputError(f"no surface at level {level}: the volume's values do not cross it")
+    placed = to_patient(Mesh(verts, faces), patient_frame(volume, orient_params(args)))  # LPS mm, as model.stl
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.name}.", suffix=".part")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(to_stl(placed.vertices, placed.faces, header="bonemesh isosurface, patient LPS frame, mm"))
+        os.replace(tmp, out)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    print(  # noqa: T201 - the command's report
+        f"{out}: {len(verts):,} vertices, {len(faces):,} triangles from a {volume.data.shape} volume "
+        f"at level {level} in {seconds:.2f} s"
+    )
+    return 0
+
 
 def _reconstruct(args: argparse.Namespace) -> int:
-    from engine.io import load_volume
+    from engine.level import hu1024_hint
     from engine.pipeline import reconstruct, write_outputs
+    from engine.progress import span
 
-    params = _recon_params(args)
+    params = recon_params(args)
+    out = output_folder(args.output)
+    bar = _Bar(args.quiet)
+    volume, demo_level = load_input(args, on_progress=span(bar, "loading", 0.0, LOAD_SHARE))
     if args.demo:
-        from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
+        from engine.data import HEADSQ_FIRST_SLICE
+        from engine.params import OrientParams
 
-        volume = load_volume(HEADSQ_ZIP, spacing_zyx_mm=args.spacing or HEADSQ_SPACING_ZYX_MM)
+        params = dataclasses.replace(params, orient=OrientParams(first_slice=HEADSQ_FIRST_SLICE))
         if args.iso is None and args.preset is None:
-            import dataclasses
+            params = dataclasses.replace(params, iso=dataclasses.replace(params.iso, iso=demo_level))
+    elif params.iso.iso is None and params.iso.preset is None:
+        hint = hu1024_hint(volume)
+        if hint:
+            _Bar.end_line()
+            print(f"bonemesh: note: {hint}", file=sys.stderr)  # noqa: T201 - said before the long run
+    recon = reconstruct(volume, params, device=args.device, on_progress=_after_loading(bar))
+    paths = write_outputs(recon, out, params, device=args.device)
+    _summary(volume, recon.report, paths)
+    return 0
 
-            params = dataclasses.replace(params, iso=dataclasses.replace(params.iso, iso=1150.0))
-    else:
-        if not args.input:
-            raise InputError("no INPUT given (or use --demo)")
-        if not Path(args.input).exists():
-            raise InputError(f"{args.input} does not exist")
-        volume = load_volume(args.input, spacing_zyx_mm=args.spacing)
-    recon = reconstruct(volume, params, device=args.device, on_progress=_Bar(args.quiet))
-    paths = write_outputs(recon, args.output, params, device=args.device)
-    rep = recon.report
+
+def _after_loading(bar: _Bar) -> Progress:
+    """The pipeline's fraction mapped onto the bar after the loading share."""
+    return lambda stage, fraction: bar(stage, LOAD_SHARE + (1 - LOAD_SHARE) * fraction)
+
+
+def _summary(vol: Volume, rep: dict[str, Any], paths: dict[str, Path]) -> None:
+    frame = rep["frame"]
     rows = [
-        ("input", f"{tuple(volume.data.shape)} {volume.data.dtype}, spacing {tuple(volume.spacing_zyx_mm)} mm"),
+        ("input", f"{tuple(vol.data.shape)} (z, y, x) {vol.data.dtype}, {vol.units}"),
+        ("voxel size", describe_voxel_size(vol.spacing_zyx_mm)),
         ("iso level", f"{rep['iso_level']['value']:g} {rep['iso_level']['units']} ({rep['iso_level']['chosen_by']})"),
+        ("placed by", frame["placed_by"]),
+        ("STL frame", frame["stl"]),
+        ("glTF frame", f"{frame['gltf']} (centre {', '.join(f'{c:g}' for c in frame['gltf_centre_lps_mm'])} mm LPS)"),
         ("device", rep["device"]["name"]),
     ]
+    body = rep.get("body_mask")
+    if body and body.get("applied"):
+        rows.append(
+            (
+                "outside body",
+                f"{body['pieces_removed']} piece(s), {body['volume_removed_mm3']:,.0f} mm3 removed (couch, holders)",
+            )
+        )
+    elif body:
+        rows.append(("body mask", f"not applied: {body['reason']}"))
+    isl = rep.get("islands")
+    if isl:
+        rows.append(("specks", f"{isl['removed_pieces']} piece(s), {isl['removed_volume_mm3']:,.1f} mm3 removed"))
     for stage, secs in rep["stage_seconds"].items():
         counts = rep["counts"].get(stage)
         extra = f"  {counts['faces']:,} faces" if isinstance(counts, dict) and "faces" in counts else ""
@@ -223,7 +205,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
     rows.append(
         (
             "model",
-            f"{mesh['n_faces']:,} faces, watertight {mesh['watertight']}, volume "
+            f"{mesh['n_faces']:,} faces, {mesh['components']} piece(s), watertight {mesh['watertight']}, volume "
             f"{mesh['volume_mm3']:,.0f} mm3, area {mesh['area_mm2']:,.0f} mm2",
         )
     )
@@ -232,10 +214,10 @@ def _reconstruct(args: argparse.Namespace) -> int:
     width = max(len(r[0]) for r in rows)
     for key, value in rows:
         print(f"{key:<{width}}  {value}")  # noqa: T201 - the command's summary table
-    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one command; returns the exit code (0 done, 2 bad input, 1 internal error)."""
     args = build_parser().parse_args(argv)
     try:
         if args.command == "isosurface":
@@ -243,13 +225,15 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "reconstruct":
             return _reconstruct(args)
         if args.command == "sweep":
-            from engine.sweep import run as run_sweep
+            from engine.cli_sweep import run as run_sweep
 
             return run_sweep(args)
     except InputError as exc:
+        _Bar.end_line()
         print(f"bonemesh: error: {exc}", file=sys.stderr)  # noqa: T201
         return 2
     except Exception as exc:
+        _Bar.end_line()
         if os.environ.get("BONEMESH_DEBUG") == "1":
             raise
         print(f"bonemesh: internal error: {type(exc).__name__}: {exc}", file=sys.stderr)  # noqa: T201

@@ -13,6 +13,10 @@ from typing import Any
 
 # lower HU bounds of InVesalius' threshold presets (adult); "bone" is the usual 300 HU
 ISO_PRESETS_HU: dict[str, float] = {"bone": 300.0, "compact-bone": 662.0, "spongy-bone": 148.0}
+# speck removal by default: pieces smaller than this many voxels' volume are dropped (IslandParams)
+DEFAULT_SPECK_VOXELS = 4.0
+# image stacks carry no orientation: which end of the stack is the patient's head (OrientParams)
+FIRST_SLICE_CHOICES = ("superior", "inferior")
 
 
 def _check(cond: bool, message: str) -> None:
@@ -23,6 +27,9 @@ def _check(cond: bool, message: str) -> None:
 @dataclass(frozen=True)
 class PreprocessParams:
     """Optional per-slice preprocessing (the paper's) and a crop box.
+
+    Applied in this order: the crop, then per slice the threshold, the area opening, and Canny last (the
+    opening removes the specks before the edges are traced).
 
     Args:
         threshold: set samples below this value (volume units) to the volume's minimum; None: off.
@@ -90,10 +97,24 @@ class IsoParams:
 
 @dataclass(frozen=True)
 class IslandParams:
-    """Island removal. Args: min_volume_mm3: drop pieces smaller than this; keep_largest: keep the N largest."""
+    """Island removal. Args: min_volume_mm3: drop pieces smaller than this; keep_largest: keep the N largest.
+
+    min_volume_voxels: when ``min_volume_mm3`` is None, drop pieces smaller than this many voxels' volume
+    (specks a printer or a viewer cannot show); None or 0: no volume limit unless ``min_volume_mm3`` is given.
+    """
 
     min_volume_mm3: float | None = None
     keep_largest: int | None = None
+    min_volume_voxels: float | None = DEFAULT_SPECK_VOXELS
+
+    def min_volume_for(self, spacing_zyx_mm: tuple[float, float, float]) -> float | None:
+        """The volume limit in mm3 for a grid of this spacing: ``min_volume_mm3``, else ``min_volume_voxels``
+        voxels' volume, else None (no limit)."""
+        if self.min_volume_mm3 is not None:
+            return self.min_volume_mm3
+        if not self.min_volume_voxels:
+            return None
+        return float(self.min_volume_voxels * spacing_zyx_mm[0] * spacing_zyx_mm[1] * spacing_zyx_mm[2])
 
     def __post_init__(self) -> None:
         _check(
@@ -102,6 +123,10 @@ class IslandParams:
         )
         _check(
             self.keep_largest is None or self.keep_largest >= 1, f"keep_largest must be >= 1, got {self.keep_largest}"
+        )
+        _check(
+            self.min_volume_voxels is None or (math.isfinite(self.min_volume_voxels) and self.min_volume_voxels >= 0),
+            f"min_volume_voxels must be a finite number >= 0, got {self.min_volume_voxels}",
         )
 
 
@@ -145,6 +170,69 @@ class ExportParams:
         _check(self.ar_max_triangles >= 100, f"ar_max_triangles must be >= 100, got {self.ar_max_triangles}")
 
 
+@dataclass(frozen=True)
+class OrientParams:
+    """How an image stack (PNG/TIFF/JPEG/BMP slices, ``.npy``) lies in the patient; DICOM ignores it (its headers
+    place every slice in the patient frame).
+
+    The assumed convention is the DICOM axial display: image column index to the patient's left (the patient's
+    right on the image's left), image row index to posterior (anterior at the top), and the stack from the head
+    down (the first slice superior, the scan order of most CT series and of the bundled headsq head).
+
+    Args:
+        first_slice: "superior" (default) or "inferior" (stacks sorted by ascending position, e.g. exported by
+            3D Slicer or ITK, and the cranium/head-phantom PNGs in ../shared/data).
+        flip_lr: the image's left is the patient's left (mirror left-right).
+        flip_ap: the image's top is posterior (mirror anterior-posterior).
+    """
+
+    first_slice: str = "superior"
+    flip_lr: bool = False
+    flip_ap: bool = False
+
+    def __post_init__(self) -> None:
+        _check(
+            self.first_slice in FIRST_SLICE_CHOICES,
+            f"first_slice must be one of {list(FIRST_SLICE_CHOICES)}, got {self.first_slice!r}",
+        )
+
+
+@dataclass(frozen=True)
+class BodyMaskParams:
+    """Bone inside the patient's body outline only, for HU data (DICOM CT, or stacks with ``iso.hu_offset``).
+
+    The body outline is the tissue at or above ``outline_hu`` that is below the bone level, with its holes filled
+    slice by slice: bone covered by soft tissue lies inside it, while the couch and head holders, which touch air,
+    do not. A connected bone piece (voxels at or above the level) is kept when at least ``min_inside_fraction`` of
+    its voxels lie inside the outline (dilated by ``dilate_mm`` in-plane); the others are set below the level
+    before meshing.
+
+    Args:
+        outline_hu: air/tissue threshold of the outline in HU (-500: halfway from air to water).
+        dilate_mm: grow the filled outline in-plane by this much (0: off; a millimetre or more also takes in
+            the partial-volume rim around a couch or a holder, so keep it small).
+        min_inside_fraction: a piece is bone of the body when at least this fraction of it is inside (0 < f <= 1).
+        min_bone_mm3: when pieces were dropped and less bone than this is left inside the body, the scan has no
+            bone in the body (ctpace at 300 HU: the couch outside, a few specks inside): the run fails saying so.
+    """
+
+    outline_hu: float = -500.0
+    dilate_mm: float = 0.0
+    min_inside_fraction: float = 0.5
+    min_bone_mm3: float = 1000.0
+
+    def __post_init__(self) -> None:
+        _check(math.isfinite(self.outline_hu), f"outline_hu must be finite, got {self.outline_hu}")
+        _check(math.isfinite(self.dilate_mm) and self.dilate_mm >= 0, f"dilate_mm must be >= 0, got {self.dilate_mm}")
+        _check(
+            0 < self.min_inside_fraction <= 1, f"min_inside_fraction must be in (0, 1], got {self.min_inside_fraction}"
+        )
+        _check(
+            math.isfinite(self.min_bone_mm3) and self.min_bone_mm3 >= 0,
+            f"min_bone_mm3 must be >= 0, got {self.min_bone_mm3}",
+        )
+
+
 _NESTED = {
     "preprocess": PreprocessParams,
     "gaussian": GaussianParams,
@@ -153,20 +241,29 @@ _NESTED = {
     "decimate": DecimateParams,
     "smooth": SmoothParams,
     "export": ExportParams,
+    "orient": OrientParams,
+    "body": BodyMaskParams,
 }
 
 
 @dataclass(frozen=True)
 class ReconParams:
-    """The whole pipeline; a stage whose params are None is skipped (iso and export always run)."""
+    """The whole pipeline; a stage whose params are None is skipped (iso and export always run).
+
+    By default the model is bone only: ``body`` drops bone outside the body outline (HU data) and ``islands``
+    drops specks below ``DEFAULT_SPECK_VOXELS`` voxels; set either to None to keep what it would drop. ``orient``
+    places image stacks in the patient frame (DICOM carries its own).
+    """
 
     preprocess: PreprocessParams | None = None
     gaussian: GaussianParams | None = field(default_factory=GaussianParams)
     iso: IsoParams = field(default_factory=IsoParams)
-    islands: IslandParams | None = None
+    islands: IslandParams | None = field(default_factory=IslandParams)
     decimate: DecimateParams | None = field(default_factory=DecimateParams)
     smooth: SmoothParams | None = field(default_factory=SmoothParams)
     export: ExportParams = field(default_factory=ExportParams)
+    orient: OrientParams = field(default_factory=OrientParams)
+    body: BodyMaskParams | None = field(default_factory=BodyMaskParams)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able dict (tuples become lists)."""

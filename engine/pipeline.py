@@ -1,8 +1,9 @@
 """The EMC33 pipeline: volume in, mesh and report out (``reconstruct``), and the output files (``write_outputs``).
 
-Stages, in order (``STAGES``): preprocess (host, optional), upload (the volume, once), gaussian, isosurface
-(MC33), decimate (quadric edge collapse), islands (optional, on the decimated mesh: host), smooth
-(surface-preserving Laplacian), normals. Everything but preprocess and islands runs on the device where the data
+Stages, in order (``STAGES``): preprocess (host: optional crop and slice filters, then the body mask of
+``engine.stages.bodymask`` for HU data), upload (the volume, once), gaussian, isosurface
+(MC33), decimate (quadric edge collapse), islands (optional, on the decimated mesh), smooth
+(surface-preserving Laplacian), normals. Everything after preprocess runs on the device where the data
 already is; only the finished mesh comes back. A failing stage raises ``StageError`` naming it (or the raw error
 with ``BONEMESH_DEBUG=1``); bad input raises ``InputError``.
 """
@@ -22,7 +23,9 @@ from typing import Any
 import numpy as np
 
 from engine.errors import EmptySurfaceError, InputError, StageError
-from engine.params import ISO_PRESETS_HU, ReconParams
+from engine.level import choose_level, hu_offset
+from engine.params import ReconParams
+from engine.progress import StageProgress
 from engine.types import Mesh, Volume
 
 STAGES = ("preprocess", "upload", "gaussian", "isosurface", "decimate", "islands", "smooth", "normals")
@@ -35,33 +38,6 @@ class Reconstruction:
 
     mesh: Mesh
     report: dict[str, Any] = field(default_factory=dict)
-
-
-def choose_level(volume: Volume, params: ReconParams) -> tuple[float, str]:
-    """The iso level in the volume's units and how it was chosen."""
-    iso = params.iso
-    if iso.iso is not None:
-        return float(iso.iso), "given"
-    preset = iso.preset
-    if preset is None and volume.units == "HU":
-        preset = "bone"
-    if preset is not None:
-        hu = ISO_PRESETS_HU[preset]
-        if volume.units == "HU":
-            return hu, f"preset {preset} ({hu:g} HU)"
-        if iso.hu_offset is not None:
-            return hu + iso.hu_offset, f"preset {preset} ({hu:g} HU + offset {iso.hu_offset:g})"
-        raise InputError(
-            f"preset '{preset}' is in HU but this volume is not calibrated in HU: give --iso in its units, "
-            "or --hu-offset if it stores HU plus an offset (1024 for most PNG exports)"
-        )
-    from skimage.filters import threshold_otsu
-
-    step = max(1, round((volume.data.size / 4_000_000) ** (1 / 3)))
-    sample = volume.data[::step, ::step, ::step]
-    if sample.min() == sample.max():
-        raise EmptySurfaceError(f"the volume is constant ({sample.min()}): there is no surface to build")
-    return float(threshold_otsu(sample.ravel())), "Otsu"
 
 
 def _versions() -> dict[str, str]:
@@ -98,11 +74,13 @@ def reconstruct(
         volume: the scan (see ``engine.types.Volume``).
         params: pipeline parameters (defaults: the paper's best combination).
         device: "auto", "cpu", "cuda" or "cuda:N".
-        on_progress: called as ``on_progress(stage, fraction_done)`` when a stage starts and ends (and between the
-            decimation's passes).
+        on_progress: called as ``on_progress(stage, fraction_done)`` when a stage starts and ends and inside long
+            stages (the decimation's passes); the fraction weights stages by their expected time
+            (``engine.progress``).
 
     Returns:
-        The final mesh (vertices (z, y, x) mm, outward faces, unit vertex normals) and the report.
+        The final mesh (vertices (z, y, x) mm in the grid, outward faces, unit vertex normals) and the report; the
+        report's ``frame`` maps the grid to the patient frame (``engine.orient``, applied by ``write_outputs``).
 
     Raises:
         InputError: the volume or parameters cannot give a model (EmptySurfaceError: no surface at the level).
@@ -139,14 +117,14 @@ def reconstruct(
         "smooth": _smooth,
         "normals": _normals,
     }
+    progress = StageProgress(STAGES, on_progress)
     with wp.ScopedDevice(dev):
-        for k, name in enumerate(STAGES):
+        for name in STAGES:
 
-            def within(fraction: float, k: int = k, name: str = name) -> None:
-                if on_progress:
-                    on_progress(name, (k + min(max(fraction, 0.0), 1.0)) / len(STAGES))
+            def within(fraction: float, name: str = name) -> None:
+                progress.within(name, fraction)
 
-            within(0.0)
+            progress.start(name)
             t0 = time.perf_counter()
             try:
                 stages[name](st, params, report, within)
@@ -157,7 +135,7 @@ def reconstruct(
                     raise
                 raise StageError(name, exc) from exc
             report["stage_seconds"][name] = time.perf_counter() - t0
-            within(1.0)
+            progress.end(name)
         t0 = time.perf_counter()
         from engine.stages.devmesh import mesh_stats_device
 
@@ -171,11 +149,18 @@ def reconstruct(
 
 
 def _preprocess(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    from engine.orient import patient_frame
     from engine.stages.preprocess import preprocess_volume
 
     if params.preprocess is not None:
         st.volume = preprocess_volume(st.volume, params.preprocess)
     report["counts"]["voxels"] = int(st.volume.data.size)
+    report["frame"] = patient_frame(st.volume, params.orient).to_dict()  # engine.orient: STL/glTF frames
+    if params.body is not None:  # bone of the body only (HU data): engine.stages.bodymask
+        from engine.stages.bodymask import isolate_bone
+
+        level = choose_level(st.volume, params)[0]
+        st.volume, report["body_mask"] = isolate_bone(st.volume, level, params.body, hu_offset(st.volume, params))
 
 
 def _upload(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
@@ -244,21 +229,16 @@ def _decimate(st: _State, params: ReconParams, report: dict[str, Any], progress:
 def _islands(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
     if params.islands is None:
         return
-    import warp as wp
+    from engine.stages.islands import remove_islands_device
 
-    from engine.stages.islands import remove_islands
-
-    v, f, info = remove_islands(
-        st.pos.numpy(),  # sync point: on the decimated mesh, host side (connected components)
-        st.faces.numpy(),
-        min_volume_mm3=params.islands.min_volume_mm3,
-        keep_largest=params.islands.keep_largest,
+    min_volume = params.islands.min_volume_for(st.volume.spacing_zyx_mm)
+    st.pos, st.faces, info = remove_islands_device(
+        st.pos, st.faces, min_volume_mm3=min_volume, keep_largest=params.islands.keep_largest
     )
-    if len(f) == 0:
+    if len(st.faces) == 0:
         raise EmptySurfaceError("island removal left nothing: lower --min-island-mm3 or keep more pieces")
-    st.pos, st.faces = wp.array(v, dtype=wp.vec3), wp.array(f, dtype=wp.vec3i)
-    report["islands"] = info
-    report["counts"]["islands"] = {"vertices": len(v), "faces": len(f)}
+    report["islands"] = {**info, "min_volume_mm3": min_volume}
+    report["counts"]["islands"] = {"vertices": len(st.pos), "faces": len(st.faces)}
 
 
 def _incidence(st: _State) -> Any:
@@ -367,12 +347,15 @@ def write_outputs(
     out.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".bonemesh-", dir=out))
     try:
-        m = recon.mesh
+        from engine.orient import export_meshes
+
+        # the STL in patient LPS mm, the glTF files in patient axes centred on the model (engine.orient)
+        p, m, recon.report["frame"] = export_meshes(recon.mesh, recon.report.get("frame"))
         phone, phone_info = _budget_mesh(m, params.export.phone_max_triangles, dev)
         ar, ar_info = _budget_mesh(phone, params.export.ar_max_triangles, dev)
         recon.report["exports"] = {"phone.glb": phone_info, "ar.glb": ar_info}
         files = {
-            "model.stl": to_stl(m.vertices, m.faces),
+            "model.stl": to_stl(p.vertices, p.faces, header="bonemesh model, patient LPS frame, mm"),
             "model.glb": to_glb(m.vertices, m.faces, m.normals),
             "phone.glb": to_draco_glb(phone.vertices, phone.faces, phone.normals),
             "ar.glb": to_glb(ar.vertices, ar.faces, ar.normals),

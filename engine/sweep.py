@@ -1,10 +1,11 @@
-"""The paper's parameter sweep (its Tables 1 and 2) on one scan: ``bonemesh sweep``.
+"""The paper's parameter sweep (its Tables 1 and 2) on one scan: ``run_sweep`` (the command ``bonemesh sweep`` is
+parsed in ``engine.cli_sweep``; this library never imports the CLI).
 
     bonemesh sweep INPUT --spacing Z,Y,X (--iso V | --preset bone --hu-offset 1024) -o OUTDIR
                    [--reductions 0.2,0.3,...] [--iterations 1,5,...] [--repeats 3] [--slices 64] [--points 200000]
                    [--crop Z0:Z1,Y0:Y1,X0:X1] [--stride N] [--no-mc33] [--full-runs] [--resume] [--device ...]
     bonemesh sweep --demo -o OUTDIR            (bundled headsq CT at level 1150)
-    bonemesh sweep --phantom 952,1024,1024 -o OUTDIR   (benchmarks.phantom, repository checkout only)
+    bonemesh sweep --phantom 952,1024,1024 -o OUTDIR   (engine.data.phantom)
 
 Rows (Table 1): **MC33**, scikit-image's Lewiner marching cubes on the CPU without enhancements (the volume is
 padded by one sample below the level so its surface is closed too); **MC33GPU**, this engine's MC33 without
@@ -29,7 +30,6 @@ MC33GPU row (see :func:`engine.sweep_report.enhancement_score`). The tables, CSV
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import statistics
@@ -44,7 +44,7 @@ import numpy as np
 import numpy.typing as npt
 
 from engine.errors import InputError
-from engine.sweep_report import json_default, scores, write_tables
+from engine.sweep_report import json_default, write_tables
 from engine.types import Volume
 
 DEFAULT_REDUCTIONS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7)
@@ -89,36 +89,10 @@ class SweepConfig:
             )
 
 
-def read_glb(data: bytes) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.uint32]]:
-    """Decode the POSITION, NORMAL and index arrays of a one-primitive GLB (as :func:`engine.export.to_glb` writes).
-
-    Raises:
-        ValueError: not a GLB of that shape.
-    """
-    if len(data) < 20 or data[:4] != b"glTF":
-        raise ValueError("Expected GLB bytes starting with 'glTF'")
-    json_len = int.from_bytes(data[12:16], "little")
-    doc = json.loads(data[20 : 20 + json_len])
-    bin_start = 20 + json_len + 8
-    prim = doc["meshes"][0]["primitives"][0]
-    dtypes = {5126: np.float32, 5123: np.uint16, 5125: np.uint32}
-    width = {"VEC3": 3, "SCALAR": 1}
-
-    def accessor(i: int) -> np.ndarray:
-        acc = doc["accessors"][i]
-        view = doc["bufferViews"][acc["bufferView"]]
-        n = acc["count"] * width[acc["type"]]
-        arr = np.frombuffer(data, dtypes[acc["componentType"]], n, bin_start + view.get("byteOffset", 0))
-        return arr.reshape(-1, 3)
-
-    pos = accessor(prim["attributes"]["POSITION"])
-    nrm = accessor(prim["attributes"]["NORMAL"])
-    return pos, nrm, accessor(prim["indices"]).astype(np.uint32)
-
-
 def rendering_seconds(verts: np.ndarray, faces: np.ndarray, normals: np.ndarray | None, folder: Path) -> float:
     """Our stand-in for the paper's rendering time: encode the GLB, write it, read it back and decode it."""
     from engine.export import to_glb
+    from engine.export.glb import read_glb
 
     path = folder / ".sweep-render.glb"
     t0 = time.perf_counter()
@@ -168,8 +142,10 @@ class _Sweep:
     def params(self, enhanced: bool, reduction: float | None = None, iterations: int | None = None) -> Any:
         from engine.params import DecimateParams, GaussianParams, IsoParams, ReconParams, SmoothParams
 
-        return ReconParams(
+        return ReconParams(  # the paper's rows: every piece kept (no body mask, no speck removal)
             iso=IsoParams(iso=self.level, closed=True),
+            islands=None,
+            body=None,
             gaussian=GaussianParams() if enhanced else None,
             decimate=DecimateParams(reduction=reduction) if reduction is not None else None,
             smooth=SmoothParams(iterations=iterations, angle_deg=self.cfg.angle_deg) if iterations else None,
@@ -394,136 +370,3 @@ def run_sweep(
     if rows:
         write_tables(rows, out, info)
     return rows
-
-
-def _floats(text: str) -> tuple[float, ...]:
-    try:
-        return tuple(float(p) for p in text.split(",") if p.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
-
-
-def _ints(text: str) -> tuple[int, ...]:
-    try:
-        return tuple(int(p) for p in text.split(",") if p.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-
-
-def _crop(text: str) -> tuple[slice, slice, slice]:
-    try:
-        parts = [p.split(":") for p in text.split(",")]
-        slices = tuple(slice(int(a) if a else None, int(b) if b else None) for a, b in parts)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected Z0:Z1,Y0:Y1,X0:X1 voxel ranges, got {text!r}") from None
-    if len(slices) != 3:
-        raise argparse.ArgumentTypeError(f"expected three ranges Z0:Z1,Y0:Y1,X0:X1, got {text!r}")
-    return slices  # type: ignore[return-value]
-
-
-def add_parser(subparsers: Any) -> argparse.ArgumentParser:
-    """Register ``bonemesh sweep`` on an ``argparse`` subparsers object."""
-    from engine.cli import _spacing, add_level_args
-
-    p = subparsers.add_parser("sweep", help="the paper's parameter sweep (Tables 1 and 2) with accuracy metrics")
-    p.add_argument("input", nargs="?", help="slice archive or folder, DICOM series, TIFF or .npy (z, y, x)")
-    p.add_argument("-o", "--output", required=True, help="output folder")
-    src = p.add_mutually_exclusive_group()
-    src.add_argument("--demo", action="store_true", help="the bundled headsq CT at level 1150")
-    src.add_argument("--phantom", type=_ints, help="bone phantom Z,Y,X from benchmarks.phantom (repo checkout)")
-    add_level_args(p)
-    p.add_argument("--spacing", type=_spacing, help="voxel size Z,Y,X in mm")
-    p.add_argument("--crop", type=_crop, help="keep voxels Z0:Z1,Y0:Y1,X0:X1 (python ranges, before --stride)")
-    p.add_argument("--stride", type=int, default=1, help="keep every Nth sample along each axis (default 1)")
-    p.add_argument("--reductions", type=_floats, default=DEFAULT_REDUCTIONS, help="default 0.2,0.3,...,0.7")
-    p.add_argument("--iterations", type=_ints, default=DEFAULT_ITERATIONS, help="default 1,5,10,25,50")
-    p.add_argument("--repeats", type=int, default=3, help="timed runs per row; the median is reported (default 3)")
-    p.add_argument("--slices", type=int, default=64, help="slices compared, evenly spread; 0 = all (default 64)")
-    p.add_argument("--points", type=int, default=200_000, help="surface samples per mesh (default 200000)")
-    p.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
-    p.add_argument("--no-mc33", action="store_true", help="skip the scikit-image (Lewiner) MC33 CPU row")
-    p.add_argument("--full-runs", action="store_true", help="run the whole pipeline for every pair")
-    p.add_argument("--resume", action="store_true", help="keep the rows already in OUTDIR (same input)")
-    p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default auto)")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
-    return p
-
-
-def _input(args: argparse.Namespace) -> tuple[Volume, float]:
-    from engine.params import IsoParams, ReconParams
-    from engine.pipeline import choose_level
-
-    iso = args.iso
-    if args.demo:
-        from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
-        from engine.io import load_volume
-
-        volume = load_volume(HEADSQ_ZIP, spacing_zyx_mm=args.spacing or HEADSQ_SPACING_ZYX_MM)
-        iso = 1150.0 if iso is None and args.preset is None else iso
-    elif args.phantom:
-        if len(args.phantom) != 3 or min(args.phantom) < 8:
-            raise InputError(f"--phantom expects Z,Y,X sizes of at least 8, got {args.phantom}")
-        try:
-            from benchmarks.phantom import BONE_LEVEL, bone_phantom
-        except ImportError:
-            raise InputError("--phantom needs the repository checkout (benchmarks.phantom) on the path") from None
-        volume = Volume(
-            bone_phantom(tuple(args.phantom)),
-            args.spacing or (0.05, 0.05, 0.05),
-            units="raw",
-            source={"generator": "benchmarks.phantom.bone_phantom", "shape_zyx": list(args.phantom)},
-        )
-        iso = BONE_LEVEL if iso is None and args.preset is None else iso
-    else:
-        from engine.io import load_volume
-
-        if not args.input:
-            raise InputError("no INPUT given (or use --demo or --phantom)")
-        if not Path(args.input).exists():
-            raise InputError(f"{args.input} does not exist")
-        volume = load_volume(args.input, spacing_zyx_mm=args.spacing)
-    if args.stride < 1:
-        raise InputError(f"--stride must be >= 1, got {args.stride}")
-    data = volume.data[args.crop] if args.crop else volume.data
-    if args.stride > 1:
-        data = data[:: args.stride, :: args.stride, :: args.stride]
-    if min(data.shape) < 8:
-        raise InputError(f"the cropped volume {data.shape} is too small (at least 8 samples per axis)")
-    spacing = tuple(float(s) * args.stride for s in volume.spacing_zyx_mm)
-    volume = dataclasses.replace(volume, data=np.ascontiguousarray(data), spacing_zyx_mm=spacing)
-    try:
-        params = ReconParams(iso=IsoParams(iso=iso, preset=args.preset, hu_offset=args.hu_offset))
-    except ValueError as exc:
-        raise InputError(str(exc)) from None
-    if iso is None and args.preset is None:
-        raise InputError("--iso LEVEL or --preset is required: the sweep's ground truth is the voxels >= level")
-    return volume, choose_level(volume, params)[0]
-
-
-def run(args: argparse.Namespace) -> int:
-    """``bonemesh sweep``: run the sweep and print where the tables are. Returns the exit code (0)."""
-    try:
-        config = SweepConfig(
-            reductions=tuple(args.reductions),
-            iterations=tuple(args.iterations),
-            repeats=args.repeats,
-            max_slices=None if args.slices == 0 else args.slices,
-            n_points=args.points,
-            seed=args.seed,
-            mc33_reference=not args.no_mc33,
-            full_runs=args.full_runs,
-        )
-    except ValueError as exc:
-        raise InputError(str(exc)) from None
-    volume, level = _input(args)
-    meta = {"arguments": {k: v for k, v in vars(args).items() if k not in ("command", "func")}}
-    quiet: Log = lambda s: None  # noqa: E731
-    rows = run_sweep(
-        volume, level, args.output, config, device=args.device, resume=args.resume, meta=meta,
-        log=quiet if args.quiet else None,
-    )  # fmt: skip
-    best = next((s for s in scores(rows) if s["best"]), None)
-    print(f"{len(rows)} rows -> {Path(args.output) / 'tables.md'}")  # noqa: T201 - the command's summary
-    if best:
-        print(f"best: R={best['reduction']:g}, {best['iterations']} it, score {best['score']:.4f}")  # noqa: T201
-    return 0

@@ -22,6 +22,10 @@ class Volume:
         units: "HU" for CT in Hounsfield units, "raw" otherwise.
         source: metadata about where the data came from (format, file count, series description...), never
             patient identifiers.
+        patient_frame: True when ``origin_mm`` and ``direction`` place the grid in DICOM's patient frame (LPS:
+            +x the patient's left, +y posterior, +z superior), i.e. for DICOM with ImagePositionPatient and
+            ImageOrientationPatient; False for image stacks, whose orientation comes from
+            ``engine.params.OrientParams`` (see ``engine.orient``).
     """
 
     data: npt.NDArray[Any]
@@ -30,6 +34,7 @@ class Volume:
     direction: tuple[tuple[float, float, float], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
     units: str = "raw"
     source: dict[str, Any] = field(default_factory=dict)
+    patient_frame: bool = False
 
 
 @dataclass

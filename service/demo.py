@@ -1,11 +1,14 @@
 """The one-machine demo: start Redis, the API and a worker, upload the bundled CT scan over HTTP, wait for the
 job, and print the download links (``bash scripts/demo.sh`` runs this).
 
-    python -m service.demo [--port 8000] [--data-dir bonemesh-data] [--exit]
+    python -m service.demo [--port 8000] [--data-dir DIR] [--exit]
 
 Redis: ``BONEMESH_REDIS_URL`` when set (an existing server), else a private ``redis-server`` on a free port
 (installed with apt-get when missing). The API and the worker are the real ``bonemesh serve`` and
-``bonemesh worker`` processes. Without ``--exit`` everything keeps running (so the links work) until Ctrl-C.
+``bonemesh worker`` processes. Without ``--exit`` everything keeps running (so the links work) until Ctrl-C or
+``kill -TERM`` (or SIGHUP): either stops Redis, the API and the worker and removes the private Redis folder.
+The data (uploads, outputs, database) go to ``--data-dir``, by default ``$XDG_CACHE_HOME/bonemesh-demo``
+(``~/.cache/bonemesh-demo``), outside the repository.
 """
 
 from __future__ import annotations
@@ -84,20 +87,37 @@ def _wait_http(url: str, procs: list[subprocess.Popen[bytes]], timeout: float) -
     raise SystemExit(f"{url} did not answer within {timeout:.0f} s")
 
 
+class _Stop(Exception):
+    """SIGTERM or SIGHUP arrived: stop like Ctrl-C does."""
+
+
+def _stop(signum: int, frame: object) -> None:
+    raise _Stop(signal.Signals(signum).name)
+
+
+def default_data_dir() -> Path:
+    """Where the demo keeps its data: the user's cache folder, never the repository (git would list it)."""
+    cache = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(cache) / "bonemesh-demo"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--port", type=int, default=8000)
-    parser.add_argument("--data-dir", type=Path, default=Path("bonemesh-data"))
+    parser.add_argument("--data-dir", type=Path, default=None, help=f"default: {default_data_dir()}")
     parser.add_argument("--exit", action="store_true", help="stop everything after printing the links")
     args = parser.parse_args(argv)
     from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
 
     env = dict(os.environ)
-    env.setdefault("BONEMESH_DATA_DIR", str(args.data_dir.resolve()))
+    env.setdefault("BONEMESH_DATA_DIR", str((args.data_dir or default_data_dir()).resolve()))
     key = env.setdefault("BONEMESH_API_KEYS", DEV_API_KEY).split(",")[0].strip()
     procs: list[subprocess.Popen[bytes]] = []
     bin_dir = Path(sys.executable).parent
     bonemesh = str(bin_dir / "bonemesh") if (bin_dir / "bonemesh").exists() else "bonemesh"
+    # kill -TERM (and SIGHUP) unwind like Ctrl-C, through the finally below, at any point of the run
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, _stop)
     tmp = Path(tempfile.mkdtemp(prefix="bonemesh-redis-"))
     try:
         if "BONEMESH_REDIS_URL" not in env:
@@ -146,10 +166,17 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  {o['name']:<11} {o['bytes']:>10,} B  {tri:<18} {o['url']}")  # noqa: T201
         print(f"API: {base}/docs  (X-API-Key: {key})")  # noqa: T201
         if not args.exit:
-            print("serving; Ctrl-C stops Redis, the API and the worker")  # noqa: T201
-            signal.sigwait({signal.SIGINT, signal.SIGTERM})
+            print("serving; Ctrl-C (or kill -TERM) stops Redis, the API and the worker", flush=True)  # noqa: T201
+            while True:
+                signal.pause()
+        return 0
+    except (KeyboardInterrupt, _Stop) as exc:
+        why = "Ctrl-C" if isinstance(exc, KeyboardInterrupt) else str(exc)
+        print(f"stopping ({why}): Redis, the API and the worker", flush=True)  # noqa: T201
         return 0
     finally:
+        for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):  # a second signal must not cut the cleanup short
+            signal.signal(sig, signal.SIG_IGN)
         for p in reversed(procs):
             p.terminate()
         for p in reversed(procs):

@@ -9,10 +9,10 @@ glTF (X, Y, Z) in metres as
 
 i.e. ``p_gltf = 0.001 * R @ (x, y, z)`` with ``R = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]``, a rotation by -90 degrees
 about x with ``det(R) = +1``. Being a proper rotation (no mirror), it keeps triangle winding and outward normals
-valid: faces stay counter-clockwise seen from outside, as glTF requires. For a CT series in LPS the model stands
-upright (head up) and faces the viewer. For image stacks the direction of the slice axis is not known; a stack
-stored feet-first comes out upside down (flip it upstream, not here). No translation is applied: the positions
-keep the volume's origin, and viewers frame the model from the POSITION bounds.
+valid: faces stay counter-clockwise seen from outside, as glTF requires. Given vertices in the patient frame (LPS,
+as ``engine.orient`` places them: DICOM from its headers, image stacks by ``OrientParams``), the model stands
+upright (head up, +Y) and faces the viewer (+Z). This writer applies no translation; ``write_outputs`` centres
+the mesh on its bounding box first (``engine.orient.export_meshes``), so AR placement is not offset.
 
 The layout is: bufferView 0 = POSITION (float32 VEC3, with min/max), bufferView 1 = NORMAL (float32 VEC3, unit),
 bufferView 2 = indices (uint16 when there are fewer than 65536 vertices, else uint32), one buffer in the BIN chunk,
@@ -207,3 +207,34 @@ def to_glb(
     document["bufferViews"] = views
     document["buffers"] = [{"byteLength": len(binary)}]
     return pack_glb(document, binary)
+
+
+def read_glb(data: bytes) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.uint32]]:
+    """Decode the POSITION, NORMAL and index arrays of a one-primitive GLB as :func:`to_glb` writes it.
+
+    Returns:
+        (positions (V, 3) float32 in metres, normals (V, 3) float32, triangles (F, 3) uint32), in the glTF frame.
+
+    Raises:
+        ValueError: not a GLB of that shape (Draco-compressed files included).
+    """
+    if len(data) < 20 or data[:4] != b"glTF":
+        raise ValueError("Expected GLB bytes starting with 'glTF'")
+    json_len = int.from_bytes(data[12:16], "little")
+    doc = json.loads(data[20 : 20 + json_len])
+    bin_start = 20 + json_len + 8
+    prim = doc["meshes"][0]["primitives"][0]
+    if "extensions" in prim:
+        raise ValueError(f"Expected an uncompressed primitive, got extensions {sorted(prim['extensions'])}")
+    dtypes = {FLOAT: np.float32, UNSIGNED_SHORT: np.uint16, UNSIGNED_INT: np.uint32}
+
+    def accessor(i: int) -> npt.NDArray[Any]:
+        acc = doc["accessors"][i]
+        view = doc["bufferViews"][acc["bufferView"]]
+        n = acc["count"] * (3 if acc["type"] == "VEC3" else 1)
+        arr = np.frombuffer(data, dtypes[acc["componentType"]], n, bin_start + view.get("byteOffset", 0))
+        return arr.reshape(-1, 3)
+
+    pos = accessor(prim["attributes"]["POSITION"])
+    nrm = accessor(prim["attributes"]["NORMAL"])
+    return pos, nrm, accessor(prim["indices"]).astype(np.uint32)

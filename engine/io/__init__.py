@@ -7,7 +7,7 @@ files, a multi-page TIFF, a ``.npy`` (z, y, x) array, or a single DICOM file. DI
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -67,6 +67,7 @@ def load_volume(
     spacing_zyx_mm: Sequence[float] | None = None,
     series_uid: str | None = None,
     limits: InputLimits | None = None,
+    on_progress: Callable[[float], None] | None = None,
 ) -> Volume:
     """Load a scan as a (z, y, x) :class:`Volume`.
 
@@ -76,6 +77,7 @@ def load_volume(
             it; for DICOM it may only fill in what the headers lack (a conflicting value is an error).
         series_uid: the DICOM SeriesInstanceUID to load when the input holds several (default: the largest).
         limits: safety limits on archive members, sizes, compression ratio and voxel count.
+        on_progress: called with the fraction (0..1) of the files read, as slices are decoded.
 
     Returns:
         The volume: integer data stay integer (uint8/uint16/int16); DICOM CT is in HU (int16 where exact,
@@ -89,10 +91,12 @@ def load_volume(
     label = Path(path).name or str(path)
     with open_members(path, limits) as members:
         if has_dicom_images(members):
-            vol = load_dicom(members, label, spacing_zyx_mm=spacing, series_uid=series_uid, limits=limits)
+            vol = load_dicom(
+                members, label, spacing_zyx_mm=spacing, series_uid=series_uid, limits=limits, on_progress=on_progress
+            )
             if vol is not None:
                 vol.source["container"] = members.kind
                 return vol
         if series_uid is not None:
             raise InputError(f"series_uid={series_uid!r} was given, but {label} holds no DICOM images")
-        return load_stack(members, label, spacing, limits)
+        return load_stack(members, label, spacing, limits, on_progress=on_progress)

@@ -12,6 +12,7 @@ import io
 import math
 import warnings
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -74,11 +75,13 @@ def _floats(value: Any, n: int) -> np.ndarray | None:
     return arr if arr.size == n and np.all(np.isfinite(arr)) else None
 
 
-def _scan(members: Members) -> tuple[list[_Slice], int]:
+def _scan(members: Members, on_progress: Callable[[float], None] | None = None) -> tuple[list[_Slice], int]:
     """Headers of every DICOM image member; also the count of DICOM files without pixel data."""
     slices: list[_Slice] = []
     non_image = 0
-    for m in members.members:
+    for k, m in enumerate(members.members):
+        if on_progress is not None:
+            on_progress(k / len(members.members))
         if not looks_like_dicom(m.head):
             continue
         ds = _read(m, pixels=True)
@@ -135,13 +138,14 @@ def load_dicom(
     spacing_zyx_mm: tuple[float, float, float] | None,
     series_uid: str | None,
     limits: InputLimits,
+    on_progress: Callable[[float], None] | None = None,
 ) -> Volume | None:
     """Load one DICOM series of ``members``; None when none of them is a DICOM image.
 
     Raises:
         InputError: unknown ``series_uid``, inconsistent geometry, undecodable pixels, limits exceeded.
     """
-    slices, non_image = _scan(members)
+    slices, non_image = _scan(members, on_progress)  # reading the files is most of the loading time
     if not slices:
         if series_uid is not None:
             raise InputError(f"series_uid={series_uid!r} was given, but {label} holds no DICOM images")
@@ -231,6 +235,7 @@ def _build(
         direction=direction,
         units=units,
         source=source,
+        patient_frame=bool(geo.get("oriented", False)),
     )
 
 
@@ -256,6 +261,7 @@ def _geometry(series: list[_Slice], label: str, call: tuple[float, float, float]
                     f"{s.member.name}); such a series cannot be put on one grid (localizer mixed in, or a "
                     "variable-tilt acquisition): export the axial series on its own"
                 )
+        geo["oriented"] = True  # origin and axes in the patient frame (LPS), from the headers
         row, col = iop0[:3] / np.linalg.norm(iop0[:3]), iop0[3:] / np.linalg.norm(iop0[3:])
         if abs(float(row @ col)) > 1e-3:
             raise InputError(f"{label}: ImageOrientationPatient rows and columns are not perpendicular ({iop0})")

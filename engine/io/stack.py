@@ -6,6 +6,7 @@ import io
 import math
 import re
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +32,7 @@ _UNIT_MM = {"mm": 1.0, "millimeter": 1.0, "cm": 10.0, "centimeter": 10.0, "m": 1
             "micron": 1e-3, "um": 1e-3, "\u00b5m": 1e-3, "\u03bcm": 1e-3, "micrometer": 1e-3, "nm": 1e-6,
             "inch": 25.4, "in": 25.4}  # fmt: skip
 _PRINT_DPI = {72.0, 96.0, 100.0, 150.0, 200.0, 300.0, 600.0, 1200.0}  # screen/print defaults, not scan geometry
-SPACING_HINT = "give it as spacing_zyx_mm=(z, y, x) (CLI: --spacing Z,Y,X), in mm"
+SPACING_HINT = "give it as spacing_zyx_mm=(z, y, x) (CLI: --voxel-size X,Y,Z or --spacing Z,Y,X), in mm"
 
 
 class StackWarning(UserWarning):
@@ -63,21 +64,30 @@ def load_slice_zip(path: str | Path) -> npt.NDArray[np.generic]:
 
 
 def load_stack(
-    members: Members, label: str, spacing_zyx_mm: tuple[float, float, float] | None, limits: InputLimits
+    members: Members,
+    label: str,
+    spacing_zyx_mm: tuple[float, float, float] | None,
+    limits: InputLimits,
+    on_progress: Callable[[float], None] | None = None,
 ) -> Volume:
     """Build a Volume from the image members of ``members`` (slices, one multi-page TIFF, or one .npy).
+
+    ``on_progress`` is called with the fraction of slices decoded. The stack's orientation is not known: the
+    pipeline places it by ``engine.params.OrientParams`` (``engine.orient``).
 
     Raises:
         InputError: no images, mixed shapes/dtypes, too many voxels, or no voxel size.
     """
-    data, fmt, geo = _read_slices(members, label, limits)
+    data, fmt, geo = _read_slices(members, label, limits, on_progress)
     spacing, how = _resolve_spacing(spacing_zyx_mm, geo, label)
     n_files = len([m for m in members.members if image_kind(m.head)])
     source: dict[str, Any] = {"format": fmt, "container": members.kind, "files": n_files, "spacing_from": how}
     return Volume(data=data, spacing_zyx_mm=spacing, units="raw", source=source)
 
 
-def _read_slices(members: Members, label: str, limits: InputLimits) -> tuple[np.ndarray, str, dict[str, Any]]:
+def _read_slices(
+    members: Members, label: str, limits: InputLimits, on_progress: Callable[[float], None] | None = None
+) -> tuple[np.ndarray, str, dict[str, Any]]:
     images = [m for m in members.members if image_kind(m.head)]
     if not images:
         seen = ", ".join(m.name for m in members.members[:3]) or "nothing"
@@ -115,6 +125,8 @@ def _read_slices(members: Members, label: str, limits: InputLimits) -> tuple[np.
                 f"got {s.shape[-1]}x{s.shape[0]} {s.dtype} in {m.name}"
             )
         out[k] = s
+        if on_progress is not None:
+            on_progress((k + 1) / len(images))
     _warn_colour(label, coloured, geo)
     return _narrow(out), "+".join(kinds), geo
 

@@ -809,3 +809,32 @@ def count_roots(label: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32)
     v = wp.tid()
     if count[v] > 0 and label[v] == v:
         wp.atomic_add(roots, 0, 1)
+
+
+@wp.kernel
+def piece_volumes(
+    pos: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    label: wp.array(dtype=wp.int32),
+    volume: wp.array(dtype=wp.float64),
+    nfaces: wp.array(dtype=wp.int32),
+):
+    """Signed volume (vertices in (x, y, z) order) and face count of every piece, at its root vertex."""
+    f = wp.tid()
+    t = faces[f]
+    pa = pos[t[0]]
+    pb = pos[t[1]]
+    pc = pos[t[2]]
+    a = wp.vec3d(wp.float64(pa[2]), wp.float64(pa[1]), wp.float64(pa[0]))
+    b = wp.vec3d(wp.float64(pb[2]), wp.float64(pb[1]), wp.float64(pb[0]))
+    c = wp.vec3d(wp.float64(pc[2]), wp.float64(pc[1]), wp.float64(pc[0]))
+    root = label[t[0]]
+    wp.atomic_add(volume, root, wp.dot(a, wp.cross(b, c)) / wp.float64(6.0))
+    wp.atomic_add(nfaces, root, 1)
+
+
+@wp.kernel
+def drop_pieces(faces: wp.array(dtype=wp.vec3i), label: wp.array(dtype=wp.int32), keep: wp.array(dtype=wp.int32)):
+    f = wp.tid()
+    if keep[label[faces[f][0]]] == 0:
+        faces[f] = wp.vec3i(-1, -1, -1)

@@ -103,3 +103,59 @@ def remove_islands(
         "largest_removed_mm3": float(removed.max()) if len(removed) else 0.0,
     }
     return out_v, out_f, info
+
+
+def remove_islands_device(
+    pos: Any, faces: Any, *, min_volume_mm3: float | None = None, keep_largest: int | None = None
+) -> tuple[Any, Any, dict[str, Any]]:
+    """:func:`remove_islands` on a device mesh (``wp.array`` vec3 / vec3i): pieces found and measured on the device;
+    only one volume and face count per piece come to the host to choose the kept ones. Pieces are ordered by their
+    smallest vertex index (ties of ``keep_largest`` keep the earlier piece). Returns new device arrays and the same
+    ``info`` as :func:`remove_islands`."""
+    import warp as wp
+
+    from engine.kernels import decimate as kd
+    from engine.stages.devmesh import compact_faces, compact_vertices, component_labels_device
+
+    if min_volume_mm3 is not None and not (np.isfinite(min_volume_mm3) and min_volume_mm3 >= 0):
+        raise ValueError(f"min_volume_mm3 must be a finite number >= 0, got {min_volume_mm3}")
+    if keep_largest is not None and (
+        isinstance(keep_largest, bool) or int(keep_largest) != keep_largest or keep_largest < 1
+    ):
+        raise ValueError(f"keep_largest must be an integer >= 1, got {keep_largest}")
+    nv, nf = len(pos), len(faces)
+    with wp.ScopedDevice(pos.device):
+        label = component_labels_device(faces, nv)
+        vol = wp.zeros(nv, dtype=wp.float64)
+        nfaces = wp.zeros(nv, dtype=wp.int32)
+        if nf:
+            wp.launch(kd.piece_volumes, dim=nf, inputs=[pos, faces, label, vol, nfaces])
+        counts = nfaces.numpy()  # sync point: V ints and doubles, no mesh
+        roots = np.flatnonzero(counts)
+        volume = np.abs(vol.numpy()[roots])
+        keep = np.ones(len(roots), bool)
+        if min_volume_mm3 is not None:
+            keep &= volume >= min_volume_mm3
+        if keep_largest is not None:
+            candidates = np.flatnonzero(keep)
+            by_size = candidates[np.argsort(-volume[candidates], kind="stable")]
+            keep[by_size[int(keep_largest) :]] = False
+        removed = volume[~keep]
+        info = {
+            "pieces_before": len(roots),
+            "pieces_after": int(keep.sum()),
+            "removed_pieces": int((~keep).sum()),
+            "removed_faces": int(counts[roots[~keep]].sum()),
+            "removed_volume_mm3": float(removed.sum()),
+            "kept_volume_mm3": float(volume[keep].sum()),
+            "largest_removed_mm3": float(removed.max()) if len(removed) else 0.0,
+        }
+        if info["removed_pieces"] == 0:
+            return pos, faces, info
+        flag = np.zeros(nv, np.int32)
+        flag[roots[keep]] = 1
+        faces = wp.clone(faces)
+        wp.launch(kd.drop_pieces, dim=nf, inputs=[faces, label, wp.array(flag)])
+        faces = compact_faces(faces, nf - info["removed_faces"])
+        pos, faces = compact_vertices(pos, faces)
+    return pos, faces, info

@@ -67,3 +67,24 @@ def test_component_labels_device(device: str) -> None:
     # the same partition: labels map one to one
     pairs = set(zip(host.tolist(), label.tolist(), strict=True))
     assert len(pairs) == n == len(np.unique(label))
+
+
+@pytest.mark.parametrize(("min_volume", "keep"), [(1.0, None), (None, 1), (0.0, 2), (1e9, None)])
+def test_remove_islands_device_matches_host(min_volume, keep, device: str) -> None:
+    import warp as wp
+
+    from engine.stages.islands import remove_islands, remove_islands_device
+
+    field = np.maximum.reduce([_ball(6, (11, 11, 11)), _ball(1.2, (11, 11, 35)), _ball(2.5, (5, 18, 40))])
+    v, f = marching_cubes_33(field, 0.0, spacing=(0.5, 0.7, 0.9), device="cpu", closed=True)
+    hv, hf, hinfo = remove_islands(v, f, min_volume_mm3=min_volume, keep_largest=keep)
+    with wp.ScopedDevice(device):
+        p, t, dinfo = remove_islands_device(
+            wp.array(v, dtype=wp.vec3), wp.array(f, dtype=wp.vec3i), min_volume_mm3=min_volume, keep_largest=keep
+        )
+        dv, df = p.numpy(), t.numpy()
+    assert {k: dinfo[k] for k in dinfo if "mm3" not in k} == {k: hinfo[k] for k in hinfo if "mm3" not in k}
+    for k in ("removed_volume_mm3", "kept_volume_mm3", "largest_removed_mm3"):
+        assert dinfo[k] == pytest.approx(hinfo[k], rel=1e-9, abs=1e-12)
+    np.testing.assert_array_equal(dv, hv)  # same kept faces and vertices, in the same order
+    np.testing.assert_array_equal(df, hf)

@@ -106,7 +106,7 @@ def test_rgb_becomes_luminance_with_one_warning(tmp_path: Path) -> None:
 
 
 def test_missing_spacing_says_how_to_give_it(tmp_path: Path) -> None:
-    with pytest.raises(InputError, match=r"spacing_zyx_mm=\(z, y, x\) \(CLI: --spacing Z,Y,X\)"):
+    with pytest.raises(InputError, match=r"spacing_zyx_mm=\(z, y, x\) \(CLI: --voxel-size X,Y,Z or --spacing Z,Y,X\)"):
         load_volume(_write(tmp_path / "s.zip", _slices(_vol(2), ".png"), "zip"))
     with pytest.raises(InputError, match="three positive numbers"):
         load_volume(tmp_path / "s.zip", spacing_zyx_mm=(1, 0, 1))
@@ -244,11 +244,25 @@ REAL = ["cranium_ct", "pelvis_ct", "headsq_ct", "shrew_trabecular_microct", "hea
 @pytest.mark.parametrize("folder", REAL)
 def test_real_png_stacks(folder: str) -> None:
     meta = json.loads(shared_file(folder, "meta.json").read_text())
+    zip_path = shared_file(folder, meta["files"]["slices_png16"])
     spacing = tuple(meta["spacing_mm_xyz"][::-1])
     with pytest.raises(InputError, match="spacing_zyx_mm"):
-        load_volume(shared_file(folder, meta["files"]["slices_png16"]))
-    vol = load_volume(shared_file(folder, meta["files"]["slices_png16"]), spacing_zyx_mm=spacing)
+        load_volume(zip_path)
+    vol = load_volume(zip_path, spacing_zyx_mm=spacing)
     assert vol.data.shape == tuple(meta["shape_zyx"]) and vol.data.dtype == np.uint16
     assert (int(vol.data.min()), int(vol.data.max())) == tuple(meta["stored_range"])
     for level, count in meta["stored_count_above"].items():
         assert int((vol.data > float(level)).sum()) == count
+
+
+def test_bundled_headsq_matches_its_readme() -> None:
+    """The headsq copy in engine/data, checked against the facts of ../shared/data/headsq_ct/README.md, so that the
+    check runs without the shared checkout."""
+    from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
+
+    with pytest.raises(InputError, match="spacing_zyx_mm"):
+        load_volume(HEADSQ_ZIP)
+    vol = load_volume(HEADSQ_ZIP, spacing_zyx_mm=HEADSQ_SPACING_ZYX_MM)
+    assert vol.data.shape == (93, 64, 64) and vol.data.dtype == np.uint16
+    assert (int(vol.data.min()), int(vol.data.max())) == (0, 3926)
+    assert int((vol.data > 500).sum()) == 144_947 and int((vol.data > 1150).sum()) == 34_240

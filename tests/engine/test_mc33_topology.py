@@ -11,6 +11,7 @@ from engine.io.stack import load_slice_zip
 from engine.isosurface import IsosurfaceStats, marching_cubes_33
 from tests.conftest import shared_file
 from tests.engine.meshutil import assert_closed_manifold, assert_valid_mesh, refine_trilinear, topology
+from tests.engine.scans import scan_file
 
 # (folder, zip, level, components, Euler characteristic): closed surfaces, trilinear truth from the issue
 CT_TRUTH = [
@@ -21,7 +22,7 @@ CT_TRUTH = [
 
 
 def load_scan(folder: str, name: str) -> np.ndarray:
-    return load_slice_zip(shared_file(folder, name))
+    return load_slice_zip(scan_file(folder, name))
 
 
 def topo_of(volume: np.ndarray, level: float, device: str, closed: bool) -> tuple[int, int]:

@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 
 from engine.io.stack import load_slice_zip
 from engine.isosurface import marching_cubes_33
-from tests.conftest import shared_file
+from tests.engine.scans import scan_file
 
 SCANS = [
     ("headsq_ct", "headsq_png16.zip", 1150.5, (1.5, 3.2, 3.2)),
@@ -20,7 +20,7 @@ SCANS = [
 @pytest.mark.parametrize(("folder", "name", "level", "spacing"), SCANS)
 def test_counts_and_vertices_agree_with_lewiner(device, folder, name, level, spacing):
     skimage = pytest.importorskip("skimage.measure")
-    vol = load_slice_zip(shared_file(folder, name))
+    vol = load_slice_zip(scan_file(folder, name))
     verts, faces = marching_cubes_33(vol, level, spacing=spacing, device=device)
     ref_v, ref_f, _, _ = skimage.marching_cubes(vol.astype(np.float32), level, spacing=spacing, method="lewiner")
     assert abs(len(verts) / len(ref_v) - 1) < 0.005

@@ -10,7 +10,8 @@ import pytest
 
 from engine.cli import main
 from engine.export import to_glb
-from engine.sweep import SweepConfig, read_glb, run_sweep
+from engine.export.glb import read_glb
+from engine.sweep import SweepConfig, run_sweep
 from engine.sweep_report import enhancement_score, scores
 from engine.types import Volume
 
@@ -80,13 +81,13 @@ def test_sweep_on_headsq(tmp_path, device):
 
 @pytest.fixture(scope="module")
 def small_bone() -> Volume:
-    from benchmarks.phantom import bone_phantom
+    from engine.data.phantom import bone_phantom
 
     return Volume(bone_phantom((24, 40, 40)), (0.25, 0.25, 0.25))
 
 
 def test_composed_rows_equal_full_runs_and_resume_adds_rows(tmp_path, small_bone, device):
-    from benchmarks.phantom import BONE_LEVEL
+    from engine.data.phantom import BONE_LEVEL
 
     cfg = SweepConfig(reductions=(0.5,), iterations=(1, 3), repeats=1, n_points=5000, mc33_reference=False)
     composed = run_sweep(small_bone, BONE_LEVEL, tmp_path / "a", cfg, device=device, log=lambda s: None)

@@ -1,0 +1,107 @@
+"""Bone of the body only (engine.stages.bodymask), speck removal by default, and the real scans' holders/couch."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from engine.errors import InputError
+from engine.io import load_volume
+from engine.params import BodyMaskParams, IsoParams, ReconParams
+from engine.pipeline import reconstruct
+from engine.stages.bodymask import NoBoneInBodyError, isolate_bone
+from engine.types import Volume
+from tests.conftest import shared_file
+
+SP = (1.0, 1.0, 1.0)
+
+
+def patient_on_a_couch(couch: bool = True, holder: bool = True, skull: bool = True) -> np.ndarray:
+    """HU: air, an elliptic body of soft tissue (40 HU) with a bone ring (a skull, 900 HU) inside, resting on a
+    couch plate (600 HU) without an air gap, and a holder plate (1000 HU) in the air beside it."""
+    z, y, x = np.indices((20, 64, 64), dtype=np.float32)
+    vol = np.full(z.shape, -1000.0, np.float32)
+    r = np.hypot((y - 30) / 22, (x - 32) / 18)
+    vol[(r < 1) & (z > 1) & (z < 18)] = 40.0
+    if skull:
+        vol[(r > 0.55) & (r < 0.75) & (z > 3) & (z < 16)] = 900.0
+    if couch:
+        vol[:, 52:55, 4:60] = 600.0  # the body (y up to 52) rests on it
+    if holder:
+        vol[4:16, 20:40, 56:59] = 1000.0
+    return vol
+
+
+def test_couch_and_holder_are_removed_and_reported():
+    vol = Volume(patient_on_a_couch(), SP, units="HU")
+    out, info = isolate_bone(vol, 300.0, BodyMaskParams(), hu_offset=0.0)
+    assert info["applied"] and info["pieces"] == 3 and info["pieces_removed"] == 2
+    couch_holder = int((vol.data >= 300).sum()) - int((patient_on_a_couch(False, False) >= 300).sum())
+    assert info["voxels_removed"] == couch_holder and info["volume_removed_mm3"] == pytest.approx(couch_holder)
+    np.testing.assert_array_equal(out.data >= 300, patient_on_a_couch(False, False) >= 300)  # the skull is kept
+    assert vol.data.max() == 1000.0  # the input is not modified
+
+
+def test_hu_plus_offset_stacks_use_the_offset_and_raw_data_are_left_alone():
+    stored = (patient_on_a_couch() + 1024).astype(np.uint16)
+    vol = Volume(stored, SP)
+    _out, info = isolate_bone(vol, 1324.0, BodyMaskParams(), hu_offset=1024.0)
+    assert info["pieces_removed"] == 2 and info["outline_stored"] == 524.0
+    same, skipped = isolate_bone(vol, 1324.0, BodyMaskParams(), hu_offset=None)
+    assert same is vol and not skipped["applied"] and "not in HU" in skipped["reason"]
+
+
+def test_no_bone_in_the_body_fails_with_that_reason():
+    vol = Volume(patient_on_a_couch(skull=False), SP, units="HU")
+    with pytest.raises(NoBoneInBodyError, match="no bone inside the body"):
+        isolate_bone(vol, 300.0, BodyMaskParams(), hu_offset=0.0)
+    assert issubclass(NoBoneInBodyError, InputError)
+    params = ReconParams(decimate=None, smooth=None)
+    with pytest.raises(NoBoneInBodyError, match="couch"):
+        reconstruct(vol, params, device="cpu")
+    recon = reconstruct(vol, ReconParams(decimate=None, smooth=None, body=None), device="cpu")  # switched off
+    assert recon.report["mesh"]["components"] == 2 and "body_mask" not in recon.report
+
+
+def test_pipeline_drops_couch_and_specks_by_default_and_each_step_switches_off():
+    data = patient_on_a_couch()
+    data[10, 5, 5] = 900.0  # a one-voxel speck in the air: outside the body, removed with the couch
+    data[10, 30, 32] = 900.0  # a one-voxel speck inside the body: kept by the mask, dropped as a speck
+    vol = Volume(data, SP, units="HU")
+    base = ReconParams(decimate=None, smooth=None)
+    recon = reconstruct(vol, base, device="cpu")
+    rep = recon.report
+    assert rep["body_mask"]["pieces_removed"] == 3 and rep["mesh"]["components"] == 1  # the ring (a tube) alone
+    assert rep["islands"]["removed_pieces"] == 1 and rep["islands"]["min_volume_mm3"] == pytest.approx(4.0)
+    no_specks = reconstruct(vol, ReconParams(decimate=None, smooth=None, islands=None), device="cpu").report
+    assert no_specks["mesh"]["components"] == 2 and "islands" not in no_specks  # the ring and the inner speck
+    nothing = reconstruct(vol, ReconParams(decimate=None, smooth=None, islands=None, body=None), device="cpu").report
+    # + couch and holder (the speck in the air does not survive the Gaussian: 900 HU in one voxel among -1000)
+    assert nothing["mesh"]["components"] == 4
+    assert ReconParams.from_dict({"body": None, "islands": None}) == ReconParams(body=None, islands=None)
+
+
+# ---- the real scans (../shared/data) -----------------------------------------------------------------------------
+def test_cranium_print_model_has_no_holder_plates():
+    vol = load_volume(shared_file("cranium_ct", "cranium_ct_png16.zip"), spacing_zyx_mm=(1.5, 0.9570312, 0.9570312))
+    out, info = isolate_bone(vol, 1324.0, BodyMaskParams(), hu_offset=1024.0)
+    # README: above 1324, the skull + mandible and "two 18.5k-voxel pieces = the head-holder arc (not bone)"
+    assert info["pieces_removed"] == 2 and 36_000 < info["voxels_removed"] < 38_000
+    kept = out.data >= 1324
+    assert int(kept.sum()) > 400_000  # the skull (402,994 voxels in 6-connectivity) stays
+    xs = np.flatnonzero(kept.any(axis=(0, 1)))
+    assert (xs.max() - xs.min()) * 0.957 < 160  # no holder beside the skull: about a skull's width
+
+
+def test_head_phantom_print_model_has_no_couch():
+    vol = load_volume(shared_file("head_phantom_dicom", "head_phantom_dicom.zip"))
+    out, info = isolate_bone(vol, 300.0, BodyMaskParams(), hu_offset=0.0)
+    # README: "couch/head rest 55,436 voxels (not bone)" in 6-connectivity; 26-connected it is one piece
+    assert info["voxels_removed"] >= 55_436 and info["volume_removed_mm3"] > 50_000
+    assert int((out.data >= 300).sum()) > 274_170  # the phantom skull stays
+
+
+def test_ctpace_has_no_bone_in_the_body():
+    vol = load_volume(shared_file("ctpace_phantom_dicom_nometa", "ctpace_phantom_dicom.zip"))
+    with pytest.raises(NoBoneInBodyError, match="no bone inside the body"):
+        reconstruct(vol, ReconParams(iso=IsoParams(preset="bone")), device="cpu")
