@@ -55,6 +55,7 @@ class Services:
         self.queue = Queue(settings.redis_url, settings.queue)
         self.key = settings.signing_key()
         self.upload_threads = anyio.CapacityLimiter(UPLOAD_THREADS)
+        self.active_uploads = anyio.Semaphore(settings.active_uploads)
         self._stop = threading.Event()
 
     async def in_upload_thread(self, fn: Any, *args: Any) -> Any:
@@ -283,6 +284,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         free = s.storage.free_bytes()
         if size is not None and free is not None and size > free:
             raise Problem(507, f"{FULL} ({size:,} bytes sent, {free:,} free)")
+        async with s.active_uploads:
+            job = await _receive(request, s, who, limit)
+        body = s.job_out(job, _base(request, settings)).model_dump(mode="json")
+        return JSONResponse(body, status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
+
+    async def _receive(request: Request, s: Services, who: str, limit: int) -> Job:
+        """Stream, check and record one upload; nothing of a refused one is kept."""
         job_id = Database.new_id()
         writer = await s.in_upload_thread(s.storage.upload_writer, job_id, limit)
         try:
@@ -296,10 +304,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             summary = await s.in_upload_thread(inspect_upload, s.storage.upload_path(job_id), parsed.filename, params)
             log.info("job %s: upload of %d bytes: %s", job_id, writer.size, summary)
             name = parsed.filename or "upload"
-            job = await s.in_upload_thread(
+            return await s.in_upload_thread(  # type: ignore[no-any-return]
                 s.accept, job_id, who, params.model_dump(exclude_none=True), name, writer.size
             )
-        except Exception as exc:  # nothing of a refused upload is kept
+        except Exception as exc:
             await s.in_upload_thread(s.discard, writer, job_id)
             if isinstance(exc, UploadTooLarge):
                 raise Problem(413, str(exc)) from None
@@ -312,8 +320,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         except BaseException:  # cancelled: clean up without awaiting
             s.discard(writer, job_id)
             raise
-        body = s.job_out(job, _base(request, settings)).model_dump(mode="json")
-        return JSONResponse(body, status_code=202, headers={"Location": f"/v1/jobs/{job_id}"})
 
     @app.get("/v1/jobs", response_model=JobList, tags=["jobs"], summary="your jobs, newest first", responses=keyed)
     def list_jobs(
