@@ -31,7 +31,7 @@ from service.params import JobParams
 from service.problems import Problem
 from service.problems import problems as errors
 from service.queue import Queue
-from service.schemas import JobError, JobList, JobOut, OutputFile, Readiness
+from service.schemas import DOWNLOAD_CONTENT, UPLOAD_BODY, JobError, JobList, JobOut, OutputFile, Readiness
 from service.settings import Settings, get_settings
 from service.storage import OUTPUTS, Storage, UploadTooLarge, is_storage_full, storage_from_settings
 from service.upload_check import inspect_upload
@@ -146,39 +146,6 @@ class Services:
 
 def _utc(value: dt.datetime | None) -> dt.datetime | None:
     return None if value is None else value.replace(tzinfo=dt.UTC)
-
-
-UPLOAD_BODY = {
-    "required": True,
-    "content": {
-        "multipart/form-data": {
-            "schema": {
-                "type": "object",
-                "required": ["file"],
-                "additionalProperties": False,
-                "properties": {
-                    "file": {
-                        "type": "string",
-                        "format": "binary",
-                        "description": "zip, tar or tar.gz of 2-D slices, or a DICOM series as a zip",
-                    },
-                    "params": {
-                        "type": "string",
-                        "description": "JSON object of JobParams (iso or preset, spacing, reduction...)",
-                    },
-                },
-            },
-            "encoding": {"params": {"contentType": "application/json"}},
-        }
-    },
-}
-DOWNLOAD_CONTENT = {
-    "content": {
-        **{media: {"schema": {"type": "string", "format": "binary"}} for media in ("model/stl", "model/gltf-binary")},
-        "application/json": {"schema": {"type": "object"}},
-    },
-    "description": "the file (report.json is JSON, the models are binary)",
-}
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

@@ -1,4 +1,5 @@
-"""Response models of the API (the job resource and its list)."""
+"""Response models of the API (the job resource and its list) and the OpenAPI documents of the upload body and
+of a download."""
 
 from __future__ import annotations
 
@@ -64,3 +65,37 @@ class Readiness(BaseModel):
 
     status: Literal["ready", "not ready"]
     checks: dict[str, str] = Field(description="'ok' or 'unreachable: <reason>' for each dependency")
+
+
+# the multipart body of POST /v1/jobs (read by service.uploads, not by FastAPI)
+UPLOAD_BODY = {
+    "required": True,
+    "content": {
+        "multipart/form-data": {
+            "schema": {
+                "type": "object",
+                "required": ["file"],
+                "additionalProperties": False,
+                "properties": {
+                    "file": {
+                        "type": "string",
+                        "format": "binary",
+                        "description": "zip, tar or tar.gz of 2-D slices, or a DICOM series as a zip",
+                    },
+                    "params": {
+                        "type": "string",
+                        "description": "JSON object of JobParams (iso or preset, spacing, reduction...)",
+                    },
+                },
+            },
+            "encoding": {"params": {"contentType": "application/json"}},
+        }
+    },
+}
+DOWNLOAD_CONTENT = {
+    "content": {
+        **{media: {"schema": {"type": "string", "format": "binary"}} for media in ("model/stl", "model/gltf-binary")},
+        "application/json": {"schema": {"type": "object"}},
+    },
+    "description": "the file (report.json is JSON, the models are binary)",
+}
