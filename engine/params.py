@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -17,11 +18,44 @@ ISO_PRESETS_HU: dict[str, float] = {"bone": 300.0, "compact-bone": 662.0, "spong
 DEFAULT_SPECK_VOXELS = 4.0
 # image stacks carry no orientation: which end of the stack is the patient's head (OrientParams)
 FIRST_SLICE_CHOICES = ("superior", "inferior")
+# physically plausible voxel sizes: 0.1 um (beyond any micro-CT) to 10 cm (beyond any clinical slice gap)
+SPACING_MM_MIN, SPACING_MM_MAX = 1e-4, 100.0
+# levels, offsets and volumes must stay finite in float32 (the device's type)
+FLOAT32_MAX = 3.4028234663852886e38
+INT32_MAX = 2**31 - 1  # counts (faces, pieces) are int32 on the device and in the mesh arrays
 
 
 def _check(cond: bool, message: str) -> None:
     if not cond:
         raise ValueError(message)
+
+
+def _finite(value: float | None, name: str, *, lo: float = -FLOAT32_MAX, hi: float = FLOAT32_MAX) -> None:
+    """None, or a real number within [lo, hi] (NaN and infinities refused)."""
+    if value is None:
+        return
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+    _check(ok and lo <= value <= hi, f"{name} must be a finite number in [{lo:g}, {hi:g}], got {value!r}")
+
+
+def check_spacing_zyx_mm(spacing: object) -> tuple[float, float, float]:
+    """A voxel size (z, y, x) in mm as three floats within [SPACING_MM_MIN, SPACING_MM_MAX].
+
+    Raises:
+        ValueError: not three numbers, or one of them non-finite or outside the plausible range.
+    """
+    try:
+        values = tuple(float(v) for v in spacing)  # type: ignore[attr-defined]
+    except (TypeError, ValueError):
+        raise ValueError(f"Expected a voxel size of three numbers (z, y, x) in mm, got {spacing!r}") from None
+    _check(len(values) == 3, f"Expected a voxel size of three numbers (z, y, x) in mm, got {spacing!r}")
+    for axis, v in zip("zyx", values, strict=True):
+        _check(
+            math.isfinite(v) and SPACING_MM_MIN <= v <= SPACING_MM_MAX,
+            f"Expected a voxel size between {SPACING_MM_MIN:g} and {SPACING_MM_MAX:g} mm, got {v!r} mm along "
+            f"{axis} in {spacing!r}",
+        )
+    return values  # type: ignore[return-value]
 
 
 @dataclass(frozen=True)
@@ -44,6 +78,8 @@ class PreprocessParams:
     crop_zyx_mm: tuple[tuple[float, float], tuple[float, float], tuple[float, float]] | None = None
 
     def __post_init__(self) -> None:
+        _finite(self.threshold, "threshold")
+        _finite(self.canny_sigma, "canny_sigma", hi=1e4)
         _check(self.canny_sigma is None or self.canny_sigma > 0, f"canny_sigma must be > 0, got {self.canny_sigma}")
         _check(
             self.area_opening_px is None or self.area_opening_px >= 1,
@@ -54,6 +90,9 @@ class PreprocessParams:
                 len(self.crop_zyx_mm) == 3 and all(len(r) == 2 and r[0] < r[1] for r in self.crop_zyx_mm),
                 f"crop_zyx_mm must be three (lo, hi) ranges in mm with lo < hi, got {self.crop_zyx_mm}",
             )
+            for lo, hi in self.crop_zyx_mm:
+                _finite(lo, "crop_zyx_mm")
+                _finite(hi, "crop_zyx_mm")
 
 
 @dataclass(frozen=True)
@@ -67,6 +106,7 @@ class GaussianParams:
     sigma_voxels: float = 0.5
 
     def __post_init__(self) -> None:
+        _finite(self.sigma_voxels, "sigma_voxels", hi=1e4)
         _check(self.sigma_voxels > 0, f"sigma_voxels must be > 0, got {self.sigma_voxels}")
 
 
@@ -89,6 +129,8 @@ class IsoParams:
     def __post_init__(self) -> None:
         _check(not (self.iso is not None and self.preset is not None), "give either iso or preset, not both")
         _check(self.iso is None or math.isfinite(self.iso), f"iso must be finite, got {self.iso}")
+        _finite(self.iso, "iso")
+        _finite(self.hu_offset, "hu_offset")
         _check(
             self.preset is None or self.preset in ISO_PRESETS_HU,
             f"preset must be one of {sorted(ISO_PRESETS_HU)}, got {self.preset!r}",
@@ -117,12 +159,14 @@ class IslandParams:
         return float(self.min_volume_voxels * spacing_zyx_mm[0] * spacing_zyx_mm[1] * spacing_zyx_mm[2])
 
     def __post_init__(self) -> None:
+        _finite(self.min_volume_mm3, "min_volume_mm3")
         _check(
             self.min_volume_mm3 is None or self.min_volume_mm3 >= 0,
             f"min_volume_mm3 must be >= 0, got {self.min_volume_mm3}",
         )
         _check(
-            self.keep_largest is None or self.keep_largest >= 1, f"keep_largest must be >= 1, got {self.keep_largest}"
+            self.keep_largest is None or 1 <= self.keep_largest <= INT32_MAX,
+            f"keep_largest must be in [1, {INT32_MAX}], got {self.keep_largest}",
         )
         _check(
             self.min_volume_voxels is None or (math.isfinite(self.min_volume_voxels) and self.min_volume_voxels >= 0),
@@ -140,8 +184,8 @@ class DecimateParams:
     def __post_init__(self) -> None:
         _check(self.reduction is None or 0 < self.reduction <= 1, f"reduction must be in (0, 1], got {self.reduction}")
         _check(
-            self.max_triangles is None or self.max_triangles >= 4,
-            f"max_triangles must be >= 4, got {self.max_triangles}",
+            self.max_triangles is None or 4 <= self.max_triangles <= INT32_MAX,
+            f"max_triangles must be in [4, {INT32_MAX}], got {self.max_triangles}",
         )
         _check(self.reduction is not None or self.max_triangles is not None, "give reduction or max_triangles")
 
@@ -154,7 +198,7 @@ class SmoothParams:
     angle_deg: float = 0.5
 
     def __post_init__(self) -> None:
-        _check(self.iterations >= 1, f"iterations must be >= 1, got {self.iterations}")
+        _check(1 <= self.iterations <= 10_000, f"iterations must be in [1, 10000], got {self.iterations}")
         _check(0 < self.angle_deg < 90, f"angle_deg must be in (0, 90), got {self.angle_deg}")
 
 
@@ -166,8 +210,9 @@ class ExportParams:
     ar_max_triangles: int = 50_000
 
     def __post_init__(self) -> None:
-        _check(self.phone_max_triangles >= 100, f"phone_max_triangles must be >= 100, got {self.phone_max_triangles}")
-        _check(self.ar_max_triangles >= 100, f"ar_max_triangles must be >= 100, got {self.ar_max_triangles}")
+        for name in ("phone_max_triangles", "ar_max_triangles"):
+            value = getattr(self, name)
+            _check(100 <= value <= INT32_MAX, f"{name} must be in [100, {INT32_MAX}], got {value}")
 
 
 @dataclass(frozen=True)

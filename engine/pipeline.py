@@ -340,6 +340,7 @@ def write_outputs(
 
     from engine.device import resolve_device
     from engine.export import to_draco_glb, to_glb, to_stl
+    from engine.export.printcheck import PRINT_STL, check_print_model, stl_name
 
     params = params or ReconParams()
     dev = resolve_device(device)
@@ -351,11 +352,13 @@ def write_outputs(
 
         # the STL in patient LPS mm, the glTF files in patient axes centred on the model (engine.orient)
         p, m, recon.report["frame"] = export_meshes(recon.mesh, recon.report.get("frame"))
+        if stl_name(params) == PRINT_STL:  # an unprintable print model fails here (PrintCheckError), unwritten
+            recon.report["print_check"] = check_print_model(p.vertices, p.faces, recon.report.get("mesh"))
         phone, phone_info = _budget_mesh(m, params.export.phone_max_triangles, dev)
         ar, ar_info = _budget_mesh(phone, params.export.ar_max_triangles, dev)
         recon.report["exports"] = {"phone.glb": phone_info, "ar.glb": ar_info}
         files = {
-            "model.stl": to_stl(p.vertices, p.faces, header="bonemesh model, patient LPS frame, mm"),
+            stl_name(params): to_stl(p.vertices, p.faces, header="bonemesh model, patient LPS frame, mm"),
             "model.glb": to_glb(m.vertices, m.faces, m.normals),
             "phone.glb": to_draco_glb(phone.vertices, phone.faces, phone.normals),
             "ar.glb": to_glb(ar.vertices, ar.faces, ar.normals),

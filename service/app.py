@@ -3,89 +3,45 @@
 The API records jobs in the database, streams uploads to storage, and enqueues by task name; it never imports
 Warp or the worker. A background reconciler re-enqueues jobs whose broker message is gone (Redis restarted) and
 jobs whose worker stopped sending heartbeats (worker killed): the job records are the truth.
+
+Blocking work (file writes, fsync, inspecting the archive, database writes, the broker) runs in threads, and an
+upload's threads come from a small pool of their own: a burst of uploads never queues the status reads, which
+run in the default pool. Every error is a problem+json document (:mod:`service.problems`).
 """
 
 import contextlib
 import datetime as dt
 import hmac
 import json
-import logging
 import threading
 from collections.abc import AsyncIterator
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
+import anyio
 from fastapi import Depends, FastAPI, Header, Query, Request
-from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
 from fastapi.responses import FileResponse, JSONResponse, Response
-from pydantic import BaseModel, Field, ValidationError
-from starlette.concurrency import run_in_threadpool
-from starlette.exceptions import HTTPException as StarletteHTTPException
+from fastapi_offline import FastAPIOffline
+from pydantic import ValidationError
 
-from service import tokens
+from service import problems, tokens
 from service.db import Database, Job, owner_of, utcnow
+from service.logsafe import safe_logger
 from service.params import JobParams
+from service.problems import Problem
+from service.problems import problems as errors
 from service.queue import Queue
+from service.schemas import DOWNLOAD_CONTENT, UPLOAD_BODY, JobError, JobList, JobOut, OutputFile, Readiness
 from service.settings import Settings, get_settings
-from service.storage import OUTPUTS, Storage, UploadTooLarge, storage_from_settings
-from service.uploads import UploadError, read_multipart, relabel
+from service.storage import OUTPUTS, Storage, UploadTooLarge, is_storage_full, storage_from_settings
+from service.upload_check import inspect_upload
+from service.uploads import UploadError, read_multipart
 
-log = logging.getLogger("bonemesh.api")
-PROBLEM = "application/problem+json"
+log = safe_logger("bonemesh.api")
 MULTIPART_SLACK = 1 << 20  # multipart headers and boundaries around the file
-
-
-class Problem(Exception):
-    """An error answered as application/problem+json."""
-
-    def __init__(self, status: int, title: str, detail: str, **extra: Any) -> None:
-        super().__init__(detail)
-        self.status, self.title, self.detail, self.extra = status, title, detail, extra
-
-
-class ProblemBody(BaseModel):
-    type: str = "about:blank"
-    title: str
-    status: int
-    detail: str
-    errors: list[dict[str, Any]] | None = None
-
-
-class JobError(BaseModel):
-    code: str = Field(description="machine-readable reason, e.g. bad_input, no_surface, time_limit, internal_error")
-    message: str = Field(description="what went wrong, in words")
-
-
-class OutputFile(BaseModel):
-    name: str
-    kind: str = Field(description="print (STL, mm), model (GLB, m), phone (Draco GLB), ar (GLB), report")
-    media_type: str
-    bytes: int
-    triangles: int | None
-    url: str = Field(description="signed download link; works without the API key until expires_at")
-    expires_at: dt.datetime
-
-
-class JobOut(BaseModel):
-    id: str
-    state: Literal["queued", "running", "succeeded", "failed", "cancelled"]
-    stage: str | None
-    progress: float = Field(ge=0, le=100)
-    upload_name: str
-    upload_bytes: int
-    params: dict[str, Any]
-    attempts: int
-    created_at: dt.datetime
-    started_at: dt.datetime | None
-    finished_at: dt.datetime | None
-    error: JobError | None
-    outputs: list[OutputFile] | None
-
-
-class JobList(BaseModel):
-    items: list[JobOut]
-    total: int
-    limit: int
-    offset: int
+UPLOAD_THREADS = 4  # threads for the blocking parts of all uploads together
+MAX_OFFSET = 2**31 - 1
+FULL = "the data volume is full: the upload was not kept; try again later or ask the operator to free space"
 
 
 class Services:
@@ -98,7 +54,13 @@ class Services:
         self.storage: Storage = storage_from_settings(settings.data_dir)
         self.queue = Queue(settings.redis_url, settings.queue)
         self.key = settings.signing_key()
+        self.upload_threads = anyio.CapacityLimiter(UPLOAD_THREADS)
+        self.active_uploads = anyio.Semaphore(settings.active_uploads)
         self._stop = threading.Event()
+
+    async def in_upload_thread(self, fn: Any, *args: Any) -> Any:
+        """``fn(*args)`` in one of the uploads' threads."""
+        return await anyio.to_thread.run_sync(fn, *args, limiter=self.upload_threads)
 
     def enqueue(self, job_id: str) -> bool:
         try:
@@ -137,6 +99,19 @@ class Services:
                 self.reconcile()
             except Exception as exc:  # Redis or the database down for a moment: try again next round
                 log.warning("reconciler: %s", exc)
+
+    def accept(self, job_id: str, who: str, params: dict[str, Any], name: str, size: int) -> Job:
+        """Record an uploaded job and send its message (blocking: call from a thread)."""
+        job = self.db.create(who, params, name, size, job_id=job_id)
+        self.enqueue(job_id)
+        return self.db.get(job_id) or job
+
+    def discard(self, writer: Any, job_id: str) -> None:
+        """Drop a refused upload: the partial file and the job's folder (never raises)."""
+        try:
+            writer.abort()
+        finally:
+            self.storage.delete_job(job_id)
 
     def job_out(self, job: Job, base_url: str) -> JobOut:
         outputs = None
@@ -188,14 +163,23 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         yield
         svc._stop.set()
 
-    app = FastAPI(
+    app = FastAPIOffline(  # /docs and /redoc with their scripts served from the package: no CDN
         title="bonemesh",
         version="1.0",
         description="Bone surface models from CT and micro-CT scans: upload a slice archive or DICOM series, get "
         "a watertight STL in millimetres for printing and light GLB models (metres) for phones and AR.",
         lifespan=lifespan,
-        responses={401: {"model": ProblemBody, "description": "missing or unknown API key"}},
+        static_url="/docs/static",
     )
+    problems.install(app)
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+            app.openapi_schema = problems.fix_openapi(schema)
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
 
     def svc() -> Services:
         return holder["svc"]
@@ -205,34 +189,23 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         for key in settings.api_keys:  # every key compared, in constant time
             ok |= x_api_key is not None and hmac.compare_digest(x_api_key.encode(), key.encode())
         if not ok:
-            raise Problem(401, "Unauthorized", "send a valid API key in the X-API-Key header")
+            raise Problem(401, "send a valid API key in the X-API-Key header")
         return owner_of(x_api_key or "")
 
-    @app.exception_handler(Problem)
-    async def _problem(_: Request, exc: Problem) -> JSONResponse:
-        body = {"type": "about:blank", "title": exc.title, "status": exc.status, "detail": exc.detail, **exc.extra}
-        return JSONResponse(body, status_code=exc.status, media_type=PROBLEM)
-
-    @app.exception_handler(StarletteHTTPException)
-    async def _http(_: Request, exc: StarletteHTTPException) -> JSONResponse:
-        code = exc.status_code
-        body = {"type": "about:blank", "title": _title(code), "status": code, "detail": exc.detail}
-        return JSONResponse(body, status_code=exc.status_code, media_type=PROBLEM, headers=exc.headers)
-
-    @app.exception_handler(RequestValidationError)
-    async def _invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
-        errors = [{"field": ".".join(str(p) for p in e["loc"]), "message": e["msg"]} for e in exc.errors()]
-        detail = "; ".join(f"{e['field']}: {e['message']}" for e in errors)
-        body = {"type": "about:blank", "title": "Unprocessable Content", "status": 422, "detail": detail}
-        return JSONResponse({**body, "errors": errors}, status_code=422, media_type=PROBLEM)
-
-    problems = {n: {"model": ProblemBody, "content": {PROBLEM: {}}} for n in (404,)}
+    Owner = Annotated[str, Depends(owner)]
+    keyed = errors(401, d401="missing or unknown API key")
 
     @app.get("/healthz", tags=["health"], summary="the process is up")
     def healthz() -> dict[str, str]:
         return {"status": "ok"}
 
-    @app.get("/readyz", tags=["health"], summary="database, Redis and storage are reachable")
+    @app.get(
+        "/readyz",
+        tags=["health"],
+        summary="database, Redis and storage are reachable",
+        response_model=Readiness,
+        responses={503: {"model": Readiness, "description": "a dependency is unreachable (status 'not ready')"}},
+    )
     def readyz() -> JSONResponse:
         checks: dict[str, str] = {}
         s = svc()
@@ -252,119 +225,143 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         tags=["jobs"],
         summary="upload a scan and start a reconstruction",
         responses={
-            400: {"model": ProblemBody},
-            413: {"model": ProblemBody, "description": "the upload is larger than the limit"},
-            415: {"model": ProblemBody, "description": "not multipart, or not an archive bonemesh reads"},
-            422: {"model": ProblemBody, "description": "invalid params, or an archive that cannot be a scan"},
+            **keyed,
+            **errors(
+                400,
+                413,
+                415,
+                422,
+                507,
+                d400="malformed or incomplete multipart body, or a part sent twice",
+                d413="the upload is larger than the limit",
+                d415="not multipart, or not an archive bonemesh reads",
+                d422="invalid params, or an archive that cannot be a scan",
+                d507="the data volume cannot hold the upload (nothing was kept)",
+            ),
         },
-        openapi_extra={
-            "requestBody": {
-                "required": True,
-                "content": {
-                    "multipart/form-data": {
-                        "schema": {
-                            "type": "object",
-                            "required": ["file"],
-                            "properties": {
-                                "file": {
-                                    "type": "string",
-                                    "format": "binary",
-                                    "description": "zip, tar or tar.gz of 2-D slices, or a DICOM series as a zip",
-                                },
-                                "params": {
-                                    "type": "string",
-                                    "description": "JSON object of JobParams (iso or preset, spacing, reduction...)",
-                                },
-                            },
-                        },
-                        "encoding": {"params": {"contentType": "application/json"}},
-                    }
-                },
-            }
-        },
+        openapi_extra={"requestBody": UPLOAD_BODY},
     )
-    async def create_job(request: Request, who: Annotated[str, Depends(owner)]) -> Response:
+    async def create_job(request: Request, who: Owner) -> Response:
         s = svc()
         limit = settings.max_upload_bytes
         declared = request.headers.get("content-length")
-        if declared and declared.isdigit() and int(declared) > limit + MULTIPART_SLACK:
-            detail = f"the upload ({int(declared):,} bytes) is over the limit of {limit:,} bytes"
-            raise Problem(413, "Content Too Large", detail)
-        job_id = Database.new_id()
-        writer = s.storage.upload_writer(job_id, limit)
-        try:
-            parsed = await read_multipart(request.headers.get("content-type", ""), request.stream(), writer)
-            params = _parse_params(parsed.fields.get("params"))
-            writer.commit()
-            await run_in_threadpool(_inspect, s.storage.upload_path(job_id), parsed.filename)
-        except BaseException as exc:  # nothing of a refused upload is kept
-            writer.abort()
-            s.storage.delete_job(job_id)
-            if isinstance(exc, UploadTooLarge):
-                raise Problem(413, "Content Too Large", str(exc)) from None
-            if isinstance(exc, UploadError):
-                raise Problem(exc.status, _title(exc.status), exc.detail) from None
-            raise
-        name = parsed.filename or "upload"
-        job = s.db.create(who, params.model_dump(exclude_none=True), name, writer.size, job_id=job_id)
-        await run_in_threadpool(s.enqueue, job_id)
-        job = s.db.get(job_id) or job
+        size = int(declared) if declared and declared.isdigit() and len(declared) < 20 else None
+        if size is not None and size > limit + MULTIPART_SLACK:
+            raise Problem(413, f"the upload ({size:,} bytes) is over the limit of {limit:,} bytes")
+        free = s.storage.free_bytes()
+        if size is not None and free is not None and size > free:
+            raise Problem(507, f"{FULL} ({size:,} bytes sent, {free:,} free)")
+        async with s.active_uploads:
+            job = await _receive(request, s, who, limit)
         body = s.job_out(job, _base(request, settings)).model_dump(mode="json")
-        return JSONResponse(body, status_code=202, headers={"Location": f"/v1/jobs/{job_id}"})
+        return JSONResponse(body, status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
 
-    @app.get("/v1/jobs", response_model=JobList, tags=["jobs"], summary="your jobs, newest first")
+    async def _receive(request: Request, s: Services, who: str, limit: int) -> Job:
+        """Stream, check and record one upload; nothing of a refused one is kept."""
+        job_id = Database.new_id()
+        writer = await s.in_upload_thread(s.storage.upload_writer, job_id, limit)
+        try:
+            parsed = await read_multipart(
+                request.headers.get("content-type", ""),
+                request.stream(),
+                lambda data: s.in_upload_thread(writer.write, data),
+            )
+            params = _parse_params(parsed.fields.get("params"))
+            await s.in_upload_thread(writer.commit)
+            summary = await s.in_upload_thread(inspect_upload, s.storage.upload_path(job_id), parsed.filename, params)
+            log.info("job %s: upload of %d bytes: %s", job_id, writer.size, summary)
+            name = parsed.filename or "upload"
+            return await s.in_upload_thread(  # type: ignore[no-any-return]
+                s.accept, job_id, who, params.model_dump(exclude_none=True), name, writer.size
+            )
+        except Exception as exc:
+            await s.in_upload_thread(s.discard, writer, job_id)
+            if isinstance(exc, UploadTooLarge):
+                raise Problem(413, str(exc)) from None
+            if isinstance(exc, UploadError):
+                raise Problem(exc.status, exc.detail) from None
+            if is_storage_full(exc):
+                log.error("job %s: upload refused, the data volume is full (%s)", job_id, exc)
+                raise Problem(507, FULL) from None
+            raise
+        except BaseException:  # cancelled: clean up without awaiting
+            s.discard(writer, job_id)
+            raise
+
+    @app.get("/v1/jobs", response_model=JobList, tags=["jobs"], summary="your jobs, newest first", responses=keyed)
     def list_jobs(
         request: Request,
-        who: Annotated[str, Depends(owner)],
+        who: Owner,
         limit: Annotated[int, Query(ge=1, le=200)] = 50,
-        offset: Annotated[int, Query(ge=0)] = 0,
+        offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
     ) -> JobList:
         s = svc()
         rows, total = s.db.list(who, limit, offset)
         base = _base(request, settings)
         return JobList(items=[s.job_out(j, base) for j in rows], total=total, limit=limit, offset=offset)
 
-    @app.get("/v1/jobs/{job_id}", response_model=JobOut, tags=["jobs"], summary="a job", responses=problems)
-    def get_job(job_id: str, request: Request, who: Annotated[str, Depends(owner)]) -> JobOut:
-        s = svc()
-        job = s.db.get(job_id, who)
+    def _job(job_id: str, who: str) -> Job:
+        job = svc().db.get(job_id, who)
         if job is None:
-            raise Problem(404, "Not Found", f"no job {job_id} for this API key")
-        return s.job_out(job, _base(request, settings))
+            raise Problem(404, f"no job {job_id} for this API key")
+        return job
+
+    @app.get(
+        "/v1/jobs/{job_id}", response_model=JobOut, tags=["jobs"], summary="a job", responses={**keyed, **errors(404)}
+    )
+    def get_job(job_id: str, request: Request, who: Owner) -> JobOut:
+        return svc().job_out(_job(job_id, who), _base(request, settings))
+
+    @app.post(
+        "/v1/jobs/{job_id}/cancel",
+        response_model=JobOut,
+        tags=["jobs"],
+        summary="cancel a queued or running job (the record stays, as cancelled; its files are removed)",
+        responses={**keyed, **errors(404, 409, d409="the job has already finished")},
+    )
+    def cancel_job(job_id: str, request: Request, who: Owner) -> JobOut:
+        s = svc()
+        job = _job(job_id, who)
+        if job.state != "cancelled":
+            if not s.db.cancel(job_id):
+                raise Problem(409, f"job {job_id} has already {job.state}; delete it to remove it and its files")
+            s.storage.delete_job(job_id)
+        return s.job_out(_job(job_id, who), _base(request, settings))
 
     @app.delete(
         "/v1/jobs/{job_id}",
         status_code=204,
         tags=["jobs"],
-        summary="cancel a job and delete its files",
-        responses=problems,
+        summary="delete a job and its files (a running one is stopped); afterwards the job answers 404",
+        responses={**keyed, **errors(404)},
     )
-    def delete_job(job_id: str, who: Annotated[str, Depends(owner)]) -> Response:
+    def delete_job(job_id: str, who: Owner) -> Response:
         s = svc()
-        job = s.db.get(job_id, who)
-        if job is None:
-            raise Problem(404, "Not Found", f"no job {job_id} for this API key")
-        s.db.cancel(job_id)
+        _job(job_id, who)
+        s.db.delete(job_id)
         s.storage.delete_job(job_id)
         return Response(status_code=204)
 
     @app.get(
-        "/v1/files/{token}",
+        "/v1/files/{token:path}",
         tags=["files"],
         summary="download an output through its signed link (no API key)",
         response_class=FileResponse,
-        responses={403: {"model": ProblemBody}, 404: {"model": ProblemBody}},
+        responses={
+            200: DOWNLOAD_CONTENT,
+            **errors(403, 404, d403="the link does not verify (forged, malformed or expired)", d404="file gone"),
+        },
     )
     def download(token: str) -> FileResponse:
         s = svc()
         try:
             job_id, name = tokens.verify(s.key, token)
         except tokens.BadToken as exc:
-            raise Problem(403, "Forbidden", str(exc)) from None
+            raise Problem(403, str(exc)) from None
         job = s.db.get(job_id)
         path = s.storage.output_path(job_id, name) if job is not None and job.state == "succeeded" else None
         if path is None:
-            raise Problem(404, "Not Found", "this file no longer exists (the job was deleted)")
+            raise Problem(404, "this file no longer exists (the job was deleted)")
         media = OUTPUTS.get(name, ("file", "application/octet-stream"))[1]
         return FileResponse(path, media_type=media, filename=name, content_disposition_type="attachment")
 
@@ -376,50 +373,27 @@ def _parse_params(text: str | None) -> JobParams:
         return JobParams()
     try:
         data = json.loads(text)
-    except ValueError as exc:
-        raise Problem(422, "Unprocessable Content", f"params is not valid JSON: {exc}") from None
+    except (ValueError, RecursionError) as exc:
+        reason = "it is nested too deeply" if isinstance(exc, RecursionError) else str(exc)
+        raise Problem(422, f"params is not valid JSON: {reason}") from None
     if not isinstance(data, dict):
-        raise Problem(422, "Unprocessable Content", "params must be a JSON object")
+        raise Problem(422, "params must be a JSON object")
     try:
         params = JobParams.model_validate(data)
-    except ValidationError as exc:
-        errors = [
+    except (ValidationError, RecursionError) as exc:
+        if isinstance(exc, RecursionError):
+            raise Problem(422, "params is nested too deeply") from None
+        errs = [
             {"field": ".".join(["params", *(str(p) for p in e["loc"])]).rstrip("."), "message": e["msg"]}
             for e in exc.errors()
         ]
-        detail = "; ".join(f"{e['field']}: {e['message']}" for e in errors)
-        raise Problem(422, "Unprocessable Content", detail, errors=errors) from None
+        raise Problem(422, "; ".join(f"{e['field']}: {e['message']}" for e in errs), errors=errs) from None
     try:
         params.engine_params()
     except ValueError as exc:
-        errors = [{"field": "params", "message": str(exc)}]
-        raise Problem(422, "Unprocessable Content", f"params: {exc}", errors=errors) from None
+        raise Problem(422, f"params: {exc}", errors=[{"field": "params", "message": str(exc)}]) from None
     return params
-
-
-def _inspect(path: Any, filename: str | None) -> None:
-    """Refuse at upload what can be seen then: not an archive, unsafe, too large, or nothing to build from."""
-    from engine.errors import InputError
-    from engine.io import inspect_input
-
-    try:
-        summary = inspect_input(path)
-    except InputError as exc:
-        detail = relabel(str(exc), filename)
-        unreadable = ("neither an archive", "not a readable", "single 2-D image")
-        status = 415 if any(s in detail for s in unreadable) else 422
-        raise Problem(status, _title(status), detail) from None
-    log.info("upload %s: %s", filename, summary)
 
 
 def _base(request: Request, settings: Settings) -> str:
     return settings.public_url or str(request.base_url)
-
-
-def _title(status: int) -> str:
-    from http import HTTPStatus
-
-    try:
-        return HTTPStatus(status).phrase
-    except ValueError:
-        return "Error"

@@ -14,7 +14,20 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from sqlalchemy import JSON, DateTime, Float, Integer, String, Text, create_engine, event, func, select, update
+from sqlalchemy import (
+    JSON,
+    DateTime,
+    Float,
+    Integer,
+    String,
+    Text,
+    create_engine,
+    delete,
+    event,
+    func,
+    select,
+    update,
+)
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
@@ -122,16 +135,20 @@ class Database:
             s.execute(update(Job).where(Job.id == job_id).values(enqueued_at=utcnow()))
 
     def cancel(self, job_id: str) -> bool:
-        """Cancel a job (its files are being deleted): a queued or running one stops, a finished one loses its
-        outputs; the record stays, as cancelled. True if it was active."""
+        """Cancel a queued or running job (its worker notices at its next heartbeat); the record stays, as cancelled.
+        True if it was active; a finished job is left as it is."""
         with self.session() as s:
             res = s.execute(
                 update(Job)
                 .where(Job.id == job_id, Job.state.in_(ACTIVE))
                 .values(state="cancelled", finished_at=utcnow(), outputs=None)
             )
-            s.execute(update(Job).where(Job.id == job_id).values(state="cancelled", outputs=None))
             return res.rowcount == 1
+
+    def delete(self, job_id: str) -> bool:
+        """Remove a job's record (a running job's worker notices at its next heartbeat). True if it existed."""
+        with self.session() as s:
+            return s.execute(delete(Job).where(Job.id == job_id)).rowcount == 1
 
     def lost_jobs(self, queued_before: dt.datetime, stale_before: dt.datetime) -> tuple[list[str], list[str]]:
         """Queued jobs enqueued before ``queued_before`` (their message may be gone) and running jobs whose

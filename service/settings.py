@@ -30,6 +30,9 @@ class Settings(BaseSettings):
     secret_key: str | None = Field(default=None, description="signs download links; default: a key file in data_dir")
     device: str = "auto"
     max_upload_bytes: int = 4 << 30
+    active_uploads: int = Field(
+        default=4, ge=1, description="upload bodies read at once; more wait unread, so status reads stay fast"
+    )
     url_ttl_seconds: int = 3600
     queue: str = "bonemesh"
     stale_seconds: float = 60.0

@@ -7,9 +7,11 @@ job's outputs are staged in a temporary folder and moved into place in one renam
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import shutil
+import sqlite3
 import uuid
 from abc import ABC, abstractmethod
 from pathlib import Path
@@ -17,6 +19,7 @@ from pathlib import Path
 # a job's output files: kind and media type
 OUTPUTS = {
     "model.stl": ("print", "model/stl"),
+    "surface_open.stl": ("surface", "model/stl"),
     "model.glb": ("model", "model/gltf-binary"),
     "phone.glb": ("phone", "model/gltf-binary"),
     "ar.glb": ("ar", "model/gltf-binary"),
@@ -26,8 +29,26 @@ _ID = re.compile(r"^[0-9a-f]{32}$")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 
 
+_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
+
+
 class UploadTooLarge(Exception):
     """The upload went over the byte limit (nothing was kept)."""
+
+
+def is_storage_full(exc: BaseException) -> bool:
+    """Whether ``exc`` (or what caused it) says the disk, the quota or the file size limit is exhausted: an OSError
+    with ENOSPC, EDQUOT or EFBIG, or SQLite's SQLITE_FULL (as raised, or wrapped by SQLAlchemy)."""
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        seen.add(id(cur))
+        if isinstance(cur, OSError) and cur.errno in _FULL_ERRNOS:
+            return True
+        if isinstance(cur, sqlite3.Error) and getattr(cur, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL:
+            return True
+        cur = getattr(cur, "orig", None) or cur.__cause__ or cur.__context__
+    return False
 
 
 class UploadWriter(ABC):
@@ -64,6 +85,10 @@ class Storage(ABC):
         """A fresh private folder to write outputs into before ``publish``."""
 
     @abstractmethod
+    def clean_staging(self, job_id: str) -> int:
+        """Remove what earlier attempts at a job left (staging folders, replaced outputs); returns how many."""
+
+    @abstractmethod
     def publish(self, job_id: str, staged: Path) -> None:
         """Make the staged outputs the job's outputs, at once (replacing any earlier set)."""
 
@@ -78,6 +103,10 @@ class Storage(ABC):
     @abstractmethod
     def ping(self) -> None:
         """Raise when the storage cannot be written."""
+
+    @abstractmethod
+    def free_bytes(self) -> int | None:
+        """Bytes still free for uploads, or None when unknown."""
 
 
 class LocalStorage(Storage):
@@ -103,6 +132,15 @@ class LocalStorage(Storage):
         folder.mkdir(parents=True)
         return folder
 
+    def clean_staging(self, job_id: str) -> int:
+        folder = self._job(job_id)
+        if not folder.is_dir():
+            return 0
+        left = [p for p in folder.iterdir() if p.name.startswith((".staging-", ".old-")) and p.is_dir()]
+        for path in left:
+            shutil.rmtree(path, ignore_errors=True)
+        return len(left)
+
     def publish(self, job_id: str, staged: Path) -> None:
         final = self._job(job_id) / "outputs"
         old = self._job(job_id) / f".old-{uuid.uuid4().hex}"
@@ -124,6 +162,12 @@ class LocalStorage(Storage):
         probe = self.root / f".ping-{uuid.uuid4().hex}"
         probe.write_bytes(b"ok")
         probe.unlink()
+
+    def free_bytes(self) -> int | None:
+        try:
+            return shutil.disk_usage(self.root).free
+        except OSError:
+            return None
 
 
 class _LocalUpload(UploadWriter):
@@ -149,8 +193,12 @@ class _LocalUpload(UploadWriter):
         os.replace(self.tmp, self.folder / "upload")
 
     def abort(self) -> None:
-        self.fh.close()
-        self.tmp.unlink(missing_ok=True)
+        try:
+            self.fh.close()  # flushes: on a full disk that fails too, and the file goes all the same
+        except OSError:
+            pass
+        finally:
+            self.tmp.unlink(missing_ok=True)
 
 
 def storage_from_settings(data_dir: Path) -> Storage:

@@ -10,7 +10,7 @@ import time
 
 
 class BadToken(Exception):
-    """Forged, malformed or expired."""
+    """Forged, malformed or expired: every token that does not verify (the API answers all of them with 403)."""
 
 
 def _b64(data: bytes) -> str:
@@ -34,7 +34,7 @@ def verify(key: bytes, token: str, now: float | None = None) -> tuple[str, str]:
     try:
         payload, sig = token.split(".")
         expected = _b64(hmac.new(key, payload.encode(), hashlib.sha256).digest())
-        if not hmac.compare_digest(sig, expected):
+        if not hmac.compare_digest(sig.encode(), expected.encode()):  # bytes: any text compares, non-ASCII too
             raise BadToken("the link's signature does not match")
         job_id, name, expires = _unb64(payload).decode().split("/")
         expires_at = int(expires)

@@ -1,21 +1,29 @@
-"""Streaming ``multipart/form-data`` reader for job uploads: the ``file`` part goes straight into storage chunk
-by chunk (never held whole in memory), small text fields (``params``) are kept, anything else is refused."""
+"""Strict, streaming ``multipart/form-data`` reader for job uploads.
+
+The ``file`` part goes to an async sink in chunks of about a MiB (the API writes them to storage off the event
+loop), never held whole in memory; the small text field ``params`` is kept. The body must be complete: a missing
+closing boundary, a part sent twice, or oversized part headers are 400s, never a silent default or "last one wins".
+The uploaded file's name is client text: it is kept with its control characters escaped.
+"""
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 
-from python_multipart.multipart import MultipartParseError, MultipartParser, parse_options_header
+from python_multipart.multipart import MultipartParseError, MultipartParser, MultipartState, parse_options_header
 
-from service.storage import UploadWriter
+from service.logsafe import escape_control
 
 MAX_FIELD_BYTES = 64 << 10
+MAX_HEADER_BYTES = 16 << 10
+FLUSH_BYTES = 1 << 20
 FIELDS = ("params",)
+Sink = Callable[[bytes], Awaitable[None]]
 
 
 class UploadError(Exception):
-    """A malformed request (status 400/422) with a reason."""
+    """A malformed request (status 400/415/422) with a reason."""
 
     def __init__(self, status: int, detail: str) -> None:
         super().__init__(detail)
@@ -25,68 +33,88 @@ class UploadError(Exception):
 
 @dataclass
 class ParsedUpload:
+    """What the body held besides the file's bytes."""
+
     filename: str | None = None
     got_file: bool = False
     fields: dict[str, str] = field(default_factory=dict)
 
 
-async def read_multipart(content_type: str, body: AsyncIterator[bytes], writer: UploadWriter) -> ParsedUpload:
-    """Parse the request body; the ``file`` part is written to ``writer`` (not committed here)."""
+@dataclass
+class _Part:
+    headers: dict[bytes, bytes] = field(default_factory=dict)
+    name: str | None = None
+    buf: bytearray = field(default_factory=bytearray)
+    hname: bytes = b""
+    hvalue: bytes = b""
+    header_bytes: int = 0
+
+
+async def read_multipart(content_type: str, body: AsyncIterator[bytes], sink: Sink) -> ParsedUpload:
+    """Parse the request body; the ``file`` part's bytes are awaited into ``sink`` in order.
+
+    Raises:
+        UploadError: not multipart (415), malformed or incomplete (400), unknown or missing parts (422).
+    """
     kind, options = parse_options_header(content_type)
     if kind != b"multipart/form-data" or b"boundary" not in options:
         raise UploadError(415, "send the scan as multipart/form-data with a 'file' part (and optional 'params')")
     out = ParsedUpload()
-    state: dict[str, object] = {"headers": {}, "name": None, "buf": bytearray(), "hname": b"", "hvalue": b""}
+    part = _Part()
+    pending = bytearray()  # file bytes parsed but not yet handed to the sink
+    seen: set[str] = set()
 
     def on_part_begin() -> None:
-        state["headers"], state["name"], state["buf"] = {}, None, bytearray()
+        nonlocal part
+        part = _Part()
+
+    def on_header_bytes(n: int) -> None:
+        part.header_bytes += n
+        if part.header_bytes > MAX_HEADER_BYTES:
+            raise UploadError(400, f"a part's headers are longer than {MAX_HEADER_BYTES:,} bytes")
 
     def on_header_field(data: bytes, start: int, end: int) -> None:
-        state["hname"] = state["hname"] + data[start:end]  # type: ignore[operator]
+        on_header_bytes(end - start)
+        part.hname += data[start:end]
 
     def on_header_value(data: bytes, start: int, end: int) -> None:
-        state["hvalue"] = state["hvalue"] + data[start:end]  # type: ignore[operator]
+        on_header_bytes(end - start)
+        part.hvalue += data[start:end]
 
     def on_header_end() -> None:
-        headers = state["headers"]
-        assert isinstance(headers, dict)
-        headers[bytes(state["hname"]).lower()] = bytes(state["hvalue"])  # type: ignore[arg-type]
-        state["hname"], state["hvalue"] = b"", b""
+        part.headers[part.hname.lower()] = part.hvalue
+        part.hname, part.hvalue = b"", b""
 
     def on_headers_finished() -> None:
-        headers = state["headers"]
-        assert isinstance(headers, dict)
-        _, opts = parse_options_header(headers.get(b"content-disposition", b""))
+        _, opts = parse_options_header(part.headers.get(b"content-disposition", b""))
         name = opts.get(b"name", b"").decode("utf-8", "replace")
         if name != "file" and name not in FIELDS:
-            raise UploadError(422, f"unexpected form field {name!r}: send 'file' and optionally 'params'")
+            raise UploadError(
+                422, f"unexpected form field {escape_control(name)!r}: send 'file' and optionally 'params'"
+            )
+        if name in seen:
+            raise UploadError(400, f"the form field {name!r} was sent twice: send each part once")
+        seen.add(name)
         if name == "file":
-            if out.got_file:
-                raise UploadError(422, "send one 'file' per job")
             out.got_file = True
             raw = opts.get(b"filename")
-            out.filename = raw.decode("utf-8", "replace")[-255:] if raw else None
-        state["name"] = name
+            out.filename = escape_control(raw.decode("utf-8", "replace"))[-255:] if raw else None
+        part.name = name
 
     def on_part_data(data: bytes, start: int, end: int) -> None:
-        if state["name"] == "file":
-            writer.write(data[start:end])
+        if part.name == "file":
+            pending.extend(data[start:end])
             return
-        buf = state["buf"]
-        assert isinstance(buf, bytearray)
-        buf.extend(data[start:end])
-        if len(buf) > MAX_FIELD_BYTES:
-            raise UploadError(422, f"form field {state['name']!r} is longer than {MAX_FIELD_BYTES:,} bytes")
+        part.buf.extend(data[start:end])
+        if len(part.buf) > MAX_FIELD_BYTES:
+            raise UploadError(422, f"form field {part.name!r} is longer than {MAX_FIELD_BYTES:,} bytes")
 
     def on_part_end() -> None:
-        name = state["name"]
-        if name in FIELDS:
-            buf = state["buf"]
-            assert isinstance(buf, bytearray)
+        if part.name in FIELDS:
             try:
-                out.fields[str(name)] = buf.decode("utf-8")
+                out.fields[str(part.name)] = part.buf.decode("utf-8")
             except UnicodeDecodeError:
-                raise UploadError(422, f"form field {name!r} is not UTF-8 text") from None
+                raise UploadError(422, f"form field {part.name!r} is not UTF-8 text") from None
 
     parser = MultipartParser(
         options[b"boundary"],
@@ -103,15 +131,22 @@ async def read_multipart(content_type: str, body: AsyncIterator[bytes], writer: 
     try:
         async for chunk in body:
             parser.write(chunk)
+            if len(pending) >= FLUSH_BYTES:
+                await sink(bytes(pending))
+                pending.clear()
         parser.finalize()
     except MultipartParseError as exc:
         raise UploadError(400, f"the multipart body is malformed: {exc}") from None
+    if parser.state != MultipartState.END:
+        raise UploadError(400, "the multipart body ends before its closing boundary: the upload is incomplete")
+    if pending:
+        await sink(bytes(pending))
     if not out.got_file:
         raise UploadError(422, "the 'file' part is missing: attach the scan archive as 'file'")
     return out
 
 
 def relabel(message: str, filename: str | None) -> str:
-    """An engine message about the stored upload (named ``upload``) in terms of the client's file name."""
-    name = filename or "the upload"
+    """An engine message about the stored upload (named ``upload``) in terms of the client's file name (escaped)."""
+    name = escape_control(filename) if filename else "the upload"
     return message.replace("upload", name, 1) if message.startswith("upload") else message

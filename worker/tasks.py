@@ -6,7 +6,6 @@ the job claimed or finished and does nothing; a rerun after a killed worker rebu
 from __future__ import annotations
 
 import datetime as dt
-import logging
 import os
 import shutil
 import socket
@@ -18,12 +17,13 @@ from typing import Any
 from celery.exceptions import SoftTimeLimitExceeded
 
 from service.db import Database, utcnow
+from service.logsafe import escape_control, safe_logger
 from service.settings import get_settings
-from service.storage import OUTPUTS, storage_from_settings
+from service.storage import OUTPUTS, is_storage_full, storage_from_settings
 from service.uploads import relabel
 from worker.app import app
 
-log = logging.getLogger("bonemesh.worker")
+log = safe_logger("bonemesh.worker")  # job ids and engine messages only: never the upload's name
 # job progress (percent) at each point: loading 0-5, pipeline 5-90, writing the files 90-100
 LOAD_END, PIPELINE_END = 5.0, 90.0
 
@@ -88,6 +88,9 @@ def reconstruct_job(self: Any, job_id: str) -> str:
     staged: Path | None = None
     try:
         with _Holder(db, job_id, worker, settings.heartbeat_seconds) as holder:
+            left = storage.clean_staging(job_id)  # a killed earlier attempt's staging folders
+            if left:
+                log.info("job %s: removed %d folder(s) left by an earlier attempt", job_id, left)
             staged = storage.staging_dir(job_id)
             outputs = _run(job, storage.upload_path(job_id), staged, holder, settings.device)
             if holder.lost.is_set():
@@ -98,9 +101,9 @@ def reconstruct_job(self: Any, job_id: str) -> str:
                 raise Cancelled(job_id)
         return "succeeded"
     except Cancelled:
-        log.info("job %s: cancelled or taken over while running; its files are dropped", job_id)
+        log.info("job %s: cancelled, deleted or taken over while running; its files are dropped", job_id)
         current = db.get(job_id)
-        if current is not None and current.state == "cancelled":
+        if current is None or current.state == "cancelled":
             storage.delete_job(job_id)
         return "cancelled"
     except SoftTimeLimitExceeded:
@@ -114,12 +117,15 @@ def reconstruct_job(self: Any, job_id: str) -> str:
         )
         return "failed"
     except Exception as exc:
+        if staged is not None:  # free the space before recording the failure (the disk may be full)
+            shutil.rmtree(staged, ignore_errors=True)
+            staged = None
         code, message = _explain(exc, job.upload_name)
         if code == "internal_error":
-            log.exception("job %s failed: %s", job_id, message)
+            log.exception("job %s failed (%s)", job_id, code)
         else:
-            log.info("job %s failed: %s", job_id, message)
-        db.finish(job_id, worker, "failed", error_code=code, error_message=message)
+            log.info("job %s failed (%s): %s", job_id, code, exc)
+        db.finish(job_id, worker, "failed", error_code=code, error_message=escape_control(message))
         return "failed"
     finally:
         if staged is not None:
@@ -147,6 +153,7 @@ def _run(job: Any, upload: Path, staged: Path, holder: _Holder, device: str) -> 
     report = recon.report
     triangles = {
         "model.stl": report["mesh"]["n_faces"],
+        "surface_open.stl": report["mesh"]["n_faces"],
         "model.glb": report["mesh"]["n_faces"],
         "phone.glb": report["exports"]["phone.glb"]["faces"],
         "ar.glb": report["exports"]["ar.glb"]["faces"],
@@ -173,8 +180,16 @@ def _engine_params(flat: dict[str, Any]) -> dict[str, Any]:
 def _explain(exc: Exception, filename: str) -> tuple[str, str]:
     """An error code and a message a clinician can act on."""
     from engine.errors import InputError
+    from engine.export.printcheck import PrintCheckError
     from engine.pipeline import EmptySurfaceError, StageError
 
+    if is_storage_full(exc):
+        return "storage_full", (
+            "the worker could not write the models: its data volume is full; nothing was published. Try again "
+            "later, or ask the operator to free space"
+        )
+    if isinstance(exc, PrintCheckError):
+        return "print_check", f"the print model failed its check and was not published: {exc}"
     if isinstance(exc, EmptySurfaceError):
         return "no_surface", relabel(str(exc), filename)
     if isinstance(exc, InputError):

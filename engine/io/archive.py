@@ -1,9 +1,12 @@
 """Safe reading of the files inside a zip, a tar (optionally compressed), a folder or a single file.
 
 Archive member names are only labels (for sorting and messages): nothing is ever written to disk under such a
-name. Members are copied into anonymous spooled temporary files (memory first, then unnamed temp files) while
-the limits of :class:`InputLimits` are enforced on the declared sizes *and* on the bytes actually decompressed,
-so an archive whose headers lie cannot exhaust memory or disk.
+name. Opening an input reads its listing and the first bytes of each member, and enforces the limits of
+:class:`InputLimits` on the declared sizes: per member and for the whole archive, the total and the compression
+ratio (so a bomb of many small, very compressible members is refused before anything is expanded). The bytes are
+read later, one member at a time, when a loader asks for them: a zip member is decompressed straight from the
+archive (never more than its declared size, so a header that lies is caught, not obeyed); a tar, which can only
+be read in order, is copied into anonymous temporary files, in memory up to a small total, then on disk.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import re
 import tarfile
 import tempfile
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
@@ -20,7 +24,7 @@ from typing import IO
 from engine.errors import InputError
 
 _CHUNK = 1 << 20
-_SPOOL_IN_MEMORY = 16 << 20
+_SPOOL_IN_MEMORY = 64 << 20  # all of a tar's members held in memory together; the rest go to temporary files
 HEAD_BYTES = 132  # enough to see the DICOM preamble + "DICM" and every image signature
 _JUNK = re.compile(r"(^|/)(__MACOSX/|\.[^/]*$|Thumbs\.db$|desktop\.ini$)", re.IGNORECASE)
 
@@ -65,16 +69,22 @@ class Member:
     head: bytes
     _spool: IO[bytes] | None = field(default=None, repr=False)
     _path: Path | None = field(default=None, repr=False)
+    _reader: Callable[[], bytes] | None = field(default=None, repr=False)
 
     def read(self) -> bytes:
-        """The member's whole content (not available in a ``heads_only`` listing of an archive)."""
-        if self._spool is None and self._path is None:
-            raise RuntimeError(f"{self.name}: only the head of this member was read")
+        """The member's whole content (not available in a ``heads_only`` listing of an archive).
+
+        Raises:
+            InputError: the member is corrupt or holds other than its declared size.
+        """
+        if self._reader is not None:
+            return self._reader()
         if self._spool is not None:
             self._spool.seek(0)
             return self._spool.read()
-        assert self._path is not None
-        return self._path.read_bytes()
+        if self._path is not None:
+            return self._path.read_bytes()
+        raise RuntimeError(f"{self.name}: only the head of this member was read")
 
 
 @dataclass
@@ -84,12 +94,15 @@ class Members:
     kind: str
     members: list[Member]
     ignored: list[str] = field(default_factory=list)
+    _archive: zipfile.ZipFile | None = field(default=None, repr=False)
 
     def close(self) -> None:
-        """Release the spooled copies."""
+        """Release the spooled copies and the open archive."""
         for m in self.members:
             if m._spool is not None:
                 m._spool.close()
+        if self._archive is not None:
+            self._archive.close()
 
     def __enter__(self) -> Members:
         return self
@@ -110,8 +123,12 @@ def _check_name(name: str, archive: Path) -> None:
 def _copy_limited(
     src: IO[bytes], name: str, declared: int, budget: _Budget, member_ratio_base: int | None
 ) -> tuple[IO[bytes], int, bytes]:
-    """Copy ``src`` into a spooled temp file while counting bytes against the limits."""
-    spool: IO[bytes] = tempfile.SpooledTemporaryFile(max_size=_SPOOL_IN_MEMORY)
+    """Copy ``src`` into a temporary file (in memory while the archive's memory allowance lasts) while counting
+    bytes against the limits."""
+    in_memory = 0 <= declared <= budget.memory_left
+    spool: IO[bytes] = tempfile.SpooledTemporaryFile(max_size=declared + 1) if in_memory else tempfile.TemporaryFile()
+    if in_memory:
+        budget.memory_left -= declared
     n = 0
     try:
         while chunk := src.read(_CHUNK):
@@ -143,8 +160,10 @@ class _Budget:
         self.limits = limits
         self.archive = archive
         self.compressed_size = max(compressed_size, 1)
-        self.total = 0
+        self.total = 0  # bytes actually expanded
+        self.declared = 0  # bytes the members declare
         self.count = 0
+        self.memory_left = _SPOOL_IN_MEMORY
 
     def entry(self) -> None:
         self.count += 1
@@ -156,10 +175,16 @@ class _Budget:
 
     def declare(self, name: str, size: int, compressed: int | None) -> None:
         lim = self.limits
-        if self.total + size > lim.max_total_bytes:
+        self.declared += size
+        if self.declared > lim.max_total_bytes:
             raise InputError(
                 f"{self.archive.name} would expand to more than {lim.max_total_bytes:,} bytes (at member {name!r}); "
                 "refusing it as too large"
+            )
+        if self.declared > lim.ratio_floor_bytes and self.declared > lim.max_ratio * self.compressed_size:
+            raise InputError(
+                f"{self.archive.name} declares members of {self.declared:,} bytes so far (at member {name!r}) from "
+                f"{self.compressed_size:,} bytes, more than {lim.max_ratio:g}x: this looks like a zip bomb; refusing it"
             )
         if compressed is not None and size > lim.ratio_floor_bytes and size > lim.max_ratio * max(compressed, 1):
             raise InputError(
@@ -188,42 +213,64 @@ def _head_only(src: IO[bytes], name: str, declared: int, budget: _Budget) -> tup
     return None, max(declared, len(head)), head
 
 
+def _zip_reader(zf: zipfile.ZipFile, info: zipfile.ZipInfo, archive: Path) -> Callable[[], bytes]:
+    """Reads one member from the open archive: never more than its declared size (+1 to see a lie), CRC checked."""
+
+    def read() -> bytes:
+        try:
+            with zf.open(info) as src:
+                data = src.read(info.file_size + 1)
+        except (zipfile.BadZipFile, NotImplementedError, RuntimeError, OSError, EOFError, ValueError) as exc:
+            raise InputError(f"{archive.name}: member {info.filename!r} cannot be read: {exc}") from None
+        if len(data) != info.file_size:
+            raise InputError(
+                f"archive member {info.filename!r} declares {info.file_size:,} bytes but holds "
+                f"{'more' if len(data) > info.file_size else f'{len(data):,}'}: the archive is corrupt"
+            )
+        return data
+
+    return read
+
+
 def _read_zip(path: Path, limits: InputLimits, heads_only: bool = False) -> Members:
     budget = _Budget(limits, path, path.stat().st_size)
     members: list[Member] = []
     ignored: list[str] = []
+    zf: zipfile.ZipFile | None = None
     try:
-        with zipfile.ZipFile(path) as zf:
-            infos = zf.infolist()
-            if len(infos) > limits.max_members:
-                raise InputError(
-                    f"{path.name} holds {len(infos):,} entries, more than the limit of {limits.max_members:,}; "
-                    "expected one scan's slices"
-                )
-            for info in infos:
-                budget.entry()
-                _check_name(info.filename, path)
-                if info.is_dir():
-                    continue
-                if _JUNK.search(info.filename):
-                    ignored.append(info.filename)
-                    continue
-                if info.flag_bits & 0x1:
-                    raise InputError(f"{path.name}: member {info.filename!r} is encrypted; give an unencrypted archive")
-                budget.declare(info.filename, info.file_size, info.compress_size)
-                with zf.open(info) as src:
-                    if heads_only:
-                        spool, n, head = _head_only(src, info.filename, info.file_size, budget)
-                    else:
-                        spool, n, head = _copy_limited(src, info.filename, info.file_size, budget, info.compress_size)
-                members.append(Member(info.filename, n, head, _spool=spool))
+        zf = zipfile.ZipFile(path)
+        # the archive stays open for the members' readers; Members.close() closes it
+        infos = zf.infolist()
+        if len(infos) > limits.max_members:
+            raise InputError(
+                f"{path.name} holds {len(infos):,} entries, more than the limit of {limits.max_members:,}; "
+                "expected one scan's slices"
+            )
+        for info in infos:
+            budget.entry()
+            _check_name(info.filename, path)
+            if info.is_dir():
+                continue
+            if _JUNK.search(info.filename):
+                ignored.append(info.filename)
+                continue
+            if info.flag_bits & 0x1:
+                raise InputError(f"{path.name}: member {info.filename!r} is encrypted; give an unencrypted archive")
+            budget.declare(info.filename, info.file_size, info.compress_size)
+            with zf.open(info) as src:
+                head = src.read(HEAD_BYTES)
+            reader = None if heads_only else _zip_reader(zf, info, path)
+            members.append(Member(info.filename, max(info.file_size, len(head)), head, _reader=reader))
     except InputError:
-        Members("zip", members).close()
+        Members("zip", members, _archive=zf).close()
         raise
     except (zipfile.BadZipFile, zipfile.LargeZipFile, NotImplementedError, RuntimeError, OSError, EOFError) as exc:
-        Members("zip", members).close()
+        Members("zip", members, _archive=zf).close()
         raise InputError(f"{path.name} is not a readable zip archive: {exc}") from None
-    return Members("zip", members, ignored)
+    if heads_only:
+        zf.close()
+        return Members("zip", members, ignored)
+    return Members("zip", members, ignored, _archive=zf)
 
 
 def _read_tar(path: Path, limits: InputLimits, heads_only: bool = False) -> Members:

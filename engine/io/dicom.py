@@ -8,6 +8,7 @@ linearly along the normal at the median gap.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import math
 import warnings
@@ -20,7 +21,9 @@ import numpy as np
 
 from engine.errors import InputError
 from engine.io.archive import InputLimits, Member, Members
+from engine.io.regrid import regularise as _regularise
 from engine.io.stack import SPACING_HINT, StackWarning, natural_key
+from engine.params import check_spacing_zyx_mm
 from engine.types import Volume
 
 _RAW_GROUPS = (b"\x08\x00", b"\x02\x00", b"\x00\x08")  # first tag group of a dataset without preamble
@@ -46,6 +49,7 @@ class _Slice:
     samples: int
     thickness: float | None
     header: dict[str, Any]
+    nonfinite: tuple[str, ...] = ()  # geometry tags present but holding NaN or an infinity
 
 
 def _read(member: Member, *, pixels: bool) -> Any | None:
@@ -73,6 +77,18 @@ def _floats(value: Any, n: int) -> np.ndarray | None:
     except (TypeError, ValueError):
         return None
     return arr if arr.size == n and np.all(np.isfinite(arr)) else None
+
+
+def _nonfinite(ds: Any) -> tuple[str, ...]:
+    """Geometry tags present but holding NaN or an infinity: refused, since a fallback (instance order, a default
+    spacing) would build a model without a word."""
+    bad = []
+    for tag in ("ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing", "SliceThickness"):
+        value = ds.get(tag)
+        with contextlib.suppress(TypeError, ValueError):
+            if value not in (None, "") and not np.all(np.isfinite(np.array(value, dtype=np.float64))):
+                bad.append(tag)
+    return tuple(bad)
 
 
 def _scan(members: Members, on_progress: Callable[[float], None] | None = None) -> tuple[list[_Slice], int]:
@@ -106,6 +122,7 @@ def _scan(members: Members, on_progress: Callable[[float], None] | None = None) 
                 "gantry_tilt_deg": float(ds.get("GantryDetectorTilt") or 0.0),
                 "slope": float(ds.get("RescaleSlope", 1) or 1),
                 "intercept": float(ds.get("RescaleIntercept", 0) or 0),
+                "series_number": str(ds.get("SeriesNumber", "") or ""),
             }
             slices.append(
                 _Slice(
@@ -121,6 +138,7 @@ def _scan(members: Members, on_progress: Callable[[float], None] | None = None) 
                     samples=int(ds.get("SamplesPerPixel", 1) or 1),
                     thickness=float(thick) if thick not in (None, "") and float(thick) > 0 else None,
                     header=header,
+                    nonfinite=_nonfinite(ds),
                 )
             )
     return slices, non_image
@@ -150,11 +168,26 @@ def load_dicom(
         if series_uid is not None:
             raise InputError(f"series_uid={series_uid!r} was given, but {label} holds no DICOM images")
         return None
-    series = _pick_series(slices, series_uid, label)
-    return _build(series, label, spacing_zyx_mm, limits, skipped=len(slices) - len(series) + non_image)
+    series, choice = _pick_series(slices, series_uid, label)
+    vol = _build(series, label, spacing_zyx_mm, limits, skipped=len(slices) - len(series) + non_image)
+    vol.source["series"] = choice
+    return vol
 
 
-def _pick_series(slices: list[_Slice], series_uid: str | None, label: str) -> list[_Slice]:
+def _describe(group: list[_Slice]) -> dict[str, Any]:
+    """A series as the report names it (no UIDs: they may encode dates and device serials)."""
+    h = group[0].header
+    return {
+        "number": h["series_number"],
+        "modality": h["modality"],
+        "description": h["series_description"],
+        "images": len(group),
+    }
+
+
+def _pick_series(slices: list[_Slice], series_uid: str | None, label: str) -> tuple[list[_Slice], dict[str, Any]]:
+    """The series to load: the one named, else the largest CT series (the largest of any modality when none is
+    CT); also what the report says of the choice (``used``, ``ignored``, ``rule``)."""
     groups: dict[str, list[_Slice]] = defaultdict(list)
     for s in slices:
         groups[s.uid].append(s)
@@ -162,15 +195,22 @@ def _pick_series(slices: list[_Slice], series_uid: str | None, label: str) -> li
     if series_uid is not None:
         if series_uid not in groups:
             raise InputError(f"{label} has no series {series_uid!r}; available: {listing}")
-        return groups[series_uid]
-    best = max(groups.values(), key=len)
-    if len(groups) > 1:
+        best_uid, rule = series_uid, "named by series_uid"
+    else:
+        ct = [uid for uid, g in groups.items() if g[0].header["modality"].upper() == "CT"]
+        candidates = ct or list(groups)
+        best_uid = max(candidates, key=lambda uid: len(groups[uid]))
+        rule = "the largest CT series" if ct else "the largest series (none is CT)"
+    ignored = [_describe(g) for uid, g in sorted(groups.items(), key=lambda kv: -len(kv[1])) if uid != best_uid]
+    choice = {"rule": rule, "used": _describe(groups[best_uid]), "ignored": ignored}
+    if series_uid is None and len(groups) > 1:
         warnings.warn(
-            f"{label} holds {len(groups)} DICOM series; loading the largest. Choose with series_uid=: {listing}",
+            f"{label} holds {len(groups)} DICOM series; loading {rule} ({len(groups[best_uid])} images, the others "
+            f"are ignored). Choose with series_uid=: {listing}",
             StackWarning,
             stacklevel=4,
         )
-    return best
+    return groups[best_uid], choice
 
 
 def _build(
@@ -182,6 +222,11 @@ def _build(
 ) -> Volume:
     first = series[0]
     for s in series:
+        if s.nonfinite:
+            raise InputError(
+                f"{label}: {s.member.name} holds NaN or an infinity in {', '.join(s.nonfinite)}, so where its pixels "
+                "lie is unknown; refusing the series (re-export it from the scanner or PACS)"
+            )
         if s.frames != 1:
             raise InputError(
                 f"{s.member.name} is a multi-frame DICOM ({s.frames} frames); expected single-frame images "
@@ -222,6 +267,10 @@ def _build(
         source["resampled"] = True
         source["gantry_tilt_deg"] = round(geo["tilt_deg"], 3)
     spacing = (float(sz), float(sy), float(sx))
+    try:
+        check_spacing_zyx_mm(spacing)
+    except ValueError as exc:
+        raise InputError(f"{label}: the DICOM headers give an implausible voxel size: {exc}") from None
     if call is not None and geo["from_file"] and not np.allclose(call, spacing, rtol=0.01):
         raise InputError(
             f"{label}: the DICOM series defines its voxel size (z, y, x = {spacing[0]:g}, {spacing[1]:g}, "
@@ -362,57 +411,3 @@ def _narrow_raw(raw: np.ndarray) -> np.ndarray:
         if np.iinfo(dt).min <= lo and hi <= np.iinfo(dt).max:
             return raw.astype(dt)
     return raw.astype(np.float32)
-
-
-def _regularise(
-    data: np.ndarray,
-    d: np.ndarray,
-    ox: np.ndarray,
-    oy: np.ndarray,
-    sz: float,
-    fill: float,
-    limits: InputLimits,
-    label: str,
-) -> tuple[np.ndarray, float, tuple[float, float]]:
-    """Resample slices at normal positions ``d`` (mm), shifted in-plane by ``oy``/``ox`` pixels, onto a regular grid.
-
-    Each slice is first shifted onto a canvas large enough for all of them (shear correction of a gantry tilt),
-    then the canvases are interpolated linearly along the normal every ``sz`` mm from ``d[0]``. Integer data stay
-    integer (rounded). Returns the volume, its z step and the (y, x) pixel offset of the canvas origin from
-    slice 0's first pixel.
-    """
-    from scipy import ndimage
-
-    n, rows, cols = data.shape
-    off = (float(oy.min()) if np.ptp(oy) > 0.05 else 0.0, float(ox.min()) if np.ptp(ox) > 0.05 else 0.0)
-    ox = ox - off[1] if np.ptp(ox) > 0.05 else np.zeros(n)
-    oy = oy - off[0] if np.ptp(oy) > 0.05 else np.zeros(n)
-    ny, nx = rows + math.ceil(float(oy.max()) - 1e-6), cols + math.ceil(float(ox.max()) - 1e-6)
-    rel = d - d[0]
-    nz = math.floor(float(rel[-1]) / sz + 1e-6) + 1
-    limits.check_voxels((nz, ny, nx), f"{label} after resampling to a regular grid")
-    out = np.empty((nz, ny, nx), dtype=data.dtype)
-    cache: dict[int, np.ndarray] = {}
-
-    def shifted(k: int) -> np.ndarray:
-        if k not in cache:
-            if len(cache) >= 2:
-                cache.pop(min(cache))
-            canvas = np.full((ny, nx), fill, dtype=np.float32)
-            canvas[:rows, :cols] = data[k]
-            if oy[k] or ox[k]:
-                canvas = ndimage.shift(canvas, (oy[k], ox[k]), order=1, mode="constant", cval=fill, prefilter=False)
-            cache[k] = canvas
-        return cache[k]
-
-    for m in range(nz):
-        z = m * sz
-        k = min(max(int(np.searchsorted(rel, z, side="right")) - 1, 0), n - 2) if n > 1 else 0
-        w = min(max((z - rel[k]) / (rel[k + 1] - rel[k]), 0.0), 1.0) if n > 1 else 0.0
-        sl = shifted(k) if w < 1e-4 else shifted(k + 1) if w > 1 - 1e-4 else (1 - w) * shifted(k) + w * shifted(k + 1)
-        if out.dtype.kind in "iu":
-            info = np.iinfo(out.dtype)
-            out[m] = np.clip(np.rint(sl), info.min, info.max)
-        else:
-            out[m] = sl
-    return out, sz, off

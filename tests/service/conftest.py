@@ -228,6 +228,17 @@ def zip_bomb(megabytes: int = 256) -> bytes:
     return buf.getvalue()
 
 
+def bomb_of_small_members(count: int = 300) -> bytes:
+    """``count`` members of 1 MiB of zeros behind a PNG signature: each is at the per-member ratio floor (not
+    ratio-checked alone), together they expand about 1000x."""
+    buf = io.BytesIO()
+    member = b"\x89PNG\r\n\x1a\n" + bytes((1 << 20) - 8)
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as zf:
+        for i in range(count):
+            zf.writestr(f"slices/slice_{i:04d}.png", member)
+    return buf.getvalue()
+
+
 def traversal_zip(style: str) -> bytes:
     """Valid PNG slices under hostile names: ``dotdot``, ``absolute`` or ``backslash``."""
     prefix = {

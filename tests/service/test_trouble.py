@@ -17,6 +17,7 @@ from tests.service.conftest import (
     HEADSQ,
     Scan,
     StackFactory,
+    bomb_of_small_members,
     corrupt_member_zip,
     hostile_tar,
     many_members_zip,
@@ -63,6 +64,7 @@ REFUSED_UPLOADS = {
     "traversal-backslash": lambda: traversal_zip("backslash"),
     "tar-dotdot": lambda: hostile_tar("dotdot"),
     "too-many-members": many_members_zip,
+    "bomb-of-small-members": bomb_of_small_members,  # each at the per-member ratio floor, 300 MB in all
 }
 
 
@@ -89,7 +91,7 @@ FAILING_JOBS = {
         ("slice", "dimension"),
     ),
 }
-SEEN_AT_UPLOAD_OK = ("mixed-sizes", "corrupt-png", "one-png")
+SEEN_AT_UPLOAD_OK = ("mixed-sizes", "corrupt-png", "one-png", "no-spacing")
 
 
 @pytest.mark.parametrize("kind", list(FAILING_JOBS))
@@ -136,6 +138,10 @@ BAD_PARAMS = {
     "angle-90": ({"angle": 90}, "angle"),
     "max-triangles-tiny": ({"max_triangles": 2}, "max_triangles"),
     "iso-and-preset": ({"iso": 300, "preset": "bone"}, ("iso", "preset")),
+    "spacing-1e300": ({"spacing": [1e300, 3.2, 3.2]}, "spacing"),
+    "spacing-1e-300": ({"spacing": [1e-300, 3.2, 3.2]}, "spacing"),
+    "min-island-infinity": ({"min_island_mm3": float("inf")}, "min_island_mm3"),
+    "iso-nan": ({"iso": float("nan")}, "iso"),
 }
 
 
@@ -216,7 +222,7 @@ def test_jobs_are_visible_only_to_their_key(
 def test_list_is_newest_first_and_paginated(client_a: httpx.Client) -> None:
     ids = [_submit_ok(client_a, HEADSQ, {**HEADSQ.params, "iso": 60000 + i}) for i in range(3)]
     for job_id in ids:  # cancel at once: the records stay, the worker is spared
-        assert client_a.delete(f"/v1/jobs/{job_id}").status_code == 204
+        assert client_a.post(f"/v1/jobs/{job_id}/cancel").status_code == 200
     first = client_a.get("/v1/jobs", params={"limit": 3, "offset": 0}).json()
     assert [j["id"] for j in first["items"]] == ids[::-1], first
     assert first["limit"] == 3 and first["offset"] == 0 and first["total"] >= 3
@@ -308,11 +314,11 @@ def test_cancel_running_and_queued_then_delete_finished(
     queued = _submit_ok(client_a, HEADSQ)  # the one worker is busy: this one waits
     assert client_a.get(f"/v1/jobs/{queued}").json()["state"] == "queued"
 
-    assert client_a.delete(f"/v1/jobs/{queued}").status_code == 204
-    assert client_a.delete(f"/v1/jobs/{running}").status_code == 204
+    assert client_a.post(f"/v1/jobs/{queued}/cancel").json()["state"] == "cancelled"
+    assert client_a.post(f"/v1/jobs/{running}/cancel").json()["state"] == "cancelled"
     for job_id in (queued, running):
         assert client_a.get(f"/v1/jobs/{job_id}").json()["state"] == "cancelled"
-        assert client_a.delete(f"/v1/jobs/{job_id}").status_code in (204, 404)  # again: harmless
+        assert client_a.post(f"/v1/jobs/{job_id}/cancel").status_code == 200  # again: harmless
 
     # the worker gives the running job up and takes the next; the cancelled queued one never runs
     sentinel = _submit_ok(client_a, HEADSQ)
@@ -324,14 +330,18 @@ def test_cancel_running_and_queued_then_delete_finished(
         assert job_id == running or job["started_at"] is None, job
         wait_until(lambda job_id=job_id: not _job_files(stack, job_id), 30, f"files of cancelled job {job_id} gone")
 
-    # deleting a finished job removes its files: its links stop working
+    # a finished job cannot be cancelled; deleting it removes it and its files: its links stop working
+    assert_problem(client_a.post(f"/v1/jobs/{sentinel}/cancel"), 409)
     link = outputs["model.stl"]["url"]
     assert anon.get(link).status_code == 200
     assert client_a.delete(f"/v1/jobs/{sentinel}").status_code == 204
-    assert anon.get(link).status_code in (403, 404, 410)
-    after = client_a.get(f"/v1/jobs/{sentinel}")
-    assert after.status_code == 404 or (after.json()["state"] == "cancelled" and not after.json()["outputs"])
+    assert_problem(anon.get(link), 404)
+    assert_problem(client_a.get(f"/v1/jobs/{sentinel}"), 404)  # deleted: gone, as HTTP clients expect
+    assert_problem(client_a.delete(f"/v1/jobs/{sentinel}"), 404)
     assert not _job_files(stack, sentinel)
+    for job_id in (queued, running):  # delete a cancelled one too
+        assert client_a.delete(f"/v1/jobs/{job_id}").status_code == 204
+        assert_problem(client_a.get(f"/v1/jobs/{job_id}"), 404)
 
 
 # -- progress -----------------------------------------------------------------------------------------------------

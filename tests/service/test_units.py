@@ -200,7 +200,11 @@ def test_accepted_job_is_private_to_its_key_and_stays_queued_without_broker(clie
     assert listed["total"] == 1 and listed["items"][0]["id"] == job["id"]
     assert client.get("/v1/jobs", headers={"X-API-Key": "key-b"}).json()["total"] == 0
     assert client.delete(f"/v1/jobs/{job['id']}", headers={"X-API-Key": "key-b"}).status_code == 404
-    assert client.delete(f"/v1/jobs/{job['id']}", headers={"X-API-Key": "key-a"}).status_code == 204
+    assert client.post(f"/v1/jobs/{job['id']}/cancel", headers={"X-API-Key": "key-b"}).status_code == 404
+    cancelled = client.post(f"/v1/jobs/{job['id']}/cancel", headers={"X-API-Key": "key-a"})
+    assert cancelled.status_code == 200 and cancelled.json()["state"] == "cancelled"
     assert client.get(f"/v1/jobs/{job['id']}", headers={"X-API-Key": "key-a"}).json()["state"] == "cancelled"
+    assert client.delete(f"/v1/jobs/{job['id']}", headers={"X-API-Key": "key-a"}).status_code == 204
+    assert client.get(f"/v1/jobs/{job['id']}", headers={"X-API-Key": "key-a"}).status_code == 404
     ready = client.get("/readyz")
     assert ready.status_code == 503 and ready.json()["checks"]["redis"].startswith("unreachable")

@@ -1,0 +1,155 @@
+"""Errors as ``application/problem+json`` (RFC 9457), for every way a request can end badly, and the OpenAPI
+document saying so: every 4xx/5xx response of every operation is declared with the problem media type only.
+
+Three layers answer: ``Problem`` raised by the routes, the handlers of Starlette's HTTP errors (404 of unknown
+paths, 405 with the complete ``Allow`` list) and of request validation (422), and ``LastResort``, an ASGI
+middleware that turns anything unexpected into a 500 problem without the traceback (which is logged, escaped).
+"""
+
+from __future__ import annotations
+
+from http import HTTPStatus
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match, Route
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.logsafe import escape_control, safe_logger
+
+log = safe_logger("bonemesh.api")
+PROBLEM = "application/problem+json"
+PROBLEM_REF = {"$ref": "#/components/schemas/Problem"}
+
+
+class Problem(Exception):
+    """An error answered as application/problem+json; ``detail`` is escaped (it may quote client text)."""
+
+    def __init__(self, status: int, detail: str, *, title: str | None = None, **extra: Any) -> None:
+        super().__init__(detail)
+        self.status, self.title, self.detail, self.extra = status, title or title_of(status), detail, extra
+
+
+class ProblemBody(BaseModel):
+    """An RFC 9457 problem document."""
+
+    type: str = "about:blank"
+    title: str
+    status: int
+    detail: str
+    errors: list[dict[str, Any]] | None = None
+
+
+def title_of(status: int) -> str:
+    """The reason phrase of an HTTP status."""
+    try:
+        return HTTPStatus(status).phrase
+    except ValueError:
+        return "Error"
+
+
+def problem_response(
+    status: int, detail: str, *, title: str | None = None, headers: dict[str, str] | None = None, **extra: Any
+) -> JSONResponse:
+    """A problem+json response."""
+    body = {"type": "about:blank", "title": title or title_of(status), "status": status}
+    body["detail"] = escape_control(detail)
+    return JSONResponse({**body, **extra}, status_code=status, media_type=PROBLEM, headers=headers)
+
+
+def problems(*codes: int, **descriptions: str) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses`` entries for error statuses (the content is set to problem+json by ``fix_openapi``);
+    ``descriptions`` are keyed ``d<status>`` (``d413="the upload is larger than the limit"``)."""
+    return {code: {"description": descriptions.get(f"d{code}", title_of(code))} for code in codes}
+
+
+def allowed_methods(app: FastAPI, scope: Scope) -> list[str]:
+    """Every method some route accepts on the request's path (for ``Allow``)."""
+    probe = {**scope, "method": "\x00"}  # no route accepts it: a path match is PARTIAL
+    methods: set[str] = set()
+    for route in app.router.routes:
+        if isinstance(route, Route) and route.methods and route.matches(probe)[0] is Match.PARTIAL:
+            methods |= route.methods
+    return sorted(methods)
+
+
+def install(app: FastAPI) -> None:
+    """The exception handlers and the last-resort middleware."""
+
+    @app.exception_handler(Problem)
+    async def _problem(_: Request, exc: Problem) -> JSONResponse:
+        return problem_response(exc.status, exc.detail, title=exc.title, **exc.extra)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        headers = dict(exc.headers or {})
+        if exc.status_code == 405:
+            headers["Allow"] = ", ".join(allowed_methods(app, request.scope))
+        return problem_response(exc.status_code, str(exc.detail), headers=headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = [{"field": ".".join(str(p) for p in e["loc"]), "message": e["msg"]} for e in exc.errors()]
+        detail = "; ".join(f"{e['field']}: {e['message']}" for e in errors)
+        return problem_response(422, detail, errors=errors)
+
+    app.add_middleware(LastResort)
+
+
+class LastResort:
+    """ASGI middleware: an exception no handler took becomes a problem+json 500 (logged here, not re-raised, so the
+    server logs no raw traceback with client text in it)."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def _send(message: Message) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, receive, _send)
+        except Exception:
+            log.exception("unexpected error answering %s %s", scope.get("method"), scope.get("path"))
+            if not started:
+                detail = "the server met an unexpected error; it is logged, and the request was not carried out"
+                await problem_response(500, detail)(scope, receive, send)
+
+
+def fix_openapi(schema: dict[str, Any]) -> dict[str, Any]:
+    """Declare every error response as problem+json (FastAPI writes application/json), add the last-resort 500 to
+    every operation, and drop the validation-error schemas FastAPI adds (the 422s are problems too)."""
+    components = schema.setdefault("components", {}).setdefault("schemas", {})
+    components["Problem"] = ProblemBody.model_json_schema()
+    for ops in schema.get("paths", {}).values():
+        for op in ops.values():
+            responses = op.setdefault("responses", {})
+            responses.setdefault("500", {"description": "unexpected error (problem document, no traceback)"})
+            for code, response in responses.items():
+                if code[0] in "45" and _generated(response.get("content")):
+                    response["content"] = {PROBLEM: {"schema": PROBLEM_REF}}
+                    if response.get("description") in ("Validation Error", "Successful Response"):
+                        response["description"] = title_of(int(code))
+    for name in ("HTTPValidationError", "ValidationError", "ProblemBody"):
+        components.pop(name, None)
+    return schema
+
+
+def _generated(content: dict[str, Any] | None) -> bool:
+    """Whether a response's content is FastAPI's default (none, or the validation/problem model as JSON) rather
+    than one a route declared on purpose (e.g. the readiness document of a 503)."""
+    if not content:
+        return True
+    ref = content.get("application/json", {}).get("schema", {}).get("$ref", "")
+    return set(content) == {"application/json"} and ref.rsplit("/", 1)[-1] in ("HTTPValidationError", "ProblemBody")

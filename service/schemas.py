@@ -1,0 +1,101 @@
+"""Response models of the API (the job resource and its list) and the OpenAPI documents of the upload body and
+of a download."""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field
+
+
+class JobError(BaseModel):
+    """Why a job failed."""
+
+    code: str = Field(
+        description="machine-readable reason, e.g. bad_input, no_spacing, no_surface, print_check, storage_full, "
+        "time_limit, internal_error"
+    )
+    message: str = Field(description="what went wrong, in words")
+
+
+class OutputFile(BaseModel):
+    """One output of a succeeded job, with its signed download link."""
+
+    name: str
+    kind: str = Field(
+        description="print (STL, mm), surface (open STL, mm), model (GLB, m), phone (Draco GLB), ar, report"
+    )
+    media_type: str
+    bytes: int
+    triangles: int | None
+    url: str = Field(description="signed download link; works without the API key until expires_at")
+    expires_at: dt.datetime
+
+
+class JobOut(BaseModel):
+    """A job: its state, progress, parameters and, once succeeded, its outputs."""
+
+    id: str
+    state: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    stage: str | None
+    progress: float = Field(ge=0, le=100)
+    upload_name: str = Field(description="the uploaded file's name, control characters escaped")
+    upload_bytes: int
+    params: dict[str, Any]
+    attempts: int
+    created_at: dt.datetime
+    started_at: dt.datetime | None
+    finished_at: dt.datetime | None
+    error: JobError | None
+    outputs: list[OutputFile] | None
+
+
+class JobList(BaseModel):
+    """A page of the key's jobs, newest first."""
+
+    items: list[JobOut]
+    total: int
+    limit: int
+    offset: int
+
+
+class Readiness(BaseModel):
+    """Whether the database, Redis and storage answer (``/readyz``)."""
+
+    status: Literal["ready", "not ready"]
+    checks: dict[str, str] = Field(description="'ok' or 'unreachable: <reason>' for each dependency")
+
+
+# the multipart body of POST /v1/jobs (read by service.uploads, not by FastAPI)
+UPLOAD_BODY = {
+    "required": True,
+    "content": {
+        "multipart/form-data": {
+            "schema": {
+                "type": "object",
+                "required": ["file"],
+                "additionalProperties": False,
+                "properties": {
+                    "file": {
+                        "type": "string",
+                        "format": "binary",
+                        "description": "zip, tar or tar.gz of 2-D slices, or a DICOM series as a zip",
+                    },
+                    "params": {
+                        "type": "string",
+                        "description": "JSON object of JobParams (iso or preset, spacing, reduction...)",
+                    },
+                },
+            },
+            "encoding": {"params": {"contentType": "application/json"}},
+        }
+    },
+}
+DOWNLOAD_CONTENT = {
+    "content": {
+        **{media: {"schema": {"type": "string", "format": "binary"}} for media in ("model/stl", "model/gltf-binary")},
+        "application/json": {"schema": {"type": "object"}},
+    },
+    "description": "the file (report.json is JSON, the models are binary)",
+}
