@@ -264,22 +264,21 @@ def _normals(st: _State, params: ReconParams, report: dict[str, Any], progress: 
 
 
 def _budget_mesh(mesh: Mesh, max_triangles: int, device: Any) -> tuple[Mesh, dict[str, Any]]:
-    """The mesh itself when within budget, else a decimated copy with fresh normals (on the device).
+    """The mesh itself when within budget, else a decimated copy with fresh normals, made on the device.
 
-    The copy continues the print model's decimation on the device, with every guard. Topology-preserving
-    decimation cannot shrink a closed piece below a tetrahedron, so a scan with thousands of specks cannot reach a
-    phone-sized budget: then the smallest pieces (by volume) of the decimated copy are dropped, halving the number
-    kept, and the rest decimated again, until the budget is met (each round works on the already small copy).
-    Where one piece of high genus still keeps the copy over budget, the copy is decimated without the topology
-    guard (MeshLab; ``topology_preserved`` false: it may close small tunnels). The report says how many pieces
-    were dropped (the print model keeps them all and is never decimated without the guard).
+    The copy continues the print model's decimation with every guard. Topology-preserving decimation cannot shrink
+    a closed piece below a tetrahedron, so a scan with thousands of specks cannot reach a phone-sized budget: then
+    the smallest pieces (by volume) are dropped, halving the number kept, and the rest decimated again, until the
+    budget is met (each round works on the already small copy). Where pieces of high genus still keep the copy over
+    budget (every tunnel keeps a ring of faces), the copy is clustered (``engine.stages.cluster``:
+    ``topology_preserved`` false, small tunnels close). The print model keeps every piece and every guard.
     """
     if len(mesh.faces) <= max_triangles:
         return mesh, {"faces": len(mesh.faces), "decimated": False}
     import warp as wp
 
     from engine.stages.decimate import decimate_device
-    from engine.stages.islands import remove_islands
+    from engine.stages.islands import remove_islands_device
     from engine.stages.normals import normals_device
 
     with wp.ScopedDevice(device):
@@ -287,44 +286,37 @@ def _budget_mesh(mesh: Mesh, max_triangles: int, device: Any) -> tuple[Mesh, dic
             wp.array(mesh.vertices, dtype=wp.vec3), wp.array(mesh.faces, dtype=wp.vec3i), max_triangles
         )
         passes = stats.passes
-        dv, df = pos.numpy(), faces.numpy().astype(np.int32)  # sync point: the copy is small now
         keep: int | None = None
         pieces: int | None = None
         dropped = 0
-        while len(df) > max_triangles and keep != 1:
+        while len(faces) > max_triangles and keep != 1:
             if pieces is None:
-                from engine.stages.meshcheck import component_labels
-
-                pieces = component_labels(df, len(dv))[0]
+                pieces = remove_islands_device(pos, faces)[2]["pieces_before"]
             if pieces <= 1:
                 break
             keep = (
                 max(1, min(pieces // 2, max_triangles // 200)) if keep is None else max(1, min(keep // 2, pieces - 1))
             )
-            dv, df, isl = remove_islands(dv, df, keep_largest=keep)
+            pos, faces, isl = remove_islands_device(pos, faces, keep_largest=keep)
             dropped += int(isl["removed_pieces"])
             pieces = int(isl["pieces_after"])
-            pos, faces, stats = decimate_device(
-                wp.array(dv, dtype=wp.vec3), wp.array(df, dtype=wp.vec3i), max_triangles
-            )
+            pos, faces, stats = decimate_device(pos, faces, max_triangles)
             passes += stats.passes
-            dv, df = pos.numpy(), faces.numpy().astype(np.int32)
-        topology_kept = True
-        if len(df) > max_triangles:  # a piece of high genus: this viewing copy may close tunnels to meet the budget
-            from engine.stages.decimate_meshlab import decimate_for_viewing
+        summary: dict[str, Any] = {"topology_preserved": True}
+        if len(faces) > max_triangles:  # pieces of high genus: this viewing copy may close tunnels to meet the budget
+            from engine.stages.cluster import cluster_device
 
-            dv, df = decimate_for_viewing(dv, df, max_triangles)
-            topology_kept = False
-            pos, faces = wp.array(dv, dtype=wp.vec3), wp.array(df, dtype=wp.vec3i)
-        normals = normals_device(pos, faces).numpy()
-    summary = {
-        "faces": len(df),
-        "decimated": True,
-        "passes": passes,
-        "pieces_dropped": dropped,
-        "topology_preserved": topology_kept,
-        "over_budget": len(df) > max_triangles,
-    }
+            pos, faces, summary["clustered"] = cluster_device(pos, faces, max_triangles)
+            summary["topology_preserved"] = False
+        normals = normals_device(pos, faces).numpy()  # sync point: the copy comes back
+        dv, df = pos.numpy(), faces.numpy().astype(np.int32).reshape(-1, 3)
+    summary.update(
+        faces=len(df),
+        decimated=True,
+        passes=passes,
+        pieces_dropped=dropped,
+        over_budget=len(df) > max_triangles,
+    )
     return Mesh(np.ascontiguousarray(dv, np.float32), df, normals.astype(np.float32)), summary
 
 
