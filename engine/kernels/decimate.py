@@ -702,6 +702,12 @@ def bounds_kernel(pos: wp.array(dtype=wp.vec3), box: wp.array(dtype=wp.vec3)):
 
 
 # ------------------------------------------------------------------------------------------------ diagnostics
+@wp.func
+def xyz64(p: wp.vec3) -> wp.vec3d:
+    """A (z, y, x) position as float64 (x, y, z), the frame in which outward faces have positive volume."""
+    return wp.vec3d(wp.float64(p[2]), wp.float64(p[1]), wp.float64(p[0]))
+
+
 @wp.kernel
 def edge_census(
     faces: wp.array(dtype=wp.vec3i),
@@ -768,12 +774,9 @@ def face_measures(
     """Per face: signed volume a.(b x c)/6 with vertices in (x, y, z) order, area, and whether a vertex repeats."""
     f = wp.tid()
     t = faces[f]
-    pa = pos[t[0]]
-    pb = pos[t[1]]
-    pc = pos[t[2]]
-    a = wp.vec3d(wp.float64(pa[2]), wp.float64(pa[1]), wp.float64(pa[0]))
-    b = wp.vec3d(wp.float64(pb[2]), wp.float64(pb[1]), wp.float64(pb[0]))
-    c = wp.vec3d(wp.float64(pc[2]), wp.float64(pc[1]), wp.float64(pc[0]))
+    a = xyz64(pos[t[0]])
+    b = xyz64(pos[t[1]])
+    c = xyz64(pos[t[2]])
     volume[f] = wp.dot(a, wp.cross(b, c)) / wp.float64(6.0)
     area[f] = wp.float64(0.5) * wp.length(wp.cross(b - a, c - a))
     degenerate[f] = 0.0
@@ -822,14 +825,9 @@ def piece_volumes(
     """Signed volume (vertices in (x, y, z) order) and face count of every piece, at its root vertex."""
     f = wp.tid()
     t = faces[f]
-    pa = pos[t[0]]
-    pb = pos[t[1]]
-    pc = pos[t[2]]
-    a = wp.vec3d(wp.float64(pa[2]), wp.float64(pa[1]), wp.float64(pa[0]))
-    b = wp.vec3d(wp.float64(pb[2]), wp.float64(pb[1]), wp.float64(pb[0]))
-    c = wp.vec3d(wp.float64(pc[2]), wp.float64(pc[1]), wp.float64(pc[0]))
     root = label[t[0]]
-    wp.atomic_add(volume, root, wp.dot(a, wp.cross(b, c)) / wp.float64(6.0))
+    a = xyz64(pos[t[0]])
+    wp.atomic_add(volume, root, wp.dot(a, wp.cross(xyz64(pos[t[1]]), xyz64(pos[t[2]]))) / wp.float64(6.0))
     wp.atomic_add(nfaces, root, 1)
 
 

@@ -1,5 +1,5 @@
-"""MeshLab's quadric-error decimation (through pymeshlab): the reference the Warp path is measured against, and
-the viewing copies' last resort when topology must give way.
+"""MeshLab's quadric-error decimation (through pymeshlab): the reference the Warp path is measured against
+(``decimate_mesh(..., method="meshlab")``, ``benchmarks/decimate.py``).
 
 The paper's remeshing step: Garland-Heckbert quadric edge collapses down to a *reduction factor* (the fraction
 of faces kept). MeshLab's implementation is used with
@@ -21,9 +21,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
-from engine.stages.meshcheck import edge_report, validate_mesh
+from engine.stages.meshcheck import edge_report
 
 PARALLEL_MIN_FACES = 400_000
 MIN_FACES_PER_WORKER = 100_000
@@ -72,19 +71,6 @@ class Slab:
     points: np.ndarray
     faces: np.ndarray
     global_ids: np.ndarray
-
-
-def decimate_for_viewing(
-    verts: npt.NDArray[Any], faces: npt.NDArray[Any], max_triangles: int
-) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int32]]:
-    """Quadric decimation to ``max_triangles`` *without* the topology guard, for viewing copies only.
-
-    A piece of high genus (a trabecular network) cannot be decimated far with the link condition; a phone or AR
-    model may then close small tunnels and lose watertightness. Never used for the print model.
-    """
-    verts, faces = validate_mesh(verts, faces)
-    pts, f = _collapse(verts[:, ::-1].astype(np.float64), faces.astype(np.int32), max_triangles, False)
-    return np.ascontiguousarray(pts[:, ::-1], dtype=np.float32), f
 
 
 def _collapse_in_slabs(

@@ -23,6 +23,27 @@ def compact_mesh(
     )
 
 
+def _check_limits(min_volume_mm3: float | None, keep_largest: int | None) -> None:
+    if min_volume_mm3 is not None and not (np.isfinite(min_volume_mm3) and min_volume_mm3 >= 0):
+        raise ValueError(f"min_volume_mm3 must be a finite number >= 0, got {min_volume_mm3}")
+    if keep_largest is not None and (
+        isinstance(keep_largest, bool) or int(keep_largest) != keep_largest or keep_largest < 1
+    ):
+        raise ValueError(f"keep_largest must be an integer >= 1, got {keep_largest}")
+
+
+def _kept_pieces(volume: np.ndarray, min_volume_mm3: float | None, keep_largest: int | None) -> np.ndarray:
+    """Which pieces stay: at least ``min_volume_mm3``, then the ``keep_largest`` largest (ties: the earlier)."""
+    keep = np.ones(len(volume), bool)
+    if min_volume_mm3 is not None:
+        keep &= volume >= min_volume_mm3
+    if keep_largest is not None:
+        candidates = np.flatnonzero(keep)
+        by_size = candidates[np.argsort(-volume[candidates], kind="stable")]
+        keep[by_size[int(keep_largest) :]] = False
+    return keep
+
+
 def remove_islands(
     verts: npt.NDArray[Any],
     faces: npt.NDArray[Any],
@@ -52,12 +73,7 @@ def remove_islands(
         ValueError: bad arrays or parameter values.
     """
     verts, faces = validate_mesh(verts, faces)
-    if min_volume_mm3 is not None and not (np.isfinite(min_volume_mm3) and min_volume_mm3 >= 0):
-        raise ValueError(f"min_volume_mm3 must be a finite number >= 0, got {min_volume_mm3}")
-    if keep_largest is not None and (
-        isinstance(keep_largest, bool) or int(keep_largest) != keep_largest or keep_largest < 1
-    ):
-        raise ValueError(f"keep_largest must be an integer >= 1, got {keep_largest}")
+    _check_limits(min_volume_mm3, keep_largest)
 
     if len(faces) == 0:
         info = {
@@ -82,13 +98,7 @@ def remove_islands(
     n = len(pieces)
     volume = np.abs(np.bincount(flabels, weights=face_volumes(verts, faces), minlength=n))
 
-    keep = np.ones(n, bool)
-    if min_volume_mm3 is not None:
-        keep &= volume >= min_volume_mm3
-    if keep_largest is not None:
-        candidates = np.flatnonzero(keep)
-        by_size = candidates[np.argsort(-volume[candidates], kind="stable")]
-        keep[by_size[int(keep_largest) :]] = False
+    keep = _kept_pieces(volume, min_volume_mm3, keep_largest)
 
     face_keep = keep[flabels]
     out_v, out_f = compact_mesh(verts, faces[face_keep])
@@ -117,12 +127,7 @@ def remove_islands_device(
     from engine.kernels import decimate as kd
     from engine.stages.devmesh import compact_faces, compact_vertices, component_labels_device
 
-    if min_volume_mm3 is not None and not (np.isfinite(min_volume_mm3) and min_volume_mm3 >= 0):
-        raise ValueError(f"min_volume_mm3 must be a finite number >= 0, got {min_volume_mm3}")
-    if keep_largest is not None and (
-        isinstance(keep_largest, bool) or int(keep_largest) != keep_largest or keep_largest < 1
-    ):
-        raise ValueError(f"keep_largest must be an integer >= 1, got {keep_largest}")
+    _check_limits(min_volume_mm3, keep_largest)
     nv, nf = len(pos), len(faces)
     with wp.ScopedDevice(pos.device):
         label = component_labels_device(faces, nv)
@@ -133,13 +138,7 @@ def remove_islands_device(
         counts = nfaces.numpy()  # sync point: V ints and doubles, no mesh
         roots = np.flatnonzero(counts)
         volume = np.abs(vol.numpy()[roots])
-        keep = np.ones(len(roots), bool)
-        if min_volume_mm3 is not None:
-            keep &= volume >= min_volume_mm3
-        if keep_largest is not None:
-            candidates = np.flatnonzero(keep)
-            by_size = candidates[np.argsort(-volume[candidates], kind="stable")]
-            keep[by_size[int(keep_largest) :]] = False
+        keep = _kept_pieces(volume, min_volume_mm3, keep_largest)
         removed = volume[~keep]
         info = {
             "pieces_before": len(roots),
