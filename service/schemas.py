@@ -15,8 +15,8 @@ class JobError(BaseModel):
     """Why a job failed."""
 
     code: str = Field(
-        description="machine-readable reason, e.g. bad_input, no_spacing, no_surface, print_check, storage_full, "
-        "time_limit, internal_error"
+        description="machine-readable reason: bad_input, no_spacing, no_surface, print_check, storage_full, "
+        "too_large, time_limit, worker_lost, internal_error"
     )
     message: str = Field(description="what went wrong, in words")
 
