@@ -31,7 +31,16 @@ from service.params import JobParams
 from service.problems import Problem
 from service.problems import problems as errors
 from service.queue import Queue
-from service.schemas import DOWNLOAD_CONTENT, UPLOAD_BODY, JobError, JobList, JobOut, OutputFile, Readiness
+from service.schemas import (
+    DOWNLOAD_CONTENT,
+    UPLOAD_BODY,
+    JobError,
+    JobList,
+    JobOut,
+    OutputFile,
+    Readiness,
+    add_job_params,
+)
 from service.settings import Settings, get_settings
 from service.storage import OUTPUTS, Storage, UploadTooLarge, is_storage_full, storage_from_settings
 from service.upload_check import inspect_upload
@@ -176,7 +185,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
             schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
-            app.openapi_schema = problems.fix_openapi(schema)
+            app.openapi_schema = add_job_params(problems.fix_openapi(schema))
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]
@@ -272,7 +281,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             log.info("job %s: upload of %d bytes: %s", job_id, writer.size, summary)
             name = parsed.filename or "upload"
             return await s.in_upload_thread(  # type: ignore[no-any-return]
-                s.accept, job_id, who, params.model_dump(exclude_none=True), name, writer.size
+                s.accept, job_id, who, params.record(), name, writer.size
             )
         except Exception as exc:
             await s.in_upload_thread(s.discard, writer, job_id)

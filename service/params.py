@@ -1,4 +1,10 @@
-"""The job parameters a client sends (flat JSON), validated field by field, and their engine form."""
+"""The job parameters a client sends (JSON), validated field by field, and their engine form.
+
+Most parameters are flat; the engine's optional steps are objects: ``orient`` (how an image stack lies),
+``preprocess`` (the paper's slice preprocessing, off unless given), and ``body`` and ``islands`` (bone inside the
+body outline, speck removal: on unless sent as ``null``). Left out, every step keeps the engine's default
+(``engine.params.ReconParams()``).
+"""
 
 from __future__ import annotations
 
@@ -6,7 +12,87 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from engine.params import FLOAT32_MAX, INT32_MAX, SPACING_MM_MAX, SPACING_MM_MIN, check_spacing_zyx_mm
+from engine.params import (
+    DEFAULT_SPECK_VOXELS,
+    FLOAT32_MAX,
+    INT32_MAX,
+    SPACING_MM_MAX,
+    SPACING_MM_MIN,
+    BodyMaskParams,
+    DecimateParams,
+    ExportParams,
+    IslandParams,
+    IsoParams,
+    OrientParams,
+    PreprocessParams,
+    ReconParams,
+    SmoothParams,
+    check_spacing_zyx_mm,
+)
+
+# the engine's defaults, so that a job that leaves an option out gets what the CLI and the library get
+_ORIENT, _BODY, _DECIMATE, _SMOOTH, _EXPORT = (
+    OrientParams(),
+    BodyMaskParams(),
+    DecimateParams(),
+    SmoothParams(),
+    ExportParams(),
+)
+# pieces of a job's parameters that may be sent as null to switch an on-by-default step off
+SWITCHES = ("body", "islands")
+
+
+class _Group(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class OrientJobParams(_Group):
+    """How an image stack lies in the patient (DICOM ignores it: its headers place it)."""
+
+    first_slice: Literal["superior", "inferior"] = Field(
+        default=_ORIENT.first_slice,  # type: ignore[arg-type]
+        description="which end of the stack the first slice is: superior (most CT series), or inferior (stacks "
+        "sorted by ascending position, e.g. from 3D Slicer or ITK)",
+    )
+    flip_lr: bool = Field(default=_ORIENT.flip_lr, description="the image's left is the patient's left")
+    flip_ap: bool = Field(default=_ORIENT.flip_ap, description="the image's top is posterior")
+
+
+class PreprocessJobParams(_Group):
+    """The paper's slice preprocessing, per slice in this order: threshold, area opening, Canny (each off unless
+    given)."""
+
+    threshold: float | None = Field(
+        default=None, ge=-FLOAT32_MAX, le=FLOAT32_MAX, description="set samples below this value to the minimum"
+    )
+    area_opening_px: int | None = Field(
+        default=None, ge=1, le=INT32_MAX, description="remove bright specks below this many pixels per slice"
+    )
+    canny_sigma: float | None = Field(
+        default=None, gt=0, le=1e4, description="replace each slice by its Canny edge map with this sigma"
+    )
+
+
+class BodyJobParams(_Group):
+    """Bone inside the patient's body outline only (HU data); send ``"body": null`` to keep bone outside it."""
+
+    outline_hu: float = Field(
+        default=_BODY.outline_hu,
+        ge=-FLOAT32_MAX,
+        le=FLOAT32_MAX,
+        description="the body outline's air/tissue threshold (HU)",
+    )
+
+
+class IslandJobParams(_Group):
+    """Speck removal; send ``"islands": null`` to keep pieces of any size (``keep_largest`` still applies)."""
+
+    min_volume_voxels: float = Field(
+        default=DEFAULT_SPECK_VOXELS,
+        ge=0,
+        le=FLOAT32_MAX,
+        description="drop pieces smaller than this many voxels' volume (0: no limit) unless min_island_mm3 is given",
+    )
 
 
 class JobParams(BaseModel):
@@ -32,18 +118,32 @@ class JobParams(BaseModel):
         description=f"voxel size [z, y, x] in mm, each in [{SPACING_MM_MIN:g}, {SPACING_MM_MAX:g}]; image stacks "
         "need it unless their TIFF tags carry it",
     )
-    reduction: float | None = Field(default=None, gt=0, le=1, description="fraction of faces kept (default 0.2)")
+    reduction: float | None = Field(
+        default=None, gt=0, le=1, description=f"fraction of faces kept (default {_DECIMATE.reduction:g})"
+    )
     max_triangles: int | None = Field(
         default=None, ge=4, le=INT32_MAX, description="decimate to at most this many instead"
     )
-    iterations: int = Field(default=1, ge=1, le=200, description="surface-preserving Laplacian iterations")
-    angle: float = Field(default=0.5, gt=0, lt=90, description="smoothing threshold angle, degrees")
+    iterations: int = Field(
+        default=_SMOOTH.iterations, ge=1, le=200, description="surface-preserving Laplacian iterations"
+    )
+    angle: float = Field(default=_SMOOTH.angle_deg, gt=0, lt=90, description="smoothing threshold angle, degrees")
     min_island_mm3: float | None = Field(
         default=None, ge=0, le=FLOAT32_MAX, description="drop pieces smaller than this volume (mm³)"
     )
     keep_largest: int | None = Field(default=None, ge=1, le=INT32_MAX, description="keep only the N largest pieces")
-    phone_max_triangles: int = Field(default=100_000, ge=100, le=2_000_000, description="phone.glb budget")
-    ar_max_triangles: int = Field(default=50_000, ge=100, le=2_000_000, description="ar.glb budget")
+    orient: OrientJobParams = Field(default_factory=OrientJobParams, description="how an image stack lies")
+    preprocess: PreprocessJobParams | None = Field(default=None, description="slice preprocessing (default off)")
+    body: BodyJobParams | None = Field(
+        default_factory=BodyJobParams, description="bone inside the body outline only (HU data); null: off"
+    )
+    islands: IslandJobParams | None = Field(
+        default_factory=IslandJobParams, description="speck removal; null: keep pieces of any size"
+    )
+    phone_max_triangles: int = Field(
+        default=_EXPORT.phone_max_triangles, ge=100, le=2_000_000, description="phone.glb budget"
+    )
+    ar_max_triangles: int = Field(default=_EXPORT.ar_max_triangles, ge=100, le=2_000_000, description="ar.glb budget")
 
     @field_validator("spacing")
     @classmethod
@@ -58,28 +158,46 @@ class JobParams(BaseModel):
             raise ValueError("give iso or preset, not both")
         if self.reduction is not None and self.max_triangles is not None:
             raise ValueError("give reduction or max_triangles, not both")
+        if self.islands is None and self.min_island_mm3 is not None:
+            raise ValueError('give min_island_mm3 or "islands": null (keep pieces of any size), not both')
         return self
 
-    def engine_params(self) -> dict[str, Any]:
-        """The engine's ``ReconParams.to_dict()`` form of these parameters."""
-        from engine.params import (
-            DecimateParams,
-            ExportParams,
-            IslandParams,
-            IsoParams,
-            ReconParams,
-            SmoothParams,
-        )
+    def record(self) -> dict[str, Any]:
+        """The job record's form (JSON-able): what was given or defaulted, without unset options, but with the
+        steps sent as null (dropping those would switch them back on when the worker reads the record)."""
+        data = self.model_dump(mode="json", exclude_none=True)
+        data.update({name: None for name in SWITCHES if getattr(self, name) is None})
+        return data
 
-        islands = None
-        if self.min_island_mm3 is not None or self.keep_largest is not None:
-            islands = IslandParams(min_volume_mm3=self.min_island_mm3, keep_largest=self.keep_largest)
+    def engine_params(self) -> dict[str, Any]:
+        """The engine's ``ReconParams.to_dict()`` form of these parameters: what a job leaves out keeps the
+        engine's default (``ReconParams()``), speck removal and the body mask included.
+
+        Raises:
+            ValueError: the engine refuses a value (the API answers 422).
+        """
+        if self.islands is None:  # no speck removal; keep_largest alone may still apply (the CLI's --keep-specks)
+            islands = (
+                None
+                if self.keep_largest is None
+                else IslandParams(keep_largest=self.keep_largest, min_volume_voxels=None)
+            )
+        else:
+            islands = IslandParams(
+                min_volume_mm3=self.min_island_mm3,
+                keep_largest=self.keep_largest,
+                min_volume_voxels=self.islands.min_volume_voxels,
+            )
         return ReconParams(
+            preprocess=None if self.preprocess is None else PreprocessParams(**self.preprocess.model_dump()),
             iso=IsoParams(iso=self.iso, preset=self.preset, hu_offset=self.hu_offset),
             islands=islands,
             decimate=DecimateParams(
-                reduction=None if self.max_triangles else (self.reduction or 0.2), max_triangles=self.max_triangles
+                reduction=None if self.max_triangles else (self.reduction or _DECIMATE.reduction),
+                max_triangles=self.max_triangles,
             ),
             smooth=SmoothParams(iterations=self.iterations, angle_deg=self.angle),
             export=ExportParams(phone_max_triangles=self.phone_max_triangles, ar_max_triangles=self.ar_max_triangles),
+            orient=OrientParams(**self.orient.model_dump()),
+            body=None if self.body is None else BodyMaskParams(outline_hu=self.body.outline_hu),
         ).to_dict()

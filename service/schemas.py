@@ -8,13 +8,15 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
+from service.params import JobParams
+
 
 class JobError(BaseModel):
     """Why a job failed."""
 
     code: str = Field(
-        description="machine-readable reason, e.g. bad_input, no_spacing, no_surface, print_check, storage_full, "
-        "time_limit, internal_error"
+        description="machine-readable reason: bad_input, no_spacing, no_surface, print_check, storage_full, "
+        "too_large, time_limit, worker_lost, internal_error"
     )
     message: str = Field(description="what went wrong, in words")
 
@@ -84,7 +86,10 @@ UPLOAD_BODY = {
                     },
                     "params": {
                         "type": "string",
-                        "description": "JSON object of JobParams (iso or preset, spacing, reduction...)",
+                        "description": "JSON object of JobParams (iso or preset, spacing, reduction, orient, "
+                        "preprocess, body, islands...); all optional",
+                        "contentMediaType": "application/json",
+                        "contentSchema": {"$ref": "#/components/schemas/JobParams"},
                     },
                 },
             },
@@ -99,3 +104,12 @@ DOWNLOAD_CONTENT = {
     },
     "description": "the file (report.json is JSON, the models are binary)",
 }
+
+
+def add_job_params(schema: dict[str, Any]) -> dict[str, Any]:
+    """Put ``JobParams`` and its groups in the document's components (the upload's ``params`` part refers to it)."""
+    doc = JobParams.model_json_schema(ref_template="#/components/schemas/{model}")
+    components = schema.setdefault("components", {}).setdefault("schemas", {})
+    components.update(doc.pop("$defs", {}))
+    components["JobParams"] = doc
+    return schema

@@ -15,6 +15,7 @@ import numpy.typing as npt
 
 from engine.errors import InputError
 from engine.io.archive import InputLimits, Member, Members, open_members
+from engine.params import check_spacing_zyx_mm
 from engine.types import Volume
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
@@ -259,7 +260,10 @@ def _resolve_spacing(
     if call is not None:
         return call, "call"
     if "yx" in geo and "z" in geo:
-        return (geo["z"], *geo["yx"]), "tiff"
+        try:
+            return check_spacing_zyx_mm((geo["z"], *geo["yx"])), "tiff"
+        except ValueError as exc:
+            raise InputError(f"{label}: the TIFF tags give an implausible voxel size: {exc}; {SPACING_HINT}") from None
     if "yx" in geo:
         y, x = geo["yx"]
         raise InputError(
@@ -271,13 +275,15 @@ def _resolve_spacing(
 
 
 def check_spacing(spacing: object) -> tuple[float, float, float] | None:
-    """Validate a caller's spacing: None or three positive finite numbers (z, y, x) in mm."""
+    """Validate a caller's spacing: None, or three finite numbers (z, y, x) in mm within the plausible range
+    (``engine.params.SPACING_MM_MIN`` to ``SPACING_MM_MAX``, the range the API accepts).
+
+    Raises:
+        InputError: not three numbers, or one of them non-finite, not positive or implausible (1e300, 1e-300).
+    """
     if spacing is None:
         return None
     try:
-        vals = tuple(float(v) for v in spacing)  # type: ignore[attr-defined]
-    except (TypeError, ValueError):
-        raise InputError(f"expected spacing_zyx_mm as three numbers (z, y, x) in mm, got {spacing!r}") from None
-    if len(vals) != 3 or not all(math.isfinite(v) and v > 0 for v in vals):
-        raise InputError(f"expected spacing_zyx_mm as three positive numbers (z, y, x) in mm, got {spacing!r}")
-    return vals  # type: ignore[return-value]
+        return check_spacing_zyx_mm(spacing)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None  # names the axis, so --voxel-size and --spacing read alike

@@ -114,6 +114,8 @@ def test_reconstruct_demo_writes_every_output(tmp_path):
         (["missing.zip"], "does not exist"),
         (["bad.zip"], "zip"),
         (["stack.zip"], "--voxel-size X,Y,Z"),
+        (["stack.zip", "--voxel-size", "1e300,1,1"], "Expected a voxel size between 0.0001 and 100 mm, got 1e+300"),
+        (["stack.zip", "--spacing", "1e-300,1,1"], "Expected a voxel size between 0.0001 and 100 mm, got 1e-300"),
         (["ball.npy", "--spacing", "1,1,1", "--reduction", "0"], "reduction must be in (0, 1], got 0"),
         (["ball.npy", "--spacing", "1,1,1", "--iso", "1e9"], "no surface"),
         (["ball.npy", "--spacing", "1,1,1", "--reduction", "1.5"], "reduction"),

@@ -108,8 +108,9 @@ def test_rgb_becomes_luminance_with_one_warning(tmp_path: Path) -> None:
 def test_missing_spacing_says_how_to_give_it(tmp_path: Path) -> None:
     with pytest.raises(InputError, match=r"spacing_zyx_mm=\(z, y, x\) \(CLI: --voxel-size X,Y,Z or --spacing Z,Y,X\)"):
         load_volume(_write(tmp_path / "s.zip", _slices(_vol(2), ".png"), "zip"))
-    with pytest.raises(InputError, match="three positive numbers"):
-        load_volume(tmp_path / "s.zip", spacing_zyx_mm=(1, 0, 1))
+    for absurd in ((1, 0, 1), (1e300, 1, 1), (1, 1e-300, 1), (1, 1, float("nan"))):
+        with pytest.raises(InputError, match=r"Expected a voxel size between 0.0001 and 100 mm"):
+            load_volume(tmp_path / "s.zip", spacing_zyx_mm=absurd)
 
 
 def test_tiff_resolution_tags_give_spacing(tmp_path: Path) -> None:
@@ -132,6 +133,10 @@ def test_tiff_resolution_tags_give_spacing(tmp_path: Path) -> None:
     tifffile.imwrite(dpi, vol, photometric="minisblack", resolution=(72.0, 72.0), resolutionunit="INCH")
     with pytest.raises(InputError, match=r"72 dpi.*not a voxel size"):
         load_volume(dpi)
+    huge = tmp_path / "huge.tif"  # ImageJ tags of 2 m voxels: refused like a caller's absurd spacing
+    tifffile.imwrite(huge, vol, imagej=True, resolution=(1 / 2e6, 1 / 2e6), metadata={"spacing": 2e6, "unit": "micron"})
+    with pytest.raises(InputError, match=r"TIFF tags give an implausible voxel size.*between 0.0001 and 100 mm"):
+        load_volume(huge)
 
 
 def test_planar_rgb_tiff(tmp_path: Path) -> None:

@@ -123,16 +123,37 @@ def load_stl(data: bytes) -> trimesh.Trimesh:
     return trimesh.load(io.BytesIO(data), file_type="stl")
 
 
+def grid_from_patient(points_xyz: np.ndarray, frame: dict[str, Any] | None) -> np.ndarray:
+    """Patient (LPS mm) points back in the scan's grid (x, y, z) mm through report.json's ``frame`` (its
+    ``patient_from_grid_xyz``, ``engine.orient``); no frame: the points are already in the grid."""
+    xyz = np.asarray(points_xyz, dtype=np.float64)
+    if frame is None:
+        return xyz
+    m = np.asarray(frame["patient_from_grid_xyz"], dtype=np.float64)
+    assert m.shape == (4, 4) and np.allclose(m[3], [0, 0, 0, 1]), f"not an affine 4x4: {m.tolist()}"
+    return np.linalg.solve(m[:3, :3], (xyz - m[:3, 3]).T).T
+
+
 def assert_mesh_in_scan_mm(
-    mesh: trimesh.Trimesh, shape_zyx: tuple[int, int, int], spacing_zyx_mm: tuple[float, float, float]
+    mesh: trimesh.Trimesh,
+    shape_zyx: tuple[int, int, int],
+    spacing_zyx_mm: tuple[float, float, float],
+    frame: dict[str, Any] | None = None,
 ) -> None:
     """Bounds (x, y, z) in mm inside the scan's extent (one voxel of slack for the closed borders), and filling a
-    good part of it (a model in metres or in voxels would not)."""
+    good part of it (a model in metres or in voxels would not).
+
+    The STL lies in the patient frame (a DICOM series at its ImagePositionPatient, far from the origin): with
+    ``frame`` (report.json's) its vertices are mapped back to the grid first, so the grid box is compared where
+    the model was placed, for any orientation.
+    """
     extent_xyz = np.array([(n - 1) * s for n, s in zip(shape_zyx, spacing_zyx_mm, strict=True)])[::-1]
     voxel_xyz = np.array(spacing_zyx_mm)[::-1]
-    lo, hi = mesh.bounds
+    grid = grid_from_patient(mesh.vertices, frame)
+    lo, hi = grid.min(axis=0), grid.max(axis=0)
+    where = f"(patient bounds {mesh.bounds.tolist()} mm, frame {frame})" if frame is not None else ""
     assert (lo >= -voxel_xyz - 1e-3).all() and (hi <= extent_xyz + voxel_xyz + 1e-3).all(), (
-        f"bounds {mesh.bounds.tolist()} mm outside the scan's extent {extent_xyz.tolist()} mm"
+        f"grid bounds {[lo.tolist(), hi.tolist()]} mm outside the scan's extent {extent_xyz.tolist()} mm {where}"
     )
     assert ((hi - lo) >= 0.3 * extent_xyz).all(), (
         f"model size {(hi - lo).tolist()} mm is far smaller than the scan's {extent_xyz.tolist()} mm (not in mm?)"
@@ -147,12 +168,16 @@ def check_outputs(
 ) -> dict[str, Any]:
     """Download every output through its signed link and check it; returns report.json."""
     files = {name: download(anon, out) for name, out in outputs.items()}
+    report = json.loads(files["report.json"])
+    frame = report["frame"]  # where model.stl lies: grid -> patient LPS mm
 
     stl = load_stl(files["model.stl"])
     assert len(stl.faces) == outputs["model.stl"]["triangles"]
     assert stl.is_watertight, "model.stl is not watertight"
     assert stl.is_winding_consistent and stl.volume > 0, "model.stl faces are not consistently outward"
-    assert_mesh_in_scan_mm(stl, shape_zyx, spacing_zyx_mm)
+    assert_mesh_in_scan_mm(stl, shape_zyx, spacing_zyx_mm, frame)
+    # the glTF files are centred on the STL's box, and the report keeps the centre (a glTF point maps back)
+    np.testing.assert_allclose(frame["gltf_centre_lps_mm"], stl.bounds.mean(axis=0), atol=1e-3)
     size_mm = np.sort(stl.extents)
 
     points_m, faces = decode_draco_glb(files["phone.glb"])
@@ -167,7 +192,6 @@ def check_outputs(
             assert len(mesh.faces) <= budget, name
         np.testing.assert_allclose(np.sort(mesh.extents) * 1000.0, size_mm, rtol=0.05, err_msg=name)
 
-    report = json.loads(files["report.json"])
     assert report["input"]["shape_zyx"] == list(shape_zyx), report["input"]
     np.testing.assert_allclose(report["input"]["spacing_zyx_mm"], spacing_zyx_mm, rtol=1e-4)
     assert {"gaussian", "isosurface", "decimate", "smooth"} <= set(report["stage_seconds"]), report["stage_seconds"]

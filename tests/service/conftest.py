@@ -68,6 +68,36 @@ SHARED_SCANS = {
 }
 
 
+# a synthetic CT series placed as real ones are, far from the patient frame's origin (so an STL in the grid's
+# coordinates and one at the patient position cannot both pass): a 1000 HU ball in a water cylinder (the body) in
+# air, stored as HU + 1024
+SYNTHETIC_DICOM_ORIGIN_LPS = (-140.0, -160.0, -420.0)
+SYNTHETIC_DICOM_SHAPE = (30, 40, 40)
+SYNTHETIC_DICOM_SPACING = (1.0, 0.8, 0.8)
+
+
+def synthetic_dicom_scan(folder: Path) -> Scan:
+    """A zip of a synthetic axial CT series (no patient data; ``tests.engine.dicom_factory``), written in ``folder``."""
+    from tests.engine.dicom_factory import series
+
+    nz, ny, nx = SYNTHETIC_DICOM_SHAPE
+    dz, dy, dx = SYNTHETIC_DICOM_SPACING
+    origin = np.array(SYNTHETIC_DICOM_ORIGIN_LPS)
+    centre = origin + np.array([(nx - 1) * dx, (ny - 1) * dy, (nz - 1) * dz]) / 2
+
+    def hu(p: np.ndarray) -> np.ndarray:
+        body = np.linalg.norm((p - centre)[..., :2], axis=-1) < 13.0
+        ball = np.linalg.norm(p - centre, axis=-1) < 8.0
+        return np.where(ball, 1000.0, np.where(body, 0.0, -1000.0))
+
+    files = series(hu, positions_mm=[k * dz for k in range(nz)], shape=(ny, nx), pixel_spacing=(dy, dx), origin=origin)
+    path = folder / "synthetic_ct.zip"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        for name, data in files.items():
+            zf.writestr(f"DICOM/{name}", data)
+    return Scan("synthetic_dicom", path, {"preset": "bone"}, SYNTHETIC_DICOM_SHAPE, SYNTHETIC_DICOM_SPACING)
+
+
 def shared_scan(name: str) -> Scan | None:
     """A real scan from ../shared/data, or None when the folder is absent."""
     parts, params, shape, spacing = SHARED_SCANS[name]

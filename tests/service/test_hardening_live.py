@@ -112,8 +112,10 @@ def test_mixed_series_use_the_largest_ct_and_the_report_says_so(
             {"positions_mm": [0.5 * k for k in range(14)], "modality": "MR", "description": "T1 MR"},
         ]
     )
-    resp = submit(client_a, data, {"preset": "bone"}, filename="mixed.zip")
+    # the ball lies in air, with no body around it: the body mask (on by default) would refuse the scan
+    resp = submit(client_a, data, {"preset": "bone", "body": None}, filename="mixed.zip")
     assert resp.status_code == 202, resp.text
+    assert resp.json()["params"]["body"] is None, resp.json()["params"]
     job = wait_for_job(client_a, resp.json()["id"], stack=stack, timeout=180)
     outputs = assert_succeeded(job, stack.base_url)
     report = anon.get(outputs["report.json"]["url"]).json()
@@ -121,6 +123,7 @@ def test_mixed_series_use_the_largest_ct_and_the_report_says_so(
     assert choice["used"]["description"] == "bone CT" and choice["used"]["images"] == 9, choice
     assert sorted(s["description"] for s in choice["ignored"]) == ["T1 MR", "scout CT"], choice
     assert report["input"]["shape_zyx"][0] == 9
+    assert "body_mask" not in report, report["body_mask"]  # "body": null reached the worker: no mask ran
 
 
 # -- 9. staging folders of a killed attempt are removed by the attempt that completes -----------------------------
