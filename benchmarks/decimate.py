@@ -73,7 +73,16 @@ def _check(v: np.ndarray, f: np.ndarray, ref: dict[str, Any] | None) -> dict[str
     return out
 
 
-def _one(name: str, pos: Any, faces: Any, reductions: list[float], args: argparse.Namespace, dev: Any) -> dict:
+def _similarity(v: np.ndarray, f: np.ndarray, scan: tuple[np.ndarray, tuple[float, float, float], float], n: int):
+    """The paper's RMSE % and SSIM % (and Dice) of the mesh's sections against the scan's slices at the level."""
+    from engine.metrics import slice_similarity
+
+    data, spacing, level = scan
+    out = slice_similarity(v, f, data, level, spacing, max_slices=n)
+    return {k: out[k] for k in ("rmse_pct", "ssim_pct", "dice")} | {"slices_compared": len(out["slices"])}
+
+
+def _one(name: str, pos: Any, faces: Any, reductions: list[float], args: argparse.Namespace, dev: Any, scan) -> dict:
     import warp as wp
 
     from benchmarks.mc33 import _DeviceMemory
@@ -83,6 +92,8 @@ def _one(name: str, pos: Any, faces: Any, reductions: list[float], args: argpars
     v_in, f_in = pos.numpy(), faces.numpy().astype(np.int32)
     print(f"{name}: MC33 {len(f_in):,} faces", flush=True)
     ref = _check(v_in, f_in, None)
+    if args.slices:
+        ref["similarity"] = _similarity(v_in, f_in, scan, args.slices)
     dist = DistanceReference(v_in, f_in, n_points=args.points, device=str(dev))
     rows = []
     for r in reductions:
@@ -108,6 +119,8 @@ def _one(name: str, pos: Any, faces: Any, reductions: list[float], args: argpars
             **_check(wv, wf, ref),
             "distance": dist.compare(wv, wf),
         }
+        if args.slices:
+            warp_row["similarity"] = _similarity(wv, wf, scan, args.slices)
         row["warp"] = warp_row
         print(f"  R={r}: warp {warp_row['seconds']:.3f} s, {len(wf):,} faces, {st.passes} passes, "
               f"mean {warp_row['distance']['mean_mm']:.5f} mm", flush=True)  # fmt: skip
@@ -116,6 +129,8 @@ def _one(name: str, pos: Any, faces: Any, reductions: list[float], args: argpars
             mv, mf, info = decimate_mesh(v_in, f_in, max_triangles=len(wf), method="meshlab")
             ml = {"seconds": time.perf_counter() - t0, "workers": info.get("workers"), **_check(mv, mf, ref)}
             ml["distance"] = dist.compare(mv, mf)
+            if args.slices:
+                ml["similarity"] = _similarity(mv, mf, scan, args.slices)
             row["meshlab"] = ml
             row["ratios"] = {
                 "speedup": ml["seconds"] / warp_row["seconds"],
@@ -142,6 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--points", type=int, default=400_000, help="surface samples each way for the distances")
     ap.add_argument("--no-meshlab", dest="meshlab", action="store_false")
+    ap.add_argument("--slices", type=int, default=64, help="slices for the RMSE/SSIM comparison (0: none)")
     ap.add_argument("--profile", action="store_true", help="one more run, synchronised per step, timed per step")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
@@ -182,8 +198,8 @@ def main(argv: list[str] | None = None) -> int:
         for name, load in inputs:
             data, spacing, level = load()
             pos, faces = _mc33(data, spacing, level, dev)
+            result["inputs"][name] = _one(name, pos, faces, reductions, args, dev, (data, spacing, level))
             del data
-            result["inputs"][name] = _one(name, pos, faces, reductions, args, dev)
             Path(args.out).write_text(json.dumps(result, indent=2, default=float) + "\n")
     return 0
 
