@@ -523,8 +523,8 @@ def settle_claims(
     claim: wp.array(dtype=wp.int64),
     winners: wp.array(dtype=wp.int32),
 ):
-    """An edge holding every face of its stars wins and takes them for the pass; one that meets a taken face drops
-    out; the rest compete again in the next round.
+    """An edge holding every face of its stars wins (and takes them for the pass, in ``take_stars``); one that meets
+    a face taken in an earlier round drops out; the rest compete again in the next round.
 
     Winners' stars share no face, hence no winner's end is a neighbour of another's: every collapse reads and
     writes only its own stars, the vertices it reads do not move, and a vertex opposite several winners has at
@@ -546,15 +546,33 @@ def settle_claims(
             elif c != mine and won == 1:
                 won = 0
     if won == 1:
-        cand[h] = 2
+        cand[h] = 3  # won this round: ``take_stars`` marks its faces taken, after every edge has looked
         wp.atomic_add(winners, 0, 1)
-        for e in range(2):
-            v = ends[e]
-            lo = offset[v]
-            for i in range(count[v]):
-                claim[star[lo + i]] = CLAIM_TAKEN
     elif won == -1:
         cand[h] = 0
+
+
+@wp.kernel
+def take_stars(
+    cand: wp.array(dtype=wp.int32),
+    faces: wp.array(dtype=wp.vec3i),
+    offset: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    star: wp.array(dtype=wp.int32),
+    claim: wp.array(dtype=wp.int64),
+):
+    """This round's winners take their faces for the rest of the pass (a kernel of its own, so that what a losing
+    edge saw in ``settle_claims`` does not depend on the order threads ran in)."""
+    h = wp.tid()
+    if cand[h] != 3:
+        return
+    cand[h] = 2
+    ends = edge_ends(faces, h)
+    for e in range(2):
+        v = ends[e]
+        lo = offset[v]
+        for i in range(count[v]):
+            claim[star[lo + i]] = CLAIM_TAKEN
 
 
 @wp.kernel
@@ -638,11 +656,10 @@ def apply_collapses(
                 if w >= 0:
                     dirty[w] = 1
                     for m in range(count[w]):
-                        x = faces[star[offset[w] + m]]
-                        if x[0] >= 0:
-                            dirty[x[0]] = 1
-                            dirty[x[1]] = 1
-                            dirty[x[2]] = 1
+                        x = faces[star[offset[w] + m]]  # another winner may be rewriting it: check each index
+                        for k in range(3):
+                            if x[k] >= 0:
+                                dirty[x[k]] = 1
 
 
 # ------------------------------------------------------------------------------------------------ compaction

@@ -215,6 +215,7 @@ def decimate_device(
             for _ in range(claim_rounds):
                 wp.launch(kd.claim_stars, dim=slots, inputs=[cand, key, faces, *inc.inputs, claim])
                 wp.launch(kd.settle_claims, dim=slots, inputs=[cand, key, faces, *inc.inputs, claim, counter])
+                wp.launch(kd.take_stars, dim=slots, inputs=[cand, faces, *inc.inputs, claim])
                 wp.launch(kd.release_claims, dim=len(claim), inputs=[claim])
             won = int(counter.numpy()[0])  # sync point
             for _ in range(3):  # keep no more than the collapses still needed, cheapest first
