@@ -47,8 +47,11 @@ def resolve_device(spec: Any = "auto") -> wp.context.Device:
     Raises:
         ValueError: the spec is malformed or names a CUDA device that is not present.
     """
-    if type(spec).__name__ == "Device" and hasattr(spec, "is_cuda"):
-        return spec
+    if not isinstance(spec, str):
+        import warp as wp
+
+        if isinstance(spec, wp.context.Device):
+            return spec
     if not isinstance(spec, str) or not _SPEC.match(spec):
         raise ValueError(f"Expected device 'auto', 'cpu', 'cuda' or 'cuda:N', got {spec!r}")
     init_runtime(os.environ.get("WARP_CACHE_PATH"))

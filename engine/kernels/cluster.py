@@ -33,16 +33,6 @@ def cell_keys(
 
 
 @wp.kernel
-def run_starts(keys: wp.array(dtype=wp.int64), flag: wp.array(dtype=wp.int32)):
-    i = wp.tid()
-    flag[i] = 0
-    if i == 0:
-        flag[i] = 1
-    elif keys[i] != keys[i - 1]:
-        flag[i] = 1
-
-
-@wp.kernel
 def assign_cells(
     flag: wp.array(dtype=wp.int32),
     scan: wp.array(dtype=wp.int32),
@@ -83,8 +73,9 @@ def face_cells(
 
 
 @wp.kernel
-def first_of_runs(keys: wp.array(dtype=wp.int64), flag: wp.array(dtype=wp.int32)):
-    """1 for the first face of each set of cells (sorted stably: the lowest face index), 0 for repeats and drops."""
+def run_starts(keys: wp.array(dtype=wp.int64), flag: wp.array(dtype=wp.int32)):
+    """1 at the first entry of each run of equal sorted keys (sorted stably: the lowest index), 0 for repeats and
+    for the dropped (largest) key."""
     i = wp.tid()
     flag[i] = 0
     if keys[i] != wp.int64(0x7FFFFFFFFFFFFFFF):

@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from engine.stages.devmesh import exclusive_scan
+
 SEARCH_STEPS = 14
 
 
@@ -30,10 +32,8 @@ def _cells(pos: Any, lo: Any, h: float) -> tuple[Any, Any, Any, int]:
     wp.launch(kc.cell_keys, dim=n, inputs=[pos, lo, 1.0 / h, keys, order])
     wp.utils.radix_sort_pairs(keys, order, n)
     flag = wp.empty(n, dtype=wp.int32)
-    scan = wp.empty(n, dtype=wp.int32)
     wp.launch(kc.run_starts, dim=n, inputs=[keys, flag])
-    wp.utils.array_scan(flag, scan, inclusive=False)
-    n_cells = int(scan.numpy()[-1] + flag.numpy()[-1])  # sync point
+    scan, n_cells = exclusive_scan(flag)
     cell_of = wp.empty(n, dtype=wp.int32)
     start = wp.empty(max(n_cells, 1), dtype=wp.int32)
     wp.launch(kc.assign_cells, dim=n, inputs=[flag, scan, order, cell_of, start])
@@ -53,10 +53,8 @@ def _faces(faces: Any, cell_of: Any) -> tuple[Any, int]:
     wp.launch(kc.face_cells, dim=nf, inputs=[faces, cell_of, cells, keys, order])
     wp.utils.radix_sort_pairs(keys, order, nf)
     flag = wp.empty(nf, dtype=wp.int32)
-    scan = wp.empty(nf, dtype=wp.int32)
-    wp.launch(kc.first_of_runs, dim=nf, inputs=[keys, flag])
-    wp.utils.array_scan(flag, scan, inclusive=False)
-    kept = int(scan.numpy()[-1] + flag.numpy()[-1])  # sync point
+    wp.launch(kc.run_starts, dim=nf, inputs=[keys, flag])
+    scan, kept = exclusive_scan(flag)
     out = wp.empty(kept, dtype=wp.vec3i)
     wp.launch(kc.gather_faces, dim=nf, inputs=[flag, scan, order, cells, out])
     return out, kept
@@ -69,14 +67,13 @@ def cluster_device(pos: Any, faces: Any, max_triangles: int) -> tuple[Any, Any, 
     """
     import warp as wp
 
-    from engine.kernels import decimate as kd
-    from engine.stages.devmesh import Incidence, bbox_centre, compact_vertices
+    from engine.kernels import cluster as kc
+    from engine.stages.decimate import vertex_quadrics
+    from engine.stages.devmesh import bounds, compact_vertices
 
     t0 = time.perf_counter()
     with wp.ScopedDevice(pos.device):
-        box = wp.array(np.array([[np.inf] * 3, [-np.inf] * 3], np.float32), dtype=wp.vec3)
-        wp.launch(kd.bounds_kernel, dim=len(pos), inputs=[pos, box])
-        lo_np, hi_np = box.numpy()
+        lo_np, hi_np = bounds(pos)
         lo = wp.vec3(*(float(x) for x in lo_np))
         diag = float(np.linalg.norm(hi_np - lo_np)) or 1.0
         # the cell size: bisection in log scale between a tiny cell and a quarter of the diagonal
@@ -96,13 +93,8 @@ def cluster_device(pos: Any, faces: Any, max_triangles: int) -> tuple[Any, Any, 
         h = best if best is not None else large
         cell_of, order, start, n_cells = _cells(pos, lo, h)
         out_faces, kept = _faces(faces, cell_of)
-        inc = Incidence(len(pos)).build(faces, len(faces))
-        origin = bbox_centre(pos)
-        quad = wp.empty(len(pos), dtype=kd.quadric)
-        wp.launch(kd.vertex_quadrics, dim=len(pos), inputs=[pos, faces, *inc.inputs, origin, quad])
+        _, _, origin, quad = vertex_quadrics(pos, faces)
         cell_pos = wp.empty(max(n_cells, 1), dtype=wp.vec3)
-        from engine.kernels import cluster as kc
-
         wp.launch(kc.cell_positions, dim=n_cells, inputs=[pos, quad, order, start, len(pos), n_cells, origin, cell_pos])
         out_pos, out_faces = compact_vertices(cell_pos[:n_cells], out_faces)
     return out_pos, out_faces, {"cell_mm": h, "faces": kept, "seconds": time.perf_counter() - t0}

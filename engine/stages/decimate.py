@@ -122,6 +122,22 @@ class _Clock:
         self.t = now
 
 
+def vertex_quadrics(pos: Any, faces: Any) -> tuple[Incidence, Any, Any, Any]:
+    """What the collapses start from, for a device mesh without removed faces: the vertices' stars, their classes
+    (``devmesh.vertex_classes``), the local origin (the bounding box's centre) and each vertex's quadric (the sum of
+    its faces' area-weighted plane quadrics, float64, about that origin)."""
+    import warp as wp
+
+    from engine.kernels import decimate as kd
+
+    inc = Incidence(len(pos)).build(faces, len(faces))
+    state = vertex_classes(faces, inc)
+    origin = bbox_centre(pos)
+    quad = wp.empty(len(pos), dtype=kd.quadric, device=pos.device)
+    wp.launch(kd.vertex_quadrics, dim=len(pos), inputs=[pos, faces, *inc.inputs, origin, quad], device=pos.device)
+    return inc, state, origin, quad
+
+
 def decimate_device(
     pos: Any,
     faces: Any,
@@ -162,15 +178,10 @@ def decimate_device(
         faces = wp.clone(faces)
         nv = len(pos)
         alive = len(faces)
-        inc = Incidence(nv)
-        inc.build(faces, alive)
-        state = vertex_classes(faces, inc)
+        inc, state, origin, quad = vertex_quadrics(pos, faces)
         classes = np.bincount(state.numpy(), minlength=4)  # sync point
         clock.tick("setup")
         stats.vertex_classes = {name: int(c) for name, c in zip(CLASS_NAMES, classes, strict=True)}
-        origin = bbox_centre(pos)
-        quad = wp.empty(nv, dtype=kd.quadric)
-        wp.launch(kd.vertex_quadrics, dim=nv, inputs=[pos, faces, *inc.inputs, origin, quad])
         cos_max = wp.float64(math.cos(math.radians(max_normal_turn_deg)))
         hist = wp.zeros(HIST_BINS, dtype=wp.int32)
         counter = wp.zeros(1, dtype=wp.int32)
@@ -273,12 +284,7 @@ def price_edges(
     with wp.ScopedDevice(resolve_device(device)):
         pos = wp.array(np.asarray(verts, np.float32), dtype=wp.vec3)
         f = wp.array(np.asarray(faces, np.int32), dtype=wp.vec3i)
-        inc = Incidence(len(verts))
-        inc.build(f, len(faces))
-        state = vertex_classes(f, inc)
-        origin = bbox_centre(pos)
-        quad = wp.empty(len(verts), dtype=kd.quadric)
-        wp.launch(kd.vertex_quadrics, dim=len(verts), inputs=[pos, f, *inc.inputs, origin, quad])
+        inc, state, origin, quad = vertex_quadrics(pos, f)
         key = wp.empty(3 * len(faces), dtype=wp.int32)
         target = wp.empty(3 * len(faces), dtype=wp.vec3)
         cos_max = wp.float64(math.cos(math.radians(max_normal_turn_deg)))

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 CLASS_NAMES = ("free", "border", "locked", "unused")  # the kernels' FREE, BORDER, LOCKED, DEAD
 
 
@@ -56,6 +58,31 @@ def vertex_classes(faces: Any, inc: Incidence) -> Any:
     return state
 
 
+def exclusive_scan(flag: Any) -> tuple[Any, int]:
+    """Exclusive prefix sum of an int32 0/1 array on its device, and the total (only the last entries are read
+    back)."""
+    import warp as wp
+
+    n = len(flag)
+    scan = wp.empty(n, dtype=wp.int32, device=flag.device)
+    if n == 0:
+        return scan, 0
+    wp.utils.array_scan(flag, scan, inclusive=False)
+    return scan, int(scan[n - 1 : n].numpy()[0] + flag[n - 1 : n].numpy()[0])  # sync point
+
+
+def bounds(pos: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Component-wise minimum and maximum of device positions (a device reduction; 24 bytes come back)."""
+    import warp as wp
+
+    from engine.kernels import decimate as kd
+
+    box = wp.array(np.array([[np.inf] * 3, [-np.inf] * 3], np.float32), dtype=wp.vec3, device=pos.device)
+    wp.launch(kd.bounds_kernel, dim=len(pos), inputs=[pos, box], device=pos.device)
+    lo, hi = box.numpy()  # sync point
+    return lo, hi
+
+
 def compact_faces(faces: Any, n_alive: int) -> Any:
     """The faces that are not removed, in order (a new array of ``n_alive``)."""
     import warp as wp
@@ -63,9 +90,8 @@ def compact_faces(faces: Any, n_alive: int) -> Any:
     from engine.kernels import decimate as kd
 
     flag = wp.empty(len(faces), dtype=wp.int32)
-    slot = wp.empty(len(faces), dtype=wp.int32)
     wp.launch(kd.alive_flags, dim=len(faces), inputs=[faces, flag])
-    wp.utils.array_scan(flag, slot, inclusive=False)
+    slot, _ = exclusive_scan(flag)
     out = wp.empty(n_alive, dtype=wp.vec3i)
     wp.launch(kd.scatter_faces, dim=len(faces), inputs=[faces, slot, out])
     return out
@@ -81,10 +107,8 @@ def compact_vertices(pos: Any, faces: Any) -> tuple[Any, Any]:
         count = wp.zeros(len(pos), dtype=wp.int32)
         wp.launch(kd.count_incidence, dim=len(faces), inputs=[faces, count])
         flag = wp.empty(len(pos), dtype=wp.int32)
-        slot = wp.empty(len(pos), dtype=wp.int32)
         wp.launch(kd.used_flags, dim=len(pos), inputs=[count, flag])
-        wp.utils.array_scan(flag, slot, inclusive=False)
-        n_used = int(slot.numpy()[-1] + flag.numpy()[-1]) if len(pos) else 0  # sync point
+        slot, n_used = exclusive_scan(flag)
         if n_used == len(pos):
             return pos, faces
         out = wp.empty(n_used, dtype=wp.vec3)
@@ -94,25 +118,19 @@ def compact_vertices(pos: Any, faces: Any) -> tuple[Any, Any]:
 
 
 def bbox_centre(pos: Any) -> Any:
-    """The centre of the vertices' bounding box as ``wp.vec3d`` (a device reduction; one small copy back)."""
-    import numpy as np
+    """The centre of the vertices' bounding box as ``wp.vec3d`` (the quadrics' local origin)."""
     import warp as wp
-
-    from engine.kernels import decimate as kd
 
     if len(pos) == 0:
         return wp.vec3d(0.0, 0.0, 0.0)
-    box = wp.array(np.array([[np.inf] * 3, [-np.inf] * 3], np.float32), dtype=wp.vec3, device=pos.device)
-    wp.launch(kd.bounds_kernel, dim=len(pos), inputs=[pos, box], device=pos.device)
-    lo, hi = box.numpy().astype(np.float64)  # sync point
-    c = 0.5 * (lo + hi)
+    lo, hi = bounds(pos)
+    c = 0.5 * (lo.astype(np.float64) + hi.astype(np.float64))
     return wp.vec3d(float(c[0]), float(c[1]), float(c[2]))
 
 
 def component_labels_device(faces: Any, n_vertices: int) -> Any:
     """Connected components of a device mesh: per vertex the smallest vertex index of its piece (min-label hooking
     with pointer jumping; a handful of rounds for any mesh). An unused vertex is its own piece."""
-    import numpy as np
     import warp as wp
 
     from engine.kernels import decimate as kd
@@ -130,7 +148,6 @@ def component_labels_device(faces: Any, n_vertices: int) -> Any:
 def mesh_stats_device(pos: Any, faces: Any, inc: Incidence | None = None) -> dict[str, Any]:
     """``engine.stages.meshcheck.mesh_stats`` of a device mesh, computed on its device (same keys and meaning):
     only counts and a few numbers come back to the host."""
-    import numpy as np
     import warp as wp
 
     from engine.kernels import decimate as kd
@@ -157,9 +174,7 @@ def mesh_stats_device(pos: Any, faces: Any, inc: Incidence | None = None) -> dic
         edges, border, nonmanifold, inconsistent = (int(x) for x in totals.numpy())
         bbox = None
         if nv:
-            box = wp.array(np.array([[np.inf] * 3, [-np.inf] * 3], np.float32), dtype=wp.vec3)
-            wp.launch(kd.bounds_kernel, dim=nv, inputs=[pos, box])
-            lo, hi = box.numpy()
+            lo, hi = bounds(pos)
             bbox = {"min": [float(x) for x in lo[::-1]], "max": [float(x) for x in hi[::-1]]}
     edge_ok = nonmanifold == 0 and inconsistent == 0 and degenerate == 0
     watertight = nf > 0 and border == 0 and nonmanifold == 0

@@ -32,6 +32,20 @@ def _check_limits(min_volume_mm3: float | None, keep_largest: int | None) -> Non
         raise ValueError(f"keep_largest must be an integer >= 1, got {keep_largest}")
 
 
+def _report(volume: np.ndarray, keep: np.ndarray, removed_faces: int) -> dict[str, Any]:
+    """The island report from the pieces' volumes and which stay."""
+    removed = volume[~keep]
+    return {
+        "pieces_before": len(volume),
+        "pieces_after": int(keep.sum()),
+        "removed_pieces": int((~keep).sum()),
+        "removed_faces": int(removed_faces),
+        "removed_volume_mm3": float(removed.sum()),
+        "kept_volume_mm3": float(volume[keep].sum()),
+        "largest_removed_mm3": float(removed.max()) if len(removed) else 0.0,
+    }
+
+
 def _kept_pieces(volume: np.ndarray, min_volume_mm3: float | None, keep_largest: int | None) -> np.ndarray:
     """Which pieces stay: at least ``min_volume_mm3``, then the ``keep_largest`` largest (ties: the earlier)."""
     keep = np.ones(len(volume), bool)
@@ -76,15 +90,7 @@ def remove_islands(
     _check_limits(min_volume_mm3, keep_largest)
 
     if len(faces) == 0:
-        info = {
-            "pieces_before": 0,
-            "pieces_after": 0,
-            "removed_pieces": 0,
-            "removed_faces": 0,
-            "removed_volume_mm3": 0.0,
-            "kept_volume_mm3": 0.0,
-            "largest_removed_mm3": 0.0,
-        }
+        info = _report(np.zeros(0), np.zeros(0, bool), 0)
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), info
 
     _, vlabels = component_labels(faces, len(verts))
@@ -102,16 +108,7 @@ def remove_islands(
 
     face_keep = keep[flabels]
     out_v, out_f = compact_mesh(verts, faces[face_keep])
-    removed = volume[~keep]
-    info = {
-        "pieces_before": int(n),
-        "pieces_after": int(keep.sum()),
-        "removed_pieces": int((~keep).sum()),
-        "removed_faces": int(len(faces) - face_keep.sum()),
-        "removed_volume_mm3": float(removed.sum()),
-        "kept_volume_mm3": float(volume[keep].sum()),
-        "largest_removed_mm3": float(removed.max()) if len(removed) else 0.0,
-    }
+    info = _report(volume, keep, len(faces) - int(face_keep.sum()))
     return out_v, out_f, info
 
 
@@ -139,16 +136,7 @@ def remove_islands_device(
         roots = np.flatnonzero(counts)
         volume = np.abs(vol.numpy()[roots])
         keep = _kept_pieces(volume, min_volume_mm3, keep_largest)
-        removed = volume[~keep]
-        info = {
-            "pieces_before": len(roots),
-            "pieces_after": int(keep.sum()),
-            "removed_pieces": int((~keep).sum()),
-            "removed_faces": int(counts[roots[~keep]].sum()),
-            "removed_volume_mm3": float(removed.sum()),
-            "kept_volume_mm3": float(volume[keep].sum()),
-            "largest_removed_mm3": float(removed.max()) if len(removed) else 0.0,
-        }
+        info = _report(volume, keep, int(counts[roots[~keep]].sum()))
         if info["removed_pieces"] == 0:
             return pos, faces, info
         flag = np.zeros(nv, np.int32)

@@ -8,6 +8,7 @@ report.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import tarfile
@@ -15,11 +16,14 @@ import zipfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import httpx
 import numpy as np
 import pytest
+
+if TYPE_CHECKING:
+    from fastapi.testclient import TestClient
 
 from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
 from tests.conftest import SHARED_DATA
@@ -356,3 +360,30 @@ def long_scan(tmp_path_factory: pytest.TempPathFactory) -> Scan:
     path.write_bytes(slice_zip(bone_phantom(shape), prefix="phantom/phantom_"))
     spacing = (0.5, 0.5, 0.5)
     return Scan("phantom", path, {"iso": BONE_LEVEL, "spacing": list(spacing)}, shape, spacing)
+
+
+@contextlib.contextmanager
+def app_client(data_dir: Path, max_upload_bytes: int = 8 << 20) -> Iterator[TestClient]:
+    """The API in-process (FastAPI's test client) with two keys and a broker address nothing listens on: an
+    accepted job stays queued."""
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from service.settings import Settings
+
+    settings = Settings(
+        data_dir=data_dir,
+        api_keys=["key-a", "key-b"],
+        secret_key="s" * 32,
+        redis_url="redis://127.0.0.1:1/0",
+        max_upload_bytes=max_upload_bytes,
+        reconcile_seconds=3600,
+    )
+    with TestClient(create_app(settings)) as c:
+        yield c
+
+
+@pytest.fixture
+def client(tmp_path: Path) -> Iterator[TestClient]:
+    with app_client(tmp_path) as c:
+        yield c

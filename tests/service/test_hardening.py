@@ -10,7 +10,7 @@ import logging
 import sqlite3
 import tracemalloc
 import zipfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -24,30 +24,14 @@ from engine.errors import InputError
 from engine.io import inspect_input
 from engine.io.archive import open_members
 from engine.params import ReconParams
-from service.app import create_app
 from service.logsafe import EscapingFilter, escape_control
 from service.params import JobParams
-from service.settings import Settings
 from service.storage import LocalStorage, is_storage_full
 from tests.service.checks import assert_problem
 from tests.service.conftest import bomb_of_small_members, png_bytes, slice_zip, sphere_volume
 
 KEY = {"X-API-Key": "key-a"}
 HEADSQ_PARAMS = {"iso": 1150, "spacing": [1.5, 3.2, 3.2]}
-
-
-@pytest.fixture
-def client(tmp_path: Path) -> Iterator[TestClient]:
-    settings = Settings(
-        data_dir=tmp_path,
-        api_keys=["key-a", "key-b"],
-        secret_key="s" * 32,
-        redis_url="redis://127.0.0.1:1/0",  # nothing listens: an accepted job stays queued
-        max_upload_bytes=8 << 20,
-        reconcile_seconds=3600,
-    )
-    with TestClient(create_app(settings)) as c:
-        yield c
 
 
 def _no_job_files(client: TestClient) -> None:

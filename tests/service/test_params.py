@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -15,9 +14,7 @@ from fastapi.testclient import TestClient
 
 from engine.data import HEADSQ_ZIP
 from engine.params import BodyMaskParams, IslandParams, OrientParams, PreprocessParams, ReconParams
-from service.app import create_app
 from service.params import JobParams
-from service.settings import Settings
 from tests.service.checks import assert_problem
 from worker.tasks import _engine_params
 
@@ -28,20 +25,6 @@ DEFAULT = ReconParams()
 
 def _with(**changes: Any) -> ReconParams:
     return dataclasses.replace(DEFAULT, **changes)
-
-
-@pytest.fixture
-def client(tmp_path: Path) -> Iterator[TestClient]:
-    settings = Settings(
-        data_dir=tmp_path,
-        api_keys=["key-a"],
-        secret_key="s" * 32,
-        redis_url="redis://127.0.0.1:1/0",  # nothing listens: an accepted job stays queued
-        max_upload_bytes=8 << 20,
-        reconcile_seconds=3600,
-    )
-    with TestClient(create_app(settings)) as c:
-        yield c
 
 
 def _post(client: TestClient, params: dict[str, Any] | None) -> Any:

@@ -18,11 +18,10 @@ from engine.errors import InputError
 from engine.io import inspect_input
 from engine.params import ReconParams
 from service import tokens
-from service.app import create_app
 from service.db import Database, owner_of, utcnow
 from service.params import JobParams
-from service.settings import Settings
 from service.storage import LocalStorage, UploadTooLarge
+from tests.service.conftest import app_client
 
 
 def test_tokens_open_one_file_until_they_expire() -> None:
@@ -143,15 +142,7 @@ def test_inspect_input_sees_what_an_upload_holds(tmp_path: Path) -> None:
 
 @pytest.fixture
 def client(tmp_path: Path) -> Iterator[TestClient]:
-    settings = Settings(
-        data_dir=tmp_path,
-        api_keys=["key-a", "key-b"],
-        secret_key="s" * 32,
-        redis_url="redis://127.0.0.1:1/0",  # nothing listens: enqueueing fails, the job stays queued
-        max_upload_bytes=2 << 20,
-        reconcile_seconds=3600,
-    )
-    with TestClient(create_app(settings)) as c:
+    with app_client(tmp_path, max_upload_bytes=2 << 20) as c:  # a small cap for the 413 tests
         yield c
 
 
