@@ -22,7 +22,7 @@ __all__ = [
 
 _WHERE = {
     "reconstruct": "engine.pipeline",
-    "write_outputs": "engine.pipeline",
+    "write_outputs": "engine.outputs",
     "Reconstruction": "engine.pipeline",
     "ReconParams": "engine.params",
     "Volume": "engine.types",

@@ -143,7 +143,8 @@ def _isosurface(args: argparse.Namespace) -> int:
 
 def _reconstruct(args: argparse.Namespace) -> int:
     from engine.level import hu1024_hint
-    from engine.pipeline import reconstruct, write_outputs
+    from engine.outputs import write_outputs
+    from engine.pipeline import reconstruct
     from engine.progress import span
 
     params = recon_params(args)

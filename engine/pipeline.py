@@ -12,12 +12,9 @@ from __future__ import annotations
 
 import os
 import platform
-import shutil
-import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -32,12 +29,35 @@ STAGES = ("preprocess", "upload", "gaussian", "isosurface", "decimate", "islands
 Progress = Callable[[str, float], None]
 
 
-@dataclass
 class Reconstruction:
-    """The result: the final mesh (with normals) and a JSON-able report."""
+    """The result: the final mesh (with normals) and a JSON-able report.
 
-    mesh: Mesh
-    report: dict[str, Any] = field(default_factory=dict)
+    ``reconstruct`` leaves the mesh on its device (``device_mesh``: positions, faces, normals as Warp arrays, which
+    ``write_outputs`` lays out there); ``mesh`` brings it to the host on first use.
+    """
+
+    def __init__(self, mesh: Mesh | None = None, report: dict[str, Any] | None = None, device_mesh: Any = None):
+        if mesh is None and device_mesh is None:
+            raise ValueError("a Reconstruction needs a mesh or a device mesh")
+        self._mesh = mesh
+        self.report: dict[str, Any] = {} if report is None else report
+        self.device_mesh = device_mesh
+
+    @property
+    def mesh(self) -> Mesh:
+        if self._mesh is None:
+            pos, faces, normals = self.device_mesh  # sync point: the finished mesh comes back
+            self._mesh = Mesh(
+                pos.numpy().astype(np.float32).reshape(-1, 3),
+                faces.numpy().astype(np.int32).reshape(-1, 3),
+                normals.numpy().astype(np.float32).reshape(-1, 3),
+            )
+        return self._mesh
+
+    def __repr__(self) -> str:
+        return (
+            f"Reconstruction(faces={self.report.get('mesh', {}).get('n_faces')}, device={self.device_mesh is not None})"
+        )
 
 
 def _versions() -> dict[str, str]:
@@ -139,13 +159,10 @@ def reconstruct(
         t0 = time.perf_counter()
         from engine.stages.devmesh import mesh_stats_device
 
-        report["mesh"] = mesh_stats_device(st.pos, st.faces, _incidence(st))
-        verts = st.pos.numpy().astype(np.float32)  # sync point: the finished mesh comes back
-        faces = st.faces.numpy().astype(np.int32).reshape(-1, 3)
-        normals = st.normals.numpy().astype(np.float32)
+        report["mesh"] = mesh_stats_device(st.pos, st.faces, _incidence(st))  # sync point: the counts come back
         report["finish_seconds"] = time.perf_counter() - t0
     report["total_seconds"] = sum(report["stage_seconds"].values())
-    return Reconstruction(Mesh(verts, faces, normals), report)
+    return Reconstruction(report=report, device_mesh=(st.pos, st.faces, st.normals))
 
 
 def _preprocess(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
@@ -261,120 +278,3 @@ def _normals(st: _State, params: ReconParams, report: dict[str, Any], progress: 
     from engine.stages.normals import normals_device
 
     st.normals = normals_device(st.pos, st.faces, _incidence(st))
-
-
-def _budget_mesh(mesh: Mesh, max_triangles: int, device: Any) -> tuple[Mesh, dict[str, Any]]:
-    """The mesh itself when within budget, else a decimated copy with fresh normals, made on the device.
-
-    The copy continues the print model's decimation with every guard. Topology-preserving decimation cannot shrink
-    a closed piece below a tetrahedron, so a scan with thousands of specks cannot reach a phone-sized budget: then
-    the smallest pieces (by volume) are dropped, halving the number kept, and the rest decimated again, until the
-    budget is met (each round works on the already small copy). Where pieces of high genus still keep the copy over
-    budget (every tunnel keeps a ring of faces), the copy is clustered (``engine.stages.cluster``:
-    ``topology_preserved`` false, small tunnels close). The print model keeps every piece and every guard.
-    """
-    if len(mesh.faces) <= max_triangles:
-        return mesh, {"faces": len(mesh.faces), "decimated": False}
-    import warp as wp
-
-    from engine.stages.decimate import decimate_device
-    from engine.stages.islands import remove_islands_device
-    from engine.stages.normals import normals_device
-
-    with wp.ScopedDevice(device):
-        pos, faces, stats = decimate_device(
-            wp.array(mesh.vertices, dtype=wp.vec3), wp.array(mesh.faces, dtype=wp.vec3i), max_triangles
-        )
-        passes = stats.passes
-        keep: int | None = None
-        pieces: int | None = None
-        dropped = 0
-        while len(faces) > max_triangles and keep != 1:
-            if pieces is None:
-                pieces = remove_islands_device(pos, faces)[2]["pieces_before"]
-            if pieces <= 1:
-                break
-            keep = (
-                max(1, min(pieces // 2, max_triangles // 200)) if keep is None else max(1, min(keep // 2, pieces - 1))
-            )
-            pos, faces, isl = remove_islands_device(pos, faces, keep_largest=keep)
-            dropped += int(isl["removed_pieces"])
-            pieces = int(isl["pieces_after"])
-            pos, faces, stats = decimate_device(pos, faces, max_triangles)
-            passes += stats.passes
-        summary: dict[str, Any] = {"topology_preserved": True}
-        if len(faces) > max_triangles:  # pieces of high genus: this viewing copy may close tunnels to meet the budget
-            from engine.stages.cluster import cluster_device
-
-            pos, faces, summary["clustered"] = cluster_device(pos, faces, max_triangles)
-            summary["topology_preserved"] = False
-        normals = normals_device(pos, faces).numpy()  # sync point: the copy comes back
-        dv, df = pos.numpy(), faces.numpy().astype(np.int32).reshape(-1, 3)
-    summary.update(
-        faces=len(df),
-        decimated=True,
-        passes=passes,
-        pieces_dropped=dropped,
-        over_budget=len(df) > max_triangles,
-    )
-    return Mesh(np.ascontiguousarray(dv, np.float32), df, normals.astype(np.float32)), summary
-
-
-def write_outputs(
-    recon: Reconstruction, outdir: str | Path, params: ReconParams | None = None, *, device: str = "auto"
-) -> dict[str, Path]:
-    """Write model.stl, model.glb, phone.glb (Draco), ar.glb and report.json into ``outdir``.
-
-    Every file is written into a temporary folder inside ``outdir`` and moved into place only when all are
-    complete: a failure leaves no partial model.
-    """
-    import json
-
-    from engine.device import resolve_device
-    from engine.export import to_draco_glb, to_glb, to_stl
-    from engine.export.printcheck import PRINT_STL, check_print_model, stl_name
-
-    params = params or ReconParams()
-    dev = resolve_device(device)
-    out = Path(outdir)
-    out.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=".bonemesh-", dir=out))
-    try:
-        from engine.orient import export_meshes
-
-        # the STL in patient LPS mm, the glTF files in patient axes centred on the model (engine.orient)
-        p, m, recon.report["frame"] = export_meshes(recon.mesh, recon.report.get("frame"))
-        if stl_name(params) == PRINT_STL:  # an unprintable print model fails here (PrintCheckError), unwritten
-            recon.report["print_check"] = check_print_model(p.vertices, p.faces, recon.report.get("mesh"))
-        phone, phone_info = _budget_mesh(m, params.export.phone_max_triangles, dev)
-        ar, ar_info = _budget_mesh(phone, params.export.ar_max_triangles, dev)
-        recon.report["exports"] = {"phone.glb": phone_info, "ar.glb": ar_info}
-        files = {
-            stl_name(params): to_stl(p.vertices, p.faces, header="bonemesh model, patient LPS frame, mm"),
-            "model.glb": to_glb(m.vertices, m.faces, m.normals),
-            "phone.glb": to_draco_glb(phone.vertices, phone.faces, phone.normals),
-            "ar.glb": to_glb(ar.vertices, ar.faces, ar.normals),
-        }
-        for name, data in files.items():
-            (tmp / name).write_bytes(data)
-        recon.report["exports"].update(
-            {name: {**recon.report["exports"].get(name, {}), "bytes": len(data)} for name, data in files.items()}
-        )
-        (tmp / "report.json").write_text(json.dumps(recon.report, indent=2, default=_json_default) + "\n")
-        paths = {}
-        for name in [*files, "report.json"]:
-            os.replace(tmp / name, out / name)
-            paths[name] = out / name
-        return paths
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")

@@ -135,8 +135,9 @@ def reconstruct_job(self: Any, job_id: str) -> str:
 def _run(job: Any, upload: Path, staged: Path, holder: _Holder, device: str) -> list[dict[str, Any]]:
     """Load, reconstruct and write the files into ``staged``; returns the output descriptions."""
     from engine.io import load_volume
+    from engine.outputs import write_outputs
     from engine.params import ReconParams
-    from engine.pipeline import reconstruct, write_outputs
+    from engine.pipeline import reconstruct
 
     params = ReconParams.from_dict(_engine_params(job.params))
     holder.progress("loading", 1.0)

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import json
 import struct
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import numpy.typing as npt
@@ -155,13 +155,73 @@ def pack_glb(document: dict[str, Any], binary: bytes) -> bytes:
     Returns:
         The GLB file's bytes; every chunk length is a multiple of 4.
     """
+    pad = b"\x00" * (-len(binary) % 4)
+    return glb_head(document, len(binary)) + binary + pad
+
+
+def glb_head(document: dict[str, Any], binary_length: int) -> bytes:
+    """The GLB's bytes up to its BIN chunk's data: header, JSON chunk, and the BIN chunk's header when
+    ``binary_length`` > 0 (the data then follow, zero-padded to 4 bytes)."""
     text = json.dumps(document, separators=(",", ":"), ensure_ascii=True).encode("utf-8")
     text += b" " * (-len(text) % 4)
     chunks = struct.pack("<II", len(text), _CHUNK_JSON) + text
-    if binary:
-        binary = binary + b"\x00" * (-len(binary) % 4)
-        chunks += struct.pack("<II", len(binary), _CHUNK_BIN) + binary
-    return struct.pack("<III", _GLB_MAGIC, 2, 12 + len(chunks)) + chunks
+    padded = binary_length + (-binary_length % 4)
+    total = 12 + len(chunks) + (8 + padded if binary_length else 0)
+    head = struct.pack("<III", _GLB_MAGIC, 2, total) + chunks
+    if binary_length:
+        head += struct.pack("<II", padded, _CHUNK_BIN)
+    return head
+
+
+def mesh_document(
+    positions: npt.NDArray[np.float32],
+    normals: npt.NDArray[np.float32],
+    tris: npt.NDArray[np.integer],
+    name: str = "bone",
+    bounds: dict[str, list[float]] | None = None,
+) -> tuple[dict[str, Any], list[npt.NDArray[Any]]]:
+    """The glTF document of one mesh already in the glTF frame, and its buffer's parts in order (POSITION, NORMAL,
+    indices); ``bounds``: the positions' accessor ``min``/``max`` when already known."""
+    index_ctype, index_dtype = index_type(len(positions))
+    parts = [
+        np.ascontiguousarray(positions, np.float32),
+        np.ascontiguousarray(normals, np.float32),
+        np.ascontiguousarray(
+            tris.view(np.uint32) if tris.dtype == np.int32 and index_dtype is np.uint32 else tris, index_dtype
+        ),
+    ]
+    views, offset = [], 0
+    for data, target in zip(parts, (ARRAY_BUFFER, ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER), strict=True):
+        views.append({"buffer": 0, "byteOffset": offset, "byteLength": data.nbytes, "target": target})
+        offset += data.nbytes  # float32 parts come first, so every view starts 4-byte aligned
+    accessors = [
+        {
+            "bufferView": 0,
+            "componentType": FLOAT,
+            "count": len(positions),
+            "type": "VEC3",
+            **(bounds or accessor_bounds(parts[0])),
+        },
+        {"bufferView": 1, "componentType": FLOAT, "count": len(normals), "type": "VEC3"},
+        {"bufferView": 2, "componentType": index_ctype, "count": parts[2].size, "type": "SCALAR"},
+    ]
+    primitive = {"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 2, "material": 0, "mode": TRIANGLES}
+    document = base_document(name, primitive, accessors)
+    document["bufferViews"] = views
+    document["buffers"] = [{"byteLength": offset}]
+    return document, parts
+
+
+def write_glb(out: BinaryIO, document: dict[str, Any], parts: list[npt.NDArray[Any]]) -> int:
+    """Write a GLB to an open binary file from its document and buffer parts, without joining them in memory;
+    returns the bytes written."""
+    length = sum(p.nbytes for p in parts)
+    head = glb_head(document, length)
+    out.write(head)
+    for p in parts:
+        out.write(memoryview(p).cast("B"))
+    out.write(b"\x00" * (-length % 4))
+    return len(head) + length + (-length % 4)
 
 
 def to_glb(
@@ -189,24 +249,8 @@ def to_glb(
     verts, tris, norms = check_mesh(vertices_zyx_mm, faces, normals_zyx)
     positions = zyx_to_gltf(verts, MM_TO_M).astype(np.float32)
     normals = vertex_normals(positions, tris, None if norms is None else zyx_to_gltf(norms))
-    index_ctype, index_dtype = index_type(len(positions))
-    parts = [positions.tobytes(), normals.tobytes(), tris.astype(index_dtype).tobytes()]
-    views, offset = [], 0
-    for data, target in zip(parts, (ARRAY_BUFFER, ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER), strict=True):
-        views.append({"buffer": 0, "byteOffset": offset, "byteLength": len(data), "target": target})
-        offset += len(data)  # float32 parts come first, so every view starts 4-byte aligned
-    binary = b"".join(parts)
-    bounds = accessor_bounds(positions)
-    accessors = [
-        {"bufferView": 0, "componentType": FLOAT, "count": len(positions), "type": "VEC3", **bounds},
-        {"bufferView": 1, "componentType": FLOAT, "count": len(normals), "type": "VEC3"},
-        {"bufferView": 2, "componentType": index_ctype, "count": tris.size, "type": "SCALAR"},
-    ]
-    primitive = {"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 2, "material": 0, "mode": TRIANGLES}
-    document = base_document(name, primitive, accessors)
-    document["bufferViews"] = views
-    document["buffers"] = [{"byteLength": len(binary)}]
-    return pack_glb(document, binary)
+    document, parts = mesh_document(positions, normals, tris, name)
+    return pack_glb(document, b"".join(p.tobytes() for p in parts))
 
 
 def read_glb(data: bytes) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.uint32]]:

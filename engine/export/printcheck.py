@@ -42,7 +42,10 @@ def zero_area_faces(vertices: npt.NDArray[Any], faces: npt.NDArray[Any]) -> int:
 
 
 def check_print_model(
-    vertices: npt.NDArray[Any], faces: npt.NDArray[Any], stats: dict[str, Any] | None = None
+    vertices: npt.NDArray[Any] | None,
+    faces: npt.NDArray[Any] | None,
+    stats: dict[str, Any] | None = None,
+    zero_area: int | None = None,
 ) -> dict[str, Any]:
     """Judge a print model; returns the passed checks for the report.
 
@@ -50,6 +53,8 @@ def check_print_model(
         vertices: (V, 3) in (z, y, x) order, mm.
         faces: (F, 3) integer indices, outward with vertices taken in (x, y, z) order.
         stats: ``mesh_stats(vertices, faces)`` when already computed (the pipeline report's ``mesh``).
+        zero_area: ``zero_area_faces(vertices, faces)`` when already counted (on the device); with ``stats``
+            given too, ``vertices`` and ``faces`` are not read.
 
     Raises:
         PrintCheckError: naming every check that failed, with its counts.
@@ -57,7 +62,8 @@ def check_print_model(
     from engine.stages.meshcheck import mesh_stats
 
     st = stats if stats is not None else mesh_stats(vertices, faces)
-    zero_area = zero_area_faces(vertices, faces)
+    if zero_area is None:
+        zero_area = zero_area_faces(vertices, faces)
     checks = {
         "watertight": (st["watertight"], f"{st['boundary_edges']} boundary edge(s), the mesh is open"),
         "two_manifold": (
@@ -75,4 +81,4 @@ def check_print_model(
     failed = [f"{name}: {why}" for name, (ok, why) in checks.items() if not ok]
     if failed:
         raise PrintCheckError(f"{PRINT_STL} failed the print check ({'; '.join(failed)})")
-    return {"passed": True, "checks": sorted(checks), "faces": len(faces)}
+    return {"passed": True, "checks": sorted(checks), "faces": int(st["n_faces"])}

@@ -365,24 +365,51 @@ def adjacent(faces: wp.array(dtype=wp.vec3i), star: wp.array(dtype=wp.int32), lo
     return hit
 
 
+@wp.func
+def edge_ends(faces: wp.array(dtype=wp.vec3i), h: int) -> wp.vec2i:
+    f = h // 3
+    k = h - 3 * f
+    t = faces[f]
+    return wp.vec2i(t[k], t[(k + 1) % 3])
+
+
+@wp.func
+def survivor_of(a: int, b: int, sa: int, sb: int) -> wp.vec2i:
+    """(s, r) of a collapsible edge: r, the removed vertex, is always FREE (its star one closed fan), s survives;
+    (-1, -1) when the classes forbid the collapse."""
+    if not ((sa == FREE and (sb == FREE or sb == BORDER)) or (sa == BORDER and sb == FREE)):
+        return wp.vec2i(-1, -1)
+    if sb == BORDER:
+        return wp.vec2i(b, a)
+    return wp.vec2i(a, b)
+
+
+@wp.func
+def collapse_cost(q: quadric, p: wp.vec3d, pa: wp.vec3d, pb: wp.vec3d) -> wp.float64:
+    """The quadric error at ``p``, plus a tiny length term that orders collapses in flat regions (zero quadric
+    error) shortest first."""
+    length_sq = wp.length_sq(pb - pa)
+    return wp.max(q_eval(q, p), wp.float64(0.0)) + wp.float64(1.0e-8) * length_sq * length_sq
+
+
 @wp.kernel
 def edge_costs(
     pos: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.vec3i),
-    offset: wp.array(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
-    star: wp.array(dtype=wp.int32),
     state: wp.array(dtype=wp.int32),
     quad: wp.array(dtype=quadric),
     origin: wp.vec3d,
-    cos_max: wp.float64,
     dirty: wp.array(dtype=wp.int32),
     key: wp.array(dtype=wp.int32),
     target: wp.array(dtype=wp.vec3),
+    checked: wp.array(dtype=wp.int32),
 ):
-    """Per half-edge slot ``3 f + k``: the cost code of collapsing edge (a, b) = (t[k], t[k+1]) when a < b and every
-    guard passes, else ``NO_KEY``; and the new position. An edge whose ends are both clean (nothing it reads has
-    changed since the last pass, see ``apply_collapses``) keeps its code and position."""
+    """Pricing, first phase, per half-edge slot ``3 f + k``: the quadric cost code of collapsing edge
+    (a, b) = (t[k], t[k+1]) when a < b and the vertex classes allow it, else ``NO_KEY``; and the new position. The
+    guards that read the stars run only for the edges that compete (``check_candidates``). An edge whose ends are
+    both clean (nothing it reads has changed since the last pass, see ``apply_collapses``) keeps its code, position
+    and checked mark."""
     h = wp.tid()
     f = h // 3
     k = h - 3 * f
@@ -398,20 +425,70 @@ def edge_costs(
     if dirty[a] == 0 and dirty[b] == 0:
         return
     key[h] = NO_KEY
+    checked[h] = 0
     sa = state[a]
     sb = state[b]
-    # r: the removed vertex (always FREE, so its star is one closed fan); s: the survivor
-    if not ((sa == FREE and (sb == FREE or sb == BORDER)) or (sa == BORDER and sb == FREE)):
+    sr = survivor_of(a, b, sa, sb)
+    if sr[0] < 0:
         return
-    s = a
-    r = b
-    if sb == BORDER:
-        s = b
-        r = a
+    if sa == FREE and sb == FREE and count[a] + count[b] - 4 < 3:
+        return
+    pa = local(pos[a], origin)
+    pb = local(pos[b], origin)
+    q = quad[a] + quad[b]
+    p = local(pos[sr[0]], origin)
+    if sa == FREE and sb == FREE:
+        p = placement(q, pa, pb)
+    key[h] = cost_code(collapse_cost(q, p, pa, pb))
+    target[h] = wp.vec3(wp.float32(p[0] + origin[0]), wp.float32(p[1] + origin[1]), wp.float32(p[2] + origin[2]))
+
+
+@wp.func
+def below_cut(c: int, h: int, bin_below: int, frac_bits: wp.int64) -> bool:
+    """Whether key ``c`` of slot ``h`` is under the pass's cost quantile: bins below ``bin_below``, and in that bin
+    a hashed share (``frac_bits`` / 2^32)."""
+    b = c >> HIST_SHIFT
+    return c != NO_KEY and (b < bin_below or (b == bin_below and mix32(h) < frac_bits))
+
+
+@wp.kernel
+def check_candidates(
+    cand: wp.array(dtype=wp.int32),
+    pos: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    offset: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    star: wp.array(dtype=wp.int32),
+    state: wp.array(dtype=wp.int32),
+    quad: wp.array(dtype=quadric),
+    origin: wp.vec3d,
+    cos_max: wp.float64,
+    bin_below: int,
+    frac_bits: wp.int64,
+    key: wp.array(dtype=wp.int32),
+    target: wp.array(dtype=wp.vec3),
+    checked: wp.array(dtype=wp.int32),
+):
+    """Pricing, second phase, for the competing edges not checked since they were priced: the guards. An edge that
+    fails one gets ``NO_KEY`` (until something it reads changes); one that passes keeps its code, raised where the
+    new faces are poor (MeshLab's quality threshold), and competes only if that code is still under the cut."""
+    h = wp.tid()
+    if cand[h] != 1 or checked[h] != 0:
+        return
+    checked[h] = 1
+    ends = edge_ends(faces, h)
+    a = ends[0]
+    b = ends[1]
+    sa = state[a]
+    sb = state[b]
+    sr = survivor_of(a, b, sa, sb)
+    s = sr[0]
+    r = sr[1]
     lo_r = offset[r]
     n_r = count[r]
     lo_s = offset[s]
     n_s = count[s]
+    ok = bool(True)
     # link condition: the common neighbours of r and s are exactly the two vertices opposite the edge. r's star
     # is one closed fan, so each neighbour of r is the next vertex after r in exactly one of its faces.
     common = int(0)
@@ -421,40 +498,37 @@ def edge_costs(
             if adjacent(faces, star, lo_s, n_s, w):
                 common += 1
     if common != 2:
-        return
+        ok = False
     # each opposite vertex loses a face: an interior one keeps at least three (else a closed piece would fall
     # below a tetrahedron), a border one at least one
     for i in range(n_r):
         u = faces[star[lo_r + i]]
-        if has_vertex(u, s):
+        if ok and has_vertex(u, s):
             x = u[0] + u[1] + u[2] - r - s
             least = 4
             if state[x] == BORDER:
                 least = 2
             if count[x] < least:
-                return
-    if sa == FREE and sb == FREE and n_r + n_s - 4 < 3:
-        return
-    pa = local(pos[a], origin)
-    pb = local(pos[b], origin)
-    q = quad[a] + quad[b]
-    p = local(pos[s], origin)
-    if sa == FREE and sb == FREE:
-        p = placement(q, pa, pb)
-    worst = star_turns(pos, faces, star, lo_r, n_r, r, s, p, origin, cos_max)
-    if worst < wp.float64(0.0):
-        return
-    if sa == FREE and sb == FREE:
+                ok = False
+    worst = wp.float64(1.0)
+    tp = target[h]
+    p = local(tp, origin)
+    if ok:
+        worst = star_turns(pos, faces, star, lo_r, n_r, r, s, p, origin, cos_max)
+    if ok and worst >= wp.float64(0.0) and sa == FREE and sb == FREE:
         worst = wp.min(worst, star_turns(pos, faces, star, lo_s, n_s, s, r, p, origin, cos_max))
-        if worst < wp.float64(0.0):
-            return
-    length_sq = wp.length_sq(pb - pa)
-    # a tiny length term orders collapses in flat regions (zero quadric error) shortest first
-    cost = wp.max(q_eval(q, p), wp.float64(0.0)) + wp.float64(1.0e-8) * length_sq * length_sq
+    if not ok or worst < wp.float64(0.0):
+        key[h] = NO_KEY
+        cand[h] = 0
+        return
     if worst < QUALITY_SOFT:
-        cost = cost * QUALITY_SOFT / wp.max(worst, QUALITY_MIN)
-    key[h] = cost_code(cost)
-    target[h] = wp.vec3(wp.float32(p[0] + origin[0]), wp.float32(p[1] + origin[1]), wp.float32(p[2] + origin[2]))
+        pa = local(pos[a], origin)
+        pb = local(pos[b], origin)
+        cost = collapse_cost(quad[a] + quad[b], p, pa, pb) * QUALITY_SOFT / wp.max(worst, QUALITY_MIN)
+        c = cost_code(cost)
+        key[h] = c
+        if not below_cut(c, h, bin_below, frac_bits):
+            cand[h] = 0
 
 
 @wp.kernel
@@ -469,26 +543,14 @@ def cost_histogram(key: wp.array(dtype=wp.int32), hist: wp.array(dtype=wp.int32)
 def select_candidates(
     key: wp.array(dtype=wp.int32), bin_below: int, frac_bits: wp.int64, cand: wp.array(dtype=wp.int32)
 ):
-    """Edges in cost bins below ``bin_below`` compete; in that bin, a hashed share (``frac_bits`` / 2^32)."""
+    """Edges under the pass's cost quantile compete (``below_cut``)."""
     h = wp.tid()
-    c = key[h]
     cand[h] = 0
-    if c == NO_KEY:
-        return
-    b = c >> HIST_SHIFT
-    if b < bin_below or (b == bin_below and mix32(h) < frac_bits):
+    if below_cut(key[h], h, bin_below, frac_bits):
         cand[h] = 1
 
 
 # ------------------------------------------------------------------------------------------------ claims
-@wp.func
-def edge_ends(faces: wp.array(dtype=wp.vec3i), h: int) -> wp.vec2i:
-    f = h // 3
-    k = h - 3 * f
-    t = faces[f]
-    return wp.vec2i(t[k], t[(k + 1) % 3])
-
-
 @wp.kernel
 def claim_stars(
     cand: wp.array(dtype=wp.int32),

@@ -13,6 +13,10 @@ repeats until the face count reaches the target. The guards are those of MeshLab
   inconsistently wound neighbourhoods are never touched;
 * no face turns by more than ``max_normal_turn_deg`` (so none flips or folds) and none becomes degenerate.
 
+Pricing has two phases: every changed edge gets its quadric cost (``edge_costs``), and only the edges under the
+pass's cost quantile run the guards, which walk the stars (``check_candidates``); an edge refused by a guard drops
+out until something it reads changes.
+
 The result depends only on the input and the device: incidence lists are sorted, ties are broken by a hash of the
 edge slot, and every floating-point sum runs in a fixed order.
 
@@ -186,8 +190,9 @@ def decimate_device(
         hist = wp.zeros(HIST_BINS, dtype=wp.int32)
         counter = wp.zeros(1, dtype=wp.int32)
         removed = wp.zeros(1, dtype=wp.int32)
-        key = target_pos = cand = None
+        key = target_pos = cand = checked = None
         dirty = wp.ones(nv, dtype=wp.int32)
+        boost = 1  # grows while passes fall short of what is needed (candidates refused by the guards)
         stats.stopped = "target reached"
         while True:
             needed = (alive - target) // 2
@@ -204,10 +209,11 @@ def decimate_device(
                 key = wp.empty(slots, dtype=wp.int32)
                 target_pos = wp.empty(slots, dtype=wp.vec3)
                 cand = wp.empty(slots, dtype=wp.int32)
+                checked = wp.empty(slots, dtype=wp.int32)
             wp.launch(
                 kd.edge_costs,
                 dim=slots,
-                inputs=[pos, faces, *inc.inputs, state, quad, origin, cos_max, dirty, key, target_pos],
+                inputs=[pos, faces, inc.count, state, quad, origin, dirty, key, target_pos, checked],
             )
             clock.tick("edge_costs")
             hist.zero_()
@@ -218,9 +224,16 @@ def decimate_device(
             if n_valid == 0:
                 stats.stopped = "no edge may collapse (guards)"
                 break
-            m = max(1, min(int(candidate_fraction * n_valid), OVERSHOOT * needed))
+            m = max(1, min(int(candidate_fraction * n_valid), OVERSHOOT * needed * boost))
             kbin, frac_bits = _quantile(h, m)
             wp.launch(kd.select_candidates, dim=slots, inputs=[key, kbin, wp.int64(frac_bits), cand])
+            wp.launch(
+                kd.check_candidates,
+                dim=slots,
+                inputs=[cand, pos, faces, *inc.inputs, state, quad, origin, cos_max, kbin, wp.int64(frac_bits)],
+                outputs=[key, target_pos, checked],
+            )
+            clock.tick("guards")
             claim = wp.full(len(faces), kd.CLAIM_FREE, dtype=wp.int64)
             counter.zero_()
             for _ in range(claim_rounds):
@@ -250,13 +263,15 @@ def decimate_device(
             n_removed = int(removed.numpy()[0])  # sync point
             stats.passes += 1
             stats.collapses.append(won)
+            # near the target, the candidates the guards refuse leave too few winners: offer more next pass
+            boost = 1 if won >= needed else min(boost * (2 if won else 4), 1 << 20)
             alive -= n_removed
             clock.tick("apply")
             if on_pass is not None:
                 on_pass(alive)
             if alive < len(faces) // 2:
                 faces = compact_faces(faces, alive)
-                dirty.fill_(1)  # new slots: every edge is priced again
+                dirty.fill_(1)  # new slots: every edge is priced and checked again
         if alive < len(faces):
             faces = compact_faces(faces, alive)
         out_pos, out_faces = compact_vertices(pos, faces)
@@ -289,8 +304,18 @@ def price_edges(
         target = wp.empty(3 * len(faces), dtype=wp.vec3)
         cos_max = wp.float64(math.cos(math.radians(max_normal_turn_deg)))
         dirty = wp.ones(len(verts), dtype=wp.int32)
+        checked = wp.empty(len(key), dtype=wp.int32)
+        cand = wp.empty(len(key), dtype=wp.int32)
         wp.launch(
-            kd.edge_costs, dim=len(key), inputs=[pos, f, *inc.inputs, state, quad, origin, cos_max, dirty, key, target]
+            kd.edge_costs, dim=len(key), inputs=[pos, f, inc.count, state, quad, origin, dirty, key, target, checked]
+        )
+        top = HIST_BINS  # every priced edge competes, so every one is checked
+        wp.launch(kd.select_candidates, dim=len(key), inputs=[key, top, wp.int64(0), cand])
+        wp.launch(
+            kd.check_candidates,
+            dim=len(key),
+            inputs=[cand, pos, f, *inc.inputs, state, quad, origin, cos_max, top, wp.int64(0)],
+            outputs=[key, target, checked],
         )
         codes = key.numpy()
     out: dict[tuple[int, int], int] = {}

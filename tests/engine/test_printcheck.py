@@ -11,8 +11,9 @@ import pytest
 import trimesh
 
 from engine.export.printcheck import OPEN_STL, PRINT_STL, PrintCheckError, check_print_model
+from engine.outputs import write_outputs
 from engine.params import IsoParams, ReconParams
-from engine.pipeline import Reconstruction, write_outputs
+from engine.pipeline import Reconstruction
 from engine.stages.meshcheck import mesh_stats
 from engine.types import Mesh
 

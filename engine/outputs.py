@@ -1,0 +1,286 @@
+"""The files of a reconstruction (``write_outputs``): ``model.stl`` (patient LPS mm, checked for printing),
+``model.glb``, ``phone.glb`` (Draco), ``ar.glb`` and ``report.json``.
+
+The finished mesh is laid out for its files on the device where the pipeline left it (``lay_out``: the patient
+frame, the STL's facet records and the glTF buffers, ``engine.kernels.export``); only those buffers come back.
+A thread then streams the print model's two files to disk while the device makes the phone and AR copies
+(``viewing_copy``) and the host encodes them. Every file goes into a temporary folder inside the output folder and
+is moved into place only when all are complete: a failure leaves no partial model.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from engine.params import ReconParams
+from engine.types import Mesh
+
+if TYPE_CHECKING:
+    from engine.pipeline import Reconstruction
+
+STL_HEADER = "bonemesh model, patient LPS frame, mm"
+SPECK_FACES = 4  # a closed piece keeps at least a tetrahedron under the topology guard
+FACES_PER_PIECE = 200  # when pieces must go, a viewing copy keeps about this many faces per piece
+
+
+@dataclass
+class Layout:
+    """The print model laid out on the device: patient positions (z, y, x) mm and outward faces (``pos``,
+    ``faces``), the viewing mesh (patient axes, centred: ``view_pos``, ``view_normals``), the centre (x, y, z) mm,
+    and on the host the STL facets (F, 12), the glTF positions (m), normals and their bounds, and the zero-area
+    face count."""
+
+    pos: Any
+    faces: Any
+    view_pos: Any
+    view_normals: Any
+    centre_xyz: np.ndarray
+    facets: np.ndarray
+    gltf_pos: np.ndarray
+    gltf_normals: np.ndarray
+    gltf_bounds: dict[str, list[float]]
+    tris: np.ndarray
+    zero_area: int
+
+
+def lay_out(pos: Any, faces: Any, normals: Any, frame: Any) -> Layout:
+    """Map a device mesh (grid (z, y, x) mm, unit normals) into the patient frame (``engine.orient.Frame``) and lay
+    out its file buffers; the host arrays come back in one sync."""
+    import warp as wp
+
+    from engine.export.glb import MM_TO_M
+    from engine.kernels import export as kx
+    from engine.stages.devmesh import bounds
+
+    n = len(pos)
+    m = wp.mat33d(*frame.matrix.ravel().tolist())
+    patient = wp.empty(n, dtype=wp.vec3)
+    wp.launch(kx.affine_points, dim=n, inputs=[pos, m, wp.vec3d(*frame.offset_mm.tolist()), patient])
+    if frame.mirrored:
+        wound = wp.empty(len(faces), dtype=wp.vec3i)
+        wp.launch(kx.reverse_faces, dim=len(faces), inputs=[faces, wound])
+        faces = wound
+    turned = wp.empty(n, dtype=wp.vec3)
+    wp.launch(kx.rotate_vectors, dim=n, inputs=[normals, m, turned])
+    lo, hi = bounds(patient)  # sync point: 24 bytes
+    centre = (lo.astype(np.float64) + hi.astype(np.float64)) / 2 if n else np.zeros(3)
+    view = wp.empty(n, dtype=wp.vec3)
+    shift = wp.vec3d(*(-centre[::-1]).tolist())  # centre is (z, y, x)
+    wp.launch(kx.affine_points, dim=n, inputs=[patient, wp.mat33d(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), shift, view])
+    facets = wp.empty((len(faces), 12), dtype=wp.float32)
+    zero_area = wp.zeros(1, dtype=wp.int32)
+    wp.launch(kx.stl_facets, dim=len(faces), inputs=[patient, faces, facets, zero_area])
+    gpos = wp.empty(n, dtype=wp.vec3)
+    gnrm = wp.empty(n, dtype=wp.vec3)
+    wp.launch(kx.gltf_vertices, dim=n, inputs=[view, turned, wp.float64(MM_TO_M), gpos, gnrm])
+    glo, ghi = bounds(gpos)
+    return Layout(
+        pos=patient,
+        faces=faces,
+        view_pos=view,
+        view_normals=turned,
+        centre_xyz=centre[::-1],
+        facets=facets.numpy(),
+        gltf_pos=gpos.numpy().reshape(-1, 3),
+        gltf_normals=gnrm.numpy().reshape(-1, 3),
+        gltf_bounds={"min": [float(x) for x in glo], "max": [float(x) for x in ghi]},
+        tris=faces.numpy().reshape(-1, 3),
+        zero_area=int(zero_area.numpy()[0]),
+    )
+
+
+def viewing_copy(pos: Any, faces: Any, max_triangles: int, pieces: int | None = None) -> tuple[Any, Any, dict]:
+    """A device copy within ``max_triangles`` faces, decimated on the device; ``(pos, faces, summary)``, the arrays
+    themselves when already within budget.
+
+    The copy continues the print model's decimation with every guard. Topology-preserving decimation cannot shrink
+    a closed piece below a tetrahedron, so a scan with thousands of specks cannot reach a phone-sized budget: then
+    the smallest pieces (by volume) are dropped, halving the number kept, and the rest decimated again, until the
+    budget is met (each round works on the already small copy); when the pieces could not fit even as tetrahedra
+    (``pieces``, the count when known), they are thinned before the first decimation. Where pieces of high genus
+    still keep the copy over budget (every tunnel keeps a ring of faces), the copy is clustered
+    (``engine.stages.cluster``: ``topology_preserved`` false, small tunnels close). The print model keeps every
+    piece and every guard.
+    """
+    if len(faces) <= max_triangles:
+        return pos, faces, {"faces": len(faces), "decimated": False}
+    from engine.stages.decimate import decimate_device
+    from engine.stages.islands import remove_islands_device
+
+    passes = dropped = 0
+    keep: int | None = None
+    summary: dict[str, Any] = {"topology_preserved": True}
+    if pieces is not None and pieces * SPECK_FACES > max_triangles:
+        keep = max(1, max_triangles // FACES_PER_PIECE)
+        pos, faces, isl = remove_islands_device(pos, faces, keep_largest=keep)
+        dropped, pieces = int(isl["removed_pieces"]), int(isl["pieces_after"])
+    pos, faces, stats = decimate_device(pos, faces, max_triangles)
+    passes += stats.passes
+    while len(faces) > max_triangles and keep != 1:
+        if pieces is None:
+            pieces = remove_islands_device(pos, faces)[2]["pieces_before"]
+        if pieces <= 1:
+            break
+        keep = (
+            max(1, min(pieces // 2, max_triangles // FACES_PER_PIECE))
+            if keep is None
+            else max(1, min(keep // 2, pieces - 1))
+        )
+        pos, faces, isl = remove_islands_device(pos, faces, keep_largest=keep)
+        dropped += int(isl["removed_pieces"])
+        pieces = int(isl["pieces_after"])
+        pos, faces, stats = decimate_device(pos, faces, max_triangles)
+        passes += stats.passes
+    if len(faces) > max_triangles:  # pieces of high genus: this viewing copy may close tunnels to meet the budget
+        from engine.stages.cluster import cluster_device
+
+        pos, faces, summary["clustered"] = cluster_device(pos, faces, max_triangles)
+        summary["topology_preserved"] = False
+    summary.update(
+        faces=len(faces), decimated=True, passes=passes, pieces_dropped=dropped, over_budget=len(faces) > max_triangles
+    )
+    return pos, faces, summary
+
+
+def _host_mesh(pos: Any, faces: Any, normals: Any = None) -> Mesh:
+    from engine.stages.normals import normals_device
+
+    if normals is None:
+        normals = normals_device(pos, faces)
+    return Mesh(
+        np.ascontiguousarray(pos.numpy(), np.float32).reshape(-1, 3),
+        faces.numpy().astype(np.int32).reshape(-1, 3),
+        np.ascontiguousarray(normals.numpy(), np.float32).reshape(-1, 3),
+    )
+
+
+def _device_mesh(recon: Reconstruction, dev: Any) -> tuple[Any, Any, Any]:
+    """The reconstruction's mesh on ``dev``: the pipeline's own device arrays when they are there, else uploaded
+    (with fresh normals when it has none)."""
+    import warp as wp
+
+    from engine.export.glb import check_mesh
+    from engine.stages.normals import normals_device
+
+    held = recon.device_mesh
+    if held is not None and held[0].device == dev:
+        return held
+    mesh = recon.mesh
+    check_mesh(mesh.vertices, mesh.faces, mesh.normals)  # InputError: empty, malformed, out-of-range indices
+    pos = wp.array(np.ascontiguousarray(mesh.vertices, np.float32), dtype=wp.vec3)
+    faces = wp.array(np.ascontiguousarray(mesh.faces, np.int32), dtype=wp.vec3i)
+    if mesh.normals is None:
+        return pos, faces, normals_device(pos, faces)
+    return pos, faces, wp.array(np.ascontiguousarray(mesh.normals, np.float32), dtype=wp.vec3)
+
+
+def _write_print_files(tmp: Path, stl: str, lay: Layout) -> dict[str, int]:
+    """The print model's STL and its full-resolution GLB, streamed from the laid-out buffers (no Warp here: this
+    runs in a thread beside the device work)."""
+    from engine.export.glb import mesh_document, write_glb
+    from engine.export.stl import write_stl
+
+    sizes = {}
+    with open(tmp / stl, "wb") as fh:
+        sizes[stl] = write_stl(fh, lay.facets, STL_HEADER)
+    document, parts = mesh_document(lay.gltf_pos, lay.gltf_normals, lay.tris, bounds=lay.gltf_bounds)
+    with open(tmp / "model.glb", "wb") as fh:
+        sizes["model.glb"] = write_glb(fh, document, parts)
+    return sizes
+
+
+def write_outputs(
+    recon: Reconstruction, outdir: str | Path, params: ReconParams | None = None, *, device: str = "auto"
+) -> dict[str, Path]:
+    """Write model.stl, model.glb, phone.glb (Draco), ar.glb and report.json into ``outdir``.
+
+    Raises:
+        PrintCheckError: the print model is not printable (nothing is written).
+        InputError: an empty or malformed mesh.
+    """
+    import warp as wp
+
+    from engine.device import resolve_device
+    from engine.export import to_draco_glb, to_glb
+    from engine.export.printcheck import PRINT_STL, check_print_model, stl_name
+    from engine.orient import Frame
+    from engine.stages.devmesh import mesh_stats_device
+
+    params = params or ReconParams()
+    dev = resolve_device(device)
+    out = Path(outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".bonemesh-", dir=out))
+    report = recon.report
+    seconds: dict[str, float] = {}
+    t0 = time.perf_counter()
+    try:
+        with wp.ScopedDevice(dev):
+            pos, faces, normals = _device_mesh(recon, dev)
+            frame = report.get("frame")
+            lay = lay_out(pos, faces, normals, Frame.from_dict(frame))
+            # the STL in patient LPS mm, the glTF files in patient axes centred on the model (engine.orient)
+            report["frame"] = {
+                **(frame or Frame.from_dict(None).to_dict()),
+                "gltf_centre_lps_mm": [round(float(c), 6) for c in lay.centre_xyz],
+            }
+            stats = report.get("mesh") or mesh_stats_device(lay.pos, lay.faces)
+            stl = stl_name(params)
+            if stl == PRINT_STL:  # an unprintable print model fails here (PrintCheckError), unwritten
+                report["print_check"] = check_print_model(None, None, stats, zero_area=lay.zero_area)
+            seconds["layout"] = time.perf_counter() - t0
+            with ThreadPoolExecutor(1, thread_name_prefix="bonemesh-write") as pool:
+                writing = pool.submit(_write_print_files, tmp, stl, lay)
+                t1 = time.perf_counter()
+                ppos, pfaces, phone_info = viewing_copy(
+                    lay.view_pos, lay.faces, params.export.phone_max_triangles, stats.get("components")
+                )
+                apos, afaces, ar_info = viewing_copy(ppos, pfaces, params.export.ar_max_triangles)
+                keep_normals = lay.view_normals if ppos is lay.view_pos else None
+                phone = _host_mesh(ppos, pfaces, keep_normals)
+                ar = phone if apos is ppos else _host_mesh(apos, afaces)
+                seconds["viewing_copies"] = time.perf_counter() - t1
+                t1 = time.perf_counter()
+                small = {
+                    "phone.glb": to_draco_glb(phone.vertices, phone.faces, phone.normals),
+                    "ar.glb": to_glb(ar.vertices, ar.faces, ar.normals),
+                }
+                for name, data in small.items():
+                    (tmp / name).write_bytes(data)
+                seconds["encode_small"] = time.perf_counter() - t1
+                t1 = time.perf_counter()
+                sizes = writing.result()
+                seconds["wait_print_files"] = time.perf_counter() - t1
+        sizes.update({name: len(data) for name, data in small.items()})
+        report["exports"] = {"phone.glb": phone_info, "ar.glb": ar_info}
+        report["exports"].update({name: {**report["exports"].get(name, {}), "bytes": n} for name, n in sizes.items()})
+        seconds["total"] = time.perf_counter() - t0
+        report["write_seconds"] = seconds
+        (tmp / "report.json").write_text(json.dumps(report, indent=2, default=_json_default) + "\n")
+        paths = {}
+        for name in [stl, "model.glb", "phone.glb", "ar.glb", "report.json"]:
+            os.replace(tmp / name, out / name)
+            paths[name] = out / name
+        return paths
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
