@@ -31,6 +31,8 @@ if TYPE_CHECKING:
 STL_HEADER = "bonemesh model, patient LPS frame, mm"
 SPECK_FACES = 4  # a closed piece keeps at least a tetrahedron under the topology guard
 FACES_PER_PIECE = 200  # when pieces must go, a viewing copy keeps about this many faces per piece
+HOPELESS = 2  # a copy whose topology needs this many times its budget is clustered at once
+VIEW_MAX_PASSES = 100  # decimation passes per round of a viewing copy (the print model has no such limit)
 
 
 @dataclass
@@ -76,7 +78,9 @@ def lay_out(pos: Any, faces: Any, normals: Any, frame: Any) -> Layout:
     centre = (lo.astype(np.float64) + hi.astype(np.float64)) / 2 if n else np.zeros(3)
     view = wp.empty(n, dtype=wp.vec3)
     shift = wp.vec3d(*(-centre[::-1]).tolist())  # centre is (z, y, x)
-    wp.launch(kx.affine_points, dim=n, inputs=[patient, wp.mat33d(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), shift, view])
+    wp.launch(
+        kx.affine_points, dim=n, inputs=[patient, wp.mat33d(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), shift, view]
+    )
     facets = wp.empty((len(faces), 12), dtype=wp.float32)
     zero_area = wp.zeros(1, dtype=wp.int32)
     wp.launch(kx.stl_facets, dim=len(faces), inputs=[patient, faces, facets, zero_area])
@@ -99,7 +103,9 @@ def lay_out(pos: Any, faces: Any, normals: Any, frame: Any) -> Layout:
     )
 
 
-def viewing_copy(pos: Any, faces: Any, max_triangles: int, pieces: int | None = None) -> tuple[Any, Any, dict]:
+def viewing_copy(
+    pos: Any, faces: Any, max_triangles: int, pieces: int | None = None, closed: bool = False
+) -> tuple[Any, Any, dict]:
     """A device copy within ``max_triangles`` faces, decimated on the device; ``(pos, faces, summary)``, the arrays
     themselves when already within budget.
 
@@ -110,7 +116,8 @@ def viewing_copy(pos: Any, faces: Any, max_triangles: int, pieces: int | None = 
     (``pieces``, the count when known), they are thinned before the first decimation. Where pieces of high genus
     still keep the copy over budget (every tunnel keeps a ring of faces), the copy is clustered
     (``engine.stages.cluster``: ``topology_preserved`` false, small tunnels close). The print model keeps every
-    piece and every guard.
+    piece and every guard. A ``closed`` copy whose pieces and Euler characteristic need far more faces than the
+    budget under the topology guard is clustered without decimating first.
     """
     if len(faces) <= max_triangles:
         return pos, faces, {"faces": len(faces), "decimated": False}
@@ -124,9 +131,15 @@ def viewing_copy(pos: Any, faces: Any, max_triangles: int, pieces: int | None = 
         keep = max(1, max_triangles // FACES_PER_PIECE)
         pos, faces, isl = remove_islands_device(pos, faces, keep_largest=keep)
         dropped, pieces = int(isl["removed_pieces"]), int(isl["pieces_after"])
-    pos, faces, stats = decimate_device(pos, faces, max_triangles)
-    passes += stats.passes
-    while len(faces) > max_triangles and keep != 1:
+    # a closed mesh of C pieces and Euler characteristic X keeps at least 8 C - 2 X faces under the topology guard
+    # (each piece at least 4 + 4 genus): far above the budget, tunnels must close anyway, so cluster at once
+    hopeless = (
+        closed and pieces is not None and 8 * pieces - 2 * (len(pos) - len(faces) // 2) > HOPELESS * max_triangles
+    )
+    if not hopeless:
+        pos, faces, stats = decimate_device(pos, faces, max_triangles, max_passes=VIEW_MAX_PASSES)
+        passes += stats.passes
+    while not hopeless and len(faces) > max_triangles and keep != 1:
         if pieces is None:
             pieces = remove_islands_device(pos, faces)[2]["pieces_before"]
         if pieces <= 1:
@@ -139,7 +152,7 @@ def viewing_copy(pos: Any, faces: Any, max_triangles: int, pieces: int | None = 
         pos, faces, isl = remove_islands_device(pos, faces, keep_largest=keep)
         dropped += int(isl["removed_pieces"])
         pieces = int(isl["pieces_after"])
-        pos, faces, stats = decimate_device(pos, faces, max_triangles)
+        pos, faces, stats = decimate_device(pos, faces, max_triangles, max_passes=VIEW_MAX_PASSES)
         passes += stats.passes
     if len(faces) > max_triangles:  # pieces of high genus: this viewing copy may close tunnels to meet the budget
         from engine.stages.cluster import cluster_device
@@ -242,8 +255,9 @@ def write_outputs(
             with ThreadPoolExecutor(1, thread_name_prefix="bonemesh-write") as pool:
                 writing = pool.submit(_write_print_files, tmp, stl, lay)
                 t1 = time.perf_counter()
+                closed = bool(stats.get("watertight")) and bool(stats.get("manifold"))
                 ppos, pfaces, phone_info = viewing_copy(
-                    lay.view_pos, lay.faces, params.export.phone_max_triangles, stats.get("components")
+                    lay.view_pos, lay.faces, params.export.phone_max_triangles, stats.get("components"), closed
                 )
                 apos, afaces, ar_info = viewing_copy(ppos, pfaces, params.export.ar_max_triangles)
                 keep_normals = lay.view_normals if ppos is lay.view_pos else None

@@ -151,6 +151,7 @@ def decimate_device(
     candidate_fraction: float = CANDIDATE_FRACTION,
     claim_rounds: int = CLAIM_ROUNDS,
     stop_tolerance: float = STOP_TOLERANCE,
+    max_passes: int = MAX_PASSES,
     on_pass: Any = None,
     profile: bool = False,
 ) -> tuple[Any, Any, DecimationStats]:
@@ -163,6 +164,7 @@ def decimate_device(
         max_normal_turn_deg: the largest turn of a face's normal in one collapse.
         candidate_fraction: share of the collapsible edges, cheapest first, that compete in one pass.
         claim_rounds: claim rounds per pass.
+        max_passes: stop after this many passes (``stats.stopped`` says so).
         on_pass: called as ``on_pass(faces_now)`` after each pass.
         profile: synchronise after each step and add its time to ``stats.profile`` (slower; for benchmarks).
 
@@ -198,7 +200,7 @@ def decimate_device(
             needed = (alive - target) // 2
             if needed <= 0 or alive <= target * (1 + stop_tolerance):
                 break
-            if stats.passes >= MAX_PASSES:
+            if stats.passes >= max_passes:
                 stats.stopped = "pass limit"
                 break
             if stats.passes:
