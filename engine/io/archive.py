@@ -5,8 +5,9 @@ name. Opening an input reads its listing and the first bytes of each member, and
 :class:`InputLimits` on the declared sizes: per member and for the whole archive, the total and the compression
 ratio (so a bomb of many small, very compressible members is refused before anything is expanded). The bytes are
 read later, one member at a time, when a loader asks for them: a zip member is decompressed straight from the
-archive (never more than its declared size, so a header that lies is caught, not obeyed); a tar, which can only
-be read in order, is copied into anonymous temporary files, in memory up to a small total, then on disk.
+archive (never more than its declared size, so a header that lies is caught, not obeyed), through a handle of
+the reading thread's own, so loaders may read members from several threads at once; a tar, which can only be
+read in order, is copied into anonymous temporary files, in memory up to a small total, then on disk.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import os
 import re
 import tarfile
 import tempfile
+import threading
 import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -87,6 +89,41 @@ class Member:
         raise RuntimeError(f"{self.name}: only the head of this member was read")
 
 
+class _ZipHandles:
+    """One open ``ZipFile`` per reading thread over the same archive.
+
+    A ``ZipFile`` keeps one file position and reference count for all its open members, which CPython does not
+    promise to keep consistent under concurrent reads, so each thread that reads members gets a handle of its own
+    (opening one re-reads the central directory: milliseconds). The listing's handle serves the thread that made it.
+    """
+
+    def __init__(self, path: Path, first: zipfile.ZipFile) -> None:
+        self.path = path
+        self._first, self._first_thread = first, threading.get_ident()
+        self._local = threading.local()
+        self._lock = threading.Lock()
+        self._opened: list[zipfile.ZipFile] = [first]
+
+    def get(self) -> zipfile.ZipFile:
+        """The calling thread's handle."""
+        if threading.get_ident() == self._first_thread:
+            return self._first
+        zf: zipfile.ZipFile | None = getattr(self._local, "zf", None)
+        if zf is None:
+            zf = zipfile.ZipFile(self.path)
+            with self._lock:
+                self._opened.append(zf)
+            self._local.zf = zf
+        return zf
+
+    def close(self) -> None:
+        """Close every handle opened so far."""
+        with self._lock:
+            for zf in self._opened:
+                zf.close()
+            self._opened.clear()
+
+
 @dataclass
 class Members:
     """The files of one input (use as a context manager: closing drops the temporary copies)."""
@@ -94,7 +131,7 @@ class Members:
     kind: str
     members: list[Member]
     ignored: list[str] = field(default_factory=list)
-    _archive: zipfile.ZipFile | None = field(default=None, repr=False)
+    _archive: zipfile.ZipFile | _ZipHandles | None = field(default=None, repr=False)
 
     def close(self) -> None:
         """Release the spooled copies and the open archive."""
@@ -213,12 +250,13 @@ def _head_only(src: IO[bytes], name: str, declared: int, budget: _Budget) -> tup
     return None, max(declared, len(head)), head
 
 
-def _zip_reader(zf: zipfile.ZipFile, info: zipfile.ZipInfo, archive: Path) -> Callable[[], bytes]:
-    """Reads one member from the open archive: never more than its declared size (+1 to see a lie), CRC checked."""
+def _zip_reader(handles: _ZipHandles, info: zipfile.ZipInfo, archive: Path) -> Callable[[], bytes]:
+    """Reads one member from the archive through the calling thread's handle: never more than its declared size
+    (+1 to see a lie), CRC checked."""
 
     def read() -> bytes:
         try:
-            with zf.open(info) as src:
+            with handles.get().open(info) as src:
                 data = src.read(info.file_size + 1)
         except (zipfile.BadZipFile, NotImplementedError, RuntimeError, OSError, EOFError, ValueError) as exc:
             raise InputError(f"{archive.name}: member {info.filename!r} cannot be read: {exc}") from None
@@ -237,9 +275,11 @@ def _read_zip(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
     members: list[Member] = []
     ignored: list[str] = []
     zf: zipfile.ZipFile | None = None
+    handles: _ZipHandles | None = None
     try:
         zf = zipfile.ZipFile(path)
-        # the archive stays open for the members' readers; Members.close() closes it
+        # the archive stays open for the members' readers; Members.close() closes it (and the readers' own)
+        handles = _ZipHandles(path, zf)
         infos = zf.infolist()
         if len(infos) > limits.max_members:
             raise InputError(
@@ -259,7 +299,7 @@ def _read_zip(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
             budget.declare(info.filename, info.file_size, info.compress_size)
             with zf.open(info) as src:
                 head = src.read(HEAD_BYTES)
-            reader = None if heads_only else _zip_reader(zf, info, path)
+            reader = None if heads_only else _zip_reader(handles, info, path)
             members.append(Member(info.filename, max(info.file_size, len(head)), head, _reader=reader))
     except InputError:
         Members("zip", members, _archive=zf).close()
@@ -270,7 +310,7 @@ def _read_zip(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
     if heads_only:
         zf.close()
         return Members("zip", members, ignored)
-    return Members("zip", members, ignored, _archive=zf)
+    return Members("zip", members, ignored, _archive=handles)
 
 
 def _read_tar(path: Path, limits: InputLimits, heads_only: bool = False) -> Members:
