@@ -15,6 +15,7 @@ import numpy.typing as npt
 
 from engine.errors import InputError
 from engine.io.archive import InputLimits, Member, Members, open_members
+from engine.io.codecs import decode_png_fast
 from engine.io.parallel import decode_threads, ordered_map
 from engine.params import check_spacing_zyx_mm
 from engine.types import Volume
@@ -172,6 +173,8 @@ def _decode(m: Member, limits: InputLimits) -> tuple[np.ndarray, dict[str, Any]]
             return arr, {}
         if kind == "tiff":
             return _decode_tiff(data)
+        if kind == "png" and (fast := decode_png_fast(data)) is not None:
+            return fast, {}
         import imageio.v3 as iio
 
         arr = iio.imread(io.BytesIO(data))
