@@ -260,3 +260,45 @@ def test_zip_members_read_concurrently_from_one_listing(tmp_path: Path) -> None:
         handles = members._archive
         assert handles is not None and len(handles._opened) > 1  # the pool's threads had their own
     assert handles._opened == []  # closing the listing closed them all
+
+
+# ---- the fast PNG decoder ---------------------------------------------------------------------------------------
+
+
+def test_fast_png_path_gives_what_imageio_gives(tmp_path: Path) -> None:
+    from PIL import Image
+
+    from engine.io import codecs
+
+    pytest.importorskip("imagecodecs")
+    rng = np.random.default_rng(3)
+    plain = {
+        "u16": iio.imwrite("<bytes>", rng.integers(0, 65535, (9, 13)).astype(np.uint16), extension=".png"),
+        "u8": iio.imwrite("<bytes>", rng.integers(0, 255, (9, 13)).astype(np.uint8), extension=".png"),
+    }
+    for name, data in plain.items():
+        assert codecs.plain_gray_png(data), name
+        fast = codecs.decode_png_fast(data)
+        assert fast is not None
+        general = iio.imread(data)
+        assert fast.dtype == general.dtype and np.array_equal(fast, general), name
+    buf = io.BytesIO()
+    Image.fromarray(rng.integers(0, 255, (9, 13)).astype(np.uint8)).save(buf, format="PNG", transparency=3)
+    others = {
+        "transparent grey": buf.getvalue(),
+        "rgb": iio.imwrite("<bytes>", rng.integers(0, 255, (9, 13, 3)).astype(np.uint8), extension=".png"),
+        "jpeg": iio.imwrite("<bytes>", rng.integers(0, 255, (9, 13)).astype(np.uint8), extension=".jpg"),
+    }
+    for name, data in others.items():  # left to imageio, which knows what to do with them
+        assert not codecs.plain_gray_png(data) and codecs.decode_png_fast(data) is None, name
+
+
+def test_stack_equal_with_and_without_the_fast_png_decoder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from engine.io import codecs
+
+    pytest.importorskip("imagecodecs")
+    vol = _stack(7, np.uint16)
+    path = _zip(tmp_path / "f.zip", {f"img{k}.png": _encode(s, ".png") for k, s in enumerate(vol)})
+    fast = load_volume(path, spacing_zyx_mm=SP, threads=THREADS)
+    monkeypatch.setattr(codecs, "USE_IMAGECODECS", False)
+    _assert_same(fast, load_volume(path, spacing_zyx_mm=SP, threads=1))
