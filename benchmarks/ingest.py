@@ -7,7 +7,7 @@ It writes the bone phantom of ``benchmarks.phantom`` as a zip of 16-bit PNG slic
 stored, as the service benchmark uploads it) and, with ``dicom`` in ``--formats``, as a zip of
 uncompressed single-frame CT DICOM files (HU + 1024 stored, rescale intercept -1024: the int16 in-place rescale).
 Neither is timed. Then each measurement runs ``engine.io.load_volume`` in a fresh Python process, so its peak RSS
-(``getrusage`` maxrss) is that load's alone:
+(``VmHWM``) is that load's alone:
 
 - ``serial``: ``threads=1`` and the general decoders (imageio/Pillow), one slice after another on the calling
   thread: the path of the previous commits (the anchor, measured in the same run);
@@ -45,6 +45,16 @@ def _rss_now() -> int:
         return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
+def _peak_rss() -> int:
+    """This process's peak resident set (VmHWM). Not ``getrusage``'s ru_maxrss: Linux carries that over fork and
+    exec, so a child of a parent that held the phantom would report the parent's peak."""
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # not Linux: KiB on most systems
+
+
 def _child(archive: Path, threads: int, spacing: list[float] | None, device: str | None, codec: str) -> dict[str, Any]:
     """One load in this (fresh) process: seconds, peak RSS, a checksum of the array; optionally the upload."""
     import numpy as np
@@ -57,7 +67,7 @@ def _child(archive: Path, threads: int, spacing: list[float] | None, device: str
     t0 = time.perf_counter()
     vol = load_volume(archive, spacing_zyx_mm=spacing, threads=threads)
     seconds = time.perf_counter() - t0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux: KiB
+    peak = _peak_rss()
     data = vol.data
     out: dict[str, Any] = {
         "seconds": seconds,
