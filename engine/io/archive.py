@@ -6,8 +6,9 @@ name. Opening an input reads its listing and the first bytes of each member, and
 ratio (so a bomb of many small, very compressible members is refused before anything is expanded). The bytes are
 read later, one member at a time, when a loader asks for them: a zip member is decompressed straight from the
 archive (never more than its declared size, so a header that lies is caught, not obeyed), through a handle of
-the reading thread's own, so loaders may read members from several threads at once; a tar, which can only be
-read in order, is copied into anonymous temporary files, in memory up to a small total, then on disk.
+the reading thread's own, so loaders may read members from several threads at once; an uncompressed tar's
+members are read in place, by offset (``os.pread``); a compressed tar, which can only be read in order, is copied
+into anonymous temporary files, in memory up to a small total, then on disk.
 """
 
 from __future__ import annotations
@@ -124,6 +125,38 @@ class _ZipHandles:
             self._opened.clear()
 
 
+class _PlainTar:
+    """An uncompressed tar read in place: each member's bytes sit at one offset of the file, so they are read with
+    ``os.pread`` (no file position shared between threads) when a loader asks, and never copied to temporary files.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.fd: int | None = os.open(path, os.O_RDONLY)
+
+    def reader(self, name: str, offset: int, size: int) -> Callable[[], bytes]:
+        """Reads one member: exactly its declared size, or InputError when the file ends first."""
+
+        def read() -> bytes:
+            if self.fd is None:
+                raise RuntimeError(f"{name}: the archive was closed")
+            data = os.pread(self.fd, size, offset)
+            if len(data) != size:
+                raise InputError(
+                    f"archive member {name!r} declares {size:,} bytes but the archive ends after {len(data):,}: "
+                    "the archive is truncated"
+                )
+            return data
+
+        return read
+
+    def close(self) -> None:
+        """Close the file."""
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+
 @dataclass
 class Members:
     """The files of one input (use as a context manager: closing drops the temporary copies)."""
@@ -131,7 +164,7 @@ class Members:
     kind: str
     members: list[Member]
     ignored: list[str] = field(default_factory=list)
-    _archive: zipfile.ZipFile | _ZipHandles | None = field(default=None, repr=False)
+    _archive: zipfile.ZipFile | _ZipHandles | _PlainTar | None = field(default=None, repr=False)
 
     def close(self) -> None:
         """Release the spooled copies and the open archive."""
@@ -318,11 +351,14 @@ def _read_tar(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
     members: list[Member] = []
     ignored: list[str] = []
     kind = "tar"
+    plain: _PlainTar | None = None  # an uncompressed tar is read in place; a compressed one is spooled
     try:
         with path.open("rb") as raw:
             magic = raw.read(6)
             raw.seek(0)
             kind = {b"\x1f\x8b": "tar.gz", b"BZ": "tar.bz2", b"\xfd7": "tar.xz"}.get(magic[:2], "tar")
+            if kind == "tar" and not heads_only:
+                plain = _PlainTar(path)
             with tarfile.open(fileobj=raw, mode="r|*") as tf:
                 for ti in tf:
                     budget.entry()
@@ -339,16 +375,22 @@ def _read_tar(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
                     assert src is not None
                     if heads_only:
                         spool, n, head = _head_only(src, ti.name, ti.size, budget)
+                    elif plain is not None and not ti.issparse():  # read in place later, by offset
+                        head = src.read(HEAD_BYTES)
+                        budget.add(ti.size, ti.name)
+                        reader = plain.reader(ti.name, ti.offset_data, ti.size)
+                        members.append(Member(ti.name, ti.size, head, _reader=reader))
+                        continue
                     else:
                         spool, n, head = _copy_limited(src, ti.name, ti.size, budget, None)
                     members.append(Member(ti.name, n, head, _spool=spool))
     except InputError:
-        Members(kind, members).close()
+        Members(kind, members, _archive=plain).close()
         raise
     except (tarfile.TarError, OSError, EOFError, ValueError) as exc:
-        Members(kind, members).close()
+        Members(kind, members, _archive=plain).close()
         raise InputError(f"{path.name} is not a readable {kind} archive: {exc}") from None
-    return Members(kind, members, ignored)
+    return Members(kind, members, ignored, _archive=plain)
 
 
 def _read_folder(path: Path, limits: InputLimits) -> Members:

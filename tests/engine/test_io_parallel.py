@@ -302,3 +302,26 @@ def test_stack_equal_with_and_without_the_fast_png_decoder(tmp_path: Path, monke
     fast = load_volume(path, spacing_zyx_mm=SP, threads=THREADS)
     monkeypatch.setattr(codecs, "USE_IMAGECODECS", False)
     _assert_same(fast, load_volume(path, spacing_zyx_mm=SP, threads=1))
+
+
+def test_plain_tar_is_read_in_place_and_a_truncated_one_is_refused(tmp_path: Path) -> None:
+    import tarfile
+
+    files = {f"m{k}.bin": bytes([k]) * (1000 + 517 * k) for k in range(6)}
+    path = tmp_path / "t.tar"
+    with tarfile.open(path, "w") as tf:
+        for name, data in files.items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tf.addfile(info, io.BytesIO(data))
+    with open_members(path) as members:
+        assert all(m._spool is None for m in members.members)  # no temporary copies
+        got = dict(zip([m.name for m in members.members], ordered_map(lambda m: m.read(), members.members, 3),
+                       strict=True))  # fmt: skip
+    assert got == files
+    with open_members(tmp_path / "t.tar", heads_only=False) as members:
+        last = members.members[-1]
+        with open(path, "r+b") as fh:  # the file shrinks after the listing: the read says so
+            fh.truncate(path.stat().st_size - 10240 - 600)
+        with pytest.raises(InputError, match=r"m5\.bin.*archive is truncated"):
+            last.read()
