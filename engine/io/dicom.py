@@ -81,8 +81,8 @@ def _scan(
     slices: list[_Slice] = []
     non_image = 0
     n = len(members.members)
-    with quiet():
-        for k, found in enumerate(ordered_map(_header, members.members, threads)):
+    with quiet(), contextlib.closing(ordered_map(_header, members.members, threads)) as found_all:
+        for k, found in enumerate(found_all):
             if on_progress is not None:
                 on_progress((k + 1) / n)
             if found == "non-image":

@@ -103,16 +103,18 @@ def series_pixels(series: Sequence[SliceLike], threads: int = 1) -> tuple[np.nda
         def decode_into(k: int) -> tuple[tuple[int, ...], np.dtype[Any], float, float]:
             return store(k, decode_pixels(series[k]))
 
-        decoded = itertools.chain([store(0, first)], ordered_map(decode_into, range(1, len(series)), threads))
+        rest = ordered_map(decode_into, range(1, len(series)), threads)
+        first_stats = store(0, first)
         del first
         lo, hi = math.inf, -math.inf
-        for k, (shape, dtype, amin, amax) in enumerate(decoded):
-            if shape != raw.shape[1:] or dtype != raw.dtype:
-                raise InputError(
-                    f"expected {raw.shape[1:]} {raw.dtype} pixels in {series[k].member.name}, got {shape} {dtype}"
-                )
-            lo = min(lo, amin * slopes[k] + inters[k], amax * slopes[k] + inters[k])
-            hi = max(hi, amin * slopes[k] + inters[k], amax * slopes[k] + inters[k])
+        with contextlib.closing(rest):  # no pool thread outlives the call, also when the loop raises
+            for k, (shape, dtype, amin, amax) in enumerate(itertools.chain([first_stats], rest)):
+                if shape != raw.shape[1:] or dtype != raw.dtype:
+                    raise InputError(
+                        f"expected {raw.shape[1:]} {raw.dtype} pixels in {series[k].member.name}, got {shape} {dtype}"
+                    )
+                lo = min(lo, amin * slopes[k] + inters[k], amax * slopes[k] + inters[k])
+                hi = max(hi, amin * slopes[k] + inters[k], amax * slopes[k] + inters[k])
     units = "HU" if is_ct else "raw"
     if np.all(slopes == 1) and np.all(inters == 0):
         return narrow_raw(raw), units, float(raw.min())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import io
 import math
 import re
@@ -135,16 +136,18 @@ def _read_slices(
             out[k] = s
         return s.shape, s.dtype, "colour" in g
 
-    for k, (shape, dtype, colour) in enumerate(ordered_map(decode_into, range(1, len(images)), threads), start=1):
-        if colour:
-            coloured.append(images[k].name)
-        if shape != out.shape[1:] or dtype != out.dtype:
-            raise InputError(
-                f"expected every slice to be {out.shape[2]}x{out.shape[1]} {out.dtype} like {images[0].name}, "
-                f"got {shape[-1]}x{shape[0]} {dtype} in {images[k].name}"
-            )
-        if on_progress is not None:
-            on_progress((k + 1) / len(images))
+    # closed on the way out, also when this loop raises: no pool thread outlives the call
+    with contextlib.closing(ordered_map(decode_into, range(1, len(images)), threads)) as decoded:
+        for k, (shape, dtype, colour) in enumerate(decoded, start=1):
+            if colour:
+                coloured.append(images[k].name)
+            if shape != out.shape[1:] or dtype != out.dtype:
+                raise InputError(
+                    f"expected every slice to be {out.shape[2]}x{out.shape[1]} {out.dtype} like {images[0].name}, "
+                    f"got {shape[-1]}x{shape[0]} {dtype} in {images[k].name}"
+                )
+            if on_progress is not None:
+                on_progress((k + 1) / len(images))
     _warn_colour(label, coloured, geo)
     return _narrow(out), "+".join(kinds), geo
 

@@ -325,3 +325,14 @@ def test_plain_tar_is_read_in_place_and_a_truncated_one_is_refused(tmp_path: Pat
             fh.truncate(path.stat().st_size - 10240 - 600)
         with pytest.raises(InputError, match=r"m5\.bin.*archive is truncated"):
             last.read()
+
+
+def test_no_decode_thread_outlives_a_failed_load(tmp_path: Path) -> None:
+    vol = _stack(30, np.uint16)
+    files = {f"img{k}.png": _encode(s, ".png") for k, s in enumerate(vol)}
+    files["img4.png"] = _encode(np.zeros((5, 5), np.uint16), ".png")
+    path = _zip(tmp_path / "m.zip", files)
+    with pytest.raises(InputError, match=r"in img4\.png") as err:
+        load_volume(path, spacing_zyx_mm=SP, threads=THREADS)
+    assert err.value.__traceback__ is not None  # the traceback (and its frames) still held here
+    assert not [t for t in threading.enumerate() if t.name.startswith("bonemesh-decode")]
