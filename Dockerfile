@@ -25,10 +25,11 @@ COPY pyproject.toml README.md ./
 COPY engine ./engine
 COPY service ./service
 COPY worker ./worker
+COPY docker/worker-entry.sh /usr/local/bin/bonemesh-worker-entry
 RUN pip install . \
     && useradd --system --uid 10001 --home-dir /data bonemesh \
-    && mkdir -p /data /var/cache/warp \
-    && chown bonemesh /data /var/cache/warp
+    && mkdir -p /data /var/cache/warp /run/bonemesh-gpus \
+    && chown bonemesh /data /var/cache/warp /run/bonemesh-gpus
 
 USER bonemesh
 VOLUME ["/data"]

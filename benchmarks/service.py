@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import io
 import json
 import os
 import platform
@@ -31,14 +30,12 @@ import statistics
 import sys
 import tempfile
 import time
-import zipfile
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
 import httpx
-import numpy as np
 
+from benchmarks.phantom_zip import PHANTOM_SPACING_MM, write_phantom_zip
 from tests.service.procs import RedisServer, ServiceStack
 
 CRANIUM = (
@@ -46,33 +43,6 @@ CRANIUM = (
     "cranium_ct_png16.zip",
     {"preset": "bone", "hu_offset": 1024, "spacing": [1.5, 0.9570312, 0.9570312]},
 )
-PHANTOM_SPACING_MM = [0.05, 0.05, 0.05]  # micro-CT-like voxels, as in benchmarks/pipeline.py
-
-
-def _png(plane: np.ndarray) -> bytes:
-    from PIL import Image
-
-    buf = io.BytesIO()
-    Image.fromarray(plane).save(buf, format="PNG", compress_level=1)
-    return buf.getvalue()
-
-
-def write_phantom_zip(shape: tuple[int, int, int], path: Path) -> dict[str, Any]:
-    """The bone phantom as a zip of 16-bit PNG slices; returns how long it took and the archive's size."""
-    from benchmarks.phantom import BONE_LEVEL, bone_phantom
-
-    t0 = time.perf_counter()
-    volume = bone_phantom(shape)
-    t1 = time.perf_counter()
-    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as zf, ThreadPoolExecutor(os.cpu_count() or 1) as pool:
-        for z, data in enumerate(pool.map(_png, volume)):  # encoded in parallel, written in order
-            zf.writestr(f"phantom/phantom_{z:04d}.png", data)
-    return {
-        "generate_seconds": t1 - t0,
-        "encode_seconds": time.perf_counter() - t1,
-        "archive_bytes": path.stat().st_size,
-        "iso": BONE_LEVEL,
-    }
 
 
 def run_job(

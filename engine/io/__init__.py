@@ -14,10 +14,19 @@ from pathlib import Path
 from engine.errors import InputError
 from engine.io.archive import InputLimits, open_members
 from engine.io.dicom import has_dicom_images, load_dicom
+from engine.io.parallel import decode_threads
 from engine.io.stack import StackWarning, check_spacing, load_stack, natural_key
 from engine.types import Volume
 
-__all__ = ["InputLimits", "InputSummary", "StackWarning", "inspect_input", "load_volume", "natural_key"]
+__all__ = [
+    "InputLimits",
+    "InputSummary",
+    "StackWarning",
+    "decode_threads",
+    "inspect_input",
+    "load_volume",
+    "natural_key",
+]
 
 
 @dataclass(frozen=True)
@@ -68,6 +77,7 @@ def load_volume(
     series_uid: str | None = None,
     limits: InputLimits | None = None,
     on_progress: Callable[[float], None] | None = None,
+    threads: int | None = None,
 ) -> Volume:
     """Load a scan as a (z, y, x) :class:`Volume`.
 
@@ -78,6 +88,9 @@ def load_volume(
         series_uid: the DICOM SeriesInstanceUID to load when the input holds several (default: the largest).
         limits: safety limits on archive members, sizes, compression ratio and voxel count.
         on_progress: called with the fraction (0..1) of the files read, as slices are decoded.
+        threads: threads that read and decode slices side by side (default: the CPUs this process may run on,
+            ``engine.io.parallel.decode_threads``); 1 decodes on the calling thread. The result does not depend
+            on it.
 
     Returns:
         The volume: integer data stay integer (uint8/uint16/int16); DICOM CT is in HU (int16 where exact,
@@ -85,18 +98,26 @@ def load_volume(
 
     Raises:
         InputError: unreadable or unsafe input, missing voxel size, inconsistent slices or series.
+        ValueError: ``threads`` is not a positive integer.
     """
     spacing = check_spacing(spacing_zyx_mm)
+    threads = decode_threads(threads)
     limits = limits or InputLimits()
     label = Path(path).name or str(path)
     with open_members(path, limits) as members:
         if has_dicom_images(members):
             vol = load_dicom(
-                members, label, spacing_zyx_mm=spacing, series_uid=series_uid, limits=limits, on_progress=on_progress
+                members,
+                label,
+                spacing_zyx_mm=spacing,
+                series_uid=series_uid,
+                limits=limits,
+                on_progress=on_progress,
+                threads=threads,
             )
             if vol is not None:
                 vol.source["container"] = members.kind
                 return vol
         if series_uid is not None:
             raise InputError(f"series_uid={series_uid!r} was given, but {label} holds no DICOM images")
-        return load_stack(members, label, spacing, limits, on_progress=on_progress)
+        return load_stack(members, label, spacing, limits, on_progress=on_progress, threads=threads)

@@ -5,8 +5,10 @@ name. Opening an input reads its listing and the first bytes of each member, and
 :class:`InputLimits` on the declared sizes: per member and for the whole archive, the total and the compression
 ratio (so a bomb of many small, very compressible members is refused before anything is expanded). The bytes are
 read later, one member at a time, when a loader asks for them: a zip member is decompressed straight from the
-archive (never more than its declared size, so a header that lies is caught, not obeyed); a tar, which can only
-be read in order, is copied into anonymous temporary files, in memory up to a small total, then on disk.
+archive (never more than its declared size, so a header that lies is caught, not obeyed), through a handle of
+the reading thread's own, so loaders may read members from several threads at once; an uncompressed tar's
+members are read in place, by offset (``os.pread``); a compressed tar, which can only be read in order, is copied
+into anonymous temporary files, in memory up to a small total, then on disk.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import os
 import re
 import tarfile
 import tempfile
+import threading
 import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -87,6 +90,73 @@ class Member:
         raise RuntimeError(f"{self.name}: only the head of this member was read")
 
 
+class _ZipHandles:
+    """One open ``ZipFile`` per reading thread over the same archive.
+
+    A ``ZipFile`` keeps one file position and reference count for all its open members, which CPython does not
+    promise to keep consistent under concurrent reads, so each thread that reads members gets a handle of its own
+    (opening one re-reads the central directory: milliseconds). The listing's handle serves the thread that made it.
+    """
+
+    def __init__(self, path: Path, first: zipfile.ZipFile) -> None:
+        self.path = path
+        self._first, self._first_thread = first, threading.get_ident()
+        self._local = threading.local()
+        self._lock = threading.Lock()
+        self._opened: list[zipfile.ZipFile] = [first]
+
+    def get(self) -> zipfile.ZipFile:
+        """The calling thread's handle."""
+        if threading.get_ident() == self._first_thread:
+            return self._first
+        zf: zipfile.ZipFile | None = getattr(self._local, "zf", None)
+        if zf is None:
+            zf = zipfile.ZipFile(self.path)
+            with self._lock:
+                self._opened.append(zf)
+            self._local.zf = zf
+        return zf
+
+    def close(self) -> None:
+        """Close every handle opened so far."""
+        with self._lock:
+            for zf in self._opened:
+                zf.close()
+            self._opened.clear()
+
+
+class _PlainTar:
+    """An uncompressed tar read in place: each member's bytes sit at one offset of the file, so they are read with
+    ``os.pread`` (no file position shared between threads) when a loader asks, and never copied to temporary files.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.fd: int | None = os.open(path, os.O_RDONLY)
+
+    def reader(self, name: str, offset: int, size: int) -> Callable[[], bytes]:
+        """Reads one member: exactly its declared size, or InputError when the file ends first."""
+
+        def read() -> bytes:
+            if self.fd is None:
+                raise RuntimeError(f"{name}: the archive was closed")
+            data = os.pread(self.fd, size, offset)
+            if len(data) != size:
+                raise InputError(
+                    f"archive member {name!r} declares {size:,} bytes but the archive ends after {len(data):,}: "
+                    "the archive is truncated"
+                )
+            return data
+
+        return read
+
+    def close(self) -> None:
+        """Close the file."""
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+
 @dataclass
 class Members:
     """The files of one input (use as a context manager: closing drops the temporary copies)."""
@@ -94,7 +164,7 @@ class Members:
     kind: str
     members: list[Member]
     ignored: list[str] = field(default_factory=list)
-    _archive: zipfile.ZipFile | None = field(default=None, repr=False)
+    _archive: zipfile.ZipFile | _ZipHandles | _PlainTar | None = field(default=None, repr=False)
 
     def close(self) -> None:
         """Release the spooled copies and the open archive."""
@@ -213,12 +283,13 @@ def _head_only(src: IO[bytes], name: str, declared: int, budget: _Budget) -> tup
     return None, max(declared, len(head)), head
 
 
-def _zip_reader(zf: zipfile.ZipFile, info: zipfile.ZipInfo, archive: Path) -> Callable[[], bytes]:
-    """Reads one member from the open archive: never more than its declared size (+1 to see a lie), CRC checked."""
+def _zip_reader(handles: _ZipHandles, info: zipfile.ZipInfo, archive: Path) -> Callable[[], bytes]:
+    """Reads one member from the archive through the calling thread's handle: never more than its declared size
+    (+1 to see a lie), CRC checked."""
 
     def read() -> bytes:
         try:
-            with zf.open(info) as src:
+            with handles.get().open(info) as src:
                 data = src.read(info.file_size + 1)
         except (zipfile.BadZipFile, NotImplementedError, RuntimeError, OSError, EOFError, ValueError) as exc:
             raise InputError(f"{archive.name}: member {info.filename!r} cannot be read: {exc}") from None
@@ -237,9 +308,11 @@ def _read_zip(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
     members: list[Member] = []
     ignored: list[str] = []
     zf: zipfile.ZipFile | None = None
+    handles: _ZipHandles | None = None
     try:
         zf = zipfile.ZipFile(path)
-        # the archive stays open for the members' readers; Members.close() closes it
+        # the archive stays open for the members' readers; Members.close() closes it (and the readers' own)
+        handles = _ZipHandles(path, zf)
         infos = zf.infolist()
         if len(infos) > limits.max_members:
             raise InputError(
@@ -259,7 +332,7 @@ def _read_zip(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
             budget.declare(info.filename, info.file_size, info.compress_size)
             with zf.open(info) as src:
                 head = src.read(HEAD_BYTES)
-            reader = None if heads_only else _zip_reader(zf, info, path)
+            reader = None if heads_only else _zip_reader(handles, info, path)
             members.append(Member(info.filename, max(info.file_size, len(head)), head, _reader=reader))
     except InputError:
         Members("zip", members, _archive=zf).close()
@@ -270,7 +343,7 @@ def _read_zip(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
     if heads_only:
         zf.close()
         return Members("zip", members, ignored)
-    return Members("zip", members, ignored, _archive=zf)
+    return Members("zip", members, ignored, _archive=handles)
 
 
 def _read_tar(path: Path, limits: InputLimits, heads_only: bool = False) -> Members:
@@ -278,11 +351,14 @@ def _read_tar(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
     members: list[Member] = []
     ignored: list[str] = []
     kind = "tar"
+    plain: _PlainTar | None = None  # an uncompressed tar is read in place; a compressed one is spooled
     try:
         with path.open("rb") as raw:
             magic = raw.read(6)
             raw.seek(0)
             kind = {b"\x1f\x8b": "tar.gz", b"BZ": "tar.bz2", b"\xfd7": "tar.xz"}.get(magic[:2], "tar")
+            if kind == "tar" and not heads_only:
+                plain = _PlainTar(path)
             with tarfile.open(fileobj=raw, mode="r|*") as tf:
                 for ti in tf:
                     budget.entry()
@@ -299,16 +375,22 @@ def _read_tar(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
                     assert src is not None
                     if heads_only:
                         spool, n, head = _head_only(src, ti.name, ti.size, budget)
+                    elif plain is not None and not ti.issparse():  # read in place later, by offset
+                        head = src.read(HEAD_BYTES)
+                        budget.add(ti.size, ti.name)
+                        reader = plain.reader(ti.name, ti.offset_data, ti.size)
+                        members.append(Member(ti.name, ti.size, head, _reader=reader))
+                        continue
                     else:
                         spool, n, head = _copy_limited(src, ti.name, ti.size, budget, None)
                     members.append(Member(ti.name, n, head, _spool=spool))
     except InputError:
-        Members(kind, members).close()
+        Members(kind, members, _archive=plain).close()
         raise
     except (tarfile.TarError, OSError, EOFError, ValueError) as exc:
-        Members(kind, members).close()
+        Members(kind, members, _archive=plain).close()
         raise InputError(f"{path.name} is not a readable {kind} archive: {exc}") from None
-    return Members(kind, members, ignored)
+    return Members(kind, members, ignored, _archive=plain)
 
 
 def _read_folder(path: Path, limits: InputLimits) -> Members:

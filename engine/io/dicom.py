@@ -9,7 +9,6 @@ linearly along the normal at the median gap.
 from __future__ import annotations
 
 import contextlib
-import io
 import math
 import warnings
 from collections import defaultdict
@@ -21,6 +20,8 @@ import numpy as np
 
 from engine.errors import InputError
 from engine.io.archive import InputLimits, Member, Members
+from engine.io.dicom_pixels import quiet, read_dataset, series_pixels
+from engine.io.parallel import ordered_map
 from engine.io.regrid import regularise as _regularise
 from engine.io.stack import SPACING_HINT, StackWarning, natural_key
 from engine.params import check_spacing_zyx_mm
@@ -52,25 +53,6 @@ class _Slice:
     nonfinite: tuple[str, ...] = ()  # geometry tags present but holding NaN or an infinity
 
 
-def _read(member: Member, *, pixels: bool) -> Any | None:
-    """Parse a member as DICOM; None when it is not one."""
-    import pydicom
-    from pydicom.uid import ExplicitVRBigEndian, ExplicitVRLittleEndian, ImplicitVRLittleEndian
-
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            ds = pydicom.dcmread(io.BytesIO(member.read()), force=True, stop_before_pixels=not pixels)
-            if "TransferSyntaxUID" not in ds.file_meta:  # raw data set: say how it was encoded
-                implicit, little = ds.original_encoding
-                ds.file_meta.TransferSyntaxUID = (
-                    ImplicitVRLittleEndian if implicit else ExplicitVRLittleEndian if little else ExplicitVRBigEndian
-                )
-    except Exception:
-        return None
-    return ds
-
-
 def _floats(value: Any, n: int) -> np.ndarray | None:
     try:
         arr = np.array([float(v) for v in value], dtype=np.float64)
@@ -91,57 +73,65 @@ def _nonfinite(ds: Any) -> tuple[str, ...]:
     return tuple(bad)
 
 
-def _scan(members: Members, on_progress: Callable[[float], None] | None = None) -> tuple[list[_Slice], int]:
-    """Headers of every DICOM image member; also the count of DICOM files without pixel data."""
+def _scan(
+    members: Members, on_progress: Callable[[float], None] | None = None, threads: int = 1
+) -> tuple[list[_Slice], int]:
+    """Headers of every DICOM image member (read and parsed on ``threads`` threads); also the count of DICOM files
+    without pixel data."""
     slices: list[_Slice] = []
     non_image = 0
-    for k, m in enumerate(members.members):
-        if on_progress is not None:
-            on_progress(k / len(members.members))
-        if not looks_like_dicom(m.head):
-            continue
-        ds = _read(m, pixels=True)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # pydicom's complaints about odd values in legacy headers
-            if ds is None:
-                continue
-            if "PixelData" not in ds or "Rows" not in ds or "Columns" not in ds:
-                non_image += 1  # DICOMDIR, structured report, presentation state...
-                continue
-            ps = _floats(ds.get("PixelSpacing") or ds.get("ImagerPixelSpacing") or (), 2)
-            iop = _floats(ds.get("ImageOrientationPatient") or (), 6)
-            ipp = _floats(ds.get("ImagePositionPatient") or (), 3)
-            inst = ds.get("InstanceNumber")
-            thick = ds.get("SpacingBetweenSlices") or ds.get("SliceThickness")
-            header = {
-                "modality": str(ds.get("Modality", "")),
-                "series_description": str(ds.get("SeriesDescription", "")),
-                "manufacturer": str(ds.get("Manufacturer", "")),
-                "transfer_syntax": ds.file_meta.TransferSyntaxUID.name,
-                "transfer_syntax_uid": str(ds.file_meta.TransferSyntaxUID),
-                "gantry_tilt_deg": float(ds.get("GantryDetectorTilt") or 0.0),
-                "slope": float(ds.get("RescaleSlope", 1) or 1),
-                "intercept": float(ds.get("RescaleIntercept", 0) or 0),
-                "series_number": str(ds.get("SeriesNumber", "") or ""),
-            }
-            slices.append(
-                _Slice(
-                    member=m,
-                    uid=str(ds.get("SeriesInstanceUID", _NO_UID)),
-                    rows=int(ds.Rows),
-                    cols=int(ds.Columns),
-                    ipp=ipp,
-                    iop=iop,
-                    pixel_spacing=(float(ps[0]), float(ps[1])) if ps is not None and np.all(ps > 0) else None,
-                    instance=int(inst) if inst not in (None, "") else None,
-                    frames=int(ds.get("NumberOfFrames", 1) or 1),
-                    samples=int(ds.get("SamplesPerPixel", 1) or 1),
-                    thickness=float(thick) if thick not in (None, "") and float(thick) > 0 else None,
-                    header=header,
-                    nonfinite=_nonfinite(ds),
-                )
-            )
+    n = len(members.members)
+    with quiet(), contextlib.closing(ordered_map(_header, members.members, threads)) as found_all:
+        for k, found in enumerate(found_all):
+            if on_progress is not None:
+                on_progress((k + 1) / n)
+            if found == "non-image":
+                non_image += 1
+            elif isinstance(found, _Slice):
+                slices.append(found)
     return slices, non_image
+
+
+def _header(m: Member) -> _Slice | str | None:
+    """One member's header as a :class:`_Slice`; "non-image" for DICOM without pixels; None for other files."""
+    if not looks_like_dicom(m.head):
+        return None
+    ds = read_dataset(m, pixels=True)
+    if ds is None:
+        return None
+    if "PixelData" not in ds or "Rows" not in ds or "Columns" not in ds:
+        return "non-image"  # DICOMDIR, structured report, presentation state...
+    ps = _floats(ds.get("PixelSpacing") or ds.get("ImagerPixelSpacing") or (), 2)
+    iop = _floats(ds.get("ImageOrientationPatient") or (), 6)
+    ipp = _floats(ds.get("ImagePositionPatient") or (), 3)
+    inst = ds.get("InstanceNumber")
+    thick = ds.get("SpacingBetweenSlices") or ds.get("SliceThickness")
+    header = {
+        "modality": str(ds.get("Modality", "")),
+        "series_description": str(ds.get("SeriesDescription", "")),
+        "manufacturer": str(ds.get("Manufacturer", "")),
+        "transfer_syntax": ds.file_meta.TransferSyntaxUID.name,
+        "transfer_syntax_uid": str(ds.file_meta.TransferSyntaxUID),
+        "gantry_tilt_deg": float(ds.get("GantryDetectorTilt") or 0.0),
+        "slope": float(ds.get("RescaleSlope", 1) or 1),
+        "intercept": float(ds.get("RescaleIntercept", 0) or 0),
+        "series_number": str(ds.get("SeriesNumber", "") or ""),
+    }
+    return _Slice(
+        member=m,
+        uid=str(ds.get("SeriesInstanceUID", _NO_UID)),
+        rows=int(ds.Rows),
+        cols=int(ds.Columns),
+        ipp=ipp,
+        iop=iop,
+        pixel_spacing=(float(ps[0]), float(ps[1])) if ps is not None and np.all(ps > 0) else None,
+        instance=int(inst) if inst not in (None, "") else None,
+        frames=int(ds.get("NumberOfFrames", 1) or 1),
+        samples=int(ds.get("SamplesPerPixel", 1) or 1),
+        thickness=float(thick) if thick not in (None, "") and float(thick) > 0 else None,
+        header=header,
+        nonfinite=_nonfinite(ds),
+    )
 
 
 def has_dicom_images(members: Members) -> bool:
@@ -157,19 +147,21 @@ def load_dicom(
     series_uid: str | None,
     limits: InputLimits,
     on_progress: Callable[[float], None] | None = None,
+    threads: int = 1,
 ) -> Volume | None:
-    """Load one DICOM series of ``members``; None when none of them is a DICOM image.
+    """Load one DICOM series of ``members``; None when none of them is a DICOM image. Files are read, parsed and
+    decoded on ``threads`` threads (``engine.io.parallel``); the result does not depend on their number.
 
     Raises:
         InputError: unknown ``series_uid``, inconsistent geometry, undecodable pixels, limits exceeded.
     """
-    slices, non_image = _scan(members, on_progress)  # reading the files is most of the loading time
+    slices, non_image = _scan(members, on_progress, threads)  # reading the files is most of the loading time
     if not slices:
         if series_uid is not None:
             raise InputError(f"series_uid={series_uid!r} was given, but {label} holds no DICOM images")
         return None
     series, choice = _pick_series(slices, series_uid, label)
-    vol = _build(series, label, spacing_zyx_mm, limits, skipped=len(slices) - len(series) + non_image)
+    vol = _build(series, label, spacing_zyx_mm, limits, skipped=len(slices) - len(series) + non_image, threads=threads)
     vol.source["series"] = choice
     return vol
 
@@ -219,6 +211,7 @@ def _build(
     call: tuple[float, float, float] | None,
     limits: InputLimits,
     skipped: int,
+    threads: int = 1,
 ) -> Volume:
     first = series[0]
     for s in series:
@@ -243,7 +236,7 @@ def _build(
     order = geo["order"]
     series = [series[i] for i in order]
     limits.check_voxels((len(series), first.rows, first.cols), label)
-    data, units, fill = _pixels(series, label)
+    data, units, fill = series_pixels(series, threads)
     source: dict[str, Any] = {
         "format": "dicom",
         "files": len(series),
@@ -359,55 +352,3 @@ def _geometry(series: list[_Slice], label: str, call: tuple[float, float, float]
         geo["tilt_deg"] = math.degrees(math.atan(shear))
     geo.update(order=order, d=d, a=a, b=b, row=row, col=col, n=normal, p0=pos[0], regular=even and straight)
     return geo
-
-
-def _pixels(series: list[_Slice], label: str) -> tuple[np.ndarray, str, float]:
-    """Decode the pixel data into one (z, y, x) array, rescaled to HU (CT) where the headers say so."""
-    slopes = np.array([s.header["slope"] for s in series])
-    inters = np.array([s.header["intercept"] for s in series])
-    is_ct = series[0].header["modality"].upper() == "CT"
-    raw: np.ndarray | None = None
-    lo, hi = math.inf, -math.inf
-    for k, s in enumerate(series):
-        ds = _read(s.member, pixels=True)
-        try:
-            arr = ds.pixel_array  # type: ignore[union-attr]
-        except Exception as exc:
-            raise InputError(
-                f"cannot decode the pixels of {s.member.name} ({s.header['transfer_syntax']}): {exc}"
-            ) from None
-        if raw is None:
-            raw = np.empty((len(series), s.rows, s.cols), dtype=arr.dtype)
-        if arr.shape != raw.shape[1:] or arr.dtype != raw.dtype:
-            raise InputError(
-                f"expected {raw.shape[1:]} {raw.dtype} pixels in {s.member.name}, got {arr.shape} {arr.dtype}"
-            )
-        raw[k] = arr
-        lo = min(lo, float(arr.min()) * slopes[k] + inters[k], float(arr.max()) * slopes[k] + inters[k])
-        hi = max(hi, float(arr.min()) * slopes[k] + inters[k], float(arr.max()) * slopes[k] + inters[k])
-    assert raw is not None
-    units = "HU" if is_ct else "raw"
-    if np.all(slopes == 1) and np.all(inters == 0):
-        return _narrow_raw(raw), units, float(raw.min())
-    integral = np.all(slopes == np.round(slopes)) and np.all(inters == np.round(inters))
-    if integral and -32768 <= lo and hi <= 32767:
-        out = raw.view(np.int16) if raw.dtype.itemsize == 2 else np.empty(raw.shape, np.int16)
-        for k in range(len(series)):  # in place, slice by slice: no full-size temporary
-            out[k] = (raw[k].astype(np.int32) * int(slopes[k]) + int(inters[k])).astype(np.int16)
-        return out, units, lo
-    out32 = np.empty(raw.shape, np.float32)
-    for k in range(len(series)):
-        out32[k] = raw[k].astype(np.float32) * np.float32(slopes[k]) + np.float32(inters[k])
-    return out32, units, lo
-
-
-def _narrow_raw(raw: np.ndarray) -> np.ndarray:
-    if raw.dtype in (np.uint8, np.uint16, np.int16, np.float32):
-        return raw
-    if raw.dtype.kind not in "iu":
-        return raw.astype(np.float32)
-    lo, hi = int(raw.min()), int(raw.max())
-    for dt in (np.uint16, np.int16):
-        if np.iinfo(dt).min <= lo and hi <= np.iinfo(dt).max:
-            return raw.astype(dt)
-    return raw.astype(np.float32)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import io
 import math
 import re
@@ -15,6 +16,8 @@ import numpy.typing as npt
 
 from engine.errors import InputError
 from engine.io.archive import InputLimits, Member, Members, open_members
+from engine.io.codecs import decode_png_fast
+from engine.io.parallel import decode_threads, ordered_map
 from engine.params import check_spacing_zyx_mm
 from engine.types import Volume
 
@@ -53,14 +56,14 @@ def image_kind(head: bytes) -> str | None:
     return None
 
 
-def load_slice_zip(path: str | Path) -> npt.NDArray[np.generic]:
+def load_slice_zip(path: str | Path, threads: int | None = None) -> npt.NDArray[np.generic]:
     """Read a zip (or tar, or folder) of 2-D grayscale slices (natural name order) into a (z, y, x) array.
 
     Raises:
         InputError (a ValueError): the archive holds no images, or slices differ in shape or dtype.
     """
     with open_members(path) as members:
-        arr, _, _ = _read_slices(members, str(path), InputLimits())
+        arr, _, _ = _read_slices(members, str(path), InputLimits(), threads=decode_threads(threads))
     return arr
 
 
@@ -70,16 +73,18 @@ def load_stack(
     spacing_zyx_mm: tuple[float, float, float] | None,
     limits: InputLimits,
     on_progress: Callable[[float], None] | None = None,
+    threads: int | None = None,
 ) -> Volume:
     """Build a Volume from the image members of ``members`` (slices, one multi-page TIFF, or one .npy).
 
-    ``on_progress`` is called with the fraction of slices decoded. The stack's orientation is not known: the
+    ``on_progress`` is called with the fraction of slices decoded. Slices are decoded on ``threads`` threads
+    (default: the CPUs this process may use; 1 decodes serially). The stack's orientation is not known: the
     pipeline places it by ``engine.params.OrientParams`` (``engine.orient``).
 
     Raises:
         InputError: no images, mixed shapes/dtypes, too many voxels, or no voxel size.
     """
-    data, fmt, geo = _read_slices(members, label, limits, on_progress)
+    data, fmt, geo = _read_slices(members, label, limits, on_progress, decode_threads(threads))
     spacing, how = _resolve_spacing(spacing_zyx_mm, geo, label)
     n_files = len([m for m in members.members if image_kind(m.head)])
     source: dict[str, Any] = {"format": fmt, "container": members.kind, "files": n_files, "spacing_from": how}
@@ -87,8 +92,14 @@ def load_stack(
 
 
 def _read_slices(
-    members: Members, label: str, limits: InputLimits, on_progress: Callable[[float], None] | None = None
+    members: Members,
+    label: str,
+    limits: InputLimits,
+    on_progress: Callable[[float], None] | None = None,
+    threads: int = 1,
 ) -> tuple[np.ndarray, str, dict[str, Any]]:
+    """The image members in natural name order as one (z, y, x) array; slices after the first are decoded on
+    ``threads`` threads straight into the array (``engine.io.parallel``)."""
     images = [m for m in members.members if image_kind(m.head)]
     if not images:
         seen = ", ".join(m.name for m in members.members[:3]) or "nothing"
@@ -115,19 +126,28 @@ def _read_slices(
     limits.check_voxels((len(images), *first.shape), label)
     out = np.empty((len(images), *first.shape), dtype=first.dtype)
     out[0] = first
+    del first
     coloured = [images[0].name] if "colour" in geo else []
-    for k, m in enumerate(images[1:], start=1):
-        s, g = _decode(m, limits)
-        if "colour" in g:
-            coloured.append(m.name)
-        if s.shape != first.shape or s.dtype != first.dtype:
-            raise InputError(
-                f"expected every slice to be {first.shape[1]}x{first.shape[0]} {first.dtype} like {images[0].name}, "
-                f"got {s.shape[-1]}x{s.shape[0]} {s.dtype} in {m.name}"
-            )
-        out[k] = s
-        if on_progress is not None:
-            on_progress((k + 1) / len(images))
+
+    def decode_into(k: int) -> tuple[tuple[int, ...], np.dtype[Any], bool]:
+        """Decode slice k straight into its plane of ``out`` (on a pool thread); its shape, dtype, colour flag."""
+        s, g = _decode(images[k], limits)
+        if s.shape == out.shape[1:] and s.dtype == out.dtype:
+            out[k] = s
+        return s.shape, s.dtype, "colour" in g
+
+    # closed on the way out, also when this loop raises: no pool thread outlives the call
+    with contextlib.closing(ordered_map(decode_into, range(1, len(images)), threads)) as decoded:
+        for k, (shape, dtype, colour) in enumerate(decoded, start=1):
+            if colour:
+                coloured.append(images[k].name)
+            if shape != out.shape[1:] or dtype != out.dtype:
+                raise InputError(
+                    f"expected every slice to be {out.shape[2]}x{out.shape[1]} {out.dtype} like {images[0].name}, "
+                    f"got {shape[-1]}x{shape[0]} {dtype} in {images[k].name}"
+                )
+            if on_progress is not None:
+                on_progress((k + 1) / len(images))
     _warn_colour(label, coloured, geo)
     return _narrow(out), "+".join(kinds), geo
 
@@ -156,6 +176,8 @@ def _decode(m: Member, limits: InputLimits) -> tuple[np.ndarray, dict[str, Any]]
             return arr, {}
         if kind == "tiff":
             return _decode_tiff(data)
+        if kind == "png" and (fast := decode_png_fast(data)) is not None:
+            return fast, {}
         import imageio.v3 as iio
 
         arr = iio.imread(io.BytesIO(data))
