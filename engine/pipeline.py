@@ -323,7 +323,8 @@ def _budget_mesh(mesh: Mesh, max_triangles: int, device: Any) -> tuple[Mesh, dic
 def write_outputs(
     recon: Reconstruction, outdir: str | Path, params: ReconParams | None = None, *, device: str = "auto"
 ) -> dict[str, Path]:
-    """Write model.stl, model.glb, phone.glb (Draco), ar.glb and report.json into ``outdir``.
+    """Write model.stl, model.glb, phone.glb (Draco), ar.glb, phone_meshopt.glb, model.usdz, preview.png and
+    report.json into ``outdir``.
 
     Every file is written into a temporary folder inside ``outdir`` and moved into place only when all are
     complete: a failure leaves no partial model.
@@ -333,6 +334,7 @@ def write_outputs(
     from engine.device import resolve_device
     from engine.export import to_draco_glb, to_glb, to_stl
     from engine.export.printcheck import PRINT_STL, check_print_model, stl_name
+    from engine.export.viewers import viewer_files
 
     params = params or ReconParams()
     dev = resolve_device(device)
@@ -355,6 +357,7 @@ def write_outputs(
             "phone.glb": to_draco_glb(phone.vertices, phone.faces, phone.normals),
             "ar.glb": to_glb(ar.vertices, ar.faces, ar.normals),
         }
+        files.update(viewer_files(phone, ar))  # meshopt GLB, USDZ, preview.png (engine.export.viewers)
         for name, data in files.items():
             (tmp / name).write_bytes(data)
         recon.report["exports"].update(

@@ -35,7 +35,16 @@ import httpx
 REPO = Path(__file__).resolve().parents[2]
 TERMINAL_STATES = frozenset({"succeeded", "failed", "cancelled"})
 API_KEYS = ("key-a", "key-b")
-OUTPUT_NAMES = ("model.stl", "model.glb", "phone.glb", "ar.glb", "report.json")
+OUTPUT_NAMES = (
+    "model.stl",
+    "model.glb",
+    "phone.glb",
+    "ar.glb",
+    "phone_meshopt.glb",
+    "model.usdz",
+    "preview.png",
+    "report.json",
+)
 
 _LIVE: set[Proc] = set()  # every process group still running, killed at exit
 
