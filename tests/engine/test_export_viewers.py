@@ -45,7 +45,7 @@ def test_meshopt_glb_decodes_to_the_plain_glb(subdivisions: int) -> None:
     doc = json.loads(data[20 : 20 + int.from_bytes(data[12:16], "little")])
     assert set(doc["extensionsRequired"]) == {EXT, QUANT}
     positions, normals, tris = read_meshopt_glb(data)
-    ref_pos, ref_nrm, ref_tris = read_glb(to_glb(verts, faces))
+    ref_pos, _, ref_tris = read_glb(to_glb(verts, faces))
     assert len(tris) == len(faces) and len(positions) == len(verts)
     # the same triangles, vertices renumbered and corners rotated: map each vertex to the reference's nearest
     quantum = np.ptp(ref_pos, axis=0).max() / 65535
@@ -102,7 +102,7 @@ def test_thumbnail_is_upright_and_framed(ball_on_rod: trimesh.Trimesh) -> None:
 def test_thumbnail_z_buffer_keeps_the_nearer_surface() -> None:
     """Two squares one behind the other, the far one drawn last: the near one's shade must win."""
     quad = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], dtype=float)
-    near, far = quad + [0, 0, 1.0], quad * [2, 2, 1] + [0, 0, -1.0]
+    near, far = quad + np.array([0, 0, 1.0]), quad * np.array([2, 2, 1]) + np.array([0, 0, -1.0])
     positions = np.vstack([near, far])
     faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
     normals = np.vstack([np.tile([0, 0, 1.0], (4, 1)), np.tile([0.0, -0.6, 0.8], (4, 1))])  # far: shaded darker

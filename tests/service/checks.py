@@ -5,9 +5,9 @@ from __future__ import annotations
 import datetime as dt
 import io
 import json
+import struct
 import tempfile
 from pathlib import Path
-import struct
 from typing import Any
 
 import DracoPy
