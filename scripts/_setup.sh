@@ -16,4 +16,4 @@ if [ -n "$need" ] && command -v apt-get >/dev/null; then
   $SUDO apt-get install -y -qq $need >/dev/null 2>&1 || { $SUDO apt-get update -qq && $SUDO apt-get install -y -qq $need >/dev/null; }
 fi
 # the web page's scripts and decoders (package.json + package-lock.json), served by the API from node_modules
-if command -v npm >/dev/null; then npm ci --no-audit --no-fund --ignore-scripts --loglevel=error >/dev/null; fi
+if command -v npm >/dev/null && ! [ node_modules/.package-lock.json -nt package-lock.json ]; then npm ci --no-audit --no-fund --ignore-scripts --loglevel=error >/dev/null; fi
