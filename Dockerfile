@@ -6,6 +6,12 @@
 #
 # Warp's wheels carry their CUDA runtime, so a slim Python base is enough: the NVIDIA runtime only has to mount
 # the driver (compose asks for it with a device reservation). MeshLab (decimation) needs libGL / libOpenGL.
+# the page's browser assets (model-viewer, three.js decoders, QR code) from the npm registry, pinned by the lock file
+FROM node:20-slim AS assets
+WORKDIR /assets
+COPY package.json package-lock.json ./
+RUN npm ci --omit=dev --ignore-scripts --no-audit --no-fund
+
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
@@ -13,7 +19,8 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
     BONEMESH_DATA_DIR=/data \
-    WARP_CACHE_PATH=/var/cache/warp
+    WARP_CACHE_PATH=/var/cache/warp \
+    BONEMESH_ASSETS_DIR=/app/node_modules
 
 RUN apt-get update \
     && apt-get install -y --no-install-recommends libgl1 libopengl0 libgomp1 \
@@ -26,6 +33,7 @@ COPY engine ./engine
 COPY service ./service
 COPY worker ./worker
 COPY docker/worker-entry.sh /usr/local/bin/bonemesh-worker-entry
+COPY --from=assets /assets/node_modules ./node_modules
 RUN pip install . \
     && useradd --system --uid 10001 --home-dir /data bonemesh \
     && mkdir -p /data /var/cache/warp /run/bonemesh-gpus \

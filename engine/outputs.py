@@ -1,5 +1,6 @@
 """The files of a reconstruction (``write_outputs``): ``model.stl`` (patient LPS mm, checked for printing),
-``model.glb``, ``phone.glb`` (Draco), ``ar.glb`` and ``report.json``.
+``model.glb``, ``phone.glb`` (Draco), ``ar.glb``, the other viewers' files (``phone_meshopt.glb``, ``model.usdz``,
+``preview.png``: ``engine.export.viewers``) and ``report.json``.
 
 The finished mesh is laid out for its files on the device where the pipeline left it (``lay_out``: the patient
 frame, the STL's facet records and the glTF buffers, ``engine.kernels.export``); only those buffers come back.
@@ -215,7 +216,8 @@ def _write_print_files(tmp: Path, stl: str, lay: Layout) -> dict[str, int]:
 def write_outputs(
     recon: Reconstruction, outdir: str | Path, params: ReconParams | None = None, *, device: str = "auto"
 ) -> dict[str, Path]:
-    """Write model.stl, model.glb, phone.glb (Draco), ar.glb and report.json into ``outdir``.
+    """Write model.stl, model.glb, phone.glb (Draco), ar.glb, phone_meshopt.glb, model.usdz, preview.png and
+    report.json into ``outdir``.
 
     Raises:
         PrintCheckError: the print model is not printable (nothing is written).
@@ -226,6 +228,7 @@ def write_outputs(
     from engine.device import resolve_device
     from engine.export import to_draco_glb, to_glb
     from engine.export.printcheck import PRINT_STL, check_print_model, stl_name
+    from engine.export.viewers import viewer_files
     from engine.orient import Frame
     from engine.stages.devmesh import mesh_stats_device
 
@@ -268,6 +271,7 @@ def write_outputs(
                 small = {
                     "phone.glb": to_draco_glb(phone.vertices, phone.faces, phone.normals),
                     "ar.glb": to_glb(ar.vertices, ar.faces, ar.normals),
+                    **viewer_files(phone, ar),  # meshopt GLB, USDZ, preview.png (engine.export.viewers)
                 }
                 for name, data in small.items():
                     (tmp / name).write_bytes(data)
@@ -282,7 +286,7 @@ def write_outputs(
         report["write_seconds"] = seconds
         (tmp / "report.json").write_text(json.dumps(report, indent=2, default=_json_default) + "\n")
         paths = {}
-        for name in [stl, "model.glb", "phone.glb", "ar.glb", "report.json"]:
+        for name in [stl, "model.glb", *small, "report.json"]:
             os.replace(tmp / name, out / name)
             paths[name] = out / name
         return paths

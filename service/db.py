@@ -25,7 +25,9 @@ from sqlalchemy import (
     delete,
     event,
     func,
+    inspect,
     select,
+    text,
     update,
 )
 from sqlalchemy.engine import Engine
@@ -33,6 +35,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sess
 
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 ACTIVE = ("queued", "running")
+TERMINAL = ("succeeded", "failed", "cancelled")
 
 
 def utcnow() -> dt.datetime:
@@ -72,6 +75,14 @@ class Job(Base):
     started_at: Mapped[dt.datetime | None] = mapped_column(DateTime, default=None)
     heartbeat_at: Mapped[dt.datetime | None] = mapped_column(DateTime, default=None)
     finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime, default=None)
+    # the engine's own parameters (``{"recon": ReconParams.to_dict(), "spacing_zyx_mm": ...}``), made once by the API
+    engine_params: Mapped[dict[str, Any] | None] = mapped_column(JSON, default=None)
+    # webhook: where to POST the job on its terminal state, and how the deliveries went (service.webhooks)
+    callback_url: Mapped[str | None] = mapped_column(String(2048), default=None)
+    base_url: Mapped[str | None] = mapped_column(String(2048), default=None)
+    webhook_state: Mapped[str | None] = mapped_column(String(16), default=None, index=True)
+    webhook_next_at: Mapped[dt.datetime | None] = mapped_column(DateTime, default=None)
+    webhook_attempts: Mapped[list[dict[str, Any]] | None] = mapped_column(JSON, default=None)
 
 
 class Database:
@@ -86,6 +97,7 @@ class Database:
             event.listen(self.engine, "connect", _sqlite_pragmas)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
         Base.metadata.create_all(self.engine)
+        _add_missing_columns(self.engine)
 
     @contextmanager
     def session(self) -> Iterator[Session]:
@@ -98,7 +110,16 @@ class Database:
 
     # --- API side -----------------------------------------------------------------------------------------------
     def create(
-        self, owner: str, params: dict[str, Any], upload_name: str, upload_bytes: int = 0, job_id: str | None = None
+        self,
+        owner: str,
+        params: dict[str, Any],
+        upload_name: str,
+        upload_bytes: int = 0,
+        job_id: str | None = None,
+        *,
+        engine_params: dict[str, Any] | None = None,
+        callback_url: str | None = None,
+        base_url: str | None = None,
     ) -> Job:
         job = Job(
             id=job_id or uuid.uuid4().hex,
@@ -107,6 +128,11 @@ class Database:
             params=params,
             upload_name=upload_name,
             upload_bytes=upload_bytes,
+            engine_params=engine_params,
+            callback_url=callback_url,
+            base_url=base_url,
+            webhook_state="pending" if callback_url else None,
+            webhook_attempts=[] if callback_url else None,
         )
         with self.session() as s:
             s.add(job)
@@ -223,6 +249,48 @@ class Database:
         with self.session() as s:
             res = s.execute(update(Job).where(*cond).values(state=state, finished_at=utcnow(), **values))
             return res.rowcount == 1
+
+    # --- webhooks (API side) -------------------------------------------------------------------------------------
+    def due_webhooks(self, now: dt.datetime, limit: int = 20) -> list[Job]:
+        """Finished jobs whose webhook is pending and due."""
+        with self.session() as s:
+            query = select(Job).where(
+                Job.webhook_state == "pending",
+                Job.state.in_(TERMINAL),
+                (Job.webhook_next_at.is_(None)) | (Job.webhook_next_at <= now),
+            )
+            return list(s.scalars(query.order_by(Job.finished_at).limit(limit)).all())
+
+    def lease_webhook(self, job: Job, until: dt.datetime) -> bool:
+        """Take the next delivery of ``job``'s webhook (another API process that read the same row loses)."""
+        with self.session() as s:
+            cond = [Job.id == job.id, Job.webhook_state == "pending"]
+            cond.append(
+                Job.webhook_next_at.is_(None)
+                if job.webhook_next_at is None
+                else Job.webhook_next_at == job.webhook_next_at
+            )
+            return s.execute(update(Job).where(*cond).values(webhook_next_at=until)).rowcount == 1
+
+    def record_webhook(self, job_id: str, attempt: dict[str, Any], state: str, next_at: dt.datetime | None) -> None:
+        """Append a delivery attempt; ``state`` pending (retry at ``next_at``), delivered or failed."""
+        with self.session() as s:
+            job = s.get(Job, job_id)
+            if job is None:
+                return
+            job.webhook_attempts = [*(job.webhook_attempts or []), attempt]
+            job.webhook_state = state
+            job.webhook_next_at = next_at
+
+
+def _add_missing_columns(engine: Engine) -> None:
+    """Add the columns a newer release declares to an older ``jobs`` table (all nullable; no data is moved)."""
+    present = {c["name"] for c in inspect(engine).get_columns(Job.__tablename__)}
+    missing = [c for c in Job.__table__.columns if c.name not in present]
+    with engine.begin() as conn:
+        for column in missing:
+            kind = column.type.compile(engine.dialect)
+            conn.execute(text(f"ALTER TABLE {Job.__tablename__} ADD COLUMN {column.name} {kind}"))
 
 
 def _sqlite_pragmas(dbapi_conn: Any, _record: Any) -> None:

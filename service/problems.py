@@ -16,7 +16,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
-from starlette.routing import Match, Route
+from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.logsafe import escape_control, safe_logger
@@ -24,6 +24,7 @@ from service.logsafe import escape_control, safe_logger
 log = safe_logger("bonemesh.api")
 PROBLEM = "application/problem+json"
 PROBLEM_REF = {"$ref": "#/components/schemas/Problem"}
+METHODS = ("DELETE", "GET", "HEAD", "PATCH", "POST", "PUT")
 
 
 class Problem(Exception):
@@ -68,13 +69,14 @@ def problems(*codes: int, **descriptions: str) -> dict[int | str, dict[str, Any]
 
 
 def allowed_methods(app: FastAPI, scope: Scope) -> list[str]:
-    """Every method some route accepts on the request's path (for ``Allow``)."""
-    probe = {**scope, "method": "\x00"}  # no route accepts it: a path match is PARTIAL
-    methods: set[str] = set()
-    for route in app.router.routes:
-        if isinstance(route, Route) and route.methods and route.matches(probe)[0] is Match.PARTIAL:
-            methods |= route.methods
-    return sorted(methods)
+    """Every method some route accepts on the request's path (for ``Allow``): each method is tried against the
+    routes (routers included through ``include_router`` answer ``matches`` as their routes do)."""
+    allowed = []
+    for method in METHODS:
+        probe = {**scope, "method": method}
+        if any(route.matches(probe)[0] is Match.FULL for route in app.router.routes):
+            allowed.append(method)
+    return allowed
 
 
 def install(app: FastAPI) -> None:

@@ -26,13 +26,38 @@ class OutputFile(BaseModel):
 
     name: str
     kind: str = Field(
-        description="print (STL, mm), surface (open STL, mm), model (GLB, m), phone (Draco GLB), ar, report"
+        description="print (STL, mm), surface (open STL, mm), model (GLB, m), phone (Draco GLB), phone_meshopt "
+        "(meshopt GLB), ar (plain GLB for Scene Viewer), ar_ios (USDZ for AR Quick Look), preview (PNG), report"
     )
     media_type: str
     bytes: int
     triangles: int | None
     url: str = Field(description="signed download link; works without the API key until expires_at")
     expires_at: dt.datetime
+
+
+class WebhookAttempt(BaseModel):
+    """One delivery of a job's webhook."""
+
+    at: dt.datetime
+    status: int | None = Field(description="the receiver's HTTP status; null when no answer came")
+    error: str | None = Field(default=None, description="why the attempt failed, when it did")
+
+
+class WebhookOut(BaseModel):
+    """The job's callback and its deliveries (signed as Standard Webhooks; see GET /v1/webhook-secret)."""
+
+    url: str
+    state: Literal["pending", "delivered", "failed"] = Field(
+        description="pending (not yet finished, or retrying), delivered (2xx), failed (retries used up)"
+    )
+    attempts: list[WebhookAttempt]
+
+
+class WebhookSecret(BaseModel):
+    """The secret this API key's webhooks are signed with (Standard Webhooks ``whsec_`` form)."""
+
+    secret: str
 
 
 class JobOut(BaseModel):
@@ -51,6 +76,7 @@ class JobOut(BaseModel):
     finished_at: dt.datetime | None
     error: JobError | None
     outputs: list[OutputFile] | None
+    webhook: WebhookOut | None = Field(default=None, description="the callback and its delivery attempts, if any")
 
 
 class JobList(BaseModel):
@@ -84,6 +110,11 @@ UPLOAD_BODY = {
                         "format": "binary",
                         "description": "zip, tar or tar.gz of 2-D slices, or a DICOM series as a zip",
                     },
+                    "callback_url": {
+                        "type": "string",
+                        "format": "uri",
+                        "description": "https or http URL POSTed the job (signed, Standard Webhooks) when it ends",
+                    },
                     "params": {
                         "type": "string",
                         "description": "JSON object of JobParams (iso or preset, spacing, reduction, orient, "
@@ -99,7 +130,10 @@ UPLOAD_BODY = {
 }
 DOWNLOAD_CONTENT = {
     "content": {
-        **{media: {"schema": {"type": "string", "format": "binary"}} for media in ("model/stl", "model/gltf-binary")},
+        **{
+            media: {"schema": {"type": "string", "format": "binary"}}
+            for media in ("model/stl", "model/gltf-binary", "model/vnd.usdz+zip", "image/png")
+        },
         "application/json": {"schema": {"type": "object"}},
     },
     "description": "the file (report.json is JSON, the models are binary)",

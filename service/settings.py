@@ -42,6 +42,26 @@ class Settings(BaseSettings):
     job_time_limit: int = 3900
     max_attempts: int = 3
     public_url: str | None = Field(default=None, description="base URL of download links (default: the request's)")
+    cors_origins: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="browser origins allowed to call the API (CORS); empty: none"
+    )
+    webhook_allow_private: bool = Field(
+        default=False, description="accept callback URLs on loopback, link-local and private addresses (tests only)"
+    )
+    webhook_retry_seconds: float = Field(default=6 * 3600, ge=0, description="how long a webhook is retried")
+    webhook_backoff_seconds: float = Field(default=5.0, gt=0, description="first retry delay; doubles each time")
+    webhook_timeout_seconds: float = Field(default=10.0, gt=0, description="one delivery's time limit")
+    webhook_poll_seconds: float = Field(default=1.0, gt=0, description="how often due webhooks are looked for")
+    assets_dir: Path | None = Field(
+        default=None, description="the page's npm packages (node_modules); default: beside the service's source"
+    )
+
+    @field_validator("cors_origins", mode="before")
+    @classmethod
+    def _split_origins(cls, value: object) -> object:
+        if isinstance(value, str):
+            return [o.strip().rstrip("/") for o in value.split(",") if o.strip()]
+        return value
 
     @field_validator("api_keys", mode="before")
     @classmethod

@@ -23,6 +23,9 @@ OUTPUTS = {
     "model.glb": ("model", "model/gltf-binary"),
     "phone.glb": ("phone", "model/gltf-binary"),
     "ar.glb": ("ar", "model/gltf-binary"),
+    "phone_meshopt.glb": ("phone_meshopt", "model/gltf-binary"),
+    "model.usdz": ("ar_ios", "model/vnd.usdz+zip"),
+    "preview.png": ("preview", "image/png"),
     "report.json": ("report", "application/json"),
 }
 _ID = re.compile(r"^[0-9a-f]{32}$")

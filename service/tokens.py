@@ -45,3 +45,11 @@ def verify(key: bytes, token: str, now: float | None = None) -> tuple[str, str]:
     if (time.time() if now is None else now) > expires_at:
         raise BadToken("the link has expired; ask the API for the job again to get fresh links")
     return job_id, name
+
+
+def expiry(token: str) -> int:
+    """The expiry (Unix seconds) written in a token (call after ``verify``)."""
+    try:
+        return int(_unb64(token.split(".")[0]).decode().split("/")[2])
+    except (ValueError, IndexError, UnicodeDecodeError) as exc:
+        raise BadToken("the link is malformed") from exc

@@ -18,7 +18,7 @@ from service.logsafe import escape_control
 MAX_FIELD_BYTES = 64 << 10
 MAX_HEADER_BYTES = 16 << 10
 FLUSH_BYTES = 1 << 20
-FIELDS = ("params",)
+FIELDS = ("params", "callback_url")
 Sink = Callable[[bytes], Awaitable[None]]
 
 
@@ -90,7 +90,8 @@ async def read_multipart(content_type: str, body: AsyncIterator[bytes], sink: Si
         name = opts.get(b"name", b"").decode("utf-8", "replace")
         if name != "file" and name not in FIELDS:
             raise UploadError(
-                422, f"unexpected form field {escape_control(name)!r}: send 'file' and optionally 'params'"
+                422,
+                f"unexpected form field {escape_control(name)!r}: send 'file', optionally 'params' and 'callback_url'",
             )
         if name in seen:
             raise UploadError(400, f"the form field {name!r} was sent twice: send each part once")

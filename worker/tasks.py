@@ -139,9 +139,9 @@ def _run(job: Any, upload: Path, staged: Path, holder: _Holder, device: str) -> 
     from engine.params import ReconParams
     from engine.pipeline import reconstruct
 
-    params = ReconParams.from_dict(_engine_params(job.params))
+    recon_dict, spacing = engine_params_of(job)
+    params = ReconParams.from_dict(recon_dict)
     holder.progress("loading", 1.0)
-    spacing = job.params.get("spacing")
     volume = load_volume(upload, spacing_zyx_mm=tuple(spacing) if spacing else None)
     holder.progress("loading", LOAD_END)
 
@@ -158,7 +158,8 @@ def _run(job: Any, upload: Path, staged: Path, holder: _Holder, device: str) -> 
         "model.glb": report["mesh"]["n_faces"],
         "phone.glb": report["exports"]["phone.glb"]["faces"],
         "ar.glb": report["exports"]["ar.glb"]["faces"],
-        "report.json": None,
+        "phone_meshopt.glb": report["exports"]["phone.glb"]["faces"],
+        "model.usdz": report["exports"]["ar.glb"]["faces"],
     }
     return [
         {
@@ -166,16 +167,22 @@ def _run(job: Any, upload: Path, staged: Path, holder: _Holder, device: str) -> 
             "kind": OUTPUTS[name][0],
             "media_type": OUTPUTS[name][1],
             "bytes": path.stat().st_size,
-            "triangles": triangles[name],
+            "triangles": triangles.get(name),
         }
         for name, path in paths.items()
     ]
 
 
-def _engine_params(flat: dict[str, Any]) -> dict[str, Any]:
-    from service.params import JobParams
+def engine_params_of(job: Any) -> tuple[dict[str, Any], list[float] | None]:
+    """The engine's parameter dict and the voxel size the API stored with the job (validated there, once).
 
-    return JobParams.model_validate(flat).engine_params()
+    A job recorded before the API stored them (an older release) is converted from its client parameters.
+    """
+    if job.engine_params:
+        return job.engine_params["recon"], job.engine_params.get("spacing_zyx_mm")
+    from service.params import JobParams  # an older record: the client's form only
+
+    return JobParams.model_validate(job.params).engine_params(), job.params.get("spacing")
 
 
 def _explain(exc: Exception, filename: str) -> tuple[str, str]:

@@ -109,7 +109,10 @@ def test_write_outputs(headsq_recon, tmp_path):
     import DracoPy
 
     paths = write_outputs(headsq_recon, tmp_path, HEADSQ_PARAMS, device="cpu")
-    assert set(paths) == {"model.stl", "model.glb", "phone.glb", "ar.glb", "report.json"}
+    assert set(paths) == {
+        *("model.stl", "model.glb", "phone.glb", "ar.glb", "report.json"),
+        *("phone_meshopt.glb", "model.usdz", "preview.png"),
+    }
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(paths)  # no temporary leftovers
     stl = trimesh.load(paths["model.stl"])
     assert stl.is_watertight and len(stl.faces) == len(headsq_recon.mesh.faces)

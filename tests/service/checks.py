@@ -6,6 +6,8 @@ import datetime as dt
 import io
 import json
 import struct
+import tempfile
+from pathlib import Path
 from typing import Any
 
 import DracoPy
@@ -192,9 +194,34 @@ def check_outputs(
             assert len(mesh.faces) <= budget, name
         np.testing.assert_allclose(np.sort(mesh.extents) * 1000.0, size_mm, rtol=0.05, err_msg=name)
 
+    check_viewer_files(files, outputs, size_mm)
     assert report["input"]["shape_zyx"] == list(shape_zyx), report["input"]
     np.testing.assert_allclose(report["input"]["spacing_zyx_mm"], spacing_zyx_mm, rtol=1e-4)
     assert {"gaussian", "isosurface", "decimate", "smooth"} <= set(report["stage_seconds"]), report["stage_seconds"]
     assert report["mesh"]["watertight"] is True
     assert report["mesh"]["n_faces"] == outputs["model.stl"]["triangles"]
     return report
+
+
+def check_viewer_files(files: dict[str, bytes], outputs: dict[str, dict[str, Any]], size_mm: np.ndarray) -> None:
+    """The meshopt GLB decodes to the phone model in metres, the USDZ holds the AR model (metres, +Y up), and the
+    thumbnail is a PNG of a few hundred pixels that shows something."""
+    import imageio.v3 as iio
+    from pxr import Usd, UsdGeom
+
+    from engine.export.meshopt import read_meshopt_glb
+
+    points, _, faces = read_meshopt_glb(files["phone_meshopt.glb"])
+    assert len(faces) == outputs["phone_meshopt.glb"]["triangles"] == outputs["phone.glb"]["triangles"]
+    np.testing.assert_allclose(np.sort(np.ptp(points, axis=0)) * 1000.0, size_mm, rtol=0.05)
+    path = Path(tempfile.mkdtemp()) / "model.usdz"
+    path.write_bytes(files["model.usdz"])
+    stage = Usd.Stage.Open(str(path))
+    assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    (mesh,) = [UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+    assert len(mesh.GetFaceVertexCountsAttr().Get()) == outputs["model.usdz"]["triangles"]
+    pts = np.asarray(mesh.GetPointsAttr().Get())
+    np.testing.assert_allclose(np.sort(np.ptp(pts, axis=0)) * 1000.0, size_mm, rtol=0.05)
+    image = iio.imread(files["preview.png"])
+    assert image.ndim == 3 and image.shape[2] == 4 and 128 <= image.shape[0] <= 1024, image.shape
+    assert 0.05 < (image[..., 3] > 0).mean() < 0.95, "the thumbnail shows nothing, or nothing but the model"

@@ -164,7 +164,16 @@ class StackFactory:
 @pytest.fixture(scope="session")
 def stack(redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceStack]:
     """The shared stack: API server + one CPU worker on the session redis-server."""
-    svc = ServiceStack(tmp_path_factory.mktemp("stack"), redis_server.url)
+    svc = ServiceStack(
+        tmp_path_factory.mktemp("stack"),
+        redis_server.url,
+        extra_env={  # webhooks to a receiver on loopback (tests only), retried fast
+            "BONEMESH_WEBHOOK_ALLOW_PRIVATE": "true",
+            "BONEMESH_WEBHOOK_BACKOFF_SECONDS": "0.5",
+            "BONEMESH_WEBHOOK_POLL_SECONDS": "0.2",
+            "BONEMESH_WEBHOOK_RETRY_SECONDS": "30",
+        },
+    )
     _OPEN_STACKS.append(svc)
     try:
         _fail_on_process_error(svc.start_server)

@@ -35,7 +35,16 @@ import httpx
 REPO = Path(__file__).resolve().parents[2]
 TERMINAL_STATES = frozenset({"succeeded", "failed", "cancelled"})
 API_KEYS = ("key-a", "key-b")
-OUTPUT_NAMES = ("model.stl", "model.glb", "phone.glb", "ar.glb", "report.json")
+OUTPUT_NAMES = (
+    "model.stl",
+    "model.glb",
+    "phone.glb",
+    "ar.glb",
+    "phone_meshopt.glb",
+    "model.usdz",
+    "preview.png",
+    "report.json",
+)
 
 _LIVE: set[Proc] = set()  # every process group still running, killed at exit
 
@@ -400,19 +409,27 @@ class ServiceStack:
 
 
 def submit(
-    client: httpx.Client, archive: Path | bytes, params: dict[str, Any] | None = None, filename: str | None = None
+    client: httpx.Client,
+    archive: Path | bytes,
+    params: dict[str, Any] | None = None,
+    filename: str | None = None,
+    extra: dict[str, str] | None = None,
 ) -> httpx.Response:
-    """POST /v1/jobs with the archive (a path, or bytes) and optional params; returns the raw response."""
+    """POST /v1/jobs with the archive (a path, or bytes), optional params and other form fields (``extra``, e.g.
+    ``callback_url``); returns the raw response."""
     if isinstance(archive, Path):
         name = filename or archive.name
         with open(archive, "rb") as fh:
-            return _post(client, (name, fh, "application/octet-stream"), params)
-    return _post(client, (filename or "upload.zip", archive, "application/octet-stream"), params)
+            return _post(client, (name, fh, "application/octet-stream"), params, extra)
+    return _post(client, (filename or "upload.zip", archive, "application/octet-stream"), params, extra)
 
 
-def _post(client: httpx.Client, file: tuple[str, Any, str], params: dict[str, Any] | None) -> httpx.Response:
-    data = {"params": json.dumps(params)} if params is not None else None
-    return client.post("/v1/jobs", files={"file": file}, data=data)
+def _post(
+    client: httpx.Client, file: tuple[str, Any, str], params: dict[str, Any] | None, extra: dict[str, str] | None
+) -> httpx.Response:
+    data = {"params": json.dumps(params)} if params is not None else {}
+    data.update(extra or {})
+    return client.post("/v1/jobs", files={"file": file}, data=data or None)
 
 
 def wait_for_job(

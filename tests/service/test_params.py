@@ -16,7 +16,7 @@ from engine.data import HEADSQ_ZIP
 from engine.params import BodyMaskParams, IslandParams, OrientParams, PreprocessParams, ReconParams
 from service.params import JobParams
 from tests.service.checks import assert_problem
-from worker.tasks import _engine_params
+from worker.tasks import engine_params_of
 
 KEY = {"X-API-Key": "key-a"}
 SPACING = {"spacing": [1.5, 3.2, 3.2]}  # the bundled headsq PNG stack needs it
@@ -66,7 +66,10 @@ def test_job_params_reach_the_engine_through_the_job_record(kind: str, client: T
     assert resp.status_code == 202, resp.text
     record = resp.json()["params"]
     assert record == client.get(f"/v1/jobs/{resp.json()['id']}", headers=KEY).json()["params"]
-    assert ReconParams.from_dict(_engine_params(record)) == expected, record
+    stored = client.app.state.services.db.get(resp.json()["id"])  # what the worker reads: the engine's dict
+    recon, spacing = engine_params_of(stored)
+    assert ReconParams.from_dict(recon) == expected, record
+    assert spacing == SPACING["spacing"], stored.engine_params
     assert ReconParams.from_dict(JobParams.model_validate({**SPACING, **(params or {})}).engine_params()) == expected
 
 

@@ -1,0 +1,101 @@
+"""Taking an upload in: the job's ``params`` part parsed and validated once (the engine's own parameter dict is
+made here and stored; the worker only reads it back), the optional ``callback_url`` checked, the file streamed to
+storage and inspected, and the job recorded and enqueued. Nothing of a refused upload is kept."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from fastapi import Request
+from pydantic import ValidationError
+
+from service.db import Database, Job
+from service.logsafe import safe_logger
+from service.params import JobParams
+from service.problems import Problem
+from service.services import Services
+from service.storage import UploadTooLarge, is_storage_full
+from service.upload_check import inspect_upload
+from service.uploads import UploadError, read_multipart
+from service.webhooks import CallbackRefused, check_callback_url
+
+log = safe_logger("bonemesh.api")
+FULL = "the data volume is full: the upload was not kept; try again later or ask the operator to free space"
+
+
+async def receive(request: Request, svc: Services, who: str, limit: int, base_url: str) -> Job:
+    """Stream, check and record one upload; nothing of a refused one is kept."""
+    job_id = Database.new_id()
+    writer = await svc.in_upload_thread(svc.storage.upload_writer, job_id, limit)
+    try:
+        parsed = await read_multipart(
+            request.headers.get("content-type", ""),
+            request.stream(),
+            lambda data: svc.in_upload_thread(writer.write, data),
+        )
+        params, engine = parse_params(parsed.fields.get("params"))
+        callback = parsed.fields.get("callback_url", "").strip() or None
+        if callback is not None:
+            try:
+                await svc.in_upload_thread(check_callback_url, callback, svc.settings.webhook_allow_private)
+            except CallbackRefused as exc:
+                raise Problem(422, str(exc), errors=[{"field": "callback_url", "message": str(exc)}]) from None
+        await svc.in_upload_thread(writer.commit)
+        summary = await svc.in_upload_thread(inspect_upload, svc.storage.upload_path(job_id), parsed.filename, params)
+        log.info("job %s: upload of %d bytes: %s", job_id, writer.size, summary)
+        name = parsed.filename or "upload"
+        return await svc.in_upload_thread(  # type: ignore[no-any-return]
+            svc.accept, job_id, who, params.record(), engine, name, writer.size, callback, base_url
+        )
+    except Exception as exc:
+        await svc.in_upload_thread(svc.discard, writer, job_id)
+        if isinstance(exc, UploadTooLarge):
+            raise Problem(413, str(exc)) from None
+        if isinstance(exc, UploadError):
+            raise Problem(exc.status, exc.detail) from None
+        if is_storage_full(exc):
+            log.error("job %s: upload refused, the data volume is full (%s)", job_id, exc)
+            raise Problem(507, FULL) from None
+        raise
+    except BaseException:  # cancelled: clean up without awaiting
+        svc.discard(writer, job_id)
+        raise
+
+
+def parse_params(text: str | None) -> tuple[JobParams, dict[str, Any]]:
+    """The client's parameters and the engine's record of them (``{"recon": ReconParams.to_dict(),
+    "spacing_zyx_mm": [...] | None}``), validated once.
+
+    Raises:
+        Problem: 422 naming the field when a value is refused (by the schema or by the engine).
+    """
+    if text is None or not text.strip():
+        params = JobParams()
+    else:
+        params = _validate(text)
+    try:
+        recon = params.engine_params()
+    except ValueError as exc:
+        raise Problem(422, f"params: {exc}", errors=[{"field": "params", "message": str(exc)}]) from None
+    return params, {"recon": recon, "spacing_zyx_mm": params.spacing}
+
+
+def _validate(text: str) -> JobParams:
+    try:
+        data = json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        reason = "it is nested too deeply" if isinstance(exc, RecursionError) else str(exc)
+        raise Problem(422, f"params is not valid JSON: {reason}") from None
+    if not isinstance(data, dict):
+        raise Problem(422, "params must be a JSON object")
+    try:
+        return JobParams.model_validate(data)
+    except (ValidationError, RecursionError) as exc:
+        if isinstance(exc, RecursionError):
+            raise Problem(422, "params is nested too deeply") from None
+        errs = [
+            {"field": ".".join(["params", *(str(p) for p in e["loc"])]).rstrip("."), "message": e["msg"]}
+            for e in exc.errors()
+        ]
+        raise Problem(422, "; ".join(f"{e['field']}: {e['message']}" for e in errs), errors=errs) from None

@@ -1,0 +1,86 @@
+"""Downloads through signed links (no API key): ``GET`` and ``HEAD``, with an ``ETag`` (``If-None-Match`` answers
+304) and ``Cache-Control: private, max-age`` up to the link's expiry."""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from email.utils import formatdate
+from typing import Annotated
+
+from fastapi import APIRouter, Header
+from fastapi.responses import FileResponse, Response
+
+from service import tokens
+from service.deps import ServicesDep
+from service.problems import Problem
+from service.problems import problems as errors
+from service.schemas import DOWNLOAD_CONTENT
+from service.storage import OUTPUTS
+
+router = APIRouter(prefix="/v1", tags=["files"])
+RESPONSES = {
+    200: DOWNLOAD_CONTENT,
+    304: {"description": "not modified: the ETag sent in If-None-Match is the file's"},
+    **errors(403, 404, d403="the link does not verify (forged, malformed or expired)", d404="file gone"),
+}
+
+
+def _answer(svc: ServicesDep, token: str, if_none_match: str | None) -> Response:
+    try:
+        job_id, name = tokens.verify(svc.key, token)
+        expires = tokens.expiry(token)
+    except tokens.BadToken as exc:
+        raise Problem(403, str(exc)) from None
+    job = svc.db.get(job_id)
+    path = svc.storage.output_path(job_id, name) if job is not None and job.state == "succeeded" else None
+    if path is None:
+        raise Problem(404, "this file no longer exists (the job was deleted)")
+    stat = path.stat()
+    etag = '"' + hashlib.sha256(f"{job_id}/{name}/{stat.st_mtime_ns}/{stat.st_size}".encode()).hexdigest()[:32] + '"'
+    headers = {
+        "etag": etag,
+        "cache-control": f"private, max-age={max(0, expires - int(time.time()))}",
+        "expires": formatdate(expires, usegmt=True),
+    }
+    if if_none_match is not None and (
+        if_none_match.strip() == "*" or etag in {t.strip().removeprefix("W/") for t in if_none_match.split(",")}
+    ):
+        return Response(status_code=304, headers=headers)
+    media = OUTPUTS.get(name, ("file", "application/octet-stream"))[1]
+    return FileResponse(
+        path,
+        media_type=media,
+        filename=name,
+        content_disposition_type="attachment",
+        headers=headers,
+        stat_result=stat,
+    )
+
+
+@router.get(
+    "/files/{token:path}",
+    summary="download an output through its signed link (no API key)",
+    response_class=FileResponse,
+    responses=RESPONSES,
+)
+def download(
+    token: str,
+    svc: ServicesDep,
+    if_none_match: Annotated[str | None, Header(description="an ETag seen before: 304 if unchanged")] = None,
+) -> Response:
+    return _answer(svc, token, if_none_match)
+
+
+@router.head(
+    "/files/{token:path}",
+    summary="the headers of a download (size, type, ETag, Cache-Control) without its body",
+    response_class=FileResponse,
+    responses=RESPONSES,
+)
+def download_head(
+    token: str,
+    svc: ServicesDep,
+    if_none_match: Annotated[str | None, Header(description="an ETag seen before: 304 if unchanged")] = None,
+) -> Response:
+    return _answer(svc, token, if_none_match)

@@ -1,0 +1,122 @@
+"""The job resource: create (upload), list, read, cancel, delete; and the key's webhook secret."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import JSONResponse, Response
+
+from service.db import Job
+from service.deps import BaseUrlDep, OwnerDep, ServicesDep
+from service.intake import FULL, receive
+from service.problems import Problem
+from service.problems import problems as errors
+from service.schemas import UPLOAD_BODY, JobList, JobOut, WebhookSecret
+from service.services import Services
+from service.webhooks import key_secret
+
+router = APIRouter(prefix="/v1", tags=["jobs"])
+MULTIPART_SLACK = 1 << 20  # multipart headers and boundaries around the file
+MAX_OFFSET = 2**31 - 1
+KEYED = errors(401, d401="missing or unknown API key")
+
+
+def _job(svc: Services, job_id: str, who: str) -> Job:
+    job = svc.db.get(job_id, who)
+    if job is None:
+        raise Problem(404, f"no job {job_id} for this API key")
+    return job
+
+
+@router.post(
+    "/jobs",
+    status_code=202,
+    response_model=JobOut,
+    summary="upload a scan and start a reconstruction",
+    responses={
+        **KEYED,
+        **errors(
+            400,
+            413,
+            415,
+            422,
+            507,
+            d400="malformed or incomplete multipart body, or a part sent twice",
+            d413="the upload is larger than the limit",
+            d415="not multipart, or not an archive bonemesh reads",
+            d422="invalid params or callback_url, or an archive that cannot be a scan",
+            d507="the data volume cannot hold the upload (nothing was kept)",
+        ),
+    },
+    openapi_extra={"requestBody": UPLOAD_BODY},
+)
+async def create_job(request: Request, who: OwnerDep, svc: ServicesDep, base: BaseUrlDep) -> Response:
+    limit = svc.settings.max_upload_bytes
+    declared = request.headers.get("content-length")
+    size = int(declared) if declared and declared.isdigit() and len(declared) < 20 else None
+    if size is not None and size > limit + MULTIPART_SLACK:
+        raise Problem(413, f"the upload ({size:,} bytes) is over the limit of {limit:,} bytes")
+    free = await svc.in_upload_thread(svc.storage.free_bytes)
+    if size is not None and free is not None and size > free:
+        raise Problem(507, f"{FULL} ({size:,} bytes sent, {free:,} free)")
+    async with svc.active_uploads:
+        job = await receive(request, svc, who, limit, base)
+    body = svc.job_out(job, base).model_dump(mode="json")
+    return JSONResponse(body, status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
+
+
+@router.get("/jobs", response_model=JobList, summary="your jobs, newest first", responses=KEYED)
+def list_jobs(
+    who: OwnerDep,
+    svc: ServicesDep,
+    base: BaseUrlDep,
+    limit: Annotated[int, Query(ge=1, le=200)] = 50,
+    offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
+) -> JobList:
+    rows, total = svc.db.list(who, limit, offset)
+    return JobList(items=[svc.job_out(j, base) for j in rows], total=total, limit=limit, offset=offset)
+
+
+@router.get("/jobs/{job_id}", response_model=JobOut, summary="a job", responses={**KEYED, **errors(404)})
+def get_job(job_id: str, who: OwnerDep, svc: ServicesDep, base: BaseUrlDep) -> JobOut:
+    return svc.job_out(_job(svc, job_id, who), base)
+
+
+@router.post(
+    "/jobs/{job_id}/cancel",
+    response_model=JobOut,
+    summary="cancel a queued or running job (the record stays, as cancelled; its files are removed)",
+    responses={**KEYED, **errors(404, 409, d409="the job has already finished")},
+)
+def cancel_job(job_id: str, who: OwnerDep, svc: ServicesDep, base: BaseUrlDep) -> JobOut:
+    job = _job(svc, job_id, who)
+    if job.state != "cancelled":
+        if not svc.db.cancel(job_id):
+            raise Problem(409, f"job {job_id} has already {job.state}; delete it to remove it and its files")
+        svc.storage.delete_job(job_id)
+    return svc.job_out(_job(svc, job_id, who), base)
+
+
+@router.delete(
+    "/jobs/{job_id}",
+    status_code=204,
+    summary="delete a job and its files (a running one is stopped); afterwards the job answers 404",
+    responses={**KEYED, **errors(404)},
+)
+def delete_job(job_id: str, who: OwnerDep, svc: ServicesDep) -> Response:
+    _job(svc, job_id, who)
+    svc.db.delete(job_id)
+    svc.storage.delete_job(job_id)
+    return Response(status_code=204)
+
+
+@router.get(
+    "/webhook-secret",
+    response_model=WebhookSecret,
+    tags=["webhooks"],
+    summary="the secret your jobs' webhooks are signed with (Standard Webhooks, HMAC-SHA256)",
+    responses=KEYED,
+)
+def webhook_secret(who: OwnerDep, svc: ServicesDep) -> WebhookSecret:
+    return WebhookSecret(secret=key_secret(svc.key, who))

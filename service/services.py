@@ -1,0 +1,122 @@
+"""What the routes and the background threads use, built once from the settings: the job records, the storage,
+the broker client, the link-signing key and the upload thread pool (held on ``app.state.services``)."""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any
+
+import anyio
+
+from service import tokens
+from service.db import Database, Job
+from service.logsafe import safe_logger
+from service.queue import Queue
+from service.schemas import JobError, JobOut, OutputFile, WebhookAttempt, WebhookOut
+from service.settings import Settings
+from service.storage import Storage, storage_from_settings
+
+log = safe_logger("bonemesh.api")
+UPLOAD_THREADS = 4  # threads for the blocking parts of all uploads together
+
+
+class Services:
+    """The service's collaborators.
+
+    Args:
+        settings: the process's settings.
+    """
+
+    def __init__(self, settings: Settings) -> None:
+        settings.data_dir.mkdir(parents=True, exist_ok=True)
+        self.settings = settings
+        self.db = Database(settings.db_url)
+        self.storage: Storage = storage_from_settings(settings.data_dir)
+        self.queue = Queue(settings.redis_url, settings.queue)
+        self.key = settings.signing_key()
+        self.upload_threads = anyio.CapacityLimiter(UPLOAD_THREADS)
+        self.active_uploads = anyio.Semaphore(settings.active_uploads)
+
+    async def in_upload_thread(self, fn: Any, *args: Any) -> Any:
+        """``fn(*args)`` in one of the uploads' threads."""
+        return await anyio.to_thread.run_sync(fn, *args, limiter=self.upload_threads)
+
+    def enqueue(self, job_id: str) -> bool:
+        """Send the job's message; False (and the job stays queued, re-sent by the reconciler) when the broker is
+        down."""
+        try:
+            self.queue.enqueue(job_id)
+        except Exception as exc:  # broker down: the reconciler sends it later
+            log.warning("could not enqueue job %s (%s); it stays queued and is re-sent later", job_id, exc)
+            return False
+        self.db.mark_enqueued(job_id)
+        return True
+
+    def accept(
+        self,
+        job_id: str,
+        who: str,
+        record: dict[str, Any],
+        engine: dict[str, Any],
+        name: str,
+        size: int,
+        callback_url: str | None = None,
+        base_url: str = "",
+    ) -> Job:
+        """Record an uploaded job and send its message (blocking: call from a thread)."""
+        job = self.db.create(
+            who, record, name, size, job_id=job_id, engine_params=engine, callback_url=callback_url, base_url=base_url
+        )
+        self.enqueue(job_id)
+        return self.db.get(job_id) or job
+
+    def discard(self, writer: Any, job_id: str) -> None:
+        """Drop a refused upload: the partial file and the job's folder (never raises)."""
+        try:
+            writer.abort()
+        finally:
+            self.storage.delete_job(job_id)
+
+    def job_out(self, job: Job, base_url: str) -> JobOut:
+        """The job resource as clients see it, with fresh signed links to its outputs."""
+        outputs = None
+        if job.state == "succeeded" and job.outputs:
+            outputs = []
+            for o in job.outputs:
+                token, expires = tokens.sign(self.key, job.id, o["name"], self.settings.url_ttl_seconds)
+                outputs.append(
+                    OutputFile(
+                        **o,
+                        url=f"{base_url.rstrip('/')}/v1/files/{token}",
+                        expires_at=dt.datetime.fromtimestamp(expires, dt.UTC),
+                    )
+                )
+        error = JobError(code=job.error_code, message=job.error_message or "") if job.error_code else None
+        webhook = None
+        if job.callback_url:
+            webhook = WebhookOut(
+                url=job.callback_url,
+                state=job.webhook_state or "pending",  # type: ignore[arg-type]
+                attempts=[WebhookAttempt(**a) for a in job.webhook_attempts or []],
+            )
+        return JobOut(
+            id=job.id,
+            state=job.state,  # type: ignore[arg-type]
+            stage=job.stage,
+            progress=round(job.progress, 1),
+            upload_name=job.upload_name,
+            upload_bytes=job.upload_bytes,
+            params=job.params,
+            attempts=job.attempts,
+            created_at=utc(job.created_at),
+            started_at=utc(job.started_at),
+            finished_at=utc(job.finished_at),
+            error=error,
+            outputs=outputs,
+            webhook=webhook,
+        )
+
+
+def utc(value: dt.datetime | None) -> dt.datetime | None:
+    """A stored naive UTC time as an aware one."""
+    return None if value is None else value.replace(tzinfo=dt.UTC)

@@ -1,0 +1,145 @@
+"""The page in a real browser (headless Chromium): enter the key, choose the bundled scan, upload, watch the job,
+see the model in 3D, download a file; everything the page loads comes from the service itself.
+
+The screenshots are kept as test artefacts (their paths are printed): ``page.png`` (the whole page) and
+``viewer.png`` (the 3D view).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from tests.service.browser import find_chromium, start_chromium
+from tests.service.conftest import HEADSQ
+from tests.service.procs import ServiceStack, wait_until
+
+pytestmark = pytest.mark.browser
+
+
+@pytest.fixture(scope="module")
+def chromium_paths() -> tuple[str, str]:
+    paths = find_chromium()
+    if isinstance(paths, str):
+        pytest.skip(paths)
+    return paths
+
+
+@pytest.fixture(scope="module")
+def artefacts(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.getbasetemp() / "artefacts"
+    folder.mkdir(exist_ok=True)
+    return folder
+
+
+def _js(driver: Any, script: str, *args: Any) -> Any:
+    return driver.execute_script(script, *args)
+
+
+def test_upload_watch_view_download(
+    stack: ServiceStack, chromium_paths: tuple[str, str], artefacts: Path, tmp_path: Path
+) -> None:
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import Select
+
+    downloads = tmp_path / "downloads"
+    downloads.mkdir()
+    driver = start_chromium(*chromium_paths, downloads)
+    try:
+        driver.get(stack.base_url + "/")
+        assert "bonemesh" in driver.title
+        assert not driver.find_elements(By.ID, "assets-missing"), "the service found no node_modules"
+        driver.find_element(By.ID, "api-key").send_keys("key-a")
+        driver.find_element(By.ID, "key-save").click()
+        assert _js(driver, "return sessionStorage.getItem('bonemesh-api-key')") == "key-a"
+        assert "key-a" not in driver.current_url
+        file_input = driver.find_element(By.ID, "file-input")
+        _js(driver, "arguments[0].hidden = false", file_input)
+        file_input.send_keys(str(HEADSQ.path))
+        wait_until(lambda: "headsq" in driver.find_element(By.ID, "picked").text, 10, "the file to be picked")
+        Select(driver.find_element(By.ID, "level-kind")).select_by_value("iso")
+        driver.find_element(By.ID, "iso").send_keys(str(HEADSQ.params["iso"]))
+        driver.find_element(By.ID, "spacing").send_keys(", ".join(str(v) for v in HEADSQ.params["spacing"]))
+        driver.find_element(By.ID, "start").click()
+
+        # upload progress, then the job's stages and percentages as the page shows them
+        wait_until(lambda: driver.find_element(By.ID, "upload-text").text == "uploaded", 60, "the upload")
+        seen: list[str] = []
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline:
+            state = driver.find_element(By.ID, "job-box").get_attribute("data-state") or ""
+            text = driver.find_element(By.ID, "job-state").text
+            if text and (not seen or seen[-1] != text):
+                seen.append(text)
+            if state in ("succeeded", "failed", "cancelled"):
+                break
+            time.sleep(0.2)
+        assert state == "succeeded", f"{state}: {seen} {driver.find_element(By.ID, 'job-error').text}"
+        assert any("running" in s for s in seen), seen  # the live stage was shown before the end
+        assert seen[-1] == "succeeded: 100 %", seen
+
+        # the 3D view: the Draco phone model loaded (decoder from this server) and visible
+        wait_until(lambda: _js(driver, "return document.getElementById('viewer').dataset.loaded"), 120, "the model")
+        assert _js(driver, "return document.getElementById('viewer').dataset.loaded") == "yes", _console(driver)
+        wait_until(lambda: _js(driver, "return document.getElementById('viewer').modelIsVisible"), 60, "the render")
+        dims = _js(driver, "const d = document.getElementById('viewer').getDimensions(); return [d.x, d.y, d.z]")
+        assert 0.05 < max(dims) < 0.5, dims  # metres: a head, not millimetres
+        time.sleep(1.5)  # the first frames fade the model in
+        viewer = driver.find_element(By.ID, "viewer")
+        _js(driver, "arguments[0].scrollIntoView({block: 'center'})", viewer)
+        viewer_png, page_png = artefacts / "viewer.png", artefacts / "page.png"
+        viewer.screenshot(str(viewer_png))
+        driver.save_screenshot(str(page_png))
+        print(f"\nscreenshots: {viewer_png} {page_png}")  # noqa: T201
+        _assert_model_framed(viewer_png)
+
+        # every output has a download button; one download arrives whole
+        rows = driver.find_elements(By.CSS_SELECTOR, "#facts a.download")
+        names = {a.get_attribute("data-name") for a in rows}
+        assert {"model.stl", "phone.glb", "ar.glb", "model.usdz", "phone_meshopt.glb", "preview.png"} <= names
+        link = next(a for a in rows if a.get_attribute("data-name") == "phone.glb")
+        with stack.client(None) as anon:
+            expected = int(anon.head(link.get_attribute("href")).headers["content-length"])
+        link.click()
+        wait_until(lambda: (downloads / "phone.glb").is_file(), 30, "the download")
+        wait_until(lambda: (downloads / "phone.glb").stat().st_size == expected, 10, "the whole download")
+        assert (downloads / "phone.glb").read_bytes()[:4] == b"glTF"
+        assert driver.find_element(By.CSS_SELECTOR, "#qr svg"), "no QR code for the phone link"
+
+        # the recent jobs list, with the thumbnail
+        wait_until(
+            lambda: _js(driver, "return [...document.querySelectorAll('#jobs img')].some(i => i.naturalWidth > 0)"),
+            30,
+            "a job thumbnail in the list",
+        )
+        # nothing came from elsewhere: every resource the page loaded is the service's
+        urls = _js(driver, "return performance.getEntriesByType('resource').map(e => e.name)")
+        assert urls and all(u.startswith(stack.base_url) or u.startswith(("blob:", "data:")) for u in urls), urls
+        assert any("/vendor/draco/" in u for u in urls), urls  # the Draco decoder was served here
+    finally:
+        driver.quit()
+
+
+def _console(driver: Any) -> str:
+    try:
+        return "\n".join(str(e) for e in driver.get_log("browser"))[-3000:]
+    except Exception:  # not every driver keeps the log
+        return ""
+
+
+def _assert_model_framed(path: Path) -> None:
+    """The screenshot shows the model: pixels that differ from the background gradient, inside the frame."""
+    import imageio.v3 as iio
+
+    image = iio.imread(path)[12:-12, 12:-12, :3].astype(float)  # inside the rounded corners
+    background = np.median(image[:, :8], axis=1)  # the left border, row by row (vertical gradient)
+    diff = np.abs(image - background[:, None, :]).sum(axis=2) > 40
+    rows, cols = np.nonzero(diff)
+    assert diff.mean() > 0.03, f"the model is not visible in {path} ({diff.mean():.3f} of the pixels)"
+    h, w = diff.shape
+    assert rows.min() > 0.02 * h and rows.max() < 0.98 * h, f"the model touches the top or bottom in {path}"
+    assert cols.min() > 0.02 * w and cols.max() < 0.98 * w, f"the model touches the sides in {path}"
