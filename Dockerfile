@@ -25,7 +25,7 @@ COPY pyproject.toml README.md ./
 COPY engine ./engine
 COPY service ./service
 COPY worker ./worker
-RUN pip install . \
+RUN pip install ".[pacs]" \
     && useradd --system --uid 10001 --home-dir /data bonemesh \
     && mkdir -p /data /var/cache/warp \
     && chown bonemesh /data /var/cache/warp
