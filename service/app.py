@@ -27,6 +27,7 @@ from pydantic import ValidationError
 from service import problems, tokens
 from service.db import Database, Job, owner_of, utcnow
 from service.logsafe import safe_logger
+from service.pacs import api as pacs_api
 from service.params import JobParams
 from service.problems import Problem
 from service.problems import problems as errors
@@ -150,6 +151,7 @@ class Services:
             finished_at=_utc(job.finished_at),
             error=error,
             outputs=outputs,
+            **pacs_api.job_view(self.db, job),  # PACS jobs: source and delivery
         )
 
 
@@ -232,7 +234,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         status_code=202,
         response_model=JobOut,
         tags=["jobs"],
-        summary="upload a scan and start a reconstruction",
+        summary="upload a scan (multipart) or name a DICOMweb series (JSON), and start a reconstruction",
         responses={
             **keyed,
             **errors(
@@ -252,6 +254,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     async def create_job(request: Request, who: Owner) -> Response:
         s = svc()
+        if pacs_api.is_json(request):  # a DICOMweb series instead of a file
+            job = await pacs_api.create_source_job(request, s, who)
+            body = s.job_out(job, _base(request, settings)).model_dump(mode="json")
+            return JSONResponse(body, status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
         limit = settings.max_upload_bytes
         declared = request.headers.get("content-length")
         size = int(declared) if declared and declared.isdigit() and len(declared) < 20 else None

@@ -24,6 +24,7 @@ OUTPUTS = {
     "phone.glb": ("phone", "model/gltf-binary"),
     "ar.glb": ("ar", "model/gltf-binary"),
     "report.json": ("report", "application/json"),
+    "model.dcm": ("dicom", "application/dicom"),  # PACS jobs: the print model as Encapsulated STL
 }
 _ID = re.compile(r"^[0-9a-f]{32}$")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
