@@ -239,7 +239,7 @@ def test_unlisted_callers_and_other_sop_classes_are_refused(pacs: Pacs) -> None:
     assoc = c_store(files[:1], pacs.port, calling="STRANGER")
     assert not isinstance(assoc, list) and assoc.is_rejected
     mr = c_store(files[:1], pacs.port, sop_class="1.2.840.10008.5.1.4.1.1.4")  # MR Image Storage: not offered
-    assert isinstance(mr, list) is False or mr != [0]
+    assert not isinstance(mr, list) and not mr.is_rejected and not mr.accepted_contexts, mr  # context refused
     assert "calling AE 'STRANGER' is not on the allow-list" in pacs.gateway.tail()
 
 
