@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     from engine.cli import main as engine_main
 
     if not argv or argv[0] in ("-h", "--help"):
-        print("bonemesh serve | worker | pacs: the web service, its worker and the PACS node (see bonemesh serve --help)")  # noqa: T201
+        print("bonemesh serve | worker | pacs: the service, its worker, the PACS node (see bonemesh serve --help)")  # noqa: T201
     return engine_main(argv)
 
 

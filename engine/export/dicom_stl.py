@@ -108,7 +108,7 @@ def to_encapsulated_stl(
     from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.filewriter import dcmwrite
     from pydicom.sequence import Sequence as DicomSequence
-    from pydicom.uid import ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID
+    from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian
 
     for keyword in ("StudyInstanceUID", "FrameOfReferenceUID"):
         if not str(getattr(source, keyword, "") or ""):

@@ -59,8 +59,11 @@ async def create_source_job(request: Request, svc: Any, who: str) -> Job:
     servers = get_pacs_settings().dicomweb_servers
     if source.server not in servers:
         known = ", ".join(sorted(servers)) or "none is configured"
-        raise Problem(422, f"source.dicomweb.server: unknown DICOMweb server {source.server!r} ({known})",
-                      errors=[{"field": "source.dicomweb.server", "message": "unknown server"}])  # fmt: skip
+        raise Problem(
+            422,
+            f"source.dicomweb.server: unknown DICOMweb server {source.server!r} ({known})",
+            errors=[{"field": "source.dicomweb.server", "message": "unknown server"}],
+        )
 
     def record() -> Job:
         job = Job(

@@ -94,7 +94,9 @@ class PacsSettings(BaseSettings):
     delivery_backoff_seconds: float = Field(default=5.0, gt=0)
     delivery_max_backoff_seconds: float = Field(default=600.0, gt=0)
     delivery_max_attempts: int = Field(default=30, ge=1)
-    poll_seconds: float = Field(default=1.0, gt=0, description="how often stable series and due deliveries are looked for")
+    poll_seconds: float = Field(
+        default=1.0, gt=0, description="how often stable series and due deliveries are looked for"
+    )
 
     _ae = field_validator("ae_title")(check_ae_title)
 
@@ -113,8 +115,10 @@ class PacsSettings(BaseSettings):
     @model_validator(mode="after")
     def _known_server(self) -> PacsSettings:
         if isinstance(self.destination, DicomwebTarget) and self.destination.server not in self.dicomweb_servers:
-            raise ValueError(f"BONEMESH_PACS_DESTINATION names DICOMweb server {self.destination.server!r}, "
-                             f"which is not in BONEMESH_PACS_DICOMWEB_SERVERS ({sorted(self.dicomweb_servers)})")
+            raise ValueError(
+                f"BONEMESH_PACS_DESTINATION names DICOMweb server {self.destination.server!r}, "
+                f"which is not in BONEMESH_PACS_DICOMWEB_SERVERS ({sorted(self.dicomweb_servers)})"
+            )
         return self
 
     def admits(self, ae_title: str, address: str) -> bool:

@@ -81,8 +81,9 @@ class Gateway:
             try:
                 job_id = self.make_job(series)
             except Exception:
-                log.exception("series %s of study %s: could not be made a job; kept to retry", series.series_uid,
-                              series.study_uid)  # fmt: skip
+                log.exception(
+                    "series %s of study %s: could not be made a job; kept to retry", series.series_uid, series.study_uid
+                )
                 continue
             if job_id:
                 made.append(job_id)
@@ -129,8 +130,15 @@ class Gateway:
         except Exception:
             os.replace(upload, series.folder)  # back to the claim: the next sweep tries again
             raise
-        log.info("series %s of study %s: %d images from %s -> job %s (%s)", series.series_uid, series.study_uid,
-                 len(files), sender, job_id, why)  # fmt: skip
+        log.info(
+            "series %s of study %s: %d images from %s -> job %s (%s)",
+            series.series_uid,
+            series.study_uid,
+            len(files),
+            sender,
+            job_id,
+            why,
+        )
         try:
             self.queue.enqueue(job_id)
             self.db.mark_enqueued(job_id)
@@ -177,17 +185,22 @@ def main(argv: list[str] | None = None) -> int:
     if overrides:
         pacs = pacs.model_copy(update=overrides)
     if not pacs.allow:
-        log.error("BONEMESH_PACS_ALLOW is empty: no sender would be accepted. Set it to the calling AE titles of "
-                  "your PACS, e.g. BONEMESH_PACS_ALLOW=ORTHANC,PACS1@10.0.0.5")  # fmt: skip
+        log.error(
+            "BONEMESH_PACS_ALLOW is empty: no sender would be accepted. Set it to the calling AE titles of "
+            "your PACS, e.g. BONEMESH_PACS_ALLOW=ORTHANC,PACS1@10.0.0.5"
+        )
         return 2
     gateway = Gateway(get_settings(), pacs)
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     gateway.start()
-    log.info("allowed callers: %s; series stable after %g s; destination: %s",
-             ", ".join(e.ae_title + (f"@{e.address}" if e.address else "") for e in pacs.allow), pacs.stable_seconds,
-             pacs.destination.model_dump() if pacs.destination else "none")  # fmt: skip
+    log.info(
+        "allowed callers: %s; series stable after %g s; destination: %s",
+        ", ".join(e.ae_title + (f"@{e.address}" if e.address else "") for e in pacs.allow),
+        pacs.stable_seconds,
+        pacs.destination.model_dump() if pacs.destination else "none",
+    )
     stop.wait()
     gateway.stop()
     return 0

@@ -109,14 +109,21 @@ class StorageSCP:
             return SOP_CLASS_NOT_SUPPORTED
         try:
             ds = event.dataset
-            study, series, sop = (str(ds.get(k, "")) for k in ("StudyInstanceUID", "SeriesInstanceUID", "SOPInstanceUID"))
+            study, series, sop = (
+                str(ds.get(k, "")) for k in ("StudyInstanceUID", "SeriesInstanceUID", "SOPInstanceUID")
+            )
             declared = str(ds.get("SOPClassUID", ""))
         except Exception as exc:
-            log.warning("C-STORE from %s: undecodable data set (%s)", event.assoc.requestor.ae_title, type(exc).__name__)
+            log.warning(
+                "C-STORE from %s: undecodable data set (%s)", event.assoc.requestor.ae_title, type(exc).__name__
+            )
             return CANNOT_UNDERSTAND
         if declared != sop_class:
             return DATASET_MISMATCH
-        sender = {"ae_title": str(event.assoc.requestor.ae_title).strip(), "address": str(event.assoc.requestor.address)}
+        sender = {
+            "ae_title": str(event.assoc.requestor.ae_title).strip(),
+            "address": str(event.assoc.requestor.address),
+        }
         raw = event.request.DataSet.getvalue()
 
         def write(fh: Any) -> None:

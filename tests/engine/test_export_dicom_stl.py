@@ -80,9 +80,14 @@ def test_refuses_a_source_without_frame_of_reference() -> None:
     del src.FrameOfReferenceUID
     with pytest.raises(ValueError, match="FrameOfReferenceUID"):
         to_encapsulated_stl(
-            verts, faces, src, series_instance_uid="1.2", sop_instance_uid="1.3", software_version="0",
+            verts,
+            faces,
+            src,
+            series_instance_uid="1.2",
+            sop_instance_uid="1.3",
+            software_version="0",
             created=dt.datetime(2024, 1, 1, tzinfo=dt.UTC),
-        )  # fmt: skip
+        )
 
 
 @pytest.mark.skipif(shutil.which("dciodvfy") is None, reason="dicom3tools' dciodvfy is not installed")

@@ -41,13 +41,20 @@ def find_orthanc(install: bool = True) -> tuple[str, str]:
         argv = ["apt-get", "install", "-y", "-qq", "orthanc", "orthanc-dicomweb"]
         for cmds in ([argv], [["apt-get", "update", "-qq"], argv]):
             for cmd in cmds:
-                subprocess.run(cmd, capture_output=True, timeout=900, check=False, env={**os.environ,
-                               "DEBIAN_FRONTEND": "noninteractive"})  # fmt: skip
+                subprocess.run(
+                    cmd,
+                    capture_output=True,
+                    timeout=900,
+                    check=False,
+                    env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"},
+                )
             hit = found()
             if hit:
                 break
     if hit is None:
-        raise ProcessError("Orthanc is not installed and could not be installed (apt-get install orthanc orthanc-dicomweb)")
+        raise ProcessError(
+            "Orthanc is not installed and could not be installed (apt-get install orthanc orthanc-dicomweb)"
+        )
     return hit
 
 
@@ -134,8 +141,9 @@ class OrthancServer:
 
     def instances_of(self, study_uid: str, modality: str) -> list[bytes]:
         """The DICOM files of every instance of ``modality`` in the study."""
-        ids = self.post("/tools/find", {"Level": "Instance", "Query": {"StudyInstanceUID": study_uid,
-                                                                        "Modality": modality}})  # fmt: skip
+        ids = self.post(
+            "/tools/find", {"Level": "Instance", "Query": {"StudyInstanceUID": study_uid, "Modality": modality}}
+        )
         return [self.get(f"/instances/{i}/file") for i in ids]
 
     def close(self) -> None:

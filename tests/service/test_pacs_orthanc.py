@@ -78,8 +78,9 @@ class Pacs:
         self.stack = ServiceStack(root / "stack", self.redis.url, extra_env=env)
         self.stack.start_server()
         self.stack.start_worker()
-        self.gateway = Proc("pacs", [*bonemesh_argv(), "pacs"], self.stack.log_dir / "pacs.log", self.stack.env,
-                            cwd=self.stack.root)  # fmt: skip
+        self.gateway = Proc(
+            "pacs", [*bonemesh_argv(), "pacs"], self.stack.log_dir / "pacs.log", self.stack.env, cwd=self.stack.root
+        )
         self.stack.workers.append(self.gateway)  # its log with the others', checked alive while waiting
         wait_until(lambda: "listening on" in self.gateway.tail() or not self.gateway.alive(), 60, "bonemesh pacs")
         if not self.gateway.alive():
@@ -123,8 +124,16 @@ def generated_series(**kwargs: Any) -> tuple[list[bytes], str, str]:
         return np.where(ball, 1000.0, np.where(body, 0.0, -1000.0))
 
     study, series_uid = generate_uid(), generate_uid()
-    files = series(hu, positions_mm=[k * dz for k in range(nz)], shape=(ny, nx), pixel_spacing=(dy, dx),
-                   origin=ORIGIN, series_uid=series_uid, study_uid=study, **kwargs)  # fmt: skip
+    files = series(
+        hu,
+        positions_mm=[k * dz for k in range(nz)],
+        shape=(ny, nx),
+        pixel_spacing=(dy, dx),
+        origin=ORIGIN,
+        series_uid=series_uid,
+        study_uid=study,
+        **kwargs,
+    )
     return list(files.values()), study, series_uid
 
 
@@ -152,8 +161,11 @@ def jobs_of_series(client: httpx.Client, series_uid: str) -> list[dict[str, Any]
 
 def wait_delivered(pacs: Pacs, client: httpx.Client, job_id: str, timeout: float = 300) -> dict[str, Any]:
     def done(job: dict[str, Any]) -> bool:
-        return job["state"] in ("failed", "cancelled") or (job.get("delivery") or {}).get("state") in ("delivered",
-                                                                                                         "failed")
+        return job["state"] in ("failed", "cancelled") or (job.get("delivery") or {}).get("state") in (
+            "delivered",
+            "failed",
+        )
+
     job = wait_for_job(client, job_id, stack=pacs.stack, timeout=timeout, until=done)
     assert job["state"] == "succeeded", json.dumps(job)
     assert job["delivery"]["state"] == "delivered", json.dumps(job)
@@ -204,8 +216,14 @@ def test_generated_series_comes_back_as_encapsulated_stl(pacs: Pacs, client: htt
     files, study, series_uid = generated_series()
     assert c_store(files, pacs.port) == [0] * len(files)
     (job,) = wait_until(lambda: jobs_of_series(client, series_uid), 60, "the series' job")
-    assert job["source"] == {"kind": "dimse", "calling_ae": SCU_AE, "study_uid": study, "series_uid": series_uid,
-                             "images": len(files), "rule": "bone"}  # fmt: skip
+    assert job["source"] == {
+        "kind": "dimse",
+        "calling_ae": SCU_AE,
+        "study_uid": study,
+        "series_uid": series_uid,
+        "images": len(files),
+        "rule": "bone",
+    }
     job = wait_delivered(pacs, client, job["id"])
     names = {o["name"] for o in job["outputs"]}
     assert {"model.stl", "model.dcm", "phone.glb", "ar.glb", "report.json"} <= names
@@ -244,7 +262,7 @@ def test_unlisted_callers_and_other_sop_classes_are_refused(pacs: Pacs) -> None:
 
 
 def test_two_bursts_are_one_job_and_a_resent_series_is_another(pacs: Pacs, client: httpx.Client) -> None:
-    files, study, series_uid = generated_series()
+    files, _, series_uid = generated_series()
     scout, _, scout_uid = generated_series(image_type=("ORIGINAL", "PRIMARY", "LOCALIZER"))
     assert c_store(files[:10], pacs.port) == [0] * 10
     time.sleep(STABLE_SECONDS / 3)
@@ -268,13 +286,17 @@ def test_dicomweb_series_is_pulled_and_stored_back(pacs: Pacs, client: httpx.Cli
 
     files, study, series_uid = generated_series()
     DICOMwebClient(pacs.orthanc.dicomweb_url).store_instances([pydicom.dcmread(io.BytesIO(f)) for f in files])
-    body = {"source": {"dicomweb": {"server": "orthanc", "study_uid": study, "series_uid": series_uid}},
-            "params": {"preset": "bone"}}  # fmt: skip
+    body = {
+        "source": {"dicomweb": {"server": "orthanc", "study_uid": study, "series_uid": series_uid}},
+        "params": {"preset": "bone"},
+    }
     resp = client.post("/v1/jobs", json=body)
     assert resp.status_code == 202, resp.text
     job = resp.json()
-    assert job["source"]["kind"] == "dicomweb" and job["delivery"]["destination"] == {"kind": "dicomweb",
-                                                                                      "server": "orthanc"}
+    assert job["source"]["kind"] == "dicomweb" and job["delivery"]["destination"] == {
+        "kind": "dicomweb",
+        "server": "orthanc",
+    }
     job = wait_delivered(pacs, client, job["id"])
     check_model_in_orthanc(pacs, job, study)
     bad = client.post("/v1/jobs", json={**body, "source": {"dicomweb": {**body["source"]["dicomweb"], "server": "x"}}})

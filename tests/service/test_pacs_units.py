@@ -114,7 +114,9 @@ def test_scp_statuses(tmp_path: Path) -> None:
     scp = StorageSCP(settings, inbox)
     scp.start()
     try:
-        ct = pydicom.dcmread(io.BytesIO(ct_slice(np.zeros((4, 4), np.uint16), ipp=(0, 0, 0), series_uid="1.9", instance=1)))
+        ct = pydicom.dcmread(
+            io.BytesIO(ct_slice(np.zeros((4, 4), np.uint16), ipp=(0, 0, 0), series_uid="1.9", instance=1))
+        )
         ae = AE(ae_title="SCU")
         ae.add_requested_context(ct.SOPClassUID, ct.file_meta.TransferSyntaxUID)
         assoc = ae.associate("127.0.0.1", scp.port, ae_title=settings.ae_title)
@@ -143,7 +145,9 @@ def test_delivery_backs_off_and_gives_up_visibly(tmp_path: Path) -> None:
     dest = {"kind": "dicom", "ae_title": "NOBODY", "host": "127.0.0.1", "port": free_port()}
     records.create_job(job, {"kind": "dimse"}, dest)
     staged = storage.staging_dir(job.id)
-    (staged / "model.dcm").write_bytes(ct_slice(np.zeros((2, 2), np.uint16), ipp=(0, 0, 0), series_uid="1.5", instance=1))
+    (staged / "model.dcm").write_bytes(
+        ct_slice(np.zeros((2, 2), np.uint16), ipp=(0, 0, 0), series_uid="1.5", instance=1)
+    )
     storage.publish(job.id, staged)
     pacs = PacsSettings(delivery_backoff_seconds=10, delivery_max_backoff_seconds=25, delivery_max_attempts=3)
     dispatcher = Dispatcher(pacs, records, storage)
