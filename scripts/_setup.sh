@@ -9,6 +9,10 @@ need=""
 # MeshLab (pymeshlab, the decimation) needs the system's OpenGL loader where a slim image lacks it
 .venv/bin/python -c "import pymeshlab" 2>/dev/null || need="$need libgl1 libglib2.0-0"
 command -v redis-server >/dev/null || need="$need redis-server"
+case "${BONEMESH_EXTRAS:-}" in *test*)  # the PACS tests run a real Orthanc; dciodvfy checks the Encapsulated STL
+  { command -v Orthanc >/dev/null || [ -x /usr/sbin/Orthanc ]; } || need="$need orthanc orthanc-dicomweb"
+  command -v dciodvfy >/dev/null || need="$need dicom3tools" ;;
+esac
 if [ -n "$need" ] && command -v apt-get >/dev/null; then
-  $SUDO apt-get install -y -qq $need >/dev/null 2>&1 || { $SUDO apt-get update -qq && $SUDO apt-get install -y -qq $need >/dev/null; }
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq $need >/dev/null 2>&1 || { $SUDO apt-get update -qq && $SUDO apt-get install -y -qq $need >/dev/null; }
 fi

@@ -74,7 +74,7 @@ class AllowEntry(BaseModel):
 class PacsSettings(BaseSettings):
     """All PACS settings; each field ``name`` is read from ``BONEMESH_PACS_NAME``."""
 
-    model_config = SettingsConfigDict(env_prefix="BONEMESH_PACS_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="BONEMESH_PACS_", extra="ignore", env_ignore_empty=True)
 
     ae_title: str = Field(default="BONEMESH", description="this node's AE title (the called AE of senders)")
     host: str = Field(default="127.0.0.1", description="address the storage SCP listens on (0.0.0.0: all)")
