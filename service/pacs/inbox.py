@@ -125,7 +125,10 @@ class Inbox:
                     continue
                 (folder / ".uids").write_text(json.dumps([study_uid, series_uid]))
                 target = self.claimed / uuid.uuid4().hex
-                os.replace(folder, target)
+                try:
+                    os.replace(folder, target)
+                except FileNotFoundError:  # another gateway on the same folder took it
+                    continue
                 with contextlib.suppress(OSError):
                     (self.incoming / study_uid).rmdir()  # empty now
             taken.append(self._load(target))

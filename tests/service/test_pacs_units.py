@@ -162,3 +162,30 @@ def test_delivery_backs_off_and_gives_up_visibly(tmp_path: Path) -> None:
     rec = records.get(job.id)
     assert rec is not None and rec.delivery_state == "failed" and rec.delivery_attempts == 3
     assert result_uids(job.id) == (rec.result_series_uid, rec.result_sop_uid)
+
+
+@pytest.mark.parametrize("syntax", ["1.2.840.10008.1.2.5", "1.2.840.10008.1.2.4.90"])  # RLE, JPEG 2000 lossless
+def test_scp_keeps_compressed_instances_as_sent(tmp_path: Path, syntax: str) -> None:
+    from pynetdicom import AE
+
+    from service.pacs.scp import StorageSCP
+
+    pixels = (np.arange(64 * 64, dtype=np.uint16).reshape(64, 64) % 977) + 1000
+    sent = pydicom.dcmread(
+        io.BytesIO(ct_slice(pixels, ipp=(0, 0, 0), series_uid="1.7", instance=1, transfer_syntax=syntax))
+    )
+    scp = StorageSCP(PacsSettings(port=free_port(), allow="SCU"), Inbox(tmp_path, stable_seconds=60))  # type: ignore[arg-type]
+    scp.start()
+    try:
+        ae = AE(ae_title="SCU")
+        ae.add_requested_context(sent.SOPClassUID, syntax)
+        assoc = ae.associate("127.0.0.1", scp.port, ae_title="BONEMESH")
+        assert assoc.is_established
+        assert assoc.send_c_store(sent).Status == 0x0000
+        assoc.release()
+    finally:
+        scp.stop()
+    (path,) = tmp_path.glob("incoming/*/*/*.dcm")
+    stored = pydicom.dcmread(path)
+    assert stored.file_meta.TransferSyntaxUID == syntax
+    np.testing.assert_array_equal(stored.pixel_array, pixels)
