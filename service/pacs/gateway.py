@@ -95,7 +95,17 @@ class Gateway:
         if not files:
             self.inbox.drop(series)
             return None
-        summary = summarize(series)
+        try:
+            summary = summarize(series)
+        except Exception as exc:  # nothing to route on: drop it rather than retry it forever
+            log.warning(
+                "series %s of study %s dropped: its first image is unreadable (%s)",
+                series.series_uid,
+                series.study_uid,
+                type(exc).__name__,
+            )
+            self.inbox.drop(series)
+            return None
         rule, why = choose_rule(summary, self.pacs.routes)
         if rule is None:
             log.info("series %s of study %s ignored: %s", series.series_uid, series.study_uid, why)
