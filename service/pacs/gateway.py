@@ -1,7 +1,7 @@
 """``bonemesh pacs``: the storage SCP, the sweep that turns stable series into jobs, and the delivery dispatcher,
 in one process.
 
-    bonemesh pacs [--host H] [--port P] [--ae-title AE]
+    bonemesh pacs [--host H] [--port P] [--ae-title AE] [--deliver-only]
 
 A stable series is routed (:mod:`service.pacs.routing`); a taken one is moved whole into the job's upload folder
 (``jobs/<id>/upload/``) and recorded in the same job table, with the same queue message, as an uploaded scan: the
@@ -61,6 +61,7 @@ class Gateway:
 
     def __init__(self, settings: Settings, pacs: PacsSettings) -> None:
         self.settings, self.pacs = settings, pacs
+        settings.data_dir.mkdir(parents=True, exist_ok=True)
         self.db = Database(settings.db_url)
         self.records = PacsRecords(self.db)
         self.storage = storage_from_settings(settings.data_dir)
@@ -164,10 +165,13 @@ class Gateway:
             except Exception:
                 log.exception("%s failed; trying again", name)
 
-    def start(self) -> None:
-        """Start the SCP and the sweep and delivery loops (background threads)."""
-        self.scp.start()
-        for name, step in (("sweep", self.sweep_once), ("delivery", self.dispatcher.run_once)):
+    def start(self, receive: bool = True) -> None:
+        """Start the SCP and the sweep (unless ``receive`` is false) and the delivery loop (background threads)."""
+        loops: list[tuple[str, Any]] = [("delivery", self.dispatcher.run_once)]
+        if receive:
+            self.scp.start()
+            loops.append(("sweep", self.sweep_once))
+        for name, step in loops:
             thread = threading.Thread(target=self._loop, args=(name, step), name=f"pacs-{name}", daemon=True)
             thread.start()
             self._threads.append(thread)
@@ -188,13 +192,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--host", help="listen address (default BONEMESH_PACS_HOST)")
     parser.add_argument("--port", type=int, help="listen port (default BONEMESH_PACS_PORT)")
     parser.add_argument("--ae-title", help="this node's AE title (default BONEMESH_PACS_AE_TITLE)")
+    parser.add_argument(
+        "--deliver-only", action="store_true", help="no storage SCP: only send models back (DICOMweb-only sites)"
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     pacs = get_pacs_settings()
     overrides = {k: v for k, v in (("host", args.host), ("port", args.port), ("ae_title", args.ae_title)) if v}
     if overrides:
         pacs = pacs.model_copy(update=overrides)
-    if not pacs.allow:
+    if not pacs.allow and not args.deliver_only:
         log.error(
             "BONEMESH_PACS_ALLOW is empty: no sender would be accepted. Set it to the calling AE titles of "
             "your PACS, e.g. BONEMESH_PACS_ALLOW=ORTHANC,PACS1@10.0.0.5"
@@ -204,11 +211,13 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    gateway.start()
+    gateway.start(receive=not args.deliver_only)
+    callers = ", ".join(e.ae_title + (f"@{e.address}" if e.address else "") for e in pacs.allow)
     log.info(
-        "allowed callers: %s; series stable after %g s; destination: %s",
-        ", ".join(e.ae_title + (f"@{e.address}" if e.address else "") for e in pacs.allow),
-        pacs.stable_seconds,
+        "%s; destination of C-STORE jobs: %s",
+        "delivery only, no storage SCP"
+        if args.deliver_only
+        else f"allowed callers: {callers}; series stable after {pacs.stable_seconds:g} s",
         pacs.destination.model_dump() if pacs.destination else "none",
     )
     stop.wait()
