@@ -12,8 +12,12 @@ command -v redis-server >/dev/null || need="$need redis-server"
 # the page's browser test drives Debian's headless Chromium; npm installs the page's pinned assets
 command -v chromium >/dev/null && command -v chromedriver >/dev/null || need="$need chromium chromium-driver"
 command -v npm >/dev/null || need="$need nodejs npm"
+case "${BONEMESH_EXTRAS:-}" in *test*)  # the PACS tests run a real Orthanc; dciodvfy checks the Encapsulated STL
+  { command -v Orthanc >/dev/null || [ -x /usr/sbin/Orthanc ]; } || need="$need orthanc orthanc-dicomweb"
+  command -v dciodvfy >/dev/null || need="$need dicom3tools" ;;
+esac
 if [ -n "$need" ] && command -v apt-get >/dev/null; then
-  $SUDO apt-get install -y -qq $need >/dev/null 2>&1 || { $SUDO apt-get update -qq && $SUDO apt-get install -y -qq $need >/dev/null; }
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq $need >/dev/null 2>&1 || { $SUDO apt-get update -qq && $SUDO apt-get install -y -qq $need >/dev/null; }
 fi
 # the web page's scripts and decoders (package.json + package-lock.json), served by the API from node_modules
 if command -v npm >/dev/null && ! [ node_modules/.package-lock.json -nt package-lock.json ]; then npm ci --no-audit --no-fund --ignore-scripts --loglevel=error >/dev/null; fi

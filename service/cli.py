@@ -3,6 +3,7 @@
 
     bonemesh serve [--host 127.0.0.1] [--port 8000]
     bonemesh worker [--loglevel INFO] [--device auto|cpu|cuda:N]
+    bonemesh pacs [--host H] [--port P] [--ae-title AE]   (service.pacs.gateway)
 
 Both read their settings from ``BONEMESH_*`` environment variables (:mod:`service.settings`).
 """
@@ -64,10 +65,14 @@ def main(argv: list[str] | None = None) -> int:
         return _serve(argv[1:])
     if argv and argv[0] == "worker":
         return _worker(argv[1:])
+    if argv and argv[0] == "pacs":
+        from service.pacs.gateway import main as pacs_main
+
+        return pacs_main(argv[1:])
     from engine.cli import main as engine_main
 
     if not argv or argv[0] in ("-h", "--help"):
-        print("bonemesh serve | worker: the web service and its worker (see bonemesh serve --help)")  # noqa: T201
+        print("bonemesh serve | worker | pacs: the service, its worker, the PACS node (see bonemesh serve --help)")  # noqa: T201
     return engine_main(argv)
 
 

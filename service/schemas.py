@@ -8,6 +8,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
+from service.pacs.models import Delivery, SourceJobCreate
 from service.params import JobParams
 
 
@@ -16,7 +17,7 @@ class JobError(BaseModel):
 
     code: str = Field(
         description="machine-readable reason: bad_input, no_spacing, no_surface, print_check, storage_full, "
-        "too_large, time_limit, worker_lost, internal_error"
+        "too_large, time_limit, worker_lost, source_unavailable (DICOMweb series not retrievable), internal_error"
     )
     message: str = Field(description="what went wrong, in words")
 
@@ -77,6 +78,10 @@ class JobOut(BaseModel):
     error: JobError | None
     outputs: list[OutputFile] | None
     webhook: WebhookOut | None = Field(default=None, description="the callback and its delivery attempts, if any")
+    source: dict[str, Any] | None = Field(
+        default=None, description="PACS jobs only: C-STORE sender or DICOMweb server, Study and Series Instance UIDs"
+    )
+    delivery: Delivery | None = Field(default=None, description="PACS jobs only: the model sent back as DICOM")
 
 
 class JobList(BaseModel):
@@ -125,7 +130,8 @@ UPLOAD_BODY = {
                 },
             },
             "encoding": {"params": {"contentType": "application/json"}},
-        }
+        },
+        "application/json": {"schema": {"$ref": "#/components/schemas/SourceJobCreate"}},  # a DICOMweb series
     },
 }
 DOWNLOAD_CONTENT = {
@@ -146,4 +152,7 @@ def add_job_params(schema: dict[str, Any]) -> dict[str, Any]:
     components = schema.setdefault("components", {}).setdefault("schemas", {})
     components.update(doc.pop("$defs", {}))
     components["JobParams"] = doc
+    source = SourceJobCreate.model_json_schema(ref_template="#/components/schemas/{model}")
+    components.update({k: v for k, v in source.pop("$defs", {}).items() if k not in components})
+    components["SourceJobCreate"] = source
     return schema

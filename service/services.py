@@ -11,6 +11,7 @@ import anyio
 from service import tokens
 from service.db import Database, Job
 from service.logsafe import safe_logger
+from service.pacs import api as pacs_api
 from service.queue import Queue
 from service.schemas import JobError, JobOut, OutputFile, WebhookAttempt, WebhookOut
 from service.settings import Settings
@@ -114,6 +115,7 @@ class Services:
             error=error,
             outputs=outputs,
             webhook=webhook,
+            **pacs_api.job_view(self.db, job),  # PACS jobs: source and delivery
         )
 
 

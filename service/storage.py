@@ -27,6 +27,7 @@ OUTPUTS = {
     "model.usdz": ("ar_ios", "model/vnd.usdz+zip"),
     "preview.png": ("preview", "image/png"),
     "report.json": ("report", "application/json"),
+    "model.dcm": ("dicom", "application/dicom"),  # PACS jobs: the print model as Encapsulated STL
 }
 _ID = re.compile(r"^[0-9a-f]{32}$")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")

@@ -22,6 +22,7 @@ from service.settings import get_settings
 from service.storage import OUTPUTS, is_storage_full, storage_from_settings
 from service.uploads import relabel
 from worker.app import app
+from worker.pacs import SourceUnavailable, fetch_source, write_dicom_model
 
 log = safe_logger("bonemesh.worker")  # job ids and engine messages only: never the upload's name
 # job progress (percent) at each point: loading 0-5, pipeline 5-90, writing the files 90-100
@@ -92,7 +93,7 @@ def reconstruct_job(self: Any, job_id: str) -> str:
             if left:
                 log.info("job %s: removed %d folder(s) left by an earlier attempt", job_id, left)
             staged = storage.staging_dir(job_id)
-            outputs = _run(job, storage.upload_path(job_id), staged, holder, settings.device)
+            outputs = _run(job, storage.upload_path(job_id), staged, holder, settings.device, db)
             if holder.lost.is_set():
                 raise Cancelled(job_id)
             storage.publish(job_id, staged)
@@ -132,7 +133,7 @@ def reconstruct_job(self: Any, job_id: str) -> str:
             shutil.rmtree(staged, ignore_errors=True)
 
 
-def _run(job: Any, upload: Path, staged: Path, holder: _Holder, device: str) -> list[dict[str, Any]]:
+def _run(job: Any, upload: Path, staged: Path, holder: _Holder, device: str, db: Database) -> list[dict[str, Any]]:
     """Load, reconstruct and write the files into ``staged``; returns the output descriptions."""
     from engine.io import load_volume
     from engine.outputs import write_outputs
@@ -142,6 +143,7 @@ def _run(job: Any, upload: Path, staged: Path, holder: _Holder, device: str) -> 
     recon_dict, spacing = engine_params_of(job)
     params = ReconParams.from_dict(recon_dict)
     holder.progress("loading", 1.0)
+    fetch_source(db, job.id, upload)  # a DICOMweb job's series (worker.pacs)
     volume = load_volume(upload, spacing_zyx_mm=tuple(spacing) if spacing else None)
     holder.progress("loading", LOAD_END)
 
@@ -151,6 +153,7 @@ def _run(job: Any, upload: Path, staged: Path, holder: _Holder, device: str) -> 
     recon = reconstruct(volume, params, device=device, on_progress=on_progress)
     holder.progress("writing", PIPELINE_END)
     paths = write_outputs(recon, staged, params, device=device)
+    paths.update(write_dicom_model(db, job.id, upload, staged))  # PACS jobs: Encapsulated STL (worker.pacs)
     report = recon.report
     triangles = {
         "model.stl": report["mesh"]["n_faces"],
@@ -160,6 +163,8 @@ def _run(job: Any, upload: Path, staged: Path, holder: _Holder, device: str) -> 
         "ar.glb": report["exports"]["ar.glb"]["faces"],
         "phone_meshopt.glb": report["exports"]["phone.glb"]["faces"],
         "model.usdz": report["exports"]["ar.glb"]["faces"],
+        "report.json": None,
+        "model.dcm": report["mesh"]["n_faces"],
     }
     return [
         {
@@ -196,6 +201,8 @@ def _explain(exc: Exception, filename: str) -> tuple[str, str]:
             "the worker could not write the models: its data volume is full; nothing was published. Try again "
             "later, or ask the operator to free space"
         )
+    if isinstance(exc, SourceUnavailable):
+        return "source_unavailable", str(exc)
     if isinstance(exc, PrintCheckError):
         return "print_check", f"the print model failed its check and was not published: {exc}"
     if isinstance(exc, EmptySurfaceError):

@@ -49,3 +49,29 @@ def write_stl(out: BinaryIO, facets: npt.NDArray[np.float32], header: str = "bon
         buf[: len(part), :48] = part.view(np.uint8).reshape(len(part), 48)
         out.write(memoryview(buf[: len(part)]).cast("B"))
     return 84 + _FACET.itemsize * len(facets)
+
+
+def from_stl(data: bytes) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int32]]:
+    """Decode a binary STL (the inverse of :func:`to_stl`): shared vertices merged where bit-identical.
+
+    Args:
+        data: the file's bytes.
+
+    Returns:
+        (V, 3) float32 vertices in (z, y, x) order (mm, as written) and (F, 3) int32 faces.
+
+    Raises:
+        ValueError: not a binary STL (too short, or the size does not match the face count).
+    """
+    if len(data) < 84:
+        raise ValueError(f"Expected a binary STL of at least 84 bytes, got {len(data)}")
+    count = int(np.frombuffer(data, dtype="<u4", count=1, offset=80)[0])
+    if len(data) != 84 + count * _FACET.itemsize:
+        raise ValueError(f"Expected {84 + count * _FACET.itemsize} bytes for {count} facets, got {len(data)}")
+    rec = np.frombuffer(data, dtype=_FACET, count=count, offset=84)
+    corners = rec["v"].reshape(-1, 3)
+    unique, inverse = np.unique(corners, axis=0, return_inverse=True)
+    return (
+        np.ascontiguousarray(unique[:, ::-1], dtype=np.float32),
+        inverse.reshape(-1, 3).astype(np.int32),
+    )

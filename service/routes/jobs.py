@@ -10,6 +10,7 @@ from fastapi.responses import JSONResponse, Response
 from service.db import Job
 from service.deps import BaseUrlDep, OwnerDep, ServicesDep
 from service.intake import FULL, receive
+from service.pacs import api as pacs_api
 from service.problems import Problem
 from service.problems import problems as errors
 from service.schemas import UPLOAD_BODY, JobList, JobOut, WebhookSecret
@@ -33,7 +34,7 @@ def _job(svc: Services, job_id: str, who: str) -> Job:
     "/jobs",
     status_code=202,
     response_model=JobOut,
-    summary="upload a scan and start a reconstruction",
+    summary="upload a scan (multipart) or name a DICOMweb series (JSON), and start a reconstruction",
     responses={
         **KEYED,
         **errors(
@@ -52,6 +53,10 @@ def _job(svc: Services, job_id: str, who: str) -> Job:
     openapi_extra={"requestBody": UPLOAD_BODY},
 )
 async def create_job(request: Request, who: OwnerDep, svc: ServicesDep, base: BaseUrlDep) -> Response:
+    if pacs_api.is_json(request):  # a DICOMweb series instead of a file
+        job = await pacs_api.create_source_job(request, svc, who)
+        body = svc.job_out(job, base).model_dump(mode="json")
+        return JSONResponse(body, status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
     limit = svc.settings.max_upload_bytes
     declared = request.headers.get("content-length")
     size = int(declared) if declared and declared.isdigit() and len(declared) < 20 else None

@@ -18,6 +18,8 @@ from pydicom.uid import (
 
 # identifiers that must never reach Volume.source
 PATIENT = {"PatientName": "DOE^JANE", "PatientID": "PID-0042", "PatientBirthDate": "19700101"}
+STUDY_UID = "1.2.826.0.1.3680043.8.498.1"
+FRAME_OF_REFERENCE_UID = "1.2.826.0.1.3680043.8.498.2"
 
 
 def ct_slice(
@@ -35,6 +37,8 @@ def ct_slice(
     preamble: bool = True,
     description: str = "SYNTHETIC",
     tilt_deg: float | None = None,
+    study_uid: str = STUDY_UID,
+    image_type: Sequence[str] = ("ORIGINAL", "PRIMARY", "AXIAL"),
 ) -> bytes:
     """One single-frame image as file bytes. ``pixels`` are the stored values (uint16 or int16)."""
     ds = Dataset()
@@ -42,8 +46,10 @@ def ct_slice(
         setattr(ds, key, value)
     ds.SOPClassUID = CTImageStorage
     ds.SOPInstanceUID = generate_uid()
-    ds.StudyInstanceUID = "1.2.826.0.1.3680043.8.498.1"
+    ds.StudyInstanceUID = study_uid
     ds.SeriesInstanceUID = series_uid
+    ds.FrameOfReferenceUID = FRAME_OF_REFERENCE_UID
+    ds.ImageType = list(image_type)
     ds.Modality = modality
     ds.Manufacturer = "BONEMESH TEST"
     ds.SeriesDescription = description

@@ -99,7 +99,16 @@ def test_reconstruct_demo_writes_every_output(tmp_path):
     res = run_cli("reconstruct", "--demo", "-o", str(out), "--device", "cpu", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert sorted(p.name for p in out.iterdir()) == sorted(
-        ["ar.glb", "model.glb", "model.stl", "phone.glb", "report.json", "phone_meshopt.glb", "model.usdz", "preview.png"]
+        [
+            "ar.glb",
+            "model.glb",
+            "model.stl",
+            "phone.glb",
+            "report.json",
+            "phone_meshopt.glb",
+            "model.usdz",
+            "preview.png",
+        ]
     )
     for stage in ("isosurface", "decimate", "smooth"):
         assert stage in res.stdout  # the summary table

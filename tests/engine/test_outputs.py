@@ -51,9 +51,11 @@ def test_files_match_the_host_exporters(blob, tmp_path, mirrored):
     assert recon.report["frame"]["gltf_centre_lps_mm"] == info["gltf_centre_lps_mm"]
     want = _stl_floats(to_stl(patient.vertices, patient.faces, header=STL_HEADER))
     got_bytes = paths["model.stl"].read_bytes()
-    assert got_bytes[:84] == to_stl(patient.vertices[:0], patient.faces[:0], header=STL_HEADER)[:80] + np.uint32(
-        len(blob.faces)
-    ).tobytes()
+    assert (
+        got_bytes[:84]
+        == to_stl(patient.vertices[:0], patient.faces[:0], header=STL_HEADER)[:80]
+        + np.uint32(len(blob.faces)).tobytes()
+    )
     np.testing.assert_allclose(_stl_floats(got_bytes), want, rtol=0, atol=2e-4)  # mm, rounding of the map only
     p0, n0, t0 = read_glb(to_glb(view.vertices, view.faces, view.normals))
     p1, n1, t1 = read_glb(paths["model.glb"].read_bytes())

@@ -1,0 +1,131 @@
+"""Sending the model back: the job's ``model.dcm`` (Encapsulated STL, written by the worker) by C-STORE to a DICOM
+node or STOW-RS to a DICOMweb server.
+
+The ``pacs_jobs`` rows are the outbox: the dispatcher picks up succeeded jobs whose delivery is waiting or due for
+a retry, claims each with one conditional update, sends, and records the outcome. A failure is retried with
+exponential backoff (``delivery_backoff_seconds`` doubling up to ``delivery_max_backoff_seconds``) until
+``delivery_max_attempts``; each failure is on the job (``delivery.state``, ``error``, ``next_attempt_at``), and a
+dispatcher that dies mid-send leaves a claim that is taken again later. The instance's UIDs are fixed per job, so
+a repeated send stores the same object again at the PACS, never a second one.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from pathlib import Path
+from typing import Any
+
+from service.db import utcnow
+from service.logsafe import escape_control, safe_logger
+from service.pacs.config import DicomNode, DicomwebTarget, PacsSettings
+from service.pacs.records import PacsJob, PacsRecords
+from service.storage import Storage
+
+log = safe_logger("bonemesh.pacs")
+MODEL_DCM = "model.dcm"
+_C_STORE_OK = frozenset({0x0000, 0xB000, 0xB006, 0xB007})  # success, or stored with coercion / elements discarded
+
+
+class DeliveryError(Exception):
+    """A delivery attempt failed; the message says where and why (no patient data)."""
+
+
+def send_c_store(node: DicomNode, calling_ae: str, path: Path) -> None:
+    """C-STORE one file to ``node``.
+
+    Raises:
+        DeliveryError: no association, or a failure status.
+    """
+    import pydicom
+    from pynetdicom import AE
+
+    ds = pydicom.dcmread(path)
+    ae = AE(ae_title=calling_ae)
+    ae.add_requested_context(ds.SOPClassUID, ds.file_meta.TransferSyntaxUID)
+    ae.acse_timeout = ae.dimse_timeout = ae.network_timeout = 30
+    where = f"{node.ae_title}@{node.host}:{node.port}"
+    assoc = ae.associate(node.host, node.port, ae_title=node.ae_title)
+    if not assoc.is_established:
+        how = "rejected" if assoc.is_rejected else "aborted" if assoc.is_aborted else "not established"
+        raise DeliveryError(f"C-STORE to {where}: association {how}")
+    try:
+        status = assoc.send_c_store(ds)
+    finally:
+        assoc.release()
+    code = int(status.Status) if status is not None and "Status" in status else None
+    if code not in _C_STORE_OK:
+        raise DeliveryError(f"C-STORE to {where}: " + ("no response" if code is None else f"status 0x{code:04X}"))
+
+
+class Dispatcher:
+    """Delivers due models (see the module docstring).
+
+    Args:
+        pacs: the settings (servers, calling AE title, backoff).
+        records: the PACS records.
+        storage: where the job outputs are.
+    """
+
+    def __init__(self, pacs: PacsSettings, records: PacsRecords, storage: Storage) -> None:
+        self.pacs, self.records, self.storage = pacs, records, storage
+
+    def run_once(self, now: dt.datetime | None = None) -> int:
+        """Send every due model; returns how many were delivered."""
+        now = now or utcnow()
+        delivered = 0
+        for job_id in self.records.due(now):
+            rec = self.records.claim(job_id, now)
+            if rec is not None:
+                delivered += self._deliver(rec)
+        return delivered
+
+    def backoff(self, attempts: int) -> float:
+        """Seconds before the next try after ``attempts`` failed ones."""
+        base = self.pacs.delivery_backoff_seconds
+        return float(min(base * 2 ** max(attempts - 1, 0), self.pacs.delivery_max_backoff_seconds))
+
+    def _deliver(self, rec: PacsJob) -> bool:
+        job_id, dest = rec.job_id, rec.destination or {}
+        path = self.storage.output_path(job_id, MODEL_DCM)
+        try:
+            if path is None:
+                raise DeliveryError("the job has no model.dcm (its source lacked a Frame of Reference UID?)")
+            self._send(dest, path)
+        except Exception as exc:
+            message = escape_control(str(exc) or type(exc).__name__)
+            final = path is None or rec.delivery_attempts >= self.pacs.delivery_max_attempts
+            delay = None if final else self.backoff(rec.delivery_attempts)
+            next_at = None if delay is None else utcnow() + dt.timedelta(seconds=delay)
+            self.records.failed_attempt(job_id, message, next_at)
+            log.warning(
+                "job %s: delivery attempt %d failed: %s; %s",
+                job_id,
+                rec.delivery_attempts,
+                message,
+                "giving up" if delay is None else f"next try in {delay:g} s",
+            )
+            return False
+        self.records.delivered(job_id)
+        log.info("job %s: model delivered (%s) after %d attempt(s)", job_id, _describe(dest), rec.delivery_attempts)
+        return True
+
+    def _send(self, dest: dict[str, Any], path: Path) -> None:
+        kind = dest.get("kind")
+        if kind == "dicom":
+            send_c_store(DicomNode.model_validate(dest), self.pacs.ae_title, path)
+        elif kind == "dicomweb":
+            from service.pacs.dicomweb import store_file
+
+            target = DicomwebTarget.model_validate(dest)
+            server = self.pacs.dicomweb_servers.get(target.server)
+            if server is None:
+                raise DeliveryError(f"DICOMweb server {target.server!r} is not configured here")
+            store_file(server, path)
+        else:
+            raise DeliveryError(f"unknown destination kind {kind!r}")
+
+
+def _describe(dest: dict[str, Any]) -> str:
+    if dest.get("kind") == "dicom":
+        return f"C-STORE to {dest.get('ae_title')}@{dest.get('host')}:{dest.get('port')}"
+    return f"STOW-RS to {dest.get('server')}"

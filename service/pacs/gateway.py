@@ -1,0 +1,225 @@
+"""``bonemesh pacs``: the storage SCP, the sweep that turns stable series into jobs, and the delivery dispatcher,
+in one process.
+
+    bonemesh pacs [--host H] [--port P] [--ae-title AE] [--deliver-only]
+
+A stable series is routed (:mod:`service.pacs.routing`); a taken one is moved whole into the job's upload folder
+(``jobs/<id>/upload/``) and recorded in the same job table, with the same queue message, as an uploaded scan: the
+worker cannot tell them apart. Settings: :mod:`service.pacs.config` (``BONEMESH_PACS_*``) and
+:mod:`service.settings` (``BONEMESH_*``: database, data folder, broker).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import threading
+from typing import Any
+
+from service.db import Database, Job, owner_of
+from service.logsafe import safe_logger
+from service.pacs.config import PacsSettings, get_pacs_settings
+from service.pacs.delivery import Dispatcher
+from service.pacs.inbox import SENDER, ClaimedSeries, Inbox
+from service.pacs.records import PacsRecords
+from service.pacs.routing import SeriesSummary, choose_rule
+from service.pacs.scp import StorageSCP
+from service.queue import Queue
+from service.settings import Settings, get_settings
+from service.storage import storage_from_settings
+
+log = safe_logger("bonemesh.pacs")
+
+
+def summarize(series: ClaimedSeries) -> SeriesSummary:
+    """What routing needs of a claimed series: the first image's header and the image count."""
+    import pydicom
+
+    files = series.files()
+    ds = pydicom.dcmread(files[0], stop_before_pixels=True, force=True)
+    frames = int(ds.get("NumberOfFrames", 1) or 1)
+    return SeriesSummary(
+        study_uid=series.study_uid,
+        series_uid=series.series_uid,
+        modality=str(ds.get("Modality", "")),
+        images=len(files) * frames,
+        description=str(ds.get("SeriesDescription", "")),
+        body_part=str(ds.get("BodyPartExamined", "")),
+        image_type=tuple(str(v) for v in (ds.get("ImageType") or ())),
+    )
+
+
+class Gateway:
+    """The pieces of ``bonemesh pacs``, built from the settings.
+
+    Args:
+        settings: the service's settings (database, data folder, broker, API keys).
+        pacs: the PACS settings.
+    """
+
+    def __init__(self, settings: Settings, pacs: PacsSettings) -> None:
+        self.settings, self.pacs = settings, pacs
+        settings.data_dir.mkdir(parents=True, exist_ok=True)
+        self.db = Database(settings.db_url)
+        self.records = PacsRecords(self.db)
+        self.storage = storage_from_settings(settings.data_dir)
+        self.queue = Queue(settings.redis_url, settings.queue)
+        self.inbox = Inbox(settings.data_dir / "pacs", pacs.stable_seconds)
+        self.scp = StorageSCP(pacs, self.inbox)
+        self.dispatcher = Dispatcher(pacs, self.records, self.storage)
+        key = pacs.owner_key.get_secret_value() if pacs.owner_key else settings.api_keys[0]
+        self.owner = owner_of(key)
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+
+    # -- series -> jobs ---------------------------------------------------------------------------------------
+    def sweep_once(self) -> list[str]:
+        """Turn every stable series into a job or drop it; returns the new job ids."""
+        made = []
+        for series in self.inbox.claim_stable():
+            try:
+                job_id = self.make_job(series)
+            except Exception:
+                log.exception(
+                    "series %s of study %s: could not be made a job; kept to retry", series.series_uid, series.study_uid
+                )
+                continue
+            if job_id:
+                made.append(job_id)
+        return made
+
+    def make_job(self, series: ClaimedSeries) -> str | None:
+        """Route one claimed series; a taken one becomes a queued job (its id is returned)."""
+        files = series.files()
+        if not files:
+            self.inbox.drop(series)
+            return None
+        try:
+            summary = summarize(series)
+        except Exception as exc:  # nothing to route on: drop it rather than retry it forever
+            log.warning(
+                "series %s of study %s dropped: its first image is unreadable (%s)",
+                series.series_uid,
+                series.study_uid,
+                type(exc).__name__,
+            )
+            self.inbox.drop(series)
+            return None
+        rule, why = choose_rule(summary, self.pacs.routes)
+        if rule is None:
+            log.info("series %s of study %s ignored: %s", series.series_uid, series.study_uid, why)
+            self.inbox.drop(series)
+            return None
+        job_id = Database.new_id()
+        upload = self.storage.upload_path(job_id)
+        upload.parent.mkdir(parents=True, exist_ok=True)
+        for extra in (SENDER, ".uids"):
+            (series.folder / extra).unlink(missing_ok=True)
+        size = sum(p.stat().st_size for p in files)
+        os.replace(series.folder, upload)
+        sender = series.sender.get("ae_title", "?")
+        job = Job(
+            id=job_id,
+            owner=self.owner,
+            state="queued",
+            params=rule.job_params().record(),
+            upload_name=f"DICOM C-STORE from {sender} ({len(files)} images)",
+            upload_bytes=size,
+        )
+        source = {
+            "kind": "dimse",
+            "calling_ae": sender,
+            "study_uid": series.study_uid,
+            "series_uid": series.series_uid,
+            "images": len(files),
+        }
+        dest = self.pacs.destination.model_dump() if self.pacs.destination else None
+        try:
+            self.records.create_job(job, source, dest, rule=rule.name)
+        except Exception:
+            os.replace(upload, series.folder)  # back to the claim: the next sweep tries again
+            raise
+        log.info(
+            "series %s of study %s: %d images from %s -> job %s (%s)",
+            series.series_uid,
+            series.study_uid,
+            len(files),
+            sender,
+            job_id,
+            why,
+        )
+        try:
+            self.queue.enqueue(job_id)
+            self.db.mark_enqueued(job_id)
+        except Exception as exc:  # the API's reconciler sends it later
+            log.warning("job %s: could not enqueue (%s); it stays queued and is re-sent later", job_id, exc)
+        return job_id
+
+    # -- the process ------------------------------------------------------------------------------------------
+    def _loop(self, name: str, step: Any) -> None:
+        while not self._stop.wait(self.pacs.poll_seconds):
+            try:
+                step()
+            except Exception:
+                log.exception("%s failed; trying again", name)
+
+    def start(self, receive: bool = True) -> None:
+        """Start the SCP and the sweep (unless ``receive`` is false) and the delivery loop (background threads)."""
+        loops: list[tuple[str, Any]] = [("delivery", self.dispatcher.run_once)]
+        if receive:
+            self.scp.start()
+            loops.append(("sweep", self.sweep_once))
+        for name, step in loops:
+            thread = threading.Thread(target=self._loop, args=(name, step), name=f"pacs-{name}", daemon=True)
+            thread.start()
+            self._threads.append(thread)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.scp.stop()
+        for thread in self._threads:
+            thread.join(timeout=10)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``bonemesh pacs``: run until SIGTERM or Ctrl-C."""
+    parser = argparse.ArgumentParser(
+        prog="bonemesh pacs",
+        description="DICOM storage SCP: receive CT series from a PACS, run them as jobs, send the models back.",
+    )
+    parser.add_argument("--host", help="listen address (default BONEMESH_PACS_HOST)")
+    parser.add_argument("--port", type=int, help="listen port (default BONEMESH_PACS_PORT)")
+    parser.add_argument("--ae-title", help="this node's AE title (default BONEMESH_PACS_AE_TITLE)")
+    parser.add_argument(
+        "--deliver-only", action="store_true", help="no storage SCP: only send models back (DICOMweb-only sites)"
+    )
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    pacs = get_pacs_settings()
+    overrides = {k: v for k, v in (("host", args.host), ("port", args.port), ("ae_title", args.ae_title)) if v}
+    if overrides:
+        pacs = pacs.model_copy(update=overrides)
+    if not pacs.allow and not args.deliver_only:
+        log.error(
+            "BONEMESH_PACS_ALLOW is empty: no sender would be accepted. Set it to the calling AE titles of "
+            "your PACS, e.g. BONEMESH_PACS_ALLOW=ORTHANC,PACS1@10.0.0.5"
+        )
+        return 2
+    gateway = Gateway(get_settings(), pacs)
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    gateway.start(receive=not args.deliver_only)
+    callers = ", ".join(e.ae_title + (f"@{e.address}" if e.address else "") for e in pacs.allow)
+    log.info(
+        "%s; destination of C-STORE jobs: %s",
+        "delivery only, no storage SCP"
+        if args.deliver_only
+        else f"allowed callers: {callers}; series stable after {pacs.stable_seconds:g} s",
+        pacs.destination.model_dump() if pacs.destination else "none",
+    )
+    stop.wait()
+    gateway.stop()
+    return 0
