@@ -29,15 +29,12 @@ import numpy.typing as npt
 from engine.errors import InputError
 from engine.export.glb import (
     FLOAT,
-    MM_TO_M,
     TRIANGLES,
     accessor_bounds,
     base_document,
-    check_mesh,
+    gltf_mesh,
     index_type,
     pack_glb,
-    vertex_normals,
-    zyx_to_gltf,
 )
 
 EXTENSION = "KHR_draco_mesh_compression"
@@ -87,11 +84,9 @@ def to_draco_glb(
         raise InputError(f"normal_quantization_bits must be in 1..30 or None, got {normal_quantization_bits}")
     if not 0 <= compression_level <= 10:
         raise InputError(f"compression_level must be in 0..10, got {compression_level}")
-    verts, tris, norms = check_mesh(vertices_zyx_mm, faces, normals_zyx)
-    positions = zyx_to_gltf(verts, MM_TO_M).astype(np.float32)
-    normals = None
-    if include_normals:
-        normals = vertex_normals(positions, tris, None if norms is None else zyx_to_gltf(norms)).astype(np.float64)
+    positions, unit_normals, tris = gltf_mesh(vertices_zyx_mm, faces, normals_zyx)
+    positions = positions.astype(np.float32)
+    normals = unit_normals.astype(np.float64) if include_normals else None
     encoded = DracoPy.encode(
         positions,
         tris.astype(np.uint32),

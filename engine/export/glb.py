@@ -88,6 +88,21 @@ def zyx_to_gltf(vectors_zyx: npt.NDArray[np.floating], scale: float = 1.0) -> np
     return (xyz @ GLTF_FROM_XYZ.T) * scale
 
 
+def gltf_mesh(
+    vertices_zyx_mm: npt.ArrayLike, faces: npt.ArrayLike, normals_zyx: npt.ArrayLike | None = None
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float32], npt.NDArray[np.int64]]:
+    """An engine mesh in the glTF frame, as every viewer exporter starts: validated (:func:`check_mesh`), positions
+    in metres (float64), unit normals (the given ones rotated, else area-weighted: :func:`vertex_normals`), and the
+    triangles.
+
+    Raises:
+        InputError: as :func:`check_mesh`.
+    """
+    verts, tris, norms = check_mesh(vertices_zyx_mm, faces, normals_zyx)
+    positions = zyx_to_gltf(verts, MM_TO_M)
+    return positions, vertex_normals(positions, tris, None if norms is None else zyx_to_gltf(norms)), tris
+
+
 def vertex_normals(
     positions: npt.NDArray[np.floating], faces: npt.NDArray[np.integer], normals: npt.NDArray[np.floating] | None = None
 ) -> npt.NDArray[np.float32]:
@@ -246,9 +261,7 @@ def to_glb(
     Raises:
         InputError: an empty or malformed mesh.
     """
-    verts, tris, norms = check_mesh(vertices_zyx_mm, faces, normals_zyx)
-    positions = zyx_to_gltf(verts, MM_TO_M).astype(np.float32)
-    normals = vertex_normals(positions, tris, None if norms is None else zyx_to_gltf(norms))
+    positions, normals, tris = gltf_mesh(vertices_zyx_mm, faces, normals_zyx)
     document, parts = mesh_document(positions, normals, tris, name)
     return pack_glb(document, b"".join(p.tobytes() for p in parts))
 

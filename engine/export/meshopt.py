@@ -22,16 +22,13 @@ import numpy.typing as npt
 from engine.export.glb import (
     ARRAY_BUFFER,
     ELEMENT_ARRAY_BUFFER,
-    MM_TO_M,
     TRIANGLES,
     UNSIGNED_INT,
     UNSIGNED_SHORT,
     base_document,
-    check_mesh,
+    gltf_mesh,
     index_type,
     pack_glb,
-    vertex_normals,
-    zyx_to_gltf,
 )
 
 BYTE = 5120
@@ -80,11 +77,9 @@ def to_meshopt_glb(
         InputError: an empty or malformed mesh.
     """
     mo = _meshopt()
-    verts, tris, norms = check_mesh(vertices_zyx_mm, faces, normals_zyx)
-    positions = zyx_to_gltf(verts, MM_TO_M)
-    normals = vertex_normals(positions, tris, None if norms is None else zyx_to_gltf(norms))
+    positions, normals, tris = gltf_mesh(vertices_zyx_mm, faces, normals_zyx)
     cached = np.empty(tris.size, dtype=np.uint32)
-    mo.optimize_vertex_cache(cached, tris.astype(np.uint32).ravel(), tris.size, len(verts))
+    mo.optimize_vertex_cache(cached, tris.astype(np.uint32).ravel(), tris.size, len(positions))
     order, tris = _fetch_order(cached.astype(np.int64).reshape(-1, 3))
     positions, normals = positions[order], normals[order]
 

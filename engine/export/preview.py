@@ -15,7 +15,7 @@ import io
 import numpy as np
 import numpy.typing as npt
 
-from engine.export.glb import BONE_MATERIAL, MM_TO_M, check_mesh, vertex_normals, zyx_to_gltf
+from engine.export.glb import BONE_MATERIAL, gltf_mesh
 
 SUPERSAMPLE = 2
 BATCH_SAMPLES = 1 << 21  # candidate pixels tested at once (memory bound)
@@ -133,9 +133,7 @@ def to_preview_png(
     """
     import imageio.v3 as iio
 
-    verts, tris, norms = check_mesh(vertices_zyx_mm, faces, normals_zyx)
-    positions = zyx_to_gltf(verts, MM_TO_M)
-    normals = vertex_normals(positions, tris, None if norms is None else zyx_to_gltf(norms))
+    positions, normals, tris = gltf_mesh(vertices_zyx_mm, faces, normals_zyx)
     buf = io.BytesIO()
     iio.imwrite(buf, render(positions, tris, normals, size), extension=".png")
     return buf.getvalue()

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from engine.export.glb import BONE_MATERIAL, MM_TO_M, check_mesh, vertex_normals, zyx_to_gltf
+from engine.export.glb import BONE_MATERIAL, gltf_mesh
 
 
 def _pxr() -> Any:
@@ -48,9 +48,8 @@ def to_usdz(
         InputError: an empty or malformed mesh.
     """
     Gf, Sdf, Usd, UsdGeom, UsdShade, UsdUtils, Vt = _pxr()
-    verts, tris, norms = check_mesh(vertices_zyx_mm, faces, normals_zyx)
-    positions = zyx_to_gltf(verts, MM_TO_M).astype(np.float32)
-    normals = vertex_normals(positions, tris, None if norms is None else zyx_to_gltf(norms))
+    positions, normals, tris = gltf_mesh(vertices_zyx_mm, faces, normals_zyx)
+    positions = positions.astype(np.float32)
     with tempfile.TemporaryDirectory(prefix="bonemesh-usdz-") as folder:
         layer = str(Path(folder) / f"{name}.usdc")
         stage = Usd.Stage.CreateNew(layer)
