@@ -27,3 +27,12 @@ class StageError(EngineError):
     def __init__(self, stage: str, cause: BaseException) -> None:
         super().__init__(f"stage '{stage}' failed: {type(cause).__name__}: {cause}")
         self.stage = stage
+
+
+class BudgetError(InputError):
+    """The device memory budget (``max_device_bytes``) is too small for this scan; ``needed`` is the smallest
+    budget that would work, as far as the engine can tell."""
+
+    def __init__(self, message: str, needed: int) -> None:
+        super().__init__(message)
+        self.needed = int(needed)

@@ -766,6 +766,29 @@ def scatter_vertices(
 
 
 @wp.kernel
+def scatter_kept(
+    count: wp.array(dtype=wp.int32),
+    slot: wp.array(dtype=wp.int32),
+    quad: wp.array(dtype=quadric),
+    kept: wp.array(dtype=wp.int32),
+    out_quad: wp.array(dtype=quadric),
+):
+    """For a compaction that carries the quadrics: each kept vertex's old index and its quadric."""
+    v = wp.tid()
+    if count[v] > 0:
+        kept[slot[v]] = v
+        out_quad[slot[v]] = quad[v]
+
+
+@wp.kernel
+def lock_vertices(lock: wp.array(dtype=wp.int32), state: wp.array(dtype=wp.int32)):
+    """Vertices the caller pins (a tile's border): LOCKED, so no collapse moves, removes or extends them."""
+    v = wp.tid()
+    if lock[v] != 0 and state[v] != DEAD:
+        state[v] = LOCKED
+
+
+@wp.kernel
 def remap_faces(faces: wp.array(dtype=wp.vec3i), slot: wp.array(dtype=wp.int32)):
     f = wp.tid()
     t = faces[f]

@@ -38,6 +38,7 @@ from engine.stages.devmesh import (
     CLASS_NAMES,
     Incidence,
     bbox_centre,
+    compact_carrying,
     compact_faces,
     compact_vertices,
     vertex_classes,
@@ -126,20 +127,34 @@ class _Clock:
         self.t = now
 
 
-def vertex_quadrics(pos: Any, faces: Any) -> tuple[Incidence, Any, Any, Any]:
+def vertex_quadrics(pos: Any, faces: Any, origin: Any = None) -> tuple[Incidence, Any, Any, Any]:
     """What the collapses start from, for a device mesh without removed faces: the vertices' stars, their classes
-    (``devmesh.vertex_classes``), the local origin (the bounding box's centre) and each vertex's quadric (the sum of
-    its faces' area-weighted plane quadrics, float64, about that origin)."""
+    (``devmesh.vertex_classes``), the local origin (``origin``, by default the bounding box's centre) and each
+    vertex's quadric (the sum of its faces' area-weighted plane quadrics, float64, about that origin)."""
     import warp as wp
 
     from engine.kernels import decimate as kd
 
     inc = Incidence(len(pos)).build(faces, len(faces))
     state = vertex_classes(faces, inc)
-    origin = bbox_centre(pos)
+    if origin is None:
+        origin = bbox_centre(pos)
     quad = wp.empty(len(pos), dtype=kd.quadric, device=pos.device)
     wp.launch(kd.vertex_quadrics, dim=len(pos), inputs=[pos, faces, *inc.inputs, origin, quad], device=pos.device)
     return inc, state, origin, quad
+
+
+@dataclass
+class Decimated:
+    """A decimation's result with what a later decimation of the same surface continues from: the compact mesh,
+    each kept vertex's index in the input (``kept``) and its accumulated quadric (about ``origin``)."""
+
+    pos: Any
+    faces: Any
+    quad: Any
+    kept: Any
+    origin: Any
+    stats: DecimationStats
 
 
 def decimate_device(
@@ -171,6 +186,44 @@ def decimate_device(
     Returns:
         ``(pos, faces, stats)``: new compact device arrays (unused vertices dropped, order kept) and the stats.
     """
+    out = decimate_carrying(
+        pos,
+        faces,
+        target,
+        max_normal_turn_deg=max_normal_turn_deg,
+        candidate_fraction=candidate_fraction,
+        claim_rounds=claim_rounds,
+        stop_tolerance=stop_tolerance,
+        max_passes=max_passes,
+        on_pass=on_pass,
+        profile=profile,
+        carry=False,
+    )
+    return out.pos, out.faces, out.stats
+
+
+def decimate_carrying(
+    pos: Any,
+    faces: Any,
+    target: int,
+    *,
+    locked: Any = None,
+    quadrics: Any = None,
+    origin: Any = None,
+    max_normal_turn_deg: float = MAX_NORMAL_TURN_DEG,
+    candidate_fraction: float = CANDIDATE_FRACTION,
+    claim_rounds: int = CLAIM_ROUNDS,
+    stop_tolerance: float = STOP_TOLERANCE,
+    max_passes: int = MAX_PASSES,
+    on_pass: Any = None,
+    profile: bool = False,
+    carry: bool = True,
+) -> Decimated:
+    """``decimate_device`` for a piece of a larger surface (``engine.stages.tiled``): vertices flagged in
+    ``locked`` (int32 per vertex, nonzero = pinned: never moved, removed or extended by a collapse), quadrics
+    carried in from earlier collapses of the same surface (``quadrics`` about ``origin``; by default each vertex's
+    faces' quadrics about ``origin`` or the bounding box's centre), and, with ``carry``, the kept vertices' input
+    indices and quadrics carried out. Other arguments as for ``decimate_device``."""
     import warp as wp
 
     from engine.kernels import decimate as kd
@@ -184,7 +237,11 @@ def decimate_device(
         faces = wp.clone(faces)
         nv = len(pos)
         alive = len(faces)
-        inc, state, origin, quad = vertex_quadrics(pos, faces)
+        inc, state, origin, quad = vertex_quadrics(pos, faces, origin)
+        if quadrics is not None:
+            quad = wp.clone(quadrics)
+        if locked is not None:
+            wp.launch(kd.lock_vertices, dim=nv, inputs=[locked, state])
         classes = np.bincount(state.numpy(), minlength=4)  # sync point
         clock.tick("setup")
         stats.vertex_classes = {name: int(c) for name, c in zip(CLASS_NAMES, classes, strict=True)}
@@ -276,11 +333,14 @@ def decimate_device(
                 dirty.fill_(1)  # new slots: every edge is priced and checked again
         if alive < len(faces):
             faces = compact_faces(faces, alive)
-        out_pos, out_faces = compact_vertices(pos, faces)
+        if carry:
+            out_pos, out_faces, out_quad, kept = compact_carrying(pos, faces, quad)
+        else:
+            (out_pos, out_faces), out_quad, kept = compact_vertices(pos, faces), None, None
         clock.tick("compact")
     stats.output_faces = len(out_faces)
     stats.seconds = time.perf_counter() - t0
-    return out_pos, out_faces, stats
+    return Decimated(out_pos, out_faces, out_quad, kept, origin, stats)
 
 
 def price_edges(

@@ -117,6 +117,29 @@ def compact_vertices(pos: Any, faces: Any) -> tuple[Any, Any]:
     return out, faces
 
 
+def compact_carrying(pos: Any, faces: Any, quad: Any) -> tuple[Any, Any, Any, Any]:
+    """``compact_vertices`` that also carries the quadrics and says where each kept vertex was:
+    ``(pos, faces, quad, kept)`` with ``kept[i]`` the input index of output vertex ``i`` (``faces`` is remapped in
+    place)."""
+    import warp as wp
+
+    from engine.kernels import decimate as kd
+
+    with wp.ScopedDevice(pos.device):
+        count = wp.zeros(len(pos), dtype=wp.int32)
+        wp.launch(kd.count_incidence, dim=len(faces), inputs=[faces, count])
+        flag = wp.empty(len(pos), dtype=wp.int32)
+        wp.launch(kd.used_flags, dim=len(pos), inputs=[count, flag])
+        slot, n_used = exclusive_scan(flag)
+        out = wp.empty(n_used, dtype=wp.vec3)
+        kept = wp.empty(n_used, dtype=wp.int32)
+        out_quad = wp.empty(n_used, dtype=kd.quadric)
+        wp.launch(kd.scatter_vertices, dim=len(pos), inputs=[pos, count, slot, out])
+        wp.launch(kd.scatter_kept, dim=len(pos), inputs=[count, slot, quad, kept, out_quad])
+        wp.launch(kd.remap_faces, dim=len(faces), inputs=[faces, slot])
+    return out, faces, out_quad, kept
+
+
 def bbox_centre(pos: Any) -> Any:
     """The centre of the vertices' bounding box as ``wp.vec3d`` (the quadrics' local origin)."""
     import warp as wp

@@ -44,6 +44,7 @@ class IsosurfaceStats:
     active_blocks: int = 0
     table_misses: int = 0
     peak_slab_bytes: int = 0
+    retries: int = 0
     slab_layers: list[int] = field(default_factory=list)
 
 
@@ -111,17 +112,62 @@ def _default_budget(dev: Any) -> int:
     return int(avail * 0.25)
 
 
-def _layers_per_slab(shape: tuple[int, int, int], itemsize: int, budget: int) -> int:
+def _per_active_block() -> int:
+    """Working-set bytes per active block: 5 int32 per cell slot, plus room for ~1 vertex and ~2 triangles per
+    cell of output (a worst case; the real output is known after the count)."""
+    from engine.kernels.mc33 import BLOCK_CELLS
+
+    return BLOCK_CELLS * (20 + 36)
+
+
+def _per_layer(shape: tuple[int, int, int], plane_bytes: int) -> int:
+    """Fixed bytes per block layer: its volume planes (``plane_bytes`` each) and the per-block arrays."""
+    from engine.kernels.mc33 import BLOCK
+
+    _, ny, nx = shape
+    nby, nbx = -(-(ny + 1) // BLOCK), -(-(nx + 1) // BLOCK)
+    return BLOCK * plane_bytes + nby * nbx * 16
+
+
+def _layers_per_slab(shape: tuple[int, int, int], plane_bytes: int, budget: int, active_share: float = 1.0) -> int:
+    """Block layers per slab within ``budget`` when ``active_share`` of the blocks are active (1: the worst case)."""
     from engine.kernels.mc33 import BLOCK, BLOCK_CELLS
 
     _, ny, nx = shape
     nby, nbx = -(-(ny + 1) // BLOCK), -(-(nx + 1) // BLOCK)
-    # per block layer: the volume planes, and the worst case of every block active: 5 int32 per cell slot,
-    # plus room for ~1 vertex and ~2 triangles per cell of output
-    per_layer = BLOCK * ny * nx * itemsize + nby * nbx * (BLOCK_CELLS * (20 + 36) + 16)
-    layers = max(1, budget // per_layer)
+    per_layer = _per_layer(shape, plane_bytes) + int(nby * nbx * active_share * _per_active_block())
+    layers = max(1, budget // max(per_layer, 1))
     layers = min(layers, max(1, (_INT32_MAX // 2) // (nby * nbx * BLOCK_CELLS)))
     return int(layers)
+
+
+@dataclass
+class SlabMesh:
+    """One slab's share of the mesh, on the device: its new vertices (ids ``vstart`` ..) and faces, and the vertex
+    ids on its bottom and top planes (``(2, ny + 1, nx + 1)`` int32, -1 where none), which it shares with the
+    slabs below and above (the faces of a slab use its own vertices and those of ``plane_below``)."""
+
+    verts: Any
+    faces: Any
+    nv: int
+    nt: int
+    vstart: int
+    plane_below: Any
+    plane_above: Any
+
+
+@dataclass
+class SlabPlan:
+    """How ``_run_slabs`` sizes its slabs: ``budget`` bytes for a slab's working set, of which a z plane of the
+    source costs ``plane_bytes`` (the slab getter's own working set per plane, e.g. the streamed Gaussian's);
+    ``max_faces`` caps a slab's output; ``strict`` raises ``BudgetError`` where one block layer does not fit
+    (otherwise one layer is used anyway, as MC33 alone always did)."""
+
+    budget: int
+    plane_bytes: int
+    halo_planes: int = 0
+    max_faces: int | None = None
+    strict: bool = False
 
 
 class _Timer:
@@ -145,18 +191,20 @@ class _Timer:
 def _run_slabs(
     get_slab: Callable[[int, int], Any],
     shape: tuple[int, int, int],
-    itemsize: int,
+    plan: SlabPlan,
     is_float: bool,
     level: float,
     spacing: tuple[float, float, float],
     closed: bool,
-    budget: int,
     dev: Any,
     st: IsosurfaceStats,
-) -> Iterator[tuple[Any, Any, int, int]]:
-    """Yield (verts, faces, n_verts, n_faces) device arrays per slab; check NaN and the level's range at the end.
+) -> Iterator[SlabMesh]:
+    """Yield each slab's mesh (``SlabMesh``); check NaN and the level's range at the end.
 
-    ``get_slab(zlo, zhi)`` returns the (zhi - zlo + 1, ny, nx) samples of planes zlo..zhi on ``dev``.
+    ``get_slab(zlo, zhi)`` returns the (zhi - zlo + 1, ny, nx) samples of planes zlo..zhi on ``dev``. Slabs start
+    at the worst-case size for ``plan.budget`` and adapt to the active blocks and faces seen so far; a slab found
+    over the budget (or over ``plan.max_faces``) after its blocks are classified or counted is redone with half
+    the layers, so the result never depends on the slabbing.
     """
     import warp as wp
 
@@ -164,16 +212,22 @@ def _run_slabs(
 
     tables = _tables(str(dev))
     nz, ny, nx = shape
-    layers = _layers_per_slab(shape, itemsize, budget)
     B = k.BLOCK
     nbz_total = -(-(nz + 1) // B)
     nby, nbx = -(-(ny + 1) // B), -(-(nx + 1) // B)
+    fixed = _per_layer(shape, plan.plane_bytes)
+    halo = plan.halo_planes * plan.plane_bytes
+    per_block = _per_active_block()
+    layers = _layers_per_slab(shape, plan.plane_bytes, max(plan.budget - halo, 1))
     flags = wp.zeros(4, dtype=wp.int32, device=dev)
     plane_prev = wp.full((2, ny + 1, nx + 1), -1, dtype=wp.int32, device=dev)
     vstart = 0
     timer = _Timer(st, dev)
-    for bz0 in range(0, nbz_total, layers):
+    bz0 = 0
+    active_per_layer = faces_per_layer = 0.0  # the most seen so far, for sizing the next slab
+    while bz0 < nbz_total:
         bz1 = min(bz0 + layers, nbz_total)
+        n_layers = bz1 - bz0
         cz_first = bz0 * B - 1
         cz_last = min(bz1 * B - 1, nz) - 1  # last cell layer (origin)
         zlo, zhi = max(cz_first, 0), min(cz_last + 1, nz - 1)
@@ -181,7 +235,7 @@ def _run_slabs(
         timer.lap("upload")
         g = k.Grid()
         g.nz, g.ny, g.nx = nz, ny, nx
-        g.zoff, g.bz0, g.nbz, g.nby, g.nbx = zlo, bz0, bz1 - bz0, nby, nbx
+        g.zoff, g.bz0, g.nbz, g.nby, g.nbx = zlo, bz0, n_layers, nby, nbx
         g.cz_first = cz_first
         g.level = level
         g.pad = -1.0  # only its sign is used (see the module docstring)
@@ -196,19 +250,25 @@ def _run_slabs(
         bpos = wp.empty(nblocks, dtype=wp.int32)
         wp.utils.array_scan(active, bpos, inclusive=False)
         n_active = int(bpos[nblocks - 1 : nblocks].numpy()[0] + active[nblocks - 1 : nblocks].numpy()[0])  # sync point
+        need = fixed * n_layers + halo + n_active * per_block
+        if need > plan.budget and n_layers > 1:
+            layers = max(1, n_layers // 2)  # redo this slab smaller
+            st.retries += 1
+            continue
+        if need > plan.budget and plan.strict:
+            raise _too_small(plan, need, "one block layer of the volume and its active blocks")
         alist = wp.empty(max(n_active, 1), dtype=wp.int32)
         bmap = wp.empty(nblocks, dtype=wp.int32)
         wp.launch(k.compact_blocks_kernel, dim=nblocks, inputs=[active, bpos, alist, bmap])
+        del active, bpos
         timer.lap("classify blocks")
-        st.slabs += 1
-        st.blocks += nblocks
-        st.active_blocks += n_active
-        st.slab_layers.append(cz_last - cz_first + 1)
         nslots = n_active * k.BLOCK_CELLS
         slab_bytes = (sub.capacity if sub.is_contiguous else 0) + nblocks * 12 + nslots * 20
         if nslots == 0:
+            _accept(st, nblocks, n_active, cz_last - cz_first + 1, slab_bytes)
             plane_prev.fill_(-1)
-            st.peak_slab_bytes = max(st.peak_slab_bytes, slab_bytes)
+            bz0 = bz1
+            layers = _next_layers(plan, fixed, halo, per_block, active_per_layer, faces_per_layer, layers, nbz_total)
             continue
         vcount = wp.empty(nslots, dtype=wp.int32)
         tcount = wp.empty(nslots, dtype=wp.int32)
@@ -239,6 +299,13 @@ def _run_slabs(
         nt = int(toff[nslots - 1 : nslots].numpy()[0] + tcount[nslots - 1 : nslots].numpy()[0])  # sync point
         del vcount, tcount
         timer.lap("scan")
+        if plan.max_faces is not None and nt > plan.max_faces:
+            if n_layers > 1:
+                layers = max(1, n_layers // 2)
+                st.retries += 1
+                continue
+            if plan.strict:
+                raise _too_small(plan, need + nt * plan.budget // max(plan.max_faces, 1), "one block layer's faces")
         if vstart + nv > _INT32_MAX:
             raise ValueError(f"Expected at most {_INT32_MAX} vertices (int32 faces), got more than {vstart + nv}")
         verts = wp.empty(max(nv, 1), dtype=wp.vec3)
@@ -268,16 +335,59 @@ def _run_slabs(
         )
         plane_next = wp.empty((2, ny + 1, nx + 1), dtype=wp.int32)
         wp.launch(k.plane_kernel, dim=(ny + 1, nx + 1), inputs=[g, bmap, voff, code, vstart, cz_last, plane_next])
-        plane_prev = plane_next
         timer.lap("emit")
-        st.peak_slab_bytes = max(st.peak_slab_bytes, slab_bytes + nslots * 8 + nv * 12 + nt * 12)
-        yield verts, faces, nv, nt
+        del sub, alist, bmap, voff, toff, code  # the consumer may use the memory while this generator waits
+        _accept(st, nblocks, n_active, cz_last - cz_first + 1, slab_bytes + nslots * 8 + nv * 12 + nt * 12)
+        active_per_layer = max(active_per_layer, n_active / n_layers)
+        faces_per_layer = max(faces_per_layer, nt / n_layers)
+        yield SlabMesh(verts, faces, nv, nt, vstart, plane_prev, plane_next)
+        plane_prev = plane_next
         vstart += nv
+        bz0 = bz1
+        layers = _next_layers(plan, fixed, halo, per_block, active_per_layer, faces_per_layer, layers, nbz_total)
     fl = flags.numpy()  # sync point
     if fl[2]:
         raise ValueError("Expected a volume without NaN, got NaN values in the float volume")
     st.table_misses = int(fl[3])
     st.level_in_range = bool(fl[0] and fl[1])
+
+
+def _accept(st: IsosurfaceStats, nblocks: int, n_active: int, cell_layers: int, slab_bytes: int) -> None:
+    st.slabs += 1
+    st.blocks += nblocks
+    st.active_blocks += n_active
+    st.slab_layers.append(cell_layers)
+    st.peak_slab_bytes = max(st.peak_slab_bytes, slab_bytes)
+
+
+def _next_layers(
+    plan: SlabPlan,
+    fixed: int,
+    halo: int,
+    per_block: int,
+    active_per_layer: float,
+    faces_per_layer: float,
+    layers: int,
+    nbz_total: int,
+) -> int:
+    """The next slab's block layers: what the budget allows at twice the densest active blocks (and faces) per
+    layer seen so far, growing at most fourfold per slab (a slab found too large is redone smaller)."""
+    per_layer = fixed + 2.0 * active_per_layer * per_block
+    n = int((plan.budget - halo) // max(per_layer, 1.0))
+    if plan.max_faces is not None and faces_per_layer > 0:
+        n = min(n, int(plan.max_faces // (2.0 * faces_per_layer)))
+    return int(min(max(n, 1), 4 * layers, nbz_total))
+
+
+def _too_small(plan: SlabPlan, need: int, what: str) -> Exception:
+    from engine.errors import BudgetError
+
+    scale = need / max(plan.budget, 1)
+    return BudgetError(
+        f"the device memory budget is too small: {what} need {need / 2**20:.0f} MiB of the "
+        f"{plan.budget / 2**20:.0f} MiB a slab may use",
+        needed=int(scale * plan.budget),
+    )
 
 
 def _budget(max_device_bytes: int | None, dev: Any) -> int:
@@ -332,10 +442,10 @@ def marching_cubes_33(
         def upload(zlo: int, zhi: int) -> Any:
             return wp.array(vol[zlo : zhi + 1], device=dev)
 
-        slabs = _run_slabs(upload, vol.shape, vol.itemsize, vol.dtype == np.float32, lvl, sp, closed, budget, dev, st)
-        for verts, faces, nv, nt in slabs:
-            vert_parts.append(verts.numpy()[:nv])  # sync point
-            face_parts.append(faces.numpy()[:nt])  # sync point
+        plan = SlabPlan(budget, vol.shape[1] * vol.shape[2] * vol.itemsize)
+        for part in _run_slabs(upload, vol.shape, plan, vol.dtype == np.float32, lvl, sp, closed, dev, st):
+            vert_parts.append(part.verts.numpy()[: part.nv])  # sync point
+            face_parts.append(part.faces.numpy()[: part.nt])  # sync point
             _Timer(st, dev).lap("download")
     if not st.level_in_range or not face_parts:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
@@ -380,25 +490,29 @@ def extract_isosurface(
     st = stats if stats is not None else IsosurfaceStats()
     budget = _budget(max_device_bytes, dev)
     itemsize = np.dtype(kinds[field.dtype]).itemsize
-    parts: list[tuple[Any, Any, int, int]] = []
     with wp.ScopedDevice(dev):
 
         def view(zlo: int, zhi: int) -> Any:
             return field[zlo : zhi + 1]
 
-        parts = list(
-            _run_slabs(view, field.shape, itemsize, field.dtype == wp.float32, lvl, sp, closed, budget, dev, st)
-        )
+        plan = SlabPlan(budget, field.shape[1] * field.shape[2] * itemsize)
+        parts = list(_run_slabs(view, field.shape, plan, field.dtype == wp.float32, lvl, sp, closed, dev, st))
         if not st.level_in_range or not parts:
             return wp.empty(0, dtype=wp.vec3), wp.empty(0, dtype=wp.vec3i)
-        if len(parts) == 1:
-            v, f, nv, nt = parts[0]
-            return v[:nv], f[:nt]
-        verts = wp.empty(sum(p[2] for p in parts), dtype=wp.vec3)
-        faces = wp.empty(sum(p[3] for p in parts), dtype=wp.vec3i)
-        ov = of = 0
-        for v, f, nv, nt in parts:
-            wp.copy(verts, v, dest_offset=ov, count=nv)
-            wp.copy(faces, f, dest_offset=of, count=nt)
-            ov, of = ov + nv, of + nt
+        return join_parts(parts)
+
+
+def join_parts(parts: list[SlabMesh]) -> tuple[Any, Any]:
+    """The slabs' meshes as one device mesh (vertex ids already run on across slabs)."""
+    import warp as wp
+
+    if len(parts) == 1:
+        return parts[0].verts[: parts[0].nv], parts[0].faces[: parts[0].nt]
+    verts = wp.empty(sum(p.nv for p in parts), dtype=wp.vec3)
+    faces = wp.empty(sum(p.nt for p in parts), dtype=wp.vec3i)
+    ov = of = 0
+    for p in parts:
+        wp.copy(verts, p.verts, dest_offset=ov, count=p.nv)
+        wp.copy(faces, p.faces, dest_offset=of, count=p.nt)
+        ov, of = ov + p.nv, of + p.nt
     return verts, faces
