@@ -10,6 +10,7 @@ with ``BONEMESH_DEBUG=1``); bad input raises ``InputError``.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import platform
 import time
@@ -83,10 +84,17 @@ class _State:
     faces: Any = None  # wp.array(dtype=wp.vec3i)
     incidence: Any = None  # devmesh.Incidence of the current mesh, when built
     normals: Any = None
+    budget: int | None = None  # max_device_bytes: the volume is streamed and the mesh decimated within it
+    stream: Any = None  # engine.stages.stream.StreamResult of a budgeted run
 
 
 def reconstruct(
-    volume: Volume, params: ReconParams | None = None, *, device: str = "auto", on_progress: Progress | None = None
+    volume: Volume,
+    params: ReconParams | None = None,
+    *,
+    device: str = "auto",
+    on_progress: Progress | None = None,
+    max_device_bytes: int | str | None = None,
 ) -> Reconstruction:
     """Run the EMC33 pipeline on a volume.
 
@@ -97,21 +105,30 @@ def reconstruct(
         on_progress: called as ``on_progress(stage, fraction_done)`` when a stage starts and ends and inside long
             stages (the decimation's passes); the fraction weights stages by their expected time
             (``engine.progress``).
+        max_device_bytes: a device memory budget (bytes, or text such as ``"2GiB"``) that every stage keeps to:
+            the volume is streamed in z slabs through the Gaussian and MC33, and a mesh whose decimation does not
+            fit is decimated in groups of slabs and then in z tiles with pinned borders (``engine.stages.stream``,
+            ``engine.stages.tiled``). The volume stages' result is the same as without a budget; the decimation
+            keeps the same topology and guards. ``None``: no budget (the whole volume goes up at once). The peak
+            used is reported in ``report["memory"]``.
 
     Returns:
         The final mesh (vertices (z, y, x) mm in the grid, outward faces, unit vertex normals) and the report; the
         report's ``frame`` maps the grid to the patient frame (``engine.orient``, applied by ``write_outputs``).
 
     Raises:
-        InputError: the volume or parameters cannot give a model (EmptySurfaceError: no surface at the level).
+        InputError: the volume or parameters cannot give a model (EmptySurfaceError: no surface at the level;
+            BudgetError: the memory budget is too small, with the smallest that would work).
         StageError: a stage failed otherwise.
     """
     import warp as wp
 
     from engine.device import resolve_device
+    from engine.memory import PeakMemory, parse_bytes
 
     params = params or ReconParams()
     dev = resolve_device(device)
+    budget = parse_bytes(max_device_bytes)
     report: dict[str, Any] = {
         "parameters": params.to_dict(),
         "device": {"spec": device, "name": str(dev), "description": getattr(dev, "name", str(dev))},
@@ -126,7 +143,7 @@ def reconstruct(
         "stage_seconds": {},
         "counts": {},
     }
-    st = _State(volume)
+    st = _State(volume, budget=budget)
     stages: dict[str, Callable[[_State, ReconParams, dict[str, Any], Progress], None]] = {
         "preprocess": _preprocess,
         "upload": _upload,
@@ -138,7 +155,9 @@ def reconstruct(
         "normals": _normals,
     }
     progress = StageProgress(STAGES, on_progress)
+    memory = PeakMemory(dev)
     with wp.ScopedDevice(dev):
+        memory.start()
         for name in STAGES:
 
             def within(fraction: float, name: str = name) -> None:
@@ -161,6 +180,10 @@ def reconstruct(
 
         report["mesh"] = mesh_stats_device(st.pos, st.faces, _incidence(st))  # sync point: the counts come back
         report["finish_seconds"] = time.perf_counter() - t0
+        report["memory"] = {"budget_bytes": budget, "peak_bytes": memory.peak(), "measured_by": memory.how}
+        memory.stop()
+        if st.stream is not None:
+            report["memory"]["stream"] = st.stream.info
     report["total_seconds"] = sum(report["stage_seconds"].values())
     return Reconstruction(report=report, device_mesh=(st.pos, st.faces, st.normals))
 
@@ -186,7 +209,10 @@ def _upload(st: _State, params: ReconParams, report: dict[str, Any], progress: P
     data = st.volume.data
     if data.dtype not in (np.uint8, np.uint16, np.int16, np.float32):
         data = data.astype(np.float32)
-    st.field = wp.array(np.ascontiguousarray(data))
+    if st.budget is None:
+        st.field = wp.array(np.ascontiguousarray(data))
+    else:  # streamed in slabs by the isosurface stage (engine.stages.stream)
+        st.volume = dataclasses.replace(st.volume, data=np.ascontiguousarray(data))
     st.level, how = choose_level(st.volume, params)
     report["iso_level"] = {"value": st.level, "units": st.volume.units, "chosen_by": how}
 
@@ -194,7 +220,7 @@ def _upload(st: _State, params: ReconParams, report: dict[str, Any], progress: P
 def _gaussian(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
     from engine.stages.gaussian import smooth_volume
 
-    if params.gaussian is not None:
+    if params.gaussian is not None and st.field is not None:  # (a budgeted run smooths slab by slab)
         st.field = smooth_volume(st.field, params.gaussian)
 
 
@@ -203,12 +229,21 @@ def _isosurface(st: _State, params: ReconParams, report: dict[str, Any], progres
 
     stats = IsosurfaceStats()
     try:  # its ValueErrors are about the data (NaN, checked on the device in the extraction's own pass)
-        v, f = extract_isosurface(
-            st.field, st.level, spacing=st.volume.spacing_zyx_mm, closed=params.iso.closed, stats=stats
-        )
+        if st.budget is None:
+            v, f = extract_isosurface(
+                st.field, st.level, spacing=st.volume.spacing_zyx_mm, closed=params.iso.closed, stats=stats
+            )
+        else:
+            v, f = _stream(st, params, stats)
+    except InputError:
+        raise
     except ValueError as exc:
         raise InputError(str(exc)) from None
     st.field = None
+    if st.stream is not None and st.stream.host is not None:  # decimated in groups already
+        report["counts"]["isosurface"] = {"vertices": st.stream.mc33_vertices, "faces": st.stream.mc33_faces}
+        report["isosurface"] = {"slabs": stats.slabs, "active_blocks": stats.active_blocks, "blocks": stats.blocks}
+        return
     if len(f) == 0:
         lo, hi = float(st.volume.data.min()), float(st.volume.data.max())
         raise EmptySurfaceError(
@@ -220,7 +255,35 @@ def _isosurface(st: _State, params: ReconParams, report: dict[str, Any], progres
     report["isosurface"] = {"slabs": stats.slabs, "active_blocks": stats.active_blocks, "blocks": stats.blocks}
 
 
+def _stream(st: _State, params: ReconParams, stats: Any) -> tuple[Any, Any]:
+    """The Gaussian and MC33 within the budget (``engine.stages.stream``): the device mesh, or (when groups of
+    slabs had to be decimated on the way) empty arrays and ``st.stream.host``."""
+    import warp as wp
+
+    from engine.stages.stream import stream_surface
+
+    dec = params.decimate
+    st.stream = stream_surface(
+        st.volume.data,
+        st.level,
+        st.volume.spacing_zyx_mm,
+        closed=params.iso.closed,
+        gaussian=params.gaussian,
+        budget=st.budget,
+        ratio=None if dec is None else dec.reduction,
+        decimate=dec is not None,
+        dev=wp.get_device(),
+        stats=stats,
+    )
+    if st.stream.device is not None:
+        return st.stream.device
+    return wp.empty(0, dtype=wp.vec3), wp.empty(0, dtype=wp.vec3i)
+
+
 def _decimate(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    if st.stream is not None and st.stream.host is not None:
+        _decimate_tiled(st, params, report)
+        return
     if params.decimate is None:
         return
     from engine.stages.decimate import TOLERANCE, decimate_device, target_faces
@@ -243,7 +306,45 @@ def _decimate(st: _State, params: ReconParams, report: dict[str, Any], progress:
     report["counts"]["decimate"] = {"vertices": len(st.pos), "faces": stats.output_faces}
 
 
+def _decimate_tiled(st: _State, params: ReconParams, report: dict[str, Any]) -> None:
+    """Finish a decimation begun in groups of slabs: tiled rounds across their borders, then a last pass."""
+    import warp as wp
+
+    from engine.stages.decimate import TOLERANCE, target_faces
+    from engine.stages.tiled import finish_host
+
+    assert params.decimate is not None and st.stream is not None and st.stream.host is not None
+    n_in = st.stream.mc33_faces
+    target = target_faces(n_in, params.decimate.reduction, params.decimate.max_triangles)
+    st.pos, st.faces, info = finish_host(st.stream.host, target, st.budget, wp.get_device())
+    st.stream.host = None
+    out = len(st.faces)
+    info |= {"input_faces": n_in, "target_faces": target, "achieved_ratio": out / n_in}
+    info["limited_by_guards"] = out > target * (1 + TOLERANCE)
+    info["method"] = "warp quadric edge collapse in slab groups and z tiles with pinned borders (memory budget)"
+    report["decimate"] = info
+    report["counts"]["decimate"] = {"vertices": len(st.pos), "faces": out}
+
+
+def _check_fits(st: _State) -> None:
+    """The finishing stages hold the whole final mesh: within a budget, say so early if it cannot fit."""
+    from engine.errors import BudgetError
+    from engine.memory import FINISH_BYTES_PER_FACE, mib
+
+    if st.budget is None or st.faces is None:
+        return
+    need = len(st.faces) * FINISH_BYTES_PER_FACE
+    if need > st.budget:
+        raise BudgetError(
+            f"the decimated model ({len(st.faces):,} faces) needs about {mib(need)} of device memory to finish "
+            f"(islands, smoothing, normals, outputs), over the budget of {mib(st.budget)}: give at least "
+            f"{mib(need)} or decimate further",
+            needed=need,
+        )
+
+
 def _islands(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    _check_fits(st)
     if params.islands is None:
         return
     from engine.stages.islands import remove_islands_device

@@ -217,7 +217,7 @@ def _run_slabs(
     nby, nbx = -(-(ny + 1) // B), -(-(nx + 1) // B)
     fixed = _per_layer(shape, plan.plane_bytes)
     halo = plan.halo_planes * plan.plane_bytes
-    per_block = _per_active_block()
+    per_block = k.BLOCK_CELLS * 20  # the per-cell slot arrays; the output is counted once known
     layers = _layers_per_slab(shape, plan.plane_bytes, max(plan.budget - halo, 1))
     flags = wp.zeros(4, dtype=wp.int32, device=dev)
     plane_prev = wp.full((2, ny + 1, nx + 1), -1, dtype=wp.int32, device=dev)
@@ -255,8 +255,7 @@ def _run_slabs(
             layers = max(1, n_layers // 2)  # redo this slab smaller
             st.retries += 1
             continue
-        if need > plan.budget and plan.strict:
-            raise _too_small(plan, need, "one block layer of the volume and its active blocks")
+        # (one layer over a strict budget goes on to the count, so the error can name the whole need)
         alist = wp.empty(max(n_active, 1), dtype=wp.int32)
         bmap = wp.empty(nblocks, dtype=wp.int32)
         wp.launch(k.compact_blocks_kernel, dim=nblocks, inputs=[active, bpos, alist, bmap])
@@ -305,7 +304,18 @@ def _run_slabs(
                 st.retries += 1
                 continue
             if plan.strict:
-                raise _too_small(plan, need + nt * plan.budget // max(plan.max_faces, 1), "one block layer's faces")
+                raise _too_small(
+                    plan,
+                    need + nt * plan.budget // max(plan.max_faces, 1),
+                    "the faces of one block layer of the volume (8 z planes)",
+                )
+        need += nv * 12 + nt * 12 + (ny + 1) * (nx + 1) * 8
+        if need > plan.budget and n_layers > 1:
+            layers = max(1, n_layers // 2)
+            st.retries += 1
+            continue
+        if need > plan.budget and plan.strict:
+            raise _too_small(plan, need, "one block layer of the volume (8 z planes) and its surface")
         if vstart + nv > _INT32_MAX:
             raise ValueError(f"Expected at most {_INT32_MAX} vertices (int32 faces), got more than {vstart + nv}")
         verts = wp.empty(max(nv, 1), dtype=wp.vec3)
@@ -372,7 +382,7 @@ def _next_layers(
 ) -> int:
     """The next slab's block layers: what the budget allows at twice the densest active blocks (and faces) per
     layer seen so far, growing at most fourfold per slab (a slab found too large is redone smaller)."""
-    per_layer = fixed + 2.0 * active_per_layer * per_block
+    per_layer = fixed + 2.0 * (active_per_layer * per_block + faces_per_layer * 18)
     n = int((plan.budget - halo) // max(per_layer, 1.0))
     if plan.max_faces is not None and faces_per_layer > 0:
         n = min(n, int(plan.max_faces // (2.0 * faces_per_layer)))
@@ -382,12 +392,7 @@ def _next_layers(
 def _too_small(plan: SlabPlan, need: int, what: str) -> Exception:
     from engine.errors import BudgetError
 
-    scale = need / max(plan.budget, 1)
-    return BudgetError(
-        f"the device memory budget is too small: {what} need {need / 2**20:.0f} MiB of the "
-        f"{plan.budget / 2**20:.0f} MiB a slab may use",
-        needed=int(scale * plan.budget),
-    )
+    return BudgetError(f"the device memory budget is too small for {what}", needed=int(need))
 
 
 def _budget(max_device_bytes: int | None, dev: Any) -> int:

@@ -1,0 +1,102 @@
+"""The device memory budget (``max_device_bytes``): the cost model the stages plan with, and the peak measured.
+
+Every stage of ``engine.pipeline.reconstruct`` and ``engine.outputs.write_outputs`` plans its device allocations
+against one budget in bytes. The model below is what they plan with; the peak actually used is measured from the
+device's memory pool (CUDA: the pool's used-memory high-water mark, reset at the start of a job) or, on the CPU,
+by Warp's allocation tracker, and reported beside the budget.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import re
+from typing import Any
+
+# Planning figures, per face of a triangle mesh with about half as many vertices as faces (measured on the H100:
+# docs/benchmarks.md, "Any scan size in a fixed memory budget").
+MESH_BYTES_PER_FACE = 18  # positions (12 B per vertex) and faces (12 B)
+DECIMATE_BYTES_PER_FACE = 300  # the mesh, its copy, stars, classes, quadrics, per-edge keys and positions
+FINISH_BYTES_PER_FACE = 200  # islands, smoothing and normals of the final mesh, and its output layout
+SLAB_SHARE = 0.25  # of the budget, for one slab of the volume stages (the rest holds the mesh being built)
+
+_UNITS = {"": 1, "b": 1, "k": 1 << 10, "kb": 1000, "kib": 1 << 10, "m": 1 << 20, "mb": 10**6, "mib": 1 << 20}
+_UNITS |= {"g": 1 << 30, "gb": 10**9, "gib": 1 << 30, "t": 1 << 40, "tb": 10**12, "tib": 1 << 40}
+
+
+def parse_bytes(text: str | int | None) -> int | None:
+    """``"8GiB"``, ``"512 MiB"``, ``"2G"`` (binary) or a plain byte count; ``None``, ``""`` or ``"0"``: no budget."""
+    if text is None or isinstance(text, int):
+        if isinstance(text, int) and text < 0:
+            raise ValueError(f"a memory budget must be positive, got {text}")
+        return text or None
+    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([a-zA-Z]*)\s*", str(text))
+    if not m or m.group(2).lower() not in _UNITS:
+        raise ValueError(f"a memory budget is a byte count with an optional unit (e.g. 8GiB, 512MiB), got {text!r}")
+    value = int(float(m.group(1)) * _UNITS[m.group(2).lower()])
+    return value or None
+
+
+def mib(n: int) -> str:
+    return f"{n / 2**20:,.0f} MiB"
+
+
+class PeakMemory:
+    """The most device memory in use between ``start()`` and ``peak()``.
+
+    CUDA: the memory pool's used-memory high-water mark (reset through the driver at ``start``; where the reset is
+    not available, the mark minus nothing, labelled ``since process start``). CPU: Warp's allocation tracker.
+    """
+
+    def __init__(self, device: Any) -> None:
+        self.device = device
+        self.how = "none"
+        self._tracker: Any = None
+
+    def start(self) -> PeakMemory:
+        import warp as wp
+
+        if self.device.is_cuda and self.device.is_mempool_enabled:
+            self.how = "cuda memory pool high-water mark" if _reset_pool_high(self.device) else "since process start"
+        elif not self.device.is_cuda:
+            self._tracker = wp.ScopedMemoryTracker("bonemesh", print=False)
+            self._tracker.__enter__()
+            self._tracker.clear()
+            self.how = "warp allocation tracker"
+        return self
+
+    def peak(self) -> int | None:
+        import warp as wp
+
+        if self.device.is_cuda and self.device.is_mempool_enabled:
+            return int(wp.get_mempool_used_mem_high(self.device))
+        if self._tracker is not None:
+            text: list[str] = []
+            self._tracker.report_func = text.append
+            self._tracker.report(max_items=0)
+            m = re.search(r"Peak usage:\s*\n\s*cpu\s+([0-9.]+)\s*(\w+)", "".join(text))
+            if m:  # the tracker's "MB" and "GB" are binary
+                scale = {"b": 1, "bytes": 1, "kb": 1 << 10, "mb": 1 << 20, "gb": 1 << 30, "tb": 1 << 40}
+                return int(float(m.group(1)) * scale.get(m.group(2).lower(), 1))
+        return None
+
+    def stop(self) -> None:
+        if self._tracker is not None:
+            self._tracker.__exit__(None, None, None)
+            self._tracker = None
+
+
+def _reset_pool_high(device: Any) -> bool:
+    """Reset the device's default memory pool's used-memory high-water mark (CUDA driver API)."""
+    try:
+        cuda = ctypes.CDLL("libcuda.so.1")
+        dev = ctypes.c_int()
+        pool = ctypes.c_void_p()
+        if cuda.cuDeviceGet(ctypes.byref(dev), int(device.ordinal)) != 0:
+            return False
+        if cuda.cuDeviceGetDefaultMemPool(ctypes.byref(pool), dev) != 0:
+            return False
+        zero = ctypes.c_uint64(0)
+        used_mem_high = 8  # CU_MEMPOOL_ATTR_USED_MEM_HIGH
+        return cuda.cuMemPoolSetAttribute(pool, used_mem_high, ctypes.byref(zero)) == 0
+    except (OSError, AttributeError):
+        return False
