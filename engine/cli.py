@@ -163,8 +163,9 @@ def _reconstruct(args: argparse.Namespace) -> int:
         if hint:
             _Bar.end_line()
             print(f"bonemesh: note: {hint}", file=sys.stderr)  # noqa: T201 - said before the long run
-    recon = reconstruct(volume, params, device=args.device, on_progress=_after_loading(bar))
-    paths = write_outputs(recon, out, params, device=args.device)
+    budget = args.max_device_bytes
+    recon = reconstruct(volume, params, device=args.device, on_progress=_after_loading(bar), max_device_bytes=budget)
+    paths = write_outputs(recon, out, params, device=args.device, max_device_bytes=budget)
     _summary(volume, recon.report, paths)
     return 0
 

@@ -97,6 +97,20 @@ def add_input_args(parser: argparse.ArgumentParser, what: str) -> None:
         help="the same in z, y, x order (array order), or z=..,y=..,x=..",
     )  # fmt: skip
     parser.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default auto)")
+    parser.add_argument(
+        "--max-device-bytes", type=_budget, default=None, metavar="SIZE",
+        help="device memory budget, e.g. 2GiB: every stage keeps to it (the volume streams in slabs; a large mesh "
+        "is decimated piece by piece); default none",
+    )  # fmt: skip
+
+
+def _budget(text: str) -> int | None:
+    from engine.memory import parse_bytes
+
+    try:
+        return parse_bytes(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def add_level_args(parser: argparse.ArgumentParser) -> None:

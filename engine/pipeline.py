@@ -336,7 +336,7 @@ def _check_fits(st: _State) -> None:
     need = len(st.faces) * FINISH_BYTES_PER_FACE
     if need > st.budget:
         raise BudgetError(
-            f"the decimated model ({len(st.faces):,} faces) needs about {mib(need)} of device memory to finish "
+            f"the model ({len(st.faces):,} faces) needs about {mib(need)} of device memory to finish "
             f"(islands, smoothing, normals, outputs), over the budget of {mib(st.budget)}: give at least "
             f"{mib(need)} or decimate further",
             needed=need,

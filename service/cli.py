@@ -34,9 +34,20 @@ def _worker(argv: list[str]) -> int:
     parser.add_argument("--loglevel", default="INFO")
     parser.add_argument("--device", help="auto, cpu or cuda:N (default BONEMESH_DEVICE, else auto)")
     parser.add_argument("--hostname", help="Celery node name (default bonemesh@<host>-<pid>)")
+    parser.add_argument(
+        "--max-device-bytes", help="device memory budget per job, e.g. 8GiB (default BONEMESH_MAX_DEVICE_BYTES)"
+    )
     args = parser.parse_args(argv)
     if args.device:
         os.environ["BONEMESH_DEVICE"] = args.device
+    if args.max_device_bytes:
+        from engine.memory import parse_bytes
+
+        try:
+            parse_bytes(args.max_device_bytes)
+        except ValueError as exc:
+            parser.error(str(exc))
+        os.environ["BONEMESH_MAX_DEVICE_BYTES"] = args.max_device_bytes
     from service.settings import get_settings
 
     settings = get_settings()

@@ -29,6 +29,11 @@ class Settings(BaseSettings):
     api_keys: Annotated[list[str], NoDecode] = Field(default_factory=lambda: [DEV_API_KEY])
     secret_key: str | None = Field(default=None, description="signs download links; default: a key file in data_dir")
     device: str = "auto"
+    max_device_bytes: str | None = Field(
+        default=None,
+        description="device memory budget per job (e.g. 8GiB): every stage keeps to it, so workers can share a GPU "
+        "and any scan size fits; default none",
+    )
     max_upload_bytes: int = 4 << 30
     active_uploads: int = Field(
         default=4, ge=1, description="upload bodies read at once; more wait unread, so status reads stay fast"

@@ -93,7 +93,7 @@ def reconstruct_job(self: Any, job_id: str) -> str:
             if left:
                 log.info("job %s: removed %d folder(s) left by an earlier attempt", job_id, left)
             staged = storage.staging_dir(job_id)
-            outputs = _run(job, storage.upload_path(job_id), staged, holder, settings.device, db)
+            outputs = _run(job, storage.upload_path(job_id), staged, holder, settings, db)
             if holder.lost.is_set():
                 raise Cancelled(job_id)
             storage.publish(job_id, staged)
@@ -133,8 +133,9 @@ def reconstruct_job(self: Any, job_id: str) -> str:
             shutil.rmtree(staged, ignore_errors=True)
 
 
-def _run(job: Any, upload: Path, staged: Path, holder: _Holder, device: str, db: Database) -> list[dict[str, Any]]:
-    """Load, reconstruct and write the files into ``staged``; returns the output descriptions."""
+def _run(job: Any, upload: Path, staged: Path, holder: _Holder, settings: Any, db: Database) -> list[dict[str, Any]]:
+    """Load, reconstruct and write the files into ``staged`` (on ``settings.device``, within
+    ``settings.max_device_bytes``); returns the output descriptions."""
     from engine.io import load_volume
     from engine.outputs import write_outputs
     from engine.params import ReconParams
@@ -150,9 +151,10 @@ def _run(job: Any, upload: Path, staged: Path, holder: _Holder, device: str, db:
     def on_progress(stage: str, fraction: float) -> None:
         holder.progress(stage, LOAD_END + (PIPELINE_END - LOAD_END) * fraction)
 
-    recon = reconstruct(volume, params, device=device, on_progress=on_progress)
+    device, budget = settings.device, settings.max_device_bytes
+    recon = reconstruct(volume, params, device=device, on_progress=on_progress, max_device_bytes=budget)
     holder.progress("writing", PIPELINE_END)
-    paths = write_outputs(recon, staged, params, device=device)
+    paths = write_outputs(recon, staged, params, device=device, max_device_bytes=budget)
     paths.update(write_dicom_model(db, job.id, upload, staged))  # PACS jobs: Encapsulated STL (worker.pacs)
     report = recon.report
     triangles = {

@@ -1,0 +1,131 @@
+"""The device memory budget (``max_device_bytes``): streamed volume stages, slab-group and tiled decimation."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from engine.data.phantom import bone_phantom
+from engine.errors import BudgetError
+from engine.memory import parse_bytes
+from engine.params import ReconParams
+from engine.pipeline import reconstruct
+from engine.types import Volume
+
+MIB = 1 << 20
+
+
+@pytest.fixture(scope="module")
+def phantom() -> Volume:
+    return Volume(bone_phantom((64, 128, 128)), (0.5, 0.5, 0.5), units="HU")
+
+
+@pytest.fixture(scope="module")
+def unbounded(phantom):
+    return reconstruct(phantom, ReconParams(), device="cpu")
+
+
+def topology(report):
+    m = report["mesh"]
+    return m["watertight"], m["manifold"], m["components"], m["euler"]
+
+
+def test_parse_bytes():
+    assert parse_bytes("8GiB") == 8 << 30
+    assert parse_bytes("512 MiB") == 512 << 20
+    assert parse_bytes("2G") == 2 << 30
+    assert parse_bytes("1.5kb") == 1500
+    assert parse_bytes(4096) == 4096
+    assert parse_bytes(None) is None and parse_bytes("0") is None
+    with pytest.raises(ValueError, match="byte count"):
+        parse_bytes("lots")
+    with pytest.raises(ValueError, match="positive"):
+        parse_bytes(-1)
+
+
+def test_streamed_volume_stages_are_exact(phantom):
+    """Without decimation the mesh never leaves the device: slabs of the Gaussian and MC33 give the same mesh."""
+    params = dataclasses.replace(ReconParams(), decimate=None)
+    ref = reconstruct(phantom, params, device="cpu")
+    got = reconstruct(phantom, params, device="cpu", max_device_bytes=40 * MIB)
+    assert got.report["memory"]["stream"]["slabs"] > 1
+    np.testing.assert_array_equal(got.mesh.faces, ref.mesh.faces)
+    np.testing.assert_array_equal(got.mesh.vertices, ref.mesh.vertices)
+
+
+def test_decimation_in_slab_groups_keeps_topology_and_target(phantom, unbounded):
+    got = reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=17 * MIB)
+    mem = got.report["memory"]
+    assert mem["stream"]["groups"] > 1  # the mesh did not fit: decimated in groups of slabs
+    assert all(g["pinned"] > 0 for g in mem["stream"]["group_rounds"])
+    assert got.report["counts"]["isosurface"] == unbounded.report["counts"]["isosurface"]
+    assert topology(got.report) == topology(unbounded.report) == (True, True, 1, 2)
+    target = got.report["decimate"]["target_faces"]
+    assert target == unbounded.report["decimate"]["target_faces"]
+    assert target <= got.report["mesh"]["n_faces"] <= target * 1.02
+    assert mem["peak_bytes"] is not None and mem["peak_bytes"] <= mem["budget_bytes"]
+    assert mem["peak_bytes"] < unbounded.report["memory"]["peak_bytes"]
+    # the surface is the same surface: enclosed volume within 0.1 %
+    assert got.report["mesh"]["volume_mm3"] == pytest.approx(unbounded.report["mesh"]["volume_mm3"], rel=1e-3)
+
+
+def test_too_small_a_budget_names_one_that_works(phantom):
+    with pytest.raises(BudgetError, match="give at least") as err:
+        reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=4 * MIB)
+    needed = err.value.needed
+    assert needed > 4 * MIB
+    got = reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=needed)
+    assert got.report["mesh"]["watertight"]
+
+
+def test_undecimated_model_over_budget_is_a_clear_error(phantom):
+    params = dataclasses.replace(ReconParams(), decimate=None)
+    with pytest.raises(BudgetError, match="model .* give at least"):
+        reconstruct(phantom, params, device="cpu", max_device_bytes=17 * MIB)
+
+
+def test_tiled_rounds_pin_shared_vertices_and_keep_topology():
+    """A device mesh decimated in z tiles (budget far under its decimation): same topology, near the target."""
+    import warp as wp
+
+    from engine.stages.devmesh import mesh_stats_device
+    from engine.stages.isosurface import marching_cubes_33
+    from engine.stages.tiled import decimate_within
+
+    vol = bone_phantom((48, 96, 96)).astype(np.float32)
+    v, f = marching_cubes_33(vol, 1024.0 + 300.0, closed=True, device="cpu")
+    with wp.ScopedDevice("cpu"):
+        pos, faces = wp.array(v, dtype=wp.vec3), wp.array(f, dtype=wp.vec3i)
+        before = mesh_stats_device(pos, faces)
+        target = len(f) // 5
+        p2, f2, info = decimate_within(pos, faces, target, len(f) * 300 // 4, wp.get_device("cpu"))
+        after = mesh_stats_device(p2, f2)
+    assert info["tiled"] and len(info["rounds"]) >= 1
+    assert all(t["pinned"] > 0 for t in info["rounds"][0]["tiles"])
+    assert [before[k] for k in ("watertight", "components", "euler")] == [
+        after[k] for k in ("watertight", "components", "euler")
+    ]
+    assert after["degenerate_faces"] == 0 and after["inconsistent_edges"] == 0
+    assert target <= after["n_faces"] <= target * 1.02
+
+
+def test_pinned_vertices_stay_put():
+    import warp as wp
+
+    from engine.stages.decimate import decimate_carrying
+    from engine.stages.isosurface import marching_cubes_33
+
+    vol = bone_phantom((32, 64, 64)).astype(np.float32)
+    v, f = marching_cubes_33(vol, 1324.0, closed=True, device="cpu")
+    lock = (v[:, 0] < np.quantile(v[:, 0], 0.3)).astype(np.int32)  # the lowest 30 % of the vertices
+    with wp.ScopedDevice("cpu"):
+        res = decimate_carrying(
+            wp.array(v, dtype=wp.vec3), wp.array(f, dtype=wp.vec3i), len(f) // 4, locked=wp.array(lock)
+        )
+        kept, out = res.kept.numpy(), res.pos.numpy()
+    assert set(np.flatnonzero(lock)) <= set(kept)  # none removed
+    pinned = lock[kept] != 0
+    np.testing.assert_array_equal(out[pinned], v[kept[pinned]])  # none moved
+    assert len(res.faces) < len(f) * 0.6  # the free part was decimated
