@@ -214,19 +214,25 @@ def _write_print_files(tmp: Path, stl: str, lay: Layout) -> dict[str, int]:
 
 
 def write_outputs(
-    recon: Reconstruction, outdir: str | Path, params: ReconParams | None = None, *, device: str = "auto"
+    recon: Reconstruction,
+    outdir: str | Path,
+    params: ReconParams | None = None,
+    *,
+    device: str = "auto",
+    max_device_bytes: int | str | None = None,
 ) -> dict[str, Path]:
     """Write model.stl, model.glb, phone.glb (Draco), ar.glb, phone_meshopt.glb, model.usdz, preview.png and
-    report.json into ``outdir``.
+    report.json into ``outdir`` (within ``max_device_bytes`` of device memory, as ``reconstruct``).
 
     Raises:
         PrintCheckError: the print model is not printable (nothing is written).
-        InputError: an empty or malformed mesh.
+        InputError: an empty or malformed mesh (BudgetError: the model cannot be laid out within the budget).
     """
     import warp as wp
 
     from engine.device import resolve_device
     from engine.export import to_draco_glb, to_glb
+    from engine.memory import parse_bytes
     from engine.export.printcheck import PRINT_STL, check_print_model, stl_name
     from engine.export.viewers import viewer_files
     from engine.orient import Frame
@@ -243,6 +249,7 @@ def write_outputs(
     try:
         with wp.ScopedDevice(dev):
             pos, faces, normals = _device_mesh(recon, dev)
+            _check_budget(len(faces), parse_bytes(max_device_bytes))
             frame = report.get("frame")
             lay = lay_out(pos, faces, normals, Frame.from_dict(frame))
             # the STL in patient LPS mm, the glTF files in patient axes centred on the model (engine.orient)
@@ -292,6 +299,19 @@ def write_outputs(
         return paths
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _check_budget(n_faces: int, budget: int | None) -> None:
+    from engine.errors import BudgetError
+    from engine.memory import FINISH_BYTES_PER_FACE, mib
+
+    need = n_faces * FINISH_BYTES_PER_FACE
+    if budget is not None and need > budget:
+        raise BudgetError(
+            f"laying out the model ({n_faces:,} faces) for its files needs about {mib(need)} of device memory, "
+            f"over the budget of {mib(budget)}: give at least {mib(need)}",
+            needed=need,
+        )
 
 
 def _json_default(obj: Any) -> Any:
