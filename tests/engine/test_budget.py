@@ -129,3 +129,13 @@ def test_pinned_vertices_stay_put():
     pinned = lock[kept] != 0
     np.testing.assert_array_equal(out[pinned], v[kept[pinned]])  # none moved
     assert len(res.faces) < len(f) * 0.6  # the free part was decimated
+
+
+@pytest.mark.gpu
+def test_cuda_budget_is_measured_from_the_memory_pool(phantom, unbounded):
+    got = reconstruct(phantom, ReconParams(), device="cuda", max_device_bytes=17 * MIB)
+    mem = got.report["memory"]
+    assert mem["measured_by"] == "cuda memory pool high-water mark"
+    assert mem["stream"]["groups"] > 1
+    assert 0 < mem["peak_bytes"] <= mem["budget_bytes"]
+    assert topology(got.report) == topology(unbounded.report)
