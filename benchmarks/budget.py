@@ -18,6 +18,7 @@ import argparse
 import datetime as dt
 import gc
 import json
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -32,7 +33,7 @@ from engine.types import Volume
 PAPER = ReconParams(iso=IsoParams(preset="bone", hu_offset=1024.0), body=None, islands=None)
 
 
-def _run(volume: Volume, device: str, budget: int | None) -> dict[str, Any]:
+def _run(volume: Volume, device: str, budget: int | None, write: bool) -> dict[str, Any]:
     from engine.pipeline import reconstruct
 
     gc.collect()
@@ -59,11 +60,24 @@ def _run(volume: Volume, device: str, budget: int | None) -> dict[str, Any]:
         "volume_mm3": mesh["volume_mm3"],
     }
     if "stream" in mem:
-        out["stream"] = {k: v for k, v in mem["stream"].items() if k != "group_rounds"}
+        out["stream"] = mem["stream"]
     dec = rep.get("decimate", {})
     if dec.get("tiled"):
         out["tiled_rounds"] = [{k: v for k, v in r.items() if k != "tiles"} for r in dec.get("rounds", [])]
         out["final_pass_faces_in"] = dec.get("final_pass", {}).get("input_faces")
+    if write:
+        from engine.memory import PeakMemory
+        from engine.outputs import write_outputs
+
+        with tempfile.TemporaryDirectory() as tmp:
+            peak = PeakMemory(recon.device_mesh[0].device).start()
+            t1 = time.perf_counter()
+            try:
+                write_outputs(recon, tmp, PAPER, device=device, max_device_bytes=budget)
+                out["write_outputs"] = {"seconds": time.perf_counter() - t1, "peak_device_bytes": peak.peak()}
+            except Exception as exc:
+                out["write_outputs"] = {"error": f"{type(exc).__name__}: {exc}"}
+            peak.stop()
     del recon
     return out
 
@@ -74,6 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--phantom", default="952,1024,1024", help="phantom shape Z,Y,X")
     parser.add_argument("--stack", default="1,3", help="z repetitions of the phantom, e.g. 1,3")
     parser.add_argument("--budgets", default="none,8GiB,2GiB,1GiB", help="comma-separated; none = no budget")
+    parser.add_argument("--write", action="store_true", help="also time write_outputs within each budget")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     import warp as wp
@@ -89,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     gen_seconds = time.perf_counter() - t0
     warm = Volume(base[: min(48, shape[0])], (0.05, 0.05, 0.05))
     reconstruct(warm, PAPER, device=args.device)  # compile the kernels
-    reconstruct(warm, PAPER, device=args.device, max_device_bytes=256 << 20)
+    reconstruct(warm, PAPER, device=args.device, max_device_bytes=1 << 30)
     result: dict[str, Any] = {
         "benchmark": "budget",
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
@@ -109,9 +124,12 @@ def main(argv: list[str] | None = None) -> int:
         runs: dict[str, Any] = {}
         for b in budgets:
             label = "none" if b is None else (f"{b / 2**30:g}GiB" if b >= 2**30 else f"{b / 2**20:g}MiB")
-            runs[label] = _run(vol, args.device, b)
+            runs[label] = _run(vol, args.device, b, args.write)
             r = runs[label]
-            print(name, label, {k2: r.get(k2) for k2 in ("seconds", "peak_device_bytes", "faces", "error")}, flush=True)
+            keys = ("seconds", "peak_device_bytes", "faces", "error", "write_outputs")
+            print(name, label, {k2: r.get(k2) for k2 in keys}, flush=True)
+            rounds = [x.get("timings") for x in r.get("tiled_rounds", [])]
+            print("   ", r.get("stream", {}).get("group_timings"), rounds, flush=True)
         ref = runs.get("none", {})
         for label, r in runs.items():
             if label != "none" and "seconds" in ref and "error" not in ref and "error" not in r:

@@ -16,7 +16,8 @@ from typing import Any
 # docs/benchmarks.md, "Any scan size in a fixed memory budget").
 MESH_BYTES_PER_FACE = 18  # positions (12 B per vertex) and faces (12 B)
 DECIMATE_BYTES_PER_FACE = 300  # the mesh, its copy, stars, classes, quadrics, per-edge keys and positions
-FINISH_BYTES_PER_FACE = 200  # islands, smoothing and normals of the final mesh, and its output layout
+FINISH_BYTES_PER_FACE = 90  # islands, smoothing and normals of the final mesh (its stars, copies, normals)
+LAYOUT_BYTES_PER_FACE = 120  # write_outputs: the mesh, its patient-frame copies, STL facets and glTF buffers
 SLAB_SHARE = 0.25  # of the budget, for one slab of the volume stages (the rest holds the mesh being built)
 
 _UNITS = {"": 1, "b": 1, "k": 1 << 10, "kb": 1000, "kib": 1 << 10, "m": 1 << 20, "mb": 10**6, "mib": 1 << 20}

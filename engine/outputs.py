@@ -232,9 +232,9 @@ def write_outputs(
 
     from engine.device import resolve_device
     from engine.export import to_draco_glb, to_glb
-    from engine.memory import parse_bytes
     from engine.export.printcheck import PRINT_STL, check_print_model, stl_name
     from engine.export.viewers import viewer_files
+    from engine.memory import parse_bytes
     from engine.orient import Frame
     from engine.stages.devmesh import mesh_stats_device
 
@@ -303,9 +303,9 @@ def write_outputs(
 
 def _check_budget(n_faces: int, budget: int | None) -> None:
     from engine.errors import BudgetError
-    from engine.memory import FINISH_BYTES_PER_FACE, mib
+    from engine.memory import LAYOUT_BYTES_PER_FACE, mib
 
-    need = n_faces * FINISH_BYTES_PER_FACE
+    need = n_faces * LAYOUT_BYTES_PER_FACE
     if budget is not None and need > budget:
         raise BudgetError(
             f"laying out the model ({n_faces:,} faces) for its files needs about {mib(need)} of device memory, "

@@ -85,6 +85,7 @@ class GroupDecimator:
         self.top_out = np.zeros(0, np.int64)  # and their ids in the output
         self.groups: list[dict[str, Any]] = []
         self.seconds = 0.0
+        self.timings = {"prepare": 0.0, "decimate": 0.0, "download": 0.0, "assemble": 0.0}
 
     def add(self, part: Any) -> None:
         if self.pending and self.pending_faces + part.nt > self.cap:
@@ -129,18 +130,27 @@ class GroupDecimator:
             top = parts[-1].plane_above
             wp.launch(kt.lock_plane, dim=top.shape, inputs=[top, v0, nf, lock])
             del parts, top
+            t1 = self._lap("prepare", t0)
             target = n_faces if self.ratio is None else max(round(self.ratio * n_faces), 1)
             res = decimate_carrying(
                 pos, faces, target, locked=lock, origin=wp.vec3d(*self.origin), stop_tolerance=PIECE_TOLERANCE
             )
+            t1 = self._lap("decimate", t1)
             out_pos, out_faces = res.pos.numpy(), res.faces.numpy().reshape(-1, 3)  # sync point
             out_quad, kept = res.quad.numpy().reshape(-1, 10), res.kept.numpy().astype(np.int64)
             pinned = lock.numpy()[kept] != 0
+        t1 = self._lap("download", t1)
         self._assemble(out_pos, out_faces, out_quad, kept, pinned, fid, v0)
+        self._lap("assemble", t1)
         self.groups.append(
             {"faces_in": n_faces, "faces_out": len(out_faces), "passes": res.stats.passes, "pinned": int(pinned.sum())}
         )
         self.seconds += time.perf_counter() - t0
+
+    def _lap(self, name: str, t: float) -> float:
+        now = time.perf_counter()
+        self.timings[name] += now - t
+        return now
 
     def _host_pos(self, out_ids: np.ndarray) -> np.ndarray:
         start = self.n_out - len(self.pos[-1])
@@ -246,5 +256,6 @@ def stream_surface(
     else:
         out.host = groups.result()
         out.info |= {"groups": len(groups.groups), "group_rounds": groups.groups, "group_seconds": groups.seconds}
+        out.info["group_timings"] = groups.timings
     out.info["seconds"] = time.perf_counter() - t0
     return out

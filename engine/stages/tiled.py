@@ -120,6 +120,7 @@ def tiled_round(
     shared = lo != hi
     carried = len(mesh.quad) == n_verts
     quad = mesh.quad if carried else np.zeros((n_verts, 10))
+    times = {"split": time.perf_counter() - t0, "tiles": 0.0, "decimate": 0.0}
     new_pos, new_quad, new_faces = [mesh.pos], [quad], []
     n_total = n_verts
     alive = np.ones(n_verts, bool)
@@ -128,6 +129,7 @@ def tiled_round(
         fidx = order[bounds[t] : bounds[t + 1]]
         if len(fidx) == 0:
             continue
+        t1 = time.perf_counter()
         tf = mesh.faces[fidx]
         used = np.zeros(n_verts, bool)
         used[tf.ravel()] = True
@@ -148,6 +150,7 @@ def tiled_round(
             )
             out_pos, out_faces = res.pos.numpy().reshape(-1, 3), res.faces.numpy().reshape(-1, 3)  # sync point
             out_quad, kept = res.quad.numpy().reshape(-1, 10), res.kept.numpy()
+        times["decimate"] += res.stats.seconds
         keep_id = vids[kept]
         was_pinned = pinned[kept]
         alive[vids[~pinned]] = False  # the tile's free vertices are replaced by its output
@@ -159,10 +162,14 @@ def tiled_round(
         new_faces.append(out_lut[out_faces])
         n_total += int((~was_pinned).sum())
         tiles.append({"faces_in": len(tf), "faces_out": len(out_faces), "pinned": int(pinned.sum())})
+        times["tiles"] += time.perf_counter() - t1
+    t1 = time.perf_counter()
     faces = np.concatenate(new_faces)
     pos = np.concatenate(new_pos)
     quad_all = np.concatenate(new_quad)
     keep = np.concatenate([alive, np.ones(n_total - n_verts, bool)])
     remap = np.cumsum(keep) - 1
     out = HostMesh(pos[keep], remap[faces].astype(np.int32), quad_all[keep], mesh.origin)
-    return out, {"tiles": tiles, "faces_in": n_faces, "faces_out": len(out.faces), "seconds": time.perf_counter() - t0}
+    times["join"] = time.perf_counter() - t1
+    info = {"tiles": tiles, "faces_in": n_faces, "faces_out": len(out.faces), "seconds": time.perf_counter() - t0}
+    return out, info | {"timings": times}
