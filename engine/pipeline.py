@@ -240,7 +240,7 @@ def _isosurface(st: _State, params: ReconParams, report: dict[str, Any], progres
     except ValueError as exc:
         raise InputError(str(exc)) from None
     st.field = None
-    if st.stream is not None and st.stream.host is not None:  # decimated in groups already
+    if st.stream is not None and st.stream.grouped:  # decimated in groups already
         report["counts"]["isosurface"] = {"vertices": st.stream.mc33_vertices, "faces": st.stream.mc33_faces}
         report["isosurface"] = {"slabs": stats.slabs, "active_blocks": stats.active_blocks, "blocks": stats.blocks}
         return
@@ -257,7 +257,7 @@ def _isosurface(st: _State, params: ReconParams, report: dict[str, Any], progres
 
 def _stream(st: _State, params: ReconParams, stats: Any) -> tuple[Any, Any]:
     """The Gaussian and MC33 within the budget (``engine.stages.stream``): the device mesh, or (when groups of
-    slabs had to be decimated on the way) empty arrays and ``st.stream.host``."""
+    slabs had to be decimated on the way) empty arrays and the groups in ``st.stream``."""
     import warp as wp
 
     from engine.stages.stream import stream_surface
@@ -281,7 +281,7 @@ def _stream(st: _State, params: ReconParams, stats: Any) -> tuple[Any, Any]:
 
 
 def _decimate(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
-    if st.stream is not None and st.stream.host is not None:
+    if st.stream is not None and st.stream.grouped:
         _decimate_tiled(st, params, report)
         return
     if params.decimate is None:
@@ -308,16 +308,15 @@ def _decimate(st: _State, params: ReconParams, report: dict[str, Any], progress:
 
 def _decimate_tiled(st: _State, params: ReconParams, report: dict[str, Any]) -> None:
     """Finish a decimation begun in groups of slabs: tiled rounds across their borders, then a last pass."""
-    import warp as wp
-
     from engine.stages.decimate import TOLERANCE, target_faces
-    from engine.stages.tiled import finish_host
+    from engine.stages.tiled import finish_groups
 
-    assert params.decimate is not None and st.stream is not None and st.stream.host is not None
-    n_in = st.stream.mc33_faces
+    sr = st.stream
+    assert params.decimate is not None and sr is not None and sr.grouped
+    n_in = sr.mc33_faces
     target = target_faces(n_in, params.decimate.reduction, params.decimate.max_triangles)
-    st.pos, st.faces, info = finish_host(st.stream.host, target, st.budget, wp.get_device())
-    st.stream.host = None
+    host, pieces, sr.host, sr.pieces = sr.host, sr.pieces, None, None
+    st.pos, st.faces, info = finish_groups(host, pieces, sr.origin, target, st.budget)
     out = len(st.faces)
     info |= {"input_faces": n_in, "target_faces": target, "achieved_ratio": out / n_in}
     info["limited_by_guards"] = out > target * (1 + TOLERANCE)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from engine.kernels.decimate import quadric
+
 
 @wp.kernel
 def localize_faces(
@@ -34,3 +36,26 @@ def lock_plane(plane: wp.array3d(dtype=wp.int32), v0: int, n_foreign: int, lock:
     v = plane[a, y, x]
     if v >= v0:
         lock[v - v0 + n_foreign] = 1
+
+
+@wp.kernel
+def globalize_faces(faces: wp.array(dtype=wp.vec3i), n_foreign: int, foreign_out: wp.array(dtype=wp.int32), base: int):
+    """A decimated group's faces in the output's numbering: its first ``n_foreign`` vertices are shared with the
+    group below (ids ``foreign_out``), the others follow the output's vertices so far (``base`` + row)."""
+    f = wp.tid()
+    t = faces[f]
+    out = wp.vec3i(0, 0, 0)
+    for k in range(3):
+        v = t[k]
+        if v < n_foreign:
+            out[k] = foreign_out[v]
+        else:
+            out[k] = v + base
+    faces[f] = out
+
+
+@wp.kernel
+def add_quadrics(ids: wp.array(dtype=wp.int32), shares: wp.array(dtype=quadric), quad: wp.array(dtype=quadric)):
+    """Each shared vertex's quadric gets the other side's share (the ids are distinct)."""
+    i = wp.tid()
+    quad[ids[i]] = quad[ids[i]] + shares[i]

@@ -23,6 +23,7 @@ from engine.params import GaussianParams
 
 PIECE_TOLERANCE = 0.01  # a group or tile stops this close to its share (the last pass across them is exact)
 GROUP_SLACK = 1.15  # groups of slabs keep this many times their share of the target
+SPILL_SHARE = 0.25  # of the budget: decimated groups held on the device beyond this go to the host
 
 
 @dataclass
@@ -38,12 +39,19 @@ class HostMesh:
 
 @dataclass
 class StreamResult:
-    """``device`` (pos, faces) when the whole MC33 mesh fitted, else ``host`` (the decimated groups)."""
+    """``device`` (pos, faces) when the whole MC33 mesh fitted, else the decimated groups (``pieces`` on the device
+    or ``host``)."""
+
+    @property
+    def grouped(self) -> bool:
+        return self.pieces is not None or self.host is not None
 
     device: tuple[Any, Any] | None = None
-    host: HostMesh | None = None
+    pieces: tuple[Any, Any, Any] | None = None  # decimated groups on the device: pos, faces, quadrics
+    host: HostMesh | None = None  # or on the host
     mc33_faces: int = 0
     mc33_vertices: int = 0
+    origin: Any = None  # the quadrics' origin (z, y, x) mm
     info: dict[str, Any] = field(default_factory=dict)
 
 
@@ -71,21 +79,33 @@ def slab_getter(volume: np.ndarray, gaussian: GaussianParams | None, dev: Any) -
 
 
 class GroupDecimator:
-    """Collects slab meshes and decimates them in groups whose decimation fits ``cap_faces``."""
+    """Collects slab meshes and decimates them in groups whose decimation fits the budget.
 
-    def __init__(self, ratio: float | None, cap_faces: int, origin: np.ndarray, dev: Any) -> None:
-        self.ratio, self.cap, self.origin, self.dev = ratio, cap_faces, origin, dev
+    The decimated groups stay on the device, numbered as one mesh (``pieces``), until they hold ``spill_bytes``;
+    then they go to the host (``host``). The vertices a group shares with the group below keep that group's ids;
+    each side's share of their quadrics is added at the end (``deferred``).
+    """
+
+    def __init__(self, ratio: float, mesh_room: int, spill_bytes: int, origin: np.ndarray, dev: Any) -> None:
+        self.ratio, self.mesh_room, self.spill_bytes, self.origin, self.dev = ratio, mesh_room, spill_bytes, origin, dev
         self.pending: list[Any] = []
         self.pending_faces = 0
-        self.pos: list[np.ndarray] = []
-        self.faces: list[np.ndarray] = []
-        self.quad: list[np.ndarray] = []
+        self.pieces: list[tuple[Any, Any, Any]] = []  # device (pos, faces in output ids, quad)
+        self.host: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.held = 0  # bytes of ``pieces``
+        self.deferred: list[tuple[np.ndarray, np.ndarray]] = []  # (output ids, quadric shares) of shared vertices
         self.n_out = 0
         self.top_ids = np.zeros(0, np.int64)  # MC33 ids of the last group's pinned top vertices, sorted
-        self.top_out = np.zeros(0, np.int64)  # and their ids in the output
+        self.top_out = np.zeros(0, np.int64)  # their output ids
+        self.top_pos = np.zeros((0, 3), np.float32)  # and positions
         self.groups: list[dict[str, Any]] = []
         self.seconds = 0.0
-        self.timings = {"prepare": 0.0, "decimate": 0.0, "download": 0.0, "assemble": 0.0}
+        self.timings = {"prepare": 0.0, "decimate": 0.0, "number": 0.0, "spill": 0.0}
+
+    @property
+    def cap(self) -> int:
+        """Faces a group may have now (its decimation beside the groups held on the device)."""
+        return max((self.mesh_room - self.held) // DECIMATE_BYTES_PER_FACE, 1)
 
     def add(self, part: Any) -> None:
         if self.pending and self.pending_faces + part.nt > self.cap:
@@ -106,90 +126,116 @@ class GroupDecimator:
         parts, self.pending, n_faces = self.pending, [], self.pending_faces
         self.pending_faces = 0
         v0 = parts[0].vstart
-        below = parts[0].plane_below.numpy()  # sync point: 8 bytes per plane edge
-        fid = np.unique(below[below >= 0]).astype(np.int64)
+        fid = self.top_ids  # the shared vertices below are the last group's top ones
         nf, n_own = len(fid), sum(p.nv for p in parts)
+        above = parts[-1].plane_above.numpy()  # sync point: 8 bytes per plane edge
+        tid = np.unique(above[above >= v0]).astype(np.int64)
         with wp.ScopedDevice(self.dev):
             pos = wp.empty(nf + n_own, dtype=wp.vec3)
             faces = wp.empty(n_faces, dtype=wp.vec3i)
             if nf:
-                out_ids = self.top_out[np.searchsorted(self.top_ids, fid)]
-                wp.copy(pos, wp.array(self._host_pos(out_ids), dtype=wp.vec3), count=nf)
+                wp.copy(pos, wp.array(self.top_pos, dtype=wp.vec3), count=nf)
             ov, of = nf, 0
             for p in parts:
                 wp.copy(pos, p.verts, dest_offset=ov, count=p.nv)
                 wp.copy(faces, p.faces, dest_offset=of, count=p.nt)
                 ov, of = ov + p.nv, of + p.nt
+            del parts
             fmin = int(fid[0]) if nf else v0
             fmap = np.full(max(v0 - fmin, 1), -1, np.int32)
             fmap[fid - fmin] = np.arange(nf, dtype=np.int32)
             wp.launch(kt.localize_faces, dim=n_faces, inputs=[faces, v0, nf, fmin, wp.array(fmap, dtype=wp.int32)])
-            lock = wp.zeros(nf + n_own, dtype=wp.int32)
-            if nf:
-                lock[:nf].fill_(1)
-            top = parts[-1].plane_above
-            wp.launch(kt.lock_plane, dim=top.shape, inputs=[top, v0, nf, lock])
-            del parts, top
+            lock_np = np.zeros(nf + n_own, np.int32)
+            lock_np[:nf] = 1
+            lock_np[tid - v0 + nf] = 1
             t1 = self._lap("prepare", t0)
-            target = n_faces if self.ratio is None else max(round(self.ratio * n_faces), 1)
             res = decimate_carrying(
-                pos, faces, target, locked=lock, origin=wp.vec3d(*self.origin), stop_tolerance=PIECE_TOLERANCE
+                pos,
+                faces,
+                max(round(self.ratio * n_faces), 1),
+                locked=wp.array(lock_np, dtype=wp.int32),
+                origin=wp.vec3d(*self.origin),
+                stop_tolerance=PIECE_TOLERANCE,
             )
+            del pos, faces
             t1 = self._lap("decimate", t1)
-            out_pos, out_faces = res.pos.numpy(), res.faces.numpy().reshape(-1, 3)  # sync point
-            out_quad, kept = res.quad.numpy().reshape(-1, 10), res.kept.numpy().astype(np.int64)
-            pinned = lock.numpy()[kept] != 0
-        t1 = self._lap("download", t1)
-        self._assemble(out_pos, out_faces, out_quad, kept, pinned, fid, v0)
-        self._lap("assemble", t1)
+            self._number(res, nf, tid, v0)
+        self._lap("number", t1)
         self.groups.append(
-            {"faces_in": n_faces, "faces_out": len(out_faces), "passes": res.stats.passes, "pinned": int(pinned.sum())}
+            {"faces_in": n_faces, "faces_out": len(res.faces), "passes": res.stats.passes, "pinned": nf + len(tid)}
         )
+        if self.held > self.spill_bytes:
+            t1 = time.perf_counter()
+            self.spill()
+            self._lap("spill", t1)
         self.seconds += time.perf_counter() - t0
+
+    def _number(self, res: Any, nf: int, tid: np.ndarray, v0: int) -> None:
+        """Number the group's output after the groups before it. Its first ``nf`` vertices are the shared ones below
+        (pinned, so all kept, in order); its own vertices get new ids."""
+        import warp as wp
+
+        from engine.kernels import tiles as kt
+
+        kept = res.kept.numpy()  # sync point: 4 bytes per vertex
+        if nf and not np.array_equal(kept[:nf], np.arange(nf)):
+            raise RuntimeError("a pinned vertex was removed by the decimation of a group of slabs")
+        if nf:
+            self.deferred.append((self.top_out, res.quad[:nf].numpy().reshape(-1, 10)))
+        foreign_out = wp.array(self.top_out.astype(np.int32) if nf else np.zeros(1, np.int32), dtype=wp.int32)
+        base = self.n_out - nf
+        wp.launch(kt.globalize_faces, dim=len(res.faces), inputs=[res.faces, nf, foreign_out, base])
+        top_res = np.searchsorted(kept, tid - v0 + nf)  # the pinned top vertices' rows in the output
+        self.top_ids, self.top_out = tid, top_res + base
+        self.top_pos = res.pos.numpy()[top_res] if len(top_res) else np.zeros((0, 3), np.float32)
+        n_new = len(kept) - nf
+        self.pieces.append((res.pos[nf:], res.faces, res.quad[nf:]))
+        self.held += n_new * (12 + 80) + len(res.faces) * 12
+        self.n_out += n_new
+
+    def spill(self) -> None:
+        """The decimated groups held on the device go to the host."""
+        for pos, faces, quad in self.pieces:
+            self.host.append((pos.numpy().reshape(-1, 3), faces.numpy().reshape(-1, 3), quad.numpy().reshape(-1, 10)))
+        self.pieces, self.held = [], 0
+
+    def result(self) -> tuple[HostMesh | None, tuple[Any, Any, Any] | None]:
+        """``(host mesh, None)`` when groups were spilled, else ``(None, (pos, faces, quad))`` on the device."""
+        import warp as wp
+
+        from engine.kernels import tiles as kt
+        from engine.kernels.decimate import quadric
+
+        self.flush()
+        ids = np.concatenate([d[0] for d in self.deferred]) if self.deferred else np.zeros(0, np.int64)
+        shares = np.concatenate([d[1] for d in self.deferred]) if self.deferred else np.zeros((0, 10))
+        if self.host:
+            self.spill()
+            quad = np.concatenate([h[2] for h in self.host])
+            quad[ids] += shares  # each side's faces' share of a shared vertex's quadric
+            pos = np.concatenate([h[0] for h in self.host])
+            faces = np.concatenate([h[1] for h in self.host])
+            return HostMesh(pos, faces, quad, self.origin), None
+        with wp.ScopedDevice(self.dev):
+            pos = wp.empty(self.n_out, dtype=wp.vec3)
+            quad = wp.empty(self.n_out, dtype=quadric)
+            faces = wp.empty(sum(len(p[1]) for p in self.pieces), dtype=wp.vec3i)
+            ov = of = 0
+            for p, f, q in self.pieces:
+                wp.copy(pos, p, dest_offset=ov, count=len(p))
+                wp.copy(quad, q, dest_offset=ov, count=len(q))
+                wp.copy(faces, f, dest_offset=of, count=len(f))
+                ov, of = ov + len(p), of + len(f)
+            self.pieces = []
+            if len(ids):
+                add = [wp.array(ids.astype(np.int32), dtype=wp.int32), wp.array(shares, dtype=quadric), quad]
+                wp.launch(kt.add_quadrics, dim=len(ids), inputs=add)
+        return None, (pos, faces, quad)
 
     def _lap(self, name: str, t: float) -> float:
         now = time.perf_counter()
         self.timings[name] += now - t
         return now
-
-    def _host_pos(self, out_ids: np.ndarray) -> np.ndarray:
-        start = self.n_out - len(self.pos[-1])
-        return self.pos[-1][out_ids - start]
-
-    def _assemble(
-        self,
-        pos: np.ndarray,
-        faces: np.ndarray,
-        quad: np.ndarray,
-        kept: np.ndarray,
-        pinned: np.ndarray,
-        fid: np.ndarray,
-        v0: int,
-    ) -> None:
-        """Number the group's output after the groups before it: the vertices it shares with the group below keep
-        that group's ids (and add their quadrics to it); its own vertices get new ids."""
-        nf = len(fid)
-        foreign = kept < nf
-        lut = np.empty(len(kept), np.int64)
-        if foreign.any():
-            shared = self.top_out[np.searchsorted(self.top_ids, fid[kept[foreign]])]
-            lut[foreign] = shared
-            start = self.n_out - len(self.pos[-1])
-            self.quad[-1][shared - start] += quad[foreign]  # each side's faces' share of the pinned quadric
-        own = ~foreign
-        n_new = int(own.sum())
-        lut[own] = self.n_out + np.arange(n_new)
-        mc33_id = v0 + kept - nf
-        top = own & pinned
-        self.top_ids, self.top_out = mc33_id[top], lut[top]  # increasing, as ``kept`` is
-        self.pos.append(pos.reshape(-1, 3)[own])
-        self.quad.append(quad[own])
-        self.faces.append(lut[faces].astype(np.int32))
-        self.n_out += n_new
-
-    def result(self) -> HostMesh:
-        self.flush()
-        return HostMesh(np.concatenate(self.pos), np.concatenate(self.faces), np.concatenate(self.quad), self.origin)
 
 
 def _slabs_within(slabs: Any) -> Any:
@@ -229,12 +275,16 @@ def stream_surface(
 
     get_slab, plane_bytes, halo = slab_getter(volume, gaussian, dev)
     mesh_room = int(budget * (1 - SLAB_SHARE))
-    cap = mesh_room // DECIMATE_BYTES_PER_FACE if decimate else mesh_room // MESH_BYTES_PER_FACE
+    cap = (mesh_room - int(budget * SPILL_SHARE)) // DECIMATE_BYTES_PER_FACE
+    if not decimate:
+        cap = mesh_room // MESH_BYTES_PER_FACE
     plan = SlabPlan(int(budget * SLAB_SHARE), plane_bytes, halo, max_faces=max(cap, 1), strict=True)
     origin = 0.5 * (np.array(volume.shape, np.float64) - 1) * np.asarray(spacing, np.float64)
     # the groups stop short of the target (GROUP_SLACK), leaving the last collapses to a pass across their borders
-    groups = GroupDecimator(min(1.0, ratio * GROUP_SLACK) if ratio is not None else 0.5, cap, origin, dev)
-    out = StreamResult()
+    group_ratio = min(1.0, ratio * GROUP_SLACK) if ratio is not None else 0.5
+    room = mesh_room if decimate else 1 << 62  # undecimated, the mesh stays whole (its size is checked below)
+    groups = GroupDecimator(group_ratio, room, int(budget * SPILL_SHARE), origin, dev)
+    out = StreamResult(origin=origin)
     t0 = time.perf_counter()
     is_float = gaussian is not None or volume.dtype == np.float32
     for part in _slabs_within(_run_slabs(get_slab, volume.shape, plan, is_float, level, spacing, closed, dev, stats)):
@@ -254,7 +304,7 @@ def stream_surface(
             out.device = join_parts(groups.pending)
         out.info["groups"] = 0
     else:
-        out.host = groups.result()
+        out.host, out.pieces = groups.result()
         out.info |= {"groups": len(groups.groups), "group_rounds": groups.groups, "group_seconds": groups.seconds}
         out.info["group_timings"] = groups.timings
     out.info["seconds"] = time.perf_counter() - t0

@@ -60,7 +60,6 @@ def finish_host(
     import warp as wp
 
     from engine.kernels.decimate import quadric
-    from engine.stages.decimate import decimate_carrying
 
     t0 = time.perf_counter()
     rounds: list[dict[str, Any]] = []
@@ -72,17 +71,49 @@ def finish_host(
         shift = 0.5 - shift
         if len(mesh.faces) > before * (1 - MIN_PROGRESS):
             break
-    info: dict[str, Any] = {"tiled": True, "rounds": rounds}
     with wp.ScopedDevice(dev):
         pos = wp.array(mesh.pos, dtype=wp.vec3)
         faces = wp.array(mesh.faces, dtype=wp.vec3i)
-        if len(mesh.faces) > target and fits(len(mesh.faces), budget):
-            quad = wp.array(mesh.quad, dtype=quadric) if len(mesh.quad) else None
-            res = decimate_carrying(pos, faces, target, quadrics=quad, origin=wp.vec3d(*mesh.origin), carry=False)
+        quad = wp.array(mesh.quad, dtype=quadric) if len(mesh.quad) else None
+    return final_pass(pos, faces, quad, mesh.origin, target, budget, {"tiled": True, "rounds": rounds}, t0)
+
+
+def final_pass(
+    pos: Any, faces: Any, quad: Any, origin: np.ndarray, target: int, budget: int | None, info: dict, t0: float
+) -> tuple[Any, Any, dict[str, Any]]:
+    """The last pass on the device across every border, when the mesh fits (quadrics carried, if any)."""
+    import warp as wp
+
+    from engine.stages.decimate import decimate_carrying
+
+    with wp.ScopedDevice(pos.device):
+        if len(faces) > target and fits(len(faces), budget):
+            res = decimate_carrying(pos, faces, target, quadrics=quad, origin=wp.vec3d(*origin), carry=False)
             pos, faces = res.pos, res.faces
             info["final_pass"] = res.stats.to_dict()
     info.update(output_faces=len(faces), seconds=time.perf_counter() - t0)
     return pos, faces, info
+
+
+def finish_groups(
+    host: HostMesh | None, pieces: tuple[Any, Any, Any] | None, origin: np.ndarray, target: int, budget: int | None
+) -> tuple[Any, Any, dict[str, Any]]:
+    """Finish a decimation begun in groups of slabs (``engine.stages.stream``): on the device where they are and
+    fit, else through the host in tiled rounds."""
+    t0 = time.perf_counter()
+    if pieces is not None:
+        pos, faces, quad = pieces
+        if fits(len(faces), budget):
+            return final_pass(pos, faces, quad, origin, target, budget, {"tiled": True, "rounds": []}, t0)
+        dev = pos.device
+        host = HostMesh(pos.numpy().reshape(-1, 3), faces.numpy().reshape(-1, 3), quad.numpy().reshape(-1, 10), origin)
+        del pos, faces, quad, pieces
+    else:
+        import warp as wp
+
+        dev = wp.get_device()
+    assert host is not None
+    return finish_host(host, target, budget, dev)
 
 
 def _tile_of_faces(mesh: HostMesh, n_tiles: int, shift: float) -> np.ndarray:

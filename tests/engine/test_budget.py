@@ -80,10 +80,17 @@ def test_too_small_a_budget_names_one_that_works(phantom):
     assert got.report["mesh"]["watertight"]
 
 
-def test_undecimated_model_over_budget_is_a_clear_error(phantom):
-    params = dataclasses.replace(ReconParams(), decimate=None)
-    with pytest.raises(BudgetError, match="model .* give at least"):
-        reconstruct(phantom, params, device="cpu", max_device_bytes=17 * MIB)
+def test_undecimated_model_over_budget_is_a_clear_error():
+    """A noisy volume's undecimated surface streams through its slabs but is too large to finish in the budget."""
+    from engine.params import IsoParams
+
+    noise = Volume(np.random.default_rng(0).integers(0, 100, (16, 128, 128)).astype(np.uint8), (1.0, 1.0, 1.0))
+    params = ReconParams(iso=IsoParams(iso=49.5), body=None, islands=None, decimate=None, smooth=None)
+    with pytest.raises(BudgetError, match="model .* faces.* give at least") as err:
+        reconstruct(noise, params, device="cpu", max_device_bytes=60 * MIB)
+    assert err.value.needed > 60 * MIB
+    got = reconstruct(noise, params, device="cpu", max_device_bytes=err.value.needed)
+    assert got.report["memory"]["peak_bytes"] <= err.value.needed
 
 
 def test_tiled_rounds_pin_shared_vertices_and_keep_topology():
@@ -139,3 +146,15 @@ def test_cuda_budget_is_measured_from_the_memory_pool(phantom, unbounded):
     assert mem["stream"]["groups"] > 1
     assert 0 < mem["peak_bytes"] <= mem["budget_bytes"]
     assert topology(got.report) == topology(unbounded.report)
+
+
+def test_groups_spilled_to_the_host_join_the_same(phantom, unbounded, monkeypatch):
+    """Decimated groups held beyond the spill share go to the host: the tiles there join into the same topology."""
+    import engine.stages.stream as stream
+
+    monkeypatch.setattr(stream, "SPILL_SHARE", 1e-4)
+    got = reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=17 * MIB)
+    assert got.report["memory"]["stream"]["group_timings"]["spill"] > 0
+    assert topology(got.report) == topology(unbounded.report)
+    target = got.report["decimate"]["target_faces"]
+    assert target <= got.report["mesh"]["n_faces"] <= target * 1.02
