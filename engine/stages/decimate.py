@@ -237,8 +237,12 @@ def decimate_carrying(
         faces = wp.clone(faces)
         nv = len(pos)
         alive = len(faces)
-        inc, state, origin, quad = vertex_quadrics(pos, faces, origin)
-        if quadrics is not None:
+        if quadrics is None:
+            inc, state, origin, quad = vertex_quadrics(pos, faces, origin)
+        else:  # carried in: the error stays measured against the surface before the earlier collapses
+            inc = Incidence(nv).build(faces, len(faces))
+            state = vertex_classes(faces, inc)
+            origin = bbox_centre(pos) if origin is None else origin
             quad = wp.clone(quadrics)
         if locked is not None:
             wp.launch(kd.lock_vertices, dim=nv, inputs=[locked, state])
