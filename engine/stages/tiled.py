@@ -64,7 +64,12 @@ def finish_host(
     t0 = time.perf_counter()
     rounds: list[dict[str, Any]] = []
     shift = 0.5
-    while not fits(len(mesh.faces), budget) and len(mesh.faces) > target and len(rounds) < MAX_ROUNDS:
+    # rounds until the mesh fits for the last pass, or is within the tiles' tolerance of the target
+    while (
+        not fits(len(mesh.faces), budget)
+        and len(mesh.faces) > target * (1 + PIECE_TOLERANCE)
+        and len(rounds) < MAX_ROUNDS
+    ):
         before = len(mesh.faces)
         mesh, info = tiled_round(mesh, target, budget, dev, shift, **kwargs)
         rounds.append(info)
