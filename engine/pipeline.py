@@ -26,6 +26,7 @@ from engine.params import ReconParams
 from engine.progress import StageProgress
 from engine.types import Mesh, Volume
 
+SEAM_VOXELS = 6  # a budgeted decimation's last pass across the slab groups' borders reaches this far from them
 STAGES = ("preprocess", "upload", "gaussian", "isosurface", "decimate", "islands", "smooth", "normals")
 Progress = Callable[[str, float], None]
 
@@ -316,7 +317,8 @@ def _decimate_tiled(st: _State, params: ReconParams, report: dict[str, Any]) -> 
     n_in = sr.mc33_faces
     target = target_faces(n_in, params.decimate.reduction, params.decimate.max_triangles)
     host, pieces, sr.host, sr.pieces = sr.host, sr.pieces, None, None
-    st.pos, st.faces, info = finish_groups(host, pieces, sr.origin, target, st.budget)
+    seam_mm = SEAM_VOXELS * max(st.volume.spacing_zyx_mm)
+    st.pos, st.faces, info = finish_groups(host, pieces, sr.origin, target, st.budget, sr.borders, seam_mm)
     out = len(st.faces)
     info |= {"input_faces": n_in, "target_faces": target, "achieved_ratio": out / n_in}
     info["limited_by_guards"] = out > target * (1 + TOLERANCE)

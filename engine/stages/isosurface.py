@@ -154,6 +154,7 @@ class SlabMesh:
     vstart: int
     plane_below: Any
     plane_above: Any
+    z_top: int = 0  # index of the top plane
 
 
 @dataclass
@@ -350,7 +351,7 @@ def _run_slabs(
         _accept(st, nblocks, n_active, cz_last - cz_first + 1, slab_bytes + nslots * 8 + nv * 12 + nt * 12)
         active_per_layer = max(active_per_layer, n_active / n_layers)
         faces_per_layer = max(faces_per_layer, nt / n_layers)
-        yield SlabMesh(verts, faces, nv, nt, vstart, plane_prev, plane_next)
+        yield SlabMesh(verts, faces, nv, nt, vstart, plane_prev, plane_next, cz_last + 1)
         plane_prev = plane_next
         vstart += nv
         bz0 = bz1

@@ -23,6 +23,7 @@ from engine.params import GaussianParams
 
 PIECE_TOLERANCE = 0.01  # a group or tile stops this close to its share (the last pass across them is exact)
 GROUP_SLACK = 1.15  # groups of slabs keep this many times their share of the target
+SEAM_SLACK = 1.03  # or this many, when only the faces near their borders get a last pass (the seams)
 SPILL_SHARE = 0.25  # of the budget: decimated groups held on the device beyond this go to the host
 
 
@@ -52,6 +53,7 @@ class StreamResult:
     mc33_faces: int = 0
     mc33_vertices: int = 0
     origin: Any = None  # the quadrics' origin (z, y, x) mm
+    borders: list[float] = field(default_factory=list)  # z (mm) where the groups meet
     info: dict[str, Any] = field(default_factory=dict)
 
 
@@ -86,8 +88,14 @@ class GroupDecimator:
     each side's share of their quadrics is added at the end (``deferred``).
     """
 
-    def __init__(self, ratio: float, mesh_room: int, spill_bytes: int, origin: np.ndarray, dev: Any) -> None:
-        self.ratio, self.mesh_room, self.spill_bytes, self.origin, self.dev = ratio, mesh_room, spill_bytes, origin, dev
+    def __init__(
+        self, ratio: float, slack: float, mesh_room: int, spill_bytes: int, origin: np.ndarray, nz: int, dev: Any
+    ) -> None:
+        self.ratio, self.slack, self.mesh_room, self.spill_bytes = ratio, slack, mesh_room, spill_bytes
+        self.origin, self.nz, self.dev = origin, nz, dev
+        self.mode = ""  # "last pass" (groups keep ``slack`` more) or "seams" (groups go to the ratio)
+        self.borders: list[float] = []  # z (mm) where groups meet
+        self.mc33_faces = 0
         self.pending: list[Any] = []
         self.pending_faces = 0
         self.pieces: list[tuple[Any, Any, Any]] = []  # device (pos, faces in output ids, quad)
@@ -125,6 +133,10 @@ class GroupDecimator:
         t0 = time.perf_counter()
         parts, self.pending, n_faces = self.pending, [], self.pending_faces
         self.pending_faces = 0
+        self.mc33_faces += n_faces
+        if not self.mode:  # will the decimated groups fit for one last pass? (extrapolated from the first group)
+            expected = self.ratio * self.mc33_faces * (self.nz - 1) / max(parts[-1].z_top, 1)
+            self.mode = "last pass" if expected * DECIMATE_BYTES_PER_FACE <= self.mesh_room else "seams"
         v0 = parts[0].vstart
         fid = self.top_ids  # the shared vertices below are the last group's top ones
         nf, n_own = len(fid), sum(p.nv for p in parts)
@@ -149,10 +161,11 @@ class GroupDecimator:
             lock_np[:nf] = 1
             lock_np[tid - v0 + nf] = 1
             t1 = self._lap("prepare", t0)
+            ratio = min(1.0, self.ratio * (self.slack if self.mode == "last pass" else SEAM_SLACK))
             res = decimate_carrying(
                 pos,
                 faces,
-                max(round(self.ratio * n_faces), 1),
+                max(round(ratio * n_faces), 1),
                 locked=wp.array(lock_np, dtype=wp.int32),
                 origin=wp.vec3d(*self.origin),
                 stop_tolerance=PIECE_TOLERANCE,
@@ -188,6 +201,8 @@ class GroupDecimator:
         top_res = np.searchsorted(kept, tid - v0 + nf)  # the pinned top vertices' rows in the output
         self.top_ids, self.top_out = tid, top_res + base
         self.top_pos = res.pos.numpy()[top_res] if len(top_res) else np.zeros((0, 3), np.float32)
+        if len(top_res):
+            self.borders.append(float(np.median(self.top_pos[:, 0])))
         n_new = len(kept) - nf
         self.pieces.append((res.pos[nf:], res.faces, res.quad[nf:]))
         self.held += n_new * (12 + 80) + len(res.faces) * 12
@@ -281,9 +296,9 @@ def stream_surface(
     plan = SlabPlan(int(budget * SLAB_SHARE), plane_bytes, halo, max_faces=max(cap, 1), strict=True)
     origin = 0.5 * (np.array(volume.shape, np.float64) - 1) * np.asarray(spacing, np.float64)
     # the groups stop short of the target (GROUP_SLACK), leaving the last collapses to a pass across their borders
-    group_ratio = min(1.0, ratio * GROUP_SLACK) if ratio is not None else 0.5
     room = mesh_room if decimate else 1 << 62  # undecimated, the mesh stays whole (its size is checked below)
-    groups = GroupDecimator(group_ratio, room, int(budget * SPILL_SHARE), origin, dev)
+    group_ratio = ratio if ratio is not None else 0.5
+    groups = GroupDecimator(group_ratio, GROUP_SLACK, room, int(budget * SPILL_SHARE), origin, volume.shape[0], dev)
     out = StreamResult(origin=origin)
     t0 = time.perf_counter()
     is_float = gaussian is not None or volume.dtype == np.float32
@@ -307,5 +322,7 @@ def stream_surface(
         out.host, out.pieces = groups.result()
         out.info |= {"groups": len(groups.groups), "group_rounds": groups.groups, "group_seconds": groups.seconds}
         out.info["group_timings"] = groups.timings
+        out.info["group_mode"] = groups.mode
+        out.borders = groups.borders
     out.info["seconds"] = time.perf_counter() - t0
     return out

@@ -101,24 +101,38 @@ def final_pass(
 
 
 def finish_groups(
-    host: HostMesh | None, pieces: tuple[Any, Any, Any] | None, origin: np.ndarray, target: int, budget: int | None
+    host: HostMesh | None,
+    pieces: tuple[Any, Any, Any] | None,
+    origin: np.ndarray,
+    target: int,
+    budget: int | None,
+    borders: list[float],
+    seam_mm: float,
 ) -> tuple[Any, Any, dict[str, Any]]:
-    """Finish a decimation begun in groups of slabs (``engine.stages.stream``): on the device where they are and
-    fit, else through the host in tiled rounds."""
+    """Finish a decimation begun in groups of slabs (``engine.stages.stream``): one last pass on the device where
+    they are and fit; otherwise across the ``borders`` (a seam pass on the faces within ``seam_mm`` of them),
+    then tiled rounds if still needed."""
+    import warp as wp
+
     t0 = time.perf_counter()
+    info: dict[str, Any] = {"tiled": True, "rounds": []}
     if pieces is not None:
         pos, faces, quad = pieces
         if fits(len(faces), budget):
-            return final_pass(pos, faces, quad, origin, target, budget, {"tiled": True, "rounds": []}, t0)
+            return final_pass(pos, faces, quad, origin, target, budget, info, t0)
         dev = pos.device
         host = HostMesh(pos.numpy().reshape(-1, 3), faces.numpy().reshape(-1, 3), quad.numpy().reshape(-1, 10), origin)
         del pos, faces, quad, pieces
     else:
-        import warp as wp
-
         dev = wp.get_device()
     assert host is not None
-    return finish_host(host, target, budget, dev)
+    if borders and len(host.faces) > target:
+        host, info["seams"] = seam_pass(host, borders, seam_mm, target, dev)
+    pos, faces, more = finish_host(host, target, budget, dev)
+    more["rounds"] = more.get("rounds", [])
+    info.update(more)
+    info["seconds"] = time.perf_counter() - t0
+    return pos, faces, info
 
 
 def _tile_of_faces(mesh: HostMesh, n_tiles: int, shift: float) -> np.ndarray:
@@ -135,6 +149,35 @@ def tiled_round(
 ) -> tuple[HostMesh, dict[str, Any]]:
     """One round: z tiles that fit ``budget``, each decimated on the device with the vertices it shares pinned,
     toward its share of ``target``."""
+    n_faces = len(mesh.faces)
+    cap = max(int(budget // DECIMATE_BYTES_PER_FACE), 1) if budget else n_faces
+    n_tiles = max(2, -(-n_faces // max(cap * 9 // 10, 1)))
+    tile = _tile_of_faces(mesh, n_tiles, shift)
+    counts = np.bincount(tile)
+    goals = {t: max(round(int(c) * target / n_faces), 1) for t, c in enumerate(counts) if c}
+    return decimate_tiles(mesh, tile, goals, dev, **kwargs)
+
+
+def seam_pass(
+    mesh: HostMesh, borders_z: list[float], width_mm: float, target: int, dev: Any, **kwargs: Any
+) -> tuple[HostMesh, dict[str, Any]]:
+    """Decimate across the borders of the slab groups: the faces within ``width_mm`` of a border (in z) form one
+    tile, pinned where they meet the rest, which is left as it is; the tile gives up the faces over ``target``."""
+    z = mesh.pos[mesh.faces[:, 0], 0]
+    b = np.sort(np.asarray(borders_z, np.float64))
+    i = np.clip(np.searchsorted(b, z), 1, len(b) - 1) if len(b) > 1 else np.zeros(len(z), np.int64)
+    near = np.minimum(np.abs(z - b[i]), np.abs(z - b[np.maximum(i - 1, 0)])) <= width_mm
+    tile = np.where(near, 0, 1).astype(np.int16)
+    n_seam = int(near.sum())
+    goal = max(n_seam - (len(mesh.faces) - target), 1)
+    return decimate_tiles(mesh, tile, {0: goal}, dev, **kwargs)
+
+
+def decimate_tiles(
+    mesh: HostMesh, tile: np.ndarray, goals: dict[int, int], dev: Any, **kwargs: Any
+) -> tuple[HostMesh, dict[str, Any]]:
+    """Decimate the tiles named in ``goals`` (tile id -> faces to reach) on the device, each with the vertices it
+    shares with another tile pinned and its quadrics carried; the other tiles' faces are kept as they are."""
     import warp as wp
 
     from engine.kernels.decimate import quadric
@@ -142,15 +185,13 @@ def tiled_round(
 
     t0 = time.perf_counter()
     n_faces, n_verts = len(mesh.faces), len(mesh.pos)
-    cap = max(int(budget // DECIMATE_BYTES_PER_FACE), 1) if budget else n_faces
-    n_tiles = max(2, -(-n_faces // max(cap * 9 // 10, 1)))
-    tile = _tile_of_faces(mesh, n_tiles, shift)
+    tile = tile.astype(np.int16)
     order = np.argsort(tile, kind="stable")
-    bounds = np.searchsorted(tile[order], np.arange(tile.max() + 2))
+    bounds = np.searchsorted(tile[order], np.arange(int(tile.max()) + 2))
     refs = mesh.faces.ravel()
     ftile = np.repeat(tile, 3)
-    lo = np.full(n_verts, np.iinfo(np.int32).max, np.int32)
-    hi = np.full(n_verts, -1, np.int32)
+    lo = np.full(n_verts, np.iinfo(np.int16).max, np.int16)
+    hi = np.full(n_verts, -1, np.int16)
     np.minimum.at(lo, refs, ftile)
     np.maximum.at(hi, refs, ftile)
     shared = lo != hi
@@ -167,13 +208,16 @@ def tiled_round(
             continue
         t1 = time.perf_counter()
         tf = mesh.faces[fidx]
+        if t not in goals:  # kept as it is
+            new_faces.append(tf)
+            continue
         used = np.zeros(n_verts, bool)
         used[tf.ravel()] = True
         vids = np.flatnonzero(used)
         lut = np.empty(n_verts, np.int32)
         lut[vids] = np.arange(len(vids), dtype=np.int32)
         pinned = shared[vids]
-        goal = max(round(len(tf) * target / n_faces), 1)
+        goal = goals[t]
         with wp.ScopedDevice(dev):
             res = decimate_carrying(
                 wp.array(mesh.pos[vids], dtype=wp.vec3),

@@ -158,3 +158,25 @@ def test_groups_spilled_to_the_host_join_the_same(phantom, unbounded, monkeypatc
     assert topology(got.report) == topology(unbounded.report)
     target = got.report["decimate"]["target_faces"]
     assert target <= got.report["mesh"]["n_faces"] <= target * 1.02
+
+
+def test_seam_pass_across_group_borders(phantom, unbounded, monkeypatch):
+    """When the decimated groups will not fit one last pass, they go to the ratio on their own and only the faces
+    near their borders are decimated again (the seams)."""
+    import engine.stages.stream as stream
+
+    monkeypatch.setattr(stream, "SPILL_SHARE", 1e-4)
+    init = stream.GroupDecimator.__init__
+
+    def seams_mode(self, *args, **kwargs):  # as if the groups' extrapolated size would not fit one last pass
+        init(self, *args, **kwargs)
+        self.mode = "seams"
+
+    monkeypatch.setattr(stream.GroupDecimator, "__init__", seams_mode)
+    got = reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=17 * MIB)
+    assert got.report["memory"]["stream"]["group_mode"] == "seams"
+    seams = got.report["decimate"]["seams"]
+    assert seams["tiles"][0]["faces_in"] < 0.5 * seams["faces_in"]  # only the faces near the borders
+    assert topology(got.report) == topology(unbounded.report)
+    target = got.report["decimate"]["target_faces"]
+    assert target <= got.report["mesh"]["n_faces"] <= target * 1.02
