@@ -86,7 +86,7 @@ def test_undecimated_model_over_budget_is_a_clear_error():
 
     noise = Volume(np.random.default_rng(0).integers(0, 100, (16, 128, 128)).astype(np.uint8), (1.0, 1.0, 1.0))
     params = ReconParams(iso=IsoParams(iso=49.5), body=None, islands=None, decimate=None, smooth=None)
-    with pytest.raises(BudgetError, match="model .* faces.* give at least") as err:
+    with pytest.raises(BudgetError, match=r"model .* faces.* give at least") as err:
         reconstruct(noise, params, device="cpu", max_device_bytes=60 * MIB)
     assert err.value.needed > 60 * MIB
     got = reconstruct(noise, params, device="cpu", max_device_bytes=err.value.needed)
