@@ -79,7 +79,8 @@ def finish_host(
     with wp.ScopedDevice(dev):
         pos = wp.array(mesh.pos, dtype=wp.vec3)
         faces = wp.array(mesh.faces, dtype=wp.vec3i)
-        quad = wp.array(mesh.quad, dtype=quadric) if len(mesh.quad) else None
+        last = len(mesh.quad) and len(mesh.faces) > target and fits(len(mesh.faces), budget)
+        quad = wp.array(mesh.quad, dtype=quadric) if last else None
     return final_pass(pos, faces, quad, mesh.origin, target, budget, {"tiled": True, "rounds": rounds}, t0)
 
 
@@ -173,6 +174,21 @@ def seam_pass(
     return decimate_tiles(mesh, tile, {0: goal}, dev, **kwargs)
 
 
+def _shared_vertices(faces: np.ndarray, tile: np.ndarray, order: np.ndarray, bounds: np.ndarray, n: int) -> np.ndarray:
+    """The vertices used by faces of more than one tile."""
+    if len(bounds) <= 3:  # two tiles: where both use a vertex
+        used = [np.zeros(n, bool) for _ in range(2)]
+        for t in range(len(bounds) - 1):
+            used[t][faces[order[bounds[t] : bounds[t + 1]]].ravel()] = True
+        return used[0] & used[1]
+    refs, ftile = faces.ravel(), np.repeat(tile, 3)
+    lo = np.full(n, np.iinfo(np.int16).max, np.int16)
+    hi = np.full(n, -1, np.int16)
+    np.minimum.at(lo, refs, ftile)
+    np.maximum.at(hi, refs, ftile)
+    return lo != hi
+
+
 def decimate_tiles(
     mesh: HostMesh, tile: np.ndarray, goals: dict[int, int], dev: Any, **kwargs: Any
 ) -> tuple[HostMesh, dict[str, Any]]:
@@ -188,13 +204,7 @@ def decimate_tiles(
     tile = tile.astype(np.int16)
     order = np.argsort(tile, kind="stable")
     bounds = np.searchsorted(tile[order], np.arange(int(tile.max()) + 2))
-    refs = mesh.faces.ravel()
-    ftile = np.repeat(tile, 3)
-    lo = np.full(n_verts, np.iinfo(np.int16).max, np.int16)
-    hi = np.full(n_verts, -1, np.int16)
-    np.minimum.at(lo, refs, ftile)
-    np.maximum.at(hi, refs, ftile)
-    shared = lo != hi
+    shared = _shared_vertices(mesh.faces, tile, order, bounds, n_verts)
     carried = len(mesh.quad) == n_verts
     quad = mesh.quad if carried else np.zeros((n_verts, 10))
     times = {"split": time.perf_counter() - t0, "tiles": 0.0, "decimate": 0.0}
