@@ -59,3 +59,108 @@ def add_quadrics(ids: wp.array(dtype=wp.int32), shares: wp.array(dtype=quadric),
     """Each shared vertex's quadric gets the other side's share (the ids are distinct)."""
     i = wp.tid()
     quad[ids[i]] = quad[ids[i]] + shares[i]
+
+
+# ------------------------------------------------------------------------------------------------ seam pass
+@wp.kernel
+def seam_flags(
+    pos: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    borders: wp.array(dtype=wp.float32),
+    width: float,
+    flag: wp.array(dtype=wp.int32),
+):
+    """1 for a face whose first vertex lies within ``width`` (mm, in z) of a border, else 0."""
+    f = wp.tid()
+    z = pos[faces[f][0]][0]
+    near = wp.int32(0)
+    for i in range(borders.shape[0]):
+        if wp.abs(z - borders[i]) <= width:
+            near = wp.int32(1)
+    flag[f] = near
+
+
+@wp.kernel
+def mark_used(
+    faces: wp.array(dtype=wp.vec3i), flag: wp.array(dtype=wp.int32), want: int, used: wp.array(dtype=wp.int32)
+):
+    """``used[v] = 1`` for the vertices of the faces whose flag is ``want``."""
+    f = wp.tid()
+    if flag[f] == want:
+        t = faces[f]
+        used[t[0]] = 1
+        used[t[1]] = 1
+        used[t[2]] = 1
+
+
+@wp.kernel
+def split_faces(
+    faces: wp.array(dtype=wp.vec3i),
+    flag: wp.array(dtype=wp.int32),
+    slot: wp.array(dtype=wp.int32),
+    vslot: wp.array(dtype=wp.int32),
+    seam: wp.array(dtype=wp.vec3i),
+    rest: wp.array(dtype=wp.vec3i),
+):
+    """Seam faces (flag 1, at ``slot``) in the seam's local numbering (``vslot``); the others (at ``f - slot``) as
+    they are."""
+    f = wp.tid()
+    t = faces[f]
+    if flag[f] == 1:
+        seam[slot[f]] = wp.vec3i(vslot[t[0]], vslot[t[1]], vslot[t[2]])
+    else:
+        rest[f - slot[f]] = t
+
+
+@wp.kernel
+def gather_seam(
+    pos: wp.array(dtype=wp.vec3),
+    in_seam: wp.array(dtype=wp.int32),
+    in_rest: wp.array(dtype=wp.int32),
+    vslot: wp.array(dtype=wp.int32),
+    vids: wp.array(dtype=wp.int32),
+    local_pos: wp.array(dtype=wp.vec3),
+    lock: wp.array(dtype=wp.int32),
+):
+    """The seam's vertices: positions, global ids, and pinned where a face outside the seam uses them too."""
+    v = wp.tid()
+    if in_seam[v] != 0:
+        i = vslot[v]
+        vids[i] = v
+        local_pos[i] = pos[v]
+        lock[i] = in_rest[v]
+
+
+@wp.kernel
+def new_vertex_flags(kept: wp.array(dtype=wp.int32), lock: wp.array(dtype=wp.int32), flag: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    flag[i] = 1 - wp.min(lock[kept[i]], 1)
+
+
+@wp.kernel
+def join_seam(
+    out_pos: wp.array(dtype=wp.vec3),
+    kept: wp.array(dtype=wp.int32),
+    lock: wp.array(dtype=wp.int32),
+    vids: wp.array(dtype=wp.int32),
+    new_slot: wp.array(dtype=wp.int32),
+    n_old: int,
+    out_id: wp.array(dtype=wp.int32),
+    new_pos: wp.array(dtype=wp.vec3),
+):
+    """Each decimated seam vertex's id in the joined mesh: a pinned one keeps its own, a new one follows the old
+    vertices (and its position goes to ``new_pos``)."""
+    i = wp.tid()
+    k = kept[i]
+    if lock[k] != 0:
+        out_id[i] = vids[k]
+    else:
+        out_id[i] = n_old + new_slot[i]
+        new_pos[new_slot[i]] = out_pos[i]
+
+
+@wp.kernel
+def remap_by(faces: wp.array(dtype=wp.vec3i), ids: wp.array(dtype=wp.int32)):
+    f = wp.tid()
+    t = faces[f]
+    faces[f] = wp.vec3i(ids[t[0]], ids[t[1]], ids[t[2]])

@@ -193,7 +193,8 @@ class GroupDecimator:
         kept = res.kept.numpy()  # sync point: 4 bytes per vertex
         if nf and not np.array_equal(kept[:nf], np.arange(nf)):
             raise RuntimeError("a pinned vertex was removed by the decimation of a group of slabs")
-        if nf:
+        carry = self.mode == "last pass"  # the seams are decimated with quadrics of their current faces
+        if nf and carry:
             self.deferred.append((self.top_out, res.quad[:nf].numpy().reshape(-1, 10)))
         foreign_out = wp.array(self.top_out.astype(np.int32) if nf else np.zeros(1, np.int32), dtype=wp.int32)
         base = self.n_out - nf
@@ -204,14 +205,15 @@ class GroupDecimator:
         if len(top_res):
             self.borders.append(float(np.median(self.top_pos[:, 0])))
         n_new = len(kept) - nf
-        self.pieces.append((res.pos[nf:], res.faces, res.quad[nf:]))
-        self.held += n_new * (12 + 80) + len(res.faces) * 12
+        self.pieces.append((res.pos[nf:], res.faces, res.quad[nf:] if carry else None))
+        self.held += n_new * (12 + (80 if carry else 0)) + len(res.faces) * 12
         self.n_out += n_new
 
     def spill(self) -> None:
         """The decimated groups held on the device go to the host."""
         for pos, faces, quad in self.pieces:
-            self.host.append((pos.numpy().reshape(-1, 3), faces.numpy().reshape(-1, 3), quad.numpy().reshape(-1, 10)))
+            q = quad.numpy().reshape(-1, 10) if quad is not None else np.zeros((0, 10))
+            self.host.append((pos.numpy().reshape(-1, 3), faces.numpy().reshape(-1, 3), q))
         self.pieces, self.held = [], 0
 
     def result(self) -> tuple[HostMesh | None, tuple[Any, Any, Any] | None]:
@@ -227,22 +229,25 @@ class GroupDecimator:
         if self.host:
             self.spill()
             quad = np.concatenate([h[2] for h in self.host])
-            quad[ids] += shares  # each side's faces' share of a shared vertex's quadric
+            if len(quad):
+                quad[ids] += shares  # each side's faces' share of a shared vertex's quadric
             pos = np.concatenate([h[0] for h in self.host])
             faces = np.concatenate([h[1] for h in self.host])
             return HostMesh(pos, faces, quad, self.origin), None
         with wp.ScopedDevice(self.dev):
+            carried = self.mode == "last pass"
             pos = wp.empty(self.n_out, dtype=wp.vec3)
-            quad = wp.empty(self.n_out, dtype=quadric)
+            quad = wp.empty(self.n_out, dtype=quadric) if carried else None
             faces = wp.empty(sum(len(p[1]) for p in self.pieces), dtype=wp.vec3i)
             ov = of = 0
             for p, f, q in self.pieces:
                 wp.copy(pos, p, dest_offset=ov, count=len(p))
-                wp.copy(quad, q, dest_offset=ov, count=len(q))
+                if quad is not None:
+                    wp.copy(quad, q, dest_offset=ov, count=len(q))
                 wp.copy(faces, f, dest_offset=of, count=len(f))
                 ov, of = ov + len(p), of + len(f)
             self.pieces = []
-            if len(ids):
+            if len(ids) and quad is not None:
                 add = [wp.array(ids.astype(np.int32), dtype=wp.int32), wp.array(shares, dtype=quadric), quad]
                 wp.launch(kt.add_quadrics, dim=len(ids), inputs=add)
         return None, (pos, faces, quad)

@@ -121,8 +121,14 @@ def finish_groups(
         pos, faces, quad = pieces
         if fits(len(faces), budget):
             return final_pass(pos, faces, quad, origin, target, budget, info, t0)
+        done = seam_pass_device(pos, faces, borders, seam_mm, target, budget) if borders else None
+        if done is not None:
+            pos, faces, info["seams"] = done
+            info.update(output_faces=len(faces), seconds=time.perf_counter() - t0)
+            return pos, faces, info
         dev = pos.device
-        host = HostMesh(pos.numpy().reshape(-1, 3), faces.numpy().reshape(-1, 3), quad.numpy().reshape(-1, 10), origin)
+        q = quad.numpy().reshape(-1, 10) if quad is not None else np.zeros((0, 10))
+        host = HostMesh(pos.numpy().reshape(-1, 3), faces.numpy().reshape(-1, 3), q, origin)
         del pos, faces, quad, pieces
     else:
         dev = wp.get_device()
@@ -187,6 +193,69 @@ def _shared_vertices(faces: np.ndarray, tile: np.ndarray, order: np.ndarray, bou
     np.minimum.at(lo, refs, ftile)
     np.maximum.at(hi, refs, ftile)
     return lo != hi
+
+
+def seam_pass_device(
+    pos: Any, faces: Any, borders_z: list[float], width_mm: float, target: int, budget: int | None
+) -> tuple[Any, Any, dict[str, Any]] | None:
+    """``seam_pass`` on a device mesh, where the seam's decimation fits ``budget`` beside the mesh (else None):
+    the seam's faces are decimated (quadrics from the current faces), pinned where they meet the rest."""
+    import warp as wp
+
+    from engine.kernels import tiles as kt
+    from engine.stages.decimate import decimate_carrying
+    from engine.stages.devmesh import compact_vertices, exclusive_scan
+
+    t0 = time.perf_counter()
+    n_faces, n_verts = len(faces), len(pos)
+    with wp.ScopedDevice(pos.device):
+        borders = wp.array(np.asarray(borders_z, np.float32), dtype=wp.float32)
+        flag = wp.empty(n_faces, dtype=wp.int32)
+        wp.launch(kt.seam_flags, dim=n_faces, inputs=[pos, faces, borders, float(width_mm), flag])
+        slot, n_seam = exclusive_scan(flag)
+        held = n_faces * 12 + n_verts * 12
+        if n_seam == 0 or (
+            budget is not None and held + (n_seam + n_faces) * 12 + n_seam * DECIMATE_BYTES_PER_FACE > budget
+        ):
+            return None
+        in_seam = wp.zeros(n_verts, dtype=wp.int32)
+        in_rest = wp.zeros(n_verts, dtype=wp.int32)
+        wp.launch(kt.mark_used, dim=n_faces, inputs=[faces, flag, 1, in_seam])
+        wp.launch(kt.mark_used, dim=n_faces, inputs=[faces, flag, 0, in_rest])
+        vslot, n_local = exclusive_scan(in_seam)
+        seam = wp.empty(n_seam, dtype=wp.vec3i)
+        rest = wp.empty(n_faces - n_seam, dtype=wp.vec3i)
+        wp.launch(kt.split_faces, dim=n_faces, inputs=[faces, flag, slot, vslot, seam, rest])
+        del flag, slot
+        vids = wp.empty(n_local, dtype=wp.int32)
+        local_pos = wp.empty(n_local, dtype=wp.vec3)
+        lock = wp.empty(n_local, dtype=wp.int32)
+        wp.launch(kt.gather_seam, dim=n_verts, inputs=[pos, in_seam, in_rest, vslot, vids, local_pos, lock])
+        del in_seam, in_rest, vslot
+        goal = max(n_seam - (n_faces - target), 1)
+        res = decimate_carrying(local_pos, seam, goal, locked=lock, stop_tolerance=0.0)
+        del local_pos, seam
+        n_out = len(res.pos)
+        new = wp.empty(n_out, dtype=wp.int32)
+        wp.launch(kt.new_vertex_flags, dim=n_out, inputs=[res.kept, lock, new])
+        new_slot, n_new = exclusive_scan(new)
+        out_id = wp.empty(n_out, dtype=wp.int32)
+        joined_pos = wp.empty(n_verts + n_new, dtype=wp.vec3)
+        wp.copy(joined_pos, pos, count=n_verts)
+        new_pos = wp.empty(max(n_new, 1), dtype=wp.vec3)
+        join = [res.pos, res.kept, lock, vids, new_slot, n_verts, out_id, new_pos]
+        wp.launch(kt.join_seam, dim=n_out, inputs=join)
+        if n_new:
+            wp.copy(joined_pos, new_pos, dest_offset=n_verts, count=n_new)
+        wp.launch(kt.remap_by, dim=len(res.faces), inputs=[res.faces, out_id])
+        joined = wp.empty(len(rest) + len(res.faces), dtype=wp.vec3i)
+        wp.copy(joined, rest, count=len(rest))
+        wp.copy(joined, res.faces, dest_offset=len(rest), count=len(res.faces))
+        del rest, pos, faces
+        out_pos, out_faces = compact_vertices(joined_pos, joined)  # drops the seam's replaced vertices
+    info = {"faces_in": n_faces, "seam_faces_in": n_seam, "seam_faces_out": len(res.faces), "pinned": None}
+    info.update(faces_out=len(out_faces), passes=res.stats.passes, seconds=time.perf_counter() - t0, on="device")
+    return out_pos, out_faces, info
 
 
 def decimate_tiles(

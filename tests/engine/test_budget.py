@@ -160,12 +160,18 @@ def test_groups_spilled_to_the_host_join_the_same(phantom, unbounded, monkeypatc
     assert target <= got.report["mesh"]["n_faces"] <= target * 1.02
 
 
-def test_seam_pass_across_group_borders(phantom, unbounded, monkeypatch):
+@pytest.mark.parametrize("where", ["device", "host"])
+def test_seam_pass_across_group_borders(phantom, unbounded, monkeypatch, where):
     """When the decimated groups will not fit one last pass, they go to the ratio on their own and only the faces
-    near their borders are decimated again (the seams)."""
+    near their borders are decimated again (the seams): on the device where the groups are, or on the host where
+    they had to go."""
     import engine.stages.stream as stream
+    import engine.stages.tiled as tiled
 
-    monkeypatch.setattr(stream, "SPILL_SHARE", 1e-4)
+    if where == "host":
+        monkeypatch.setattr(stream, "SPILL_SHARE", 1e-4)
+    else:  # as if the joined groups' decimation needed more than the budget
+        monkeypatch.setattr(tiled, "DECIMATE_BYTES_PER_FACE", 1000)
     init = stream.GroupDecimator.__init__
 
     def seams_mode(self, *args, **kwargs):  # as if the groups' extrapolated size would not fit one last pass
@@ -176,7 +182,9 @@ def test_seam_pass_across_group_borders(phantom, unbounded, monkeypatch):
     got = reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=17 * MIB)
     assert got.report["memory"]["stream"]["group_mode"] == "seams"
     seams = got.report["decimate"]["seams"]
-    assert seams["tiles"][0]["faces_in"] < 0.5 * seams["faces_in"]  # only the faces near the borders
+    seam_faces = seams["seam_faces_in"] if where == "device" else seams["tiles"][0]["faces_in"]
+    assert seam_faces < 0.5 * seams["faces_in"]  # only the faces near the borders
+    assert seams.get("on", "host") == where
     assert topology(got.report) == topology(unbounded.report)
     target = got.report["decimate"]["target_faces"]
     assert target <= got.report["mesh"]["n_faces"] <= target * 1.02
