@@ -23,6 +23,7 @@ from engine.memory import DECIMATE_BYTES_PER_FACE
 from engine.stages.stream import PIECE_TOLERANCE, HostMesh
 
 MAX_ROUNDS = 8
+SEAM_MAX_PASSES = 60  # the seams' goal may be out of the guards' reach: passes past this win little
 MIN_PROGRESS = 0.01  # a round that removes less than this share of the faces ends the rounds
 
 
@@ -233,7 +234,7 @@ def seam_pass_device(
         wp.launch(kt.gather_seam, dim=n_verts, inputs=[pos, in_seam, in_rest, vslot, vids, local_pos, lock])
         del in_seam, in_rest, vslot
         goal = max(n_seam - (n_faces - target), 1)
-        res = decimate_carrying(local_pos, seam, goal, locked=lock, stop_tolerance=0.0)
+        res = decimate_carrying(local_pos, seam, goal, locked=lock, max_passes=SEAM_MAX_PASSES)
         del local_pos, seam
         n_out = len(res.pos)
         new = wp.empty(n_out, dtype=wp.int32)
