@@ -5,11 +5,12 @@ budgets, against the same run without a budget (issue 10).
         --out benchmarks/results/budget_cuda.json
 
 For each volume (the phantom, then the phantom repeated ``k`` times along z for each ``k`` of ``--stack``) and each
-budget: the whole ``reconstruct`` wall time (median of ``--repeat``; the report of the last run) (paper defaults: Gaussian, MC33, decimation to 0.2, one smoothing
-iteration; after a warm-up that compiles the kernels), the peak device memory measured from the memory pool
-(``report["memory"]``), the faces, and the topology of the result (watertight, components, Euler characteristic),
-and each budgeted run's time as a ratio of the unbounded run's (the issue asks for at most 1.5x). A run that fails
-(e.g. the unbounded run of a volume that does not fit the device) is recorded with its error.
+budget: the whole ``reconstruct`` wall time (median of ``--repeat``, the rest from the last run; paper defaults:
+Gaussian, MC33, decimation to 0.2, one smoothing iteration; after a warm-up that compiles the kernels), the peak
+device memory measured from the memory pool (``report["memory"]``), the faces, and the topology of the result
+(watertight, components, Euler characteristic), and each budgeted run's time as a ratio of the unbounded run's
+(the issue asks for at most 1.5x). A run that fails (e.g. the unbounded run of a volume that does not fit the
+device) is recorded with its error.
 """
 
 from __future__ import annotations
