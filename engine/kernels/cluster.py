@@ -2,7 +2,7 @@
 
 Vertices are binned in a grid of cubic cells; each occupied cell becomes one vertex placed where the sum of its
 vertices' quadrics is least (inside the cell, else the cell's mean); faces whose three vertices fall in three
-different cells survive, once per set of cells.
+different cells survive, once per set of cells. The piece census counts each piece's used vertices.
 """
 
 from __future__ import annotations
@@ -139,3 +139,19 @@ def cell_positions(
         if q_eval(q, x) <= q_eval(q, mean):
             best = x
     out[c] = wp.vec3(wp.float32(best[0] + origin[0]), wp.float32(best[1] + origin[1]), wp.float32(best[2] + origin[2]))
+
+
+@wp.kernel
+def mark_used(faces: wp.array(dtype=wp.vec3i), used: wp.array(dtype=wp.int32)):
+    f = wp.tid()
+    t = faces[f]
+    for k in range(3):
+        used[t[k]] = 1
+
+
+@wp.kernel
+def piece_vertices(used: wp.array(dtype=wp.int32), label: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32)):
+    """The used vertices of every piece, counted at its root."""
+    v = wp.tid()
+    if used[v] == 1:
+        wp.atomic_add(count, label[v], 1)

@@ -96,3 +96,85 @@ def test_zero_area_faces_are_counted_on_the_device(blob):
             Frame.from_dict(None),
         )
     assert lay.zero_area == zero_area_faces(v, f) >= 1
+
+
+@pytest.fixture(scope="module")
+def plate() -> tuple[np.ndarray, np.ndarray]:
+    """A perforated plate: one closed piece with 18 x 18 tunnels (a topology-preserving copy keeps at least
+    4 + 4 * 324 = 1300 faces)."""
+    z, y, x = np.indices((16, 100, 100), dtype=np.float32)
+    slab = np.minimum(3.5 - np.abs(z - 7.5), 46 - np.maximum(np.abs(y - 49.5), np.abs(x - 49.5)))
+    holes = 1.6 - np.hypot((y - 49.5) % 5 - 2.5, (x - 49.5) % 5 - 2.5)
+    holes[:, np.abs(np.arange(100) - 49.5) > 43, :] = -1
+    holes[:, :, np.abs(np.arange(100) - 49.5) > 43] = -1
+    return marching_cubes_33(np.minimum(slab, -holes), 0.0, spacing=(0.5, 0.5, 0.5), device="cpu", closed=True)
+
+
+def _copies(v: np.ndarray, f: np.ndarray, budgets: list[int], closed: bool = True) -> list[tuple]:
+    import warp as wp
+
+    from engine.outputs import viewing_copies
+    from engine.stages.devmesh import mesh_stats_device
+
+    with wp.ScopedDevice("cpu"):
+        copies = viewing_copies(wp.array(v, dtype=wp.vec3), wp.array(f, dtype=wp.vec3i), budgets, 1, closed)
+        return [(p.numpy(), t.numpy(), info, mesh_stats_device(p, t)) for p, t, info in copies]
+
+
+def test_ar_copy_of_a_clustered_phone_copy_is_clustered_from_the_same_mesh(plate):
+    """The plate's largest (only) piece needs 1300 faces under the topology guard: a 1200-face phone copy is
+    clustered without a decimation pass, and the AR copy is clustered from the same mesh (not decimated from the
+    clustered copy): both within budget, reported as not topology-preserving, with valid faces."""
+    from engine.stages.meshcheck import mesh_stats
+
+    v, f = plate
+    assert mesh_stats(v, f)["euler"] == 2 - 2 * 324
+    (_, pf, phone, _), (av, af, ar, ar_stats) = _copies(v, f, [1200, 600])
+    assert phone["topology_preserved"] is False and phone["passes"] == 0 and not phone["over_budget"]
+    assert ar["topology_preserved"] is False and ar["passes"] == 0 and not ar["over_budget"]
+    assert ar["clustered"]["input_faces"] == phone["clustered"]["input_faces"] == len(f)
+    assert 0.6 * 1200 <= len(pf) <= 1200 and 0 < len(af) <= 600 and ar["faces"] == len(af)
+    assert ar_stats["degenerate_faces"] == 0 and len(np.unique(np.sort(af, axis=1), axis=0)) == len(af)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    assert (av >= lo - 1e-4).all() and (av <= hi + 1e-4).all()
+
+
+def test_a_budget_above_the_topology_floor_is_decimated_first(plate):
+    """At a budget the plate's genus allows in principle (>= 1300), the guarded decimation runs first (one round: a
+    single piece has nothing to drop) and clustering only follows where it stalls above the budget; the AR copy
+    then needs no decimation pass."""
+    from engine.outputs import VIEW_MAX_PASSES
+
+    v, f = plate
+    (_, pf, phone, _), (_, af, ar, _) = _copies(v, f, [1500, 700])
+    assert 0 < phone["passes"] <= VIEW_MAX_PASSES and len(pf) <= 1500 and len(af) <= 700
+    if phone["topology_preserved"] is False:
+        assert ar["passes"] == 0 and ar["clustered"]["input_faces"] == phone["clustered"]["input_faces"] < len(f)
+
+
+def test_ar_copy_keeps_the_topology_where_the_budget_allows(blob):
+    """A closed copy within reach of its budget stays watertight and 2-manifold, with the print model's pieces and
+    Euler characteristic, in both copies (the AR copy continues from the phone copy, as a closed copy)."""
+    from engine.stages.meshcheck import mesh_stats
+
+    v, f = blob.vertices, blob.faces
+    before = mesh_stats(v, f)
+    copies = _copies(v, f, [len(f) // 2, len(f) // 4])
+    for (_, cf, info, stats), budget in zip(copies, [len(f) // 2, len(f) // 4], strict=True):
+        assert info["topology_preserved"] is True and info["passes"] > 0 and len(cf) <= budget
+        assert stats["watertight"] and stats["manifold"]
+        assert (stats["components"], stats["euler"]) == (before["components"], before["euler"])
+
+
+def test_stalled_rounds():
+    """Another round is worth it only while the last passes, kept up for a round, would close the gap."""
+    from types import SimpleNamespace
+
+    from engine.outputs import STALL_PASSES, VIEW_MAX_PASSES, _stalled
+
+    guards = SimpleNamespace(passes=12, collapses=[500] * 12)
+    assert _stalled(guards, 10)  # stopped before its pass limit: the guards refuse every edge
+    busy = SimpleNamespace(passes=VIEW_MAX_PASSES, collapses=[50] * VIEW_MAX_PASSES)
+    assert not _stalled(busy, 2 * 50 * VIEW_MAX_PASSES - 1)
+    tail = SimpleNamespace(passes=VIEW_MAX_PASSES, collapses=[5000] * (VIEW_MAX_PASSES - STALL_PASSES) + [1] * 10)
+    assert _stalled(tail, 2 * VIEW_MAX_PASSES + 1)
