@@ -5,7 +5,7 @@
 The finished mesh is laid out for its files on the device where the pipeline left it (``lay_out``: the patient
 frame, the STL's facet records and the glTF buffers, ``engine.kernels.export``); only those buffers come back.
 A thread then streams the print model's two files to disk while the device makes the phone and AR copies
-(``viewing_copies``: guarded decimation where the topology can be kept within the budget, else clustering, the AR
+(``engine.viewing``: guarded decimation where the topology can be kept within the budget, else clustering, the AR
 copy then clustered from the same mesh as the phone copy) and the host encodes them. Every file goes into a
 temporary folder inside the output folder and is moved into place only when all are complete: a failure leaves no
 partial model.
@@ -27,16 +27,13 @@ import numpy as np
 
 from engine.params import ReconParams
 from engine.types import Mesh
+from engine.viewing import viewing_copies
 
 if TYPE_CHECKING:
     from engine.pipeline import Reconstruction
 
 STL_HEADER = "bonemesh model, patient LPS frame, mm"
-SPECK_FACES = 4  # a closed piece keeps at least a tetrahedron under the topology guard
-FACES_PER_PIECE = 200  # when pieces must go, a viewing copy keeps about this many faces per piece
-HOPELESS = 2  # a copy whose topology needs this many times its budget is clustered at once
-VIEW_MAX_PASSES = 100  # decimation passes per round of a viewing copy (the print model has no such limit)
-STALL_PASSES = 10  # a round's last passes that tell whether another round could meet the budget
+HELD_BYTES_PER_FACE = 60  # the model and its patient/viewing copies, held while the viewing copies are made
 
 
 @dataclass
@@ -111,143 +108,6 @@ def lay_out(pos: Any, faces: Any, normals: Any, frame: Any) -> Layout:
     )
     lay.seconds["copies"] = time.perf_counter() - t1
     return lay
-
-
-@dataclass
-class ViewingCopy:
-    """A viewing copy on the device (``pos``, ``faces``) and its report entry (``summary``), with what a smaller
-    copy made from it needs: its piece count when known, whether it is closed (watertight and 2-manifold), and
-    where it was clustered, the prepared mesh it was clustered from (``engine.stages.cluster.Clustering``)."""
-
-    pos: Any
-    faces: Any
-    summary: dict[str, Any]
-    pieces: int | None = None
-    closed: bool = False
-    clustering: Any = None
-
-
-def _stalled(stats: Any, excess: int) -> bool:
-    """Whether another round of decimation would barely help: the guards stopped it before its pass limit, or its
-    last passes' collapses (two faces each), kept up for a whole round, would not remove ``excess`` faces."""
-    if stats.passes < VIEW_MAX_PASSES:
-        return True
-    tail = stats.collapses[-STALL_PASSES:]
-    return 2 * sum(tail) * VIEW_MAX_PASSES < excess * max(len(tail), 1)
-
-
-def _make_copy(pos: Any, faces: Any, max_triangles: int, pieces: int | None, closed: bool) -> ViewingCopy:
-    """One viewing copy (see ``viewing_copy``)."""
-    if len(faces) <= max_triangles:
-        return ViewingCopy(pos, faces, {"faces": len(faces), "decimated": False}, pieces, closed)
-    from engine.stages.cluster import Clustering, piece_census
-    from engine.stages.decimate import decimate_device
-    from engine.stages.islands import remove_islands_device
-
-    passes = dropped = 0
-    keep: int | None = None
-    summary: dict[str, Any] = {"topology_preserved": True}
-
-    def drop(n: int) -> None:
-        nonlocal pos, faces, dropped, pieces
-        pos, faces, isl = remove_islands_device(pos, faces, keep_largest=n)
-        dropped, pieces = dropped + int(isl["removed_pieces"]), int(isl["pieces_after"])
-
-    if pieces is not None and pieces * SPECK_FACES > max_triangles:
-        keep = max(1, max_triangles // FACES_PER_PIECE)
-        drop(keep)
-    # a closed mesh of C pieces and Euler characteristic X keeps at least 8 C - 2 X faces under the topology guard
-    # (each piece at least 4 + 4 genus): far above the budget, tunnels must close anyway, so cluster at once; and
-    # where the largest piece alone (never dropped) needs more than the budget, no round can meet it
-    hopeless = closed and (
-        (pieces is not None and 8 * pieces - 2 * (len(pos) - len(faces) // 2) > HOPELESS * max_triangles)
-        or piece_census(pos, faces).floor(1) > max_triangles
-    )
-    stats = None
-    if not hopeless:
-        pos, faces, stats = decimate_device(pos, faces, max_triangles, max_passes=VIEW_MAX_PASSES)
-        passes += stats.passes
-    while stats is not None and len(faces) > max_triangles:
-        census = piece_census(pos, faces)
-        pieces = len(census)
-        if pieces <= 1:
-            break
-        if _stalled(stats, len(faces) - max_triangles):
-            # decimating again would barely help: keep the largest pieces that fit as they are, if any
-            if census.fit(max_triangles):
-                drop(census.fit(max_triangles))
-            break
-        keep = (
-            max(1, min(pieces // 2, max_triangles // FACES_PER_PIECE))
-            if keep is None
-            else max(1, min(keep // 2, pieces - 1))
-        )
-        drop(keep)
-        pos, faces, stats = decimate_device(pos, faces, max_triangles, max_passes=VIEW_MAX_PASSES)
-        passes += stats.passes
-    clustering = None
-    if len(faces) > max_triangles:  # pieces of high genus: this viewing copy may close tunnels to meet the budget
-        clustering = Clustering(pos, faces)
-        pos, faces, summary["clustered"] = clustering.copy(max_triangles)
-        summary["topology_preserved"] = False
-    summary.update(
-        faces=len(faces), decimated=True, passes=passes, pieces_dropped=dropped, over_budget=len(faces) > max_triangles
-    )
-    return ViewingCopy(pos, faces, summary, pieces, closed and clustering is None, clustering)
-
-
-def viewing_copy(
-    pos: Any, faces: Any, max_triangles: int, pieces: int | None = None, closed: bool = False
-) -> tuple[Any, Any, dict]:
-    """A device copy within ``max_triangles`` faces, decimated on the device; ``(pos, faces, summary)``, the arrays
-    themselves when already within budget.
-
-    The copy continues the print model's decimation with every guard. Topology-preserving decimation cannot shrink
-    a closed piece below a tetrahedron, so a scan with thousands of specks cannot reach a phone-sized budget: then
-    the smallest pieces (by volume) are dropped, halving the number kept, and the rest decimated again, until the
-    budget is met (each round works on the already small copy); when the pieces could not fit even as tetrahedra
-    (``pieces``, the count when known), they are thinned before the first decimation. When a round stalls (the
-    guards stop it, or its last passes collapse too little to matter), the largest pieces that fit as they are
-    stay and no round follows. Where pieces of high genus still keep the copy over budget (every tunnel keeps a
-    ring of faces), the copy is clustered (``engine.stages.cluster``: ``topology_preserved`` false, small tunnels
-    close). The print model keeps every piece and every guard. A ``closed`` copy whose pieces and Euler
-    characteristic need far more faces than the budget under the topology guard, or whose largest piece alone
-    needs more, is clustered without decimating first.
-    """
-    copy = _make_copy(pos, faces, max_triangles, pieces, closed)
-    return copy.pos, copy.faces, copy.summary
-
-
-def viewing_copies(
-    pos: Any, faces: Any, budgets: list[int], pieces: int | None = None, closed: bool = False
-) -> list[tuple[Any, Any, dict]]:
-    """Viewing copies within each of ``budgets`` (largest first: the phone copy, then the AR copy), each made from
-    the one before (``viewing_copy``; the first from the print model ``pos``, ``faces`` of ``pieces`` pieces,
-    ``closed`` when watertight and 2-manifold), carrying its piece count and closedness.
-
-    Where a copy had to be clustered (its topology could not be kept within its budget), a smaller budget cannot
-    keep it either: the next copy is clustered at once from the same mesh (its quadrics and cell-size trials
-    reused; ``clustered.input_faces`` says which mesh), rather than decimated from the clustered copy, which the
-    guards can barely touch. Its ``pieces_dropped`` counts the pieces dropped beyond the copy before it (none).
-    """
-    out: list[tuple[Any, Any, dict]] = []
-    prev: ViewingCopy | None = None
-    for budget in budgets:
-        if prev is None:
-            copy = _make_copy(pos, faces, budget, pieces, closed)
-        elif len(prev.faces) <= budget:
-            copy = ViewingCopy(prev.pos, prev.faces, {"faces": len(prev.faces), "decimated": False}, prev.pieces)
-            copy.closed, copy.clustering = prev.closed, prev.clustering
-        elif prev.clustering is not None:
-            cpos, cfaces, info = prev.clustering.copy(budget)
-            summary = {"topology_preserved": False, "clustered": info, "faces": len(cfaces), "decimated": True}
-            summary.update(passes=0, pieces_dropped=0, over_budget=len(cfaces) > budget)
-            copy = ViewingCopy(cpos, cfaces, summary, None, False, prev.clustering)
-        else:
-            copy = _make_copy(prev.pos, prev.faces, budget, prev.pieces, prev.closed)
-        out.append((copy.pos, copy.faces, copy.summary))
-        prev = copy
-    return out
 
 
 def _host_mesh(pos: Any, faces: Any, normals: Any = None) -> Mesh:
@@ -333,7 +193,8 @@ def write_outputs(
     try:
         with wp.ScopedDevice(dev):
             pos, faces, normals = _device_mesh(recon, dev)
-            _check_budget(len(faces), parse_bytes(max_device_bytes))
+            budget = parse_bytes(max_device_bytes)
+            _check_budget(len(faces), budget)
             frame = report.get("frame")
             lay = lay_out(pos, faces, normals, Frame.from_dict(frame))
             # the STL in patient LPS mm, the glTF files in patient axes centred on the model (engine.orient)
@@ -352,8 +213,9 @@ def write_outputs(
                 t1 = time.perf_counter()
                 closed = bool(stats.get("watertight")) and bool(stats.get("manifold"))
                 budgets = [params.export.phone_max_triangles, params.export.ar_max_triangles]
+                room = None if budget is None else budget - HELD_BYTES_PER_FACE * len(lay.faces)
                 (ppos, pfaces, phone_info), (apos, afaces, ar_info) = viewing_copies(
-                    lay.view_pos, lay.faces, budgets, stats.get("components"), closed
+                    lay.view_pos, lay.faces, budgets, stats.get("components"), closed, room
                 )
                 keep_normals = lay.view_normals if ppos is lay.view_pos else None
                 phone = _host_mesh(ppos, pfaces, keep_normals)

@@ -188,3 +188,22 @@ def test_seam_pass_across_group_borders(phantom, unbounded, monkeypatch, where):
     assert topology(got.report) == topology(unbounded.report)
     target = got.report["decimate"]["target_faces"]
     assert target <= got.report["mesh"]["n_faces"] <= target * 1.02
+
+
+def test_write_outputs_within_a_budget_tiles_the_viewing_copies(unbounded, tmp_path):
+    """A budget too small for the phone copy's decimation in one piece: it is decimated in tiles, within budget."""
+    import json
+
+    from engine.outputs import write_outputs
+    from engine.params import ExportParams
+
+    params = dataclasses.replace(ReconParams(), export=ExportParams(phone_max_triangles=5000, ar_max_triangles=2000))
+    budget = 5 * MIB  # the layout fits (120 B a face), a one-piece decimation (300 B a face) does not
+    write_outputs(unbounded, tmp_path, params, device="cpu", max_device_bytes=budget)
+    report = json.loads((tmp_path / "report.json").read_text())
+    phone = report["exports"]["phone.glb"]
+    assert phone["faces"] <= 5000 and phone["topology_preserved"]
+    assert report["exports"]["ar.glb"]["faces"] <= 2000
+    with pytest.raises(BudgetError, match="laying out"):
+        write_outputs(unbounded, tmp_path / "small", params, device="cpu", max_device_bytes=1 * MIB)
+    assert not (tmp_path / "small" / "model.stl").exists()

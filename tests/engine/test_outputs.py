@@ -113,7 +113,7 @@ def plate() -> tuple[np.ndarray, np.ndarray]:
 def _copies(v: np.ndarray, f: np.ndarray, budgets: list[int], closed: bool = True) -> list[tuple]:
     import warp as wp
 
-    from engine.outputs import viewing_copies
+    from engine.viewing import viewing_copies
     from engine.stages.devmesh import mesh_stats_device
 
     with wp.ScopedDevice("cpu"):
@@ -143,7 +143,7 @@ def test_a_budget_above_the_topology_floor_is_decimated_first(plate):
     """At a budget the plate's genus allows in principle (>= 1300), the guarded decimation runs first (one round: a
     single piece has nothing to drop) and clustering only follows where it stalls above the budget; the AR copy
     then needs no decimation pass."""
-    from engine.outputs import VIEW_MAX_PASSES
+    from engine.viewing import VIEW_MAX_PASSES
 
     v, f = plate
     (_, pf, phone, _), (_, af, ar, _) = _copies(v, f, [1500, 700])
@@ -170,7 +170,7 @@ def test_stalled_rounds():
     """Another round is worth it only while the last passes, kept up for a round, would close the gap."""
     from types import SimpleNamespace
 
-    from engine.outputs import STALL_PASSES, VIEW_MAX_PASSES, _stalled
+    from engine.viewing import STALL_PASSES, VIEW_MAX_PASSES, _stalled
 
     guards = SimpleNamespace(passes=12, collapses=[500] * 12)
     assert _stalled(guards, 10)  # stopped before its pass limit: the guards refuse every edge

@@ -1,0 +1,165 @@
+"""The phone and AR copies of a model (``viewing_copies``), made on the device from the print model: guarded
+decimation where the topology can be kept within the budget, else clustering (``engine.stages.cluster``); the AR
+copy continues from the phone copy, or is clustered from the same mesh when the phone copy had to be.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+SPECK_FACES = 4  # a closed piece keeps at least a tetrahedron under the topology guard
+FACES_PER_PIECE = 200  # when pieces must go, a viewing copy keeps about this many faces per piece
+HOPELESS = 2  # a copy whose topology needs this many times its budget is clustered at once
+VIEW_MAX_PASSES = 100  # decimation passes per round of a viewing copy (the print model has no such limit)
+STALL_PASSES = 10  # a round's last passes that tell whether another round could meet the budget
+
+
+@dataclass
+class ViewingCopy:
+    """A viewing copy on the device (``pos``, ``faces``) and its report entry (``summary``), with what a smaller
+    copy made from it needs: its piece count when known, whether it is closed (watertight and 2-manifold), and
+    where it was clustered, the prepared mesh it was clustered from (``engine.stages.cluster.Clustering``)."""
+
+    pos: Any
+    faces: Any
+    summary: dict[str, Any]
+    pieces: int | None = None
+    closed: bool = False
+    clustering: Any = None
+
+
+def _stalled(stats: Any, excess: int) -> bool:
+    """Whether another round of decimation would barely help: the guards stopped it before its pass limit, or its
+    last passes' collapses (two faces each), kept up for a whole round, would not remove ``excess`` faces."""
+    if stats.passes < VIEW_MAX_PASSES:
+        return True
+    tail = stats.collapses[-STALL_PASSES:]
+    return 2 * sum(tail) * VIEW_MAX_PASSES < excess * max(len(tail), 1)
+
+
+def _decimate(pos: Any, faces: Any, max_triangles: int, room: int | None) -> tuple[Any, Any, Any]:
+    """``decimate_device`` for a viewing copy, tiled (``engine.stages.tiled``) where it would not fit ``room``."""
+    from engine.stages.decimate import DecimationStats, decimate_device
+    from engine.stages.tiled import decimate_within, fits
+
+    if fits(len(faces), room):
+        return decimate_device(pos, faces, max_triangles, max_passes=VIEW_MAX_PASSES)
+    pos, faces, _ = decimate_within(pos, faces, max_triangles, room, pos.device, max_passes=VIEW_MAX_PASSES)
+    return pos, faces, DecimationStats(output_faces=len(faces), passes=0, stopped="tiled (memory budget)")
+
+
+def _make_copy(
+    pos: Any, faces: Any, max_triangles: int, pieces: int | None, closed: bool, room: int | None = None
+) -> ViewingCopy:
+    """One viewing copy (see ``viewing_copy``), its decimation within ``room`` bytes of device memory."""
+    if len(faces) <= max_triangles:
+        return ViewingCopy(pos, faces, {"faces": len(faces), "decimated": False}, pieces, closed)
+    from engine.stages.cluster import Clustering, piece_census
+    from engine.stages.islands import remove_islands_device
+
+    passes = dropped = 0
+    keep: int | None = None
+    summary: dict[str, Any] = {"topology_preserved": True}
+
+    def drop(n: int) -> None:
+        nonlocal pos, faces, dropped, pieces
+        pos, faces, isl = remove_islands_device(pos, faces, keep_largest=n)
+        dropped, pieces = dropped + int(isl["removed_pieces"]), int(isl["pieces_after"])
+
+    if pieces is not None and pieces * SPECK_FACES > max_triangles:
+        keep = max(1, max_triangles // FACES_PER_PIECE)
+        drop(keep)
+    # a closed mesh of C pieces and Euler characteristic X keeps at least 8 C - 2 X faces under the topology guard
+    # (each piece at least 4 + 4 genus): far above the budget, tunnels must close anyway, so cluster at once; and
+    # where the largest piece alone (never dropped) needs more than the budget, no round can meet it
+    hopeless = closed and (
+        (pieces is not None and 8 * pieces - 2 * (len(pos) - len(faces) // 2) > HOPELESS * max_triangles)
+        or piece_census(pos, faces).floor(1) > max_triangles
+    )
+    stats = None
+    if not hopeless:
+        pos, faces, stats = _decimate(pos, faces, max_triangles, room)
+        passes += stats.passes
+    while stats is not None and len(faces) > max_triangles:
+        census = piece_census(pos, faces)
+        pieces = len(census)
+        if pieces <= 1:
+            break
+        if _stalled(stats, len(faces) - max_triangles):
+            # decimating again would barely help: keep the largest pieces that fit as they are, if any
+            if census.fit(max_triangles):
+                drop(census.fit(max_triangles))
+            break
+        keep = (
+            max(1, min(pieces // 2, max_triangles // FACES_PER_PIECE))
+            if keep is None
+            else max(1, min(keep // 2, pieces - 1))
+        )
+        drop(keep)
+        pos, faces, stats = _decimate(pos, faces, max_triangles, room)
+        passes += stats.passes
+    clustering = None
+    if len(faces) > max_triangles:  # pieces of high genus: this viewing copy may close tunnels to meet the budget
+        clustering = Clustering(pos, faces)
+        pos, faces, summary["clustered"] = clustering.copy(max_triangles)
+        summary["topology_preserved"] = False
+    summary.update(
+        faces=len(faces), decimated=True, passes=passes, pieces_dropped=dropped, over_budget=len(faces) > max_triangles
+    )
+    return ViewingCopy(pos, faces, summary, pieces, closed and clustering is None, clustering)
+
+
+def viewing_copy(
+    pos: Any, faces: Any, max_triangles: int, pieces: int | None = None, closed: bool = False
+) -> tuple[Any, Any, dict]:
+    """A device copy within ``max_triangles`` faces, decimated on the device; ``(pos, faces, summary)``, the arrays
+    themselves when already within budget.
+
+    The copy continues the print model's decimation with every guard. Topology-preserving decimation cannot shrink
+    a closed piece below a tetrahedron, so a scan with thousands of specks cannot reach a phone-sized budget: then
+    the smallest pieces (by volume) are dropped, halving the number kept, and the rest decimated again, until the
+    budget is met (each round works on the already small copy); when the pieces could not fit even as tetrahedra
+    (``pieces``, the count when known), they are thinned before the first decimation. When a round stalls (the
+    guards stop it, or its last passes collapse too little to matter), the largest pieces that fit as they are
+    stay and no round follows. Where pieces of high genus still keep the copy over budget (every tunnel keeps a
+    ring of faces), the copy is clustered (``engine.stages.cluster``: ``topology_preserved`` false, small tunnels
+    close). The print model keeps every piece and every guard. A ``closed`` copy whose pieces and Euler
+    characteristic need far more faces than the budget under the topology guard, or whose largest piece alone
+    needs more, is clustered without decimating first.
+    """
+    copy = _make_copy(pos, faces, max_triangles, pieces, closed)
+    return copy.pos, copy.faces, copy.summary
+
+
+def viewing_copies(
+    pos: Any, faces: Any, budgets: list[int], pieces: int | None = None, closed: bool = False, room: int | None = None
+) -> list[tuple[Any, Any, dict]]:
+    """Viewing copies within each of ``budgets`` (largest first: the phone copy, then the AR copy), each made from
+    the one before (``viewing_copy``; the first from the print model ``pos``, ``faces`` of ``pieces`` pieces,
+    ``closed`` when watertight and 2-manifold), carrying its piece count and closedness.
+
+    Where a copy had to be clustered (its topology could not be kept within its budget), a smaller budget cannot
+    keep it either: the next copy is clustered at once from the same mesh (its quadrics and cell-size trials
+    reused; ``clustered.input_faces`` says which mesh), rather than decimated from the clustered copy, which the
+    guards can barely touch. Its ``pieces_dropped`` counts the pieces dropped beyond the copy before it (none).
+    ``room``: the device memory a copy's decimation may use (bytes; None: no limit).
+    """
+    out: list[tuple[Any, Any, dict]] = []
+    prev: ViewingCopy | None = None
+    for budget in budgets:
+        if prev is None:
+            copy = _make_copy(pos, faces, budget, pieces, closed, room)
+        elif len(prev.faces) <= budget:
+            copy = ViewingCopy(prev.pos, prev.faces, {"faces": len(prev.faces), "decimated": False}, prev.pieces)
+            copy.closed, copy.clustering = prev.closed, prev.clustering
+        elif prev.clustering is not None:
+            cpos, cfaces, info = prev.clustering.copy(budget)
+            summary = {"topology_preserved": False, "clustered": info, "faces": len(cfaces), "decimated": True}
+            summary.update(passes=0, pieces_dropped=0, over_budget=len(cfaces) > budget)
+            copy = ViewingCopy(cpos, cfaces, summary, None, False, prev.clustering)
+        else:
+            copy = _make_copy(prev.pos, prev.faces, budget, prev.pieces, prev.closed, room)
+        out.append((copy.pos, copy.faces, copy.summary))
+        prev = copy
+    return out
