@@ -29,6 +29,7 @@ through a pinned host buffer (copy into it, then upload), so the lead can see wh
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as dt
 import json
 import os
@@ -40,6 +41,7 @@ import sys
 import tempfile
 import time
 import zipfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -67,7 +69,7 @@ def _child(
     """One load in this (fresh) process: seconds, peak RSS, a checksum of the array; optionally the upload."""
     import numpy as np
 
-    from engine.io import codecs, load_volume, procs
+    from engine.io import codecs, dicom, load_volume, procs
 
     codecs.USE_IMAGECODECS = codec == "auto"
     ran: list[int] = []  # worker processes of each decode pool that ran (one given up at start is not closed)
@@ -78,6 +80,17 @@ def _child(
         close(pool)
 
     procs.DecodePool.close = counted_close  # type: ignore[method-assign]
+    started: list[float] = []  # seconds until each pool's first worker answered (the fork server's start included)
+    start_pool = dicom.start_pool
+
+    @contextlib.contextmanager
+    def timed_start(workers: int) -> Iterator[Any]:
+        t = time.perf_counter()
+        with start_pool(workers) as pool:
+            started.append(time.perf_counter() - t)
+            yield pool
+
+    dicom.start_pool = timed_start  # type: ignore[assignment]
 
     rss_before = _rss_now()
     t0 = time.perf_counter()
@@ -91,6 +104,7 @@ def _child(
         "codec": codec,
         "processes_asked": processes,
         "decode_processes_ran": sum(ran),
+        "decode_pool_start_seconds": sum(started),
         "imagecodecs_available": codecs._imagecodecs() is not None,
         "shape": list(data.shape),
         "dtype": str(data.dtype),
@@ -272,7 +286,8 @@ def main(argv: list[str] | None = None) -> int:
                 runs[mode].append(run)
                 print(
                     f"  {fmt} {mode:15s} #{i + 1}: {run['seconds']:.3f} s ({n} {'processes' if in_procs else 'threads'}"
-                    f", {run['decode_processes_ran']} decode processes ran), peak RSS "
+                    f", {run['decode_processes_ran']} decode processes ran, started in"
+                    f" {run['decode_pool_start_seconds']:.2f} s), peak RSS "
                     f"{run['peak_rss_bytes'] / 1e9:.2f} GB = {run['peak_rss_over_volume']:.2f}x the volume",
                     flush=True,
                 )
