@@ -55,3 +55,42 @@ def test_worker_child_decodes_dicom_in_processes(tmp_path: Path, prepared: bool)
     assert got["dtype"] == str(serial.data.dtype)
     np.testing.assert_array_equal(np.array(got["data"], dtype=serial.data.dtype), serial.data)
     assert got["pools"] == ([2] if prepared else [])  # billiard's own child is daemonic: threads
+
+
+def test_worker_loads_with_the_decode_settings(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """BONEMESH_DECODE_THREADS / _DECODE_PROCESSES / _PNG_DECODER reach load_volume (the service benchmark's
+    baseline worker relies on them)."""
+    from types import SimpleNamespace
+
+    import engine.io
+    import worker.tasks as tasks
+    from engine.io import codecs
+    from service.settings import Settings
+
+    class Stop(Exception):
+        pass
+
+    seen: dict[str, Any] = {}
+
+    def fake_load(path: Path, **kwargs: Any) -> None:
+        seen.update(kwargs, imagecodecs=codecs.USE_IMAGECODECS)
+        raise Stop
+
+    monkeypatch.setattr(engine.io, "load_volume", fake_load)
+    monkeypatch.setattr(tasks, "fetch_source", lambda *args: None)
+    monkeypatch.setattr(codecs, "USE_IMAGECODECS", True)
+    for name in ("BONEMESH_DECODE_THREADS", "BONEMESH_DECODE_PROCESSES", "BONEMESH_PNG_DECODER"):
+        monkeypatch.delenv(name, raising=False)
+    job = SimpleNamespace(id="job", engine_params={"recon": {}, "spacing_zyx_mm": [1.0, 0.5, 0.5]})
+    holder = SimpleNamespace(progress=lambda *args: None)
+    for settings, expected in (
+        (Settings(), {"threads": None, "processes": None, "imagecodecs": True}),
+        (
+            Settings(decode_threads=1, decode_processes=False, png_decoder="pillow"),
+            {"threads": 1, "processes": False, "imagecodecs": False},
+        ),
+    ):
+        seen.clear()
+        with pytest.raises(Stop):
+            tasks._run(job, tmp_path / "upload.zip", tmp_path / "staged", holder, settings, None)  # type: ignore[arg-type]
+        assert seen == {"spacing_zyx_mm": (1.0, 0.5, 0.5), **expected}
