@@ -46,14 +46,14 @@ cp "$data"/cranium_ct/{cranium_ct_png16.zip,README.md,LICENSE-GPL-2.txt,COPYRIGH
 cat > "$out/install_svc.sh" <<'EOF'
 #!/usr/bin/env bash
 # On the GPU machine, from the repository root, after the engine's wheels are in /tmp/site: the service's wheels
-# into /tmp/site (those already there are kept), redis-server made runnable, and the imports checked.
+# into /tmp/site (replacing older copies of shared pure-Python dependencies such as typing_extensions or packaging,
+# at the versions the tests ran with), redis-server made runnable, and the imports checked.
 # PY and SITE name another interpreter and target (a rehearsal on another machine).
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 PY=${PY:-python3}
 SITE=${SITE:-/tmp/site}
-"$PY" -m pip install -q --no-index --no-deps --no-compile --target "$SITE" "$here"/whl/*.whl 2>&1 \
-  | grep -v "already exists" || true
+"$PY" -m pip install -q --no-index --no-deps --no-compile --upgrade --target "$SITE" "$here"/whl/*.whl
 chmod +x "$here/redis/redis.sh" "$here/redis/redis-server" "$here"/redis/lib/*
 "$here/redis/redis.sh" --version
 PYTHONPATH=$SITE:$PWD "$PY" - <<'PY'
