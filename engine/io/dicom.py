@@ -32,10 +32,8 @@ from engine.types import Volume
 
 _RAW_GROUPS = (b"\x08\x00", b"\x02\x00", b"\x00\x08")  # first tag group of a dataset without preamble
 _NO_UID = "(no SeriesInstanceUID)"
-# by default (processes=None) DICOM is decoded in processes only for inputs of at least PROCESS_MIN_FILES files
-# (starting them takes 0.02-0.5 s) with at least PROCESS_MIN_WORKERS CPUs: on 2 busy cores threads did better
-PROCESS_MIN_FILES = 64
-PROCESS_MIN_WORKERS = 4
+PROCESS_MIN_FILES = 64  # processes=None: processes from this many files (their start takes 0.02-0.5 s) ...
+PROCESS_MIN_WORKERS = 4  # ... and this many decode workers (on 2 busy cores threads did better)
 
 
 def looks_like_dicom(head: bytes) -> bool:
