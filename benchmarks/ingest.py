@@ -1,4 +1,5 @@
-"""Ingest benchmark: a slice archive into a volume (and onto the device), serial against threaded, with peak RSS.
+"""Ingest benchmark: a slice archive into a volume (and onto the device), serial against threaded (and, for
+DICOM, against processes), with peak RSS.
 
     python -m benchmarks.ingest --shape 952,1024,1024 [--threads N] [--formats png,dicom] [--device cuda:0]
                                 [--repeat 3] [--workdir DIR] --out benchmarks/results/ingest_<machine>.json
@@ -13,7 +14,12 @@ Neither is timed. Then each measurement runs ``engine.io.load_volume`` in a fres
   thread: the path of the previous commits (the anchor, measured in the same run);
 - ``threaded_pillow`` (PNG only): ``threads=N``, still the general decoders;
 - ``threaded``: ``threads=N`` (default: every CPU of this process, ``engine.io.decode_threads``) with the fast PNG
-  decoder (``engine.io.codecs``, imagecodecs) where it is installed: what ``load_volume`` does by default.
+  decoder (``engine.io.codecs``, imagecodecs) where it is installed: what ``load_volume`` does by default for
+  slice images; for DICOM, N threads with ``processes=False``;
+- ``processes`` (DICOM only): N worker processes (``engine.io.procs``), what ``load_volume`` does by default for a
+  series of at least ``engine.io.dicom.PROCESS_MIN_FILES`` files. Each fresh process starts its fork server, so
+  the time includes that start (a worker process pays it once, for its first DICOM job). The child records how
+  many processes really ran (0 would mean it fell back to threads).
 
 Each is the median of ``--repeat`` processes. With ``--device cuda:N`` the child also times the upload that makes
 the volume device-ready, ``wp.array(volume)`` from pageable memory as ``engine.pipeline`` does, and the same
@@ -23,6 +29,7 @@ through a pinned host buffer (copy into it, then upload), so the lead can see wh
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as dt
 import json
 import os
@@ -34,6 +41,7 @@ import sys
 import tempfile
 import time
 import zipfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -55,17 +63,38 @@ def _peak_rss() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # not Linux: KiB on most systems
 
 
-def _child(archive: Path, threads: int, spacing: list[float] | None, device: str | None, codec: str) -> dict[str, Any]:
+def _child(
+    archive: Path, threads: int, spacing: list[float] | None, device: str | None, codec: str, processes: bool
+) -> dict[str, Any]:
     """One load in this (fresh) process: seconds, peak RSS, a checksum of the array; optionally the upload."""
     import numpy as np
 
-    from engine.io import codecs, load_volume
+    from engine.io import codecs, dicom, load_volume, procs
 
     codecs.USE_IMAGECODECS = codec == "auto"
+    ran: list[int] = []  # worker processes of each decode pool that ran (one given up at start is not closed)
+    close = procs.DecodePool.close
+
+    def counted_close(pool: procs.DecodePool) -> None:
+        ran.append(len(pool.pool._processes or {}))  # type: ignore[attr-defined]
+        close(pool)
+
+    procs.DecodePool.close = counted_close  # type: ignore[method-assign]
+    started: list[float] = []  # seconds until each pool's first worker answered (the fork server's start included)
+    start_pool = dicom.start_pool
+
+    @contextlib.contextmanager
+    def timed_start(workers: int) -> Iterator[Any]:
+        t = time.perf_counter()
+        with start_pool(workers) as pool:
+            started.append(time.perf_counter() - t)
+            yield pool
+
+    dicom.start_pool = timed_start  # type: ignore[assignment]
 
     rss_before = _rss_now()
     t0 = time.perf_counter()
-    vol = load_volume(archive, spacing_zyx_mm=spacing, threads=threads)
+    vol = load_volume(archive, spacing_zyx_mm=spacing, threads=threads, processes=processes)
     seconds = time.perf_counter() - t0
     peak = _peak_rss()
     data = vol.data
@@ -73,6 +102,9 @@ def _child(archive: Path, threads: int, spacing: list[float] | None, device: str
         "seconds": seconds,
         "threads": threads,
         "codec": codec,
+        "processes_asked": processes,
+        "decode_processes_ran": sum(ran),
+        "decode_pool_start_seconds": sum(started),
         "imagecodecs_available": codecs._imagecodecs() is not None,
         "shape": list(data.shape),
         "dtype": str(data.dtype),
@@ -166,11 +198,11 @@ def _upload_report(
 
 
 def _measure(
-    archive: Path, threads: int, spacing: list[float] | None, device: str | None, codec: str
+    archive: Path, threads: int, spacing: list[float] | None, device: str | None, codec: str, processes: bool
 ) -> dict[str, Any]:
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p)}
     argv = [sys.executable, "-m", "benchmarks.ingest", "--child", str(archive), "--threads", str(threads)]
-    argv += ["--codec", codec]
+    argv += ["--codec", codec] + (["--processes"] if processes else [])
     if spacing:
         argv += ["--spacing", ",".join(map(str, spacing))]
     if device:
@@ -212,10 +244,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--spacing", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--codec", default="auto", help=argparse.SUPPRESS)
+    parser.add_argument("--processes", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     spacing_arg = [float(v) for v in args.spacing.split(",")] if args.spacing else None
     if args.child is not None:
-        print(json.dumps(_child(args.child, args.threads or 1, spacing_arg, args.device, args.codec)))
+        child = _child(args.child, args.threads or 1, spacing_arg, args.device, args.codec, args.processes)
+        print(json.dumps(child))
         return 0
     if args.out is None:
         parser.error("--out is required")
@@ -240,16 +274,20 @@ def main(argv: list[str] | None = None) -> int:
             spacing = None
         else:
             parser.error(f"unknown format {fmt!r}: expected png or dicom")
-        modes = [("serial", 1, "pillow"), ("threaded", threads, "auto")]
+        modes = [("serial", 1, "pillow", False), ("threaded", threads, "auto", False)]
         if fmt == "png":  # the general (Pillow) decoder on threads too: what the fast PNG path adds
-            modes.insert(1, ("threaded_pillow", threads, "pillow"))
-        runs: dict[str, list[dict[str, Any]]] = {mode: [] for mode, _, _ in modes}
+            modes.insert(1, ("threaded_pillow", threads, "pillow", False))
+        elif threads > 1:  # pydicom's parse holds the GIL: processes
+            modes.append(("processes", threads, "auto", True))
+        runs: dict[str, list[dict[str, Any]]] = {mode: [] for mode, *_ in modes}
         for i in range(args.repeat):
-            for mode, n, codec in modes:
-                run = _measure(archive, n, spacing, args.device if mode == "threaded" else None, codec)
+            for mode, n, codec, in_procs in modes:
+                run = _measure(archive, n, spacing, args.device if mode == "threaded" else None, codec, in_procs)
                 runs[mode].append(run)
                 print(
-                    f"  {fmt} {mode:15s} #{i + 1}: {run['seconds']:.3f} s ({n} threads), peak RSS "
+                    f"  {fmt} {mode:15s} #{i + 1}: {run['seconds']:.3f} s ({n} {'processes' if in_procs else 'threads'}"
+                    f", {run['decode_processes_ran']} decode processes ran, started in"
+                    f" {run['decode_pool_start_seconds']:.2f} s), peak RSS "
                     f"{run['peak_rss_bytes'] / 1e9:.2f} GB = {run['peak_rss_over_volume']:.2f}x the volume",
                     flush=True,
                 )
@@ -260,15 +298,18 @@ def main(argv: list[str] | None = None) -> int:
             "serial_seconds": med["serial"],
             "threaded_seconds": med["threaded"],
             "threaded_pillow_seconds": med.get("threaded_pillow"),
+            "processes_seconds": med.get("processes"),
             "speedup": med["serial"] / med["threaded"],
+            "processes_speedup": med["serial"] / med["processes"] if "processes" in med else None,
             "threads": threads,
             "same_volume": len(checks) == 1,
             "peak_rss_over_volume": {m: max(r["peak_rss_over_volume"] for r in rs) for m, rs in runs.items()},
             "runs": runs,
         }
+        in_procs_text = f", {threads} processes {med['processes']:.3f} s" if "processes" in med else ""
         print(
             f"[ingest] {fmt}: serial {med['serial']:.3f} s, {threads} threads {med['threaded']:.3f} s, "
-            f"x{results[fmt]['speedup']:.2f}; same volume: {len(checks) == 1}",
+            f"x{results[fmt]['speedup']:.2f}{in_procs_text}; same volume: {len(checks) == 1}",
             flush=True,
         )
         archive.unlink()

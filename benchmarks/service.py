@@ -1,7 +1,7 @@
 """Service benchmark: upload-to-links latency of the web service, per stage, with real processes.
 
     python -m benchmarks.service --device cpu|cuda:0 [--data ../shared/data] [--phantom Z,Y,X] [--repeat N]
-                                 [--redis-server PATH] [--timeout S] [--workdir DIR] --out result.json
+                                 [--baseline] [--redis-server PATH] [--timeout S] [--workdir DIR] --out result.json
 
 It starts a redis-server on a free loopback port, ``bonemesh serve`` and one ``bonemesh worker`` (device
 ``--device``) with a fresh data folder (the helpers of ``tests/service/procs.py``), then for each input POSTs the
@@ -16,7 +16,15 @@ Per run it records, from the client's side: the upload (POST until 202), the wai
 started_at), the job (started_at to finished_at) and upload-to-links (POST start until the first GET that shows
 the succeeded job with its links); the time the client first saw each stage (loading, the pipeline's stages,
 writing); and from ``report.json`` the pipeline's own stage seconds and counts. A run that does not finish within
-``--timeout`` is recorded with the stage it had reached.
+``--timeout`` is recorded with the stage it had reached. The JSON is rewritten after every input, so a run cut
+short still leaves what it measured.
+
+``--baseline`` adds, in the same run, each input once (``--baseline-repeat``) through a second worker on the
+ingest path of the commits before issue 11's ingest work: one decoding thread (``BONEMESH_DECODE_THREADS=1``) and
+every PNG through Pillow (``BONEMESH_PNG_DECODER=pillow``), with its own warm-up job. Everything else (the
+pipeline on the GPU, the one-pass writers) is today's in both, so the difference is the ingest change alone; the
+older pipeline and writers are not runnable in this build (their numbers are in the committed JSON of earlier
+runs: ``benchmarks/results/service_cuda.json``).
 """
 
 from __future__ import annotations
@@ -26,10 +34,12 @@ import datetime as dt
 import json
 import os
 import platform
+import signal
 import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +48,8 @@ import httpx
 from benchmarks.phantom_zip import PHANTOM_SPACING_MM, write_phantom_zip
 from tests.service.procs import RedisServer, ServiceStack
 
+BASELINE_ENV = {"BONEMESH_DECODE_THREADS": "1", "BONEMESH_PNG_DECODER": "pillow"}
+BASELINE = "the ingest path before issue 11: one decoding thread, every PNG through Pillow"
 CRANIUM = (
     "cranium_ct",
     "cranium_ct_png16.zip",
@@ -138,12 +150,55 @@ def _summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def _run_inputs(
+    stack: ServiceStack, inputs: dict[str, tuple[Path, dict[str, Any]]], repeat: int, timeout: float, tag: str
+) -> Iterator[tuple[str, dict[str, Any]]]:
+    """Each input ``repeat`` times through the running worker: (name, summary) as each input is done."""
+    for name, (path, params) in inputs.items():
+        runs = []
+        for i in range(repeat):
+            print(f"[service] {tag}{name} run {i + 1}/{repeat} ({path.stat().st_size:,} bytes)", flush=True)
+            run = run_job(stack.base_url, "key-a", path, params, timeout, f"{tag}{name}#{i + 1}")
+            runs.append(run)
+            if "error" in run:
+                print(f"  FAILED: {run['error']}", flush=True)
+                break
+            stages = ", ".join(f"{k} {v:.2f}" for k, v in run["pipeline_stage_seconds"].items())
+            print(
+                f"  upload {run['upload_seconds']:.2f} s, queue {run['queue_seconds']:.2f} s, job"
+                f" {run['job_seconds']:.2f} s, upload-to-links {run['upload_to_links_seconds']:.2f} s"
+                f" (loading/writing {run['phase_seconds']}; pipeline: {stages})",
+                flush=True,
+            )
+        yield name, _summary(runs)
+
+
+def _warm_up(stack: ServiceStack, tag: str) -> dict[str, Any]:
+    from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
+
+    print(f"[service] {tag}warm-up: headsq (kernel compilation, Warp's modules loaded in the worker)", flush=True)
+    params = {"iso": 1150, "spacing": list(HEADSQ_SPACING_ZYX_MM)}
+    warm = run_job(stack.base_url, "key-a", HEADSQ_ZIP, params, 600, f"{tag}warmup")
+    print(f"  warm-up {warm.get('upload_to_links_seconds', warm.get('error'))}", flush=True)
+    return warm
+
+
+def _exit_on_sigterm(signum: int, frame: Any) -> None:
+    raise SystemExit(128 + signum)
+
+
+def _failed(results: dict[str, Any]) -> bool:
+    return any("error" in r for res in results.values() for r in res.get("failed_runs", res.get("runs", [])))
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu", help="the worker's BONEMESH_DEVICE: cpu, cuda:0, auto")
     parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
     parser.add_argument("--phantom", default="952,1024,1024", help="phantom shape Z,Y,X; 'none' to skip")
     parser.add_argument("--repeat", type=int, default=1, help="runs per input (the median is reported)")
+    parser.add_argument("--baseline", action="store_true", help="also run the inputs on the previous ingest path")
+    parser.add_argument("--baseline-repeat", type=int, default=1, help="baseline runs per input")
     parser.add_argument("--redis-server", default=None, help="redis-server executable (default: PATH or apt-get)")
     parser.add_argument("--timeout", type=float, default=1800, help="seconds one job may take before giving up")
     parser.add_argument("--workdir", type=Path, default=None, help="data, logs and archives (default: a temp dir)")
@@ -168,9 +223,27 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  {prep[name]}", flush=True)
         inputs[name] = (path, {"iso": prep[name]["iso"], "spacing": PHANTOM_SPACING_MM})
 
-    from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
-
     results: dict[str, Any] = {}
+    report: dict[str, Any] = {
+        "benchmark": "service",
+        "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "device": args.device,
+        "host": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
+        "timing": (
+            f"median of {args.repeat} per input after one warm-up job; client-side times from POST start; "
+            "pipeline stage seconds from report.json of the median run"
+        ),
+        "preparation": prep,
+        "results": results,
+    }
+    if args.baseline:
+        report["baseline"] = {"what": BASELINE, "worker_env": BASELINE_ENV, "runs_per_input": args.baseline_repeat}
+
+    def write() -> None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(report, indent=2, default=str) + "\n")
+
+    signal.signal(signal.SIGTERM, _exit_on_sigterm)  # `timeout`: the with-blocks below stop every process
     with (
         RedisServer(workdir / "redis", args.redis_server) as redis,
         ServiceStack(
@@ -189,50 +262,30 @@ def main(argv: list[str] | None = None) -> int:
         stack.start_server()
         stack.start_worker()
         try:
-            key = "key-a"
-            print("[service] warm-up: headsq (kernel compilation)", flush=True)
-            warm = run_job(
-                stack.base_url, key, HEADSQ_ZIP, {"iso": 1150, "spacing": list(HEADSQ_SPACING_ZYX_MM)}, 600, "warmup"
-            )
-            print(f"  warm-up {warm.get('upload_to_links_seconds', warm.get('error'))}", flush=True)
-            for name, (path, params) in inputs.items():
-                runs = []
-                for i in range(args.repeat):
-                    print(f"[service] {name} run {i + 1}/{args.repeat} ({path.stat().st_size:,} bytes)", flush=True)
-                    run = run_job(stack.base_url, key, path, params, args.timeout, f"{name}#{i + 1}")
-                    runs.append(run)
-                    if "error" in run:
-                        print(f"  FAILED: {run['error']}", flush=True)
-                        break
-                    stages = ", ".join(f"{k} {v:.2f}" for k, v in run["pipeline_stage_seconds"].items())
-                    print(
-                        f"  upload {run['upload_seconds']:.2f} s, queue {run['queue_seconds']:.2f} s, job"
-                        f" {run['job_seconds']:.2f} s, upload-to-links {run['upload_to_links_seconds']:.2f} s"
-                        f" (loading/writing {run['phase_seconds']}; pipeline: {stages})",
-                        flush=True,
-                    )
-                results[name] = _summary(runs)
+            report["warmup"] = _warm_up(stack, "")
+            for name, summary in _run_inputs(stack, inputs, args.repeat, args.timeout, ""):
+                results[name] = summary
+                write()
+            if args.baseline:
+                for worker in stack.workers:  # the same API, queue and data; a worker on the old ingest path
+                    worker.stop(grace=10)
+                stack.workers.clear()
+                stack.start_worker(extra_env=BASELINE_ENV)
+                report["baseline"]["warmup"] = _warm_up(stack, "baseline ")
+                for name, summary in _run_inputs(stack, inputs, args.baseline_repeat, args.timeout, "baseline "):
+                    results[name]["baseline"] = summary
+                    new, old = results[name].get("upload_to_links_seconds"), summary.get("upload_to_links_seconds")
+                    if new and old:
+                        results[name]["baseline_over_new"] = old / new
+                        print(f"  {name}: upload-to-links {new:.2f} s, baseline {old:.2f} s ({old / new:.2f}x)")
+                    write()
         except BaseException:
             print(stack.logs(20000), file=sys.stderr)
+            write()
             raise
-        if any("error" in r for res in results.values() for r in res.get("failed_runs", res.get("runs", []))):
+        if _failed(results) or any(_failed({"b": r["baseline"]}) for r in results.values() if "baseline" in r):
             print(stack.logs(20000), file=sys.stderr)
-
-    report = {
-        "benchmark": "service",
-        "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "device": args.device,
-        "host": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
-        "timing": (
-            f"median of {args.repeat} per input after one warm-up job; client-side times from POST start; "
-            "pipeline stage seconds from report.json of the median run"
-        ),
-        "preparation": prep,
-        "warmup": warm,
-        "results": results,
-    }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2, default=str) + "\n")
+    write()
     print(f"[service] wrote {args.out}", flush=True)
     return 0
 

@@ -17,6 +17,8 @@ mask) and the BLAS/OpenMP pools (``OMP_NUM_THREADS`` etc. set to the share) use 
 
 Input: ``--input`` (a scan archive, with ``--params``), ``--phantom Z,Y,X`` (the bone phantom as 16-bit PNG slices,
 ``benchmarks.phantom_zip``), or by default the bundled CT head (``engine.data``).
+
+The JSON is rewritten after each phase, and SIGTERM (``timeout``) stops the processes and keeps what was measured.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import datetime as dt
 import json
 import os
 import platform
+import signal
 import sys
 import tempfile
 import time
@@ -136,6 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     params = json.loads(args.params) if args.params else {"iso": 1150, "spacing": list(HEADSQ_SPACING_ZYX_MM)}
     workdir = args.workdir or Path(tempfile.mkdtemp(prefix="bonemesh-throughput-"))
     workdir.mkdir(parents=True, exist_ok=True)
+    prep: dict[str, Any] | None = None
     if args.phantom:
         from benchmarks.phantom_zip import PHANTOM_SPACING_MM, write_phantom_zip
 
@@ -145,17 +149,37 @@ def main(argv: list[str] | None = None) -> int:
         params = {"iso": prep["iso"], "spacing": PHANTOM_SPACING_MM}
     shares = cpu_shares(len(devices))
     extra = {"WARP_CACHE_PATH": str(workdir / "warp-cache")}  # shared, filled by the warm-up
+    report: dict[str, Any] = {
+        "benchmark": "throughput",
+        "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "machine": args.machine,
+        "host": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
+        "input": {"archive": archive.name, "bytes": archive.stat().st_size, "params": params, "preparation": prep},
+        "timing": "first POST to the last job's finished_at (server clock), all jobs posted at once, after a warm-up",
+        "ideal": len(devices),
+    }
+
+    def write() -> None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(report, indent=2) + "\n")
+
+    signal.signal(signal.SIGTERM, _exit_on_sigterm)  # `timeout`: the with-blocks below stop every process
     with (
         RedisServer(workdir / "redis", args.redis_server) as redis,
-        ServiceStack(workdir / "stack", redis.url, stale_seconds=600, extra_env=extra) as stack,
+        ServiceStack(
+            workdir / "stack",
+            redis.url,
+            stale_seconds=600,
+            max_upload_bytes=archive.stat().st_size + (64 << 20),
+            extra_env=extra,
+        ) as stack,
     ):
         stack.start_server()
         try:
             print(f"[throughput] warm-up on {devices[0]} (kernel compilation)", flush=True)
-            warm = run_phase(stack, devices[:1], shares, archive, params, 1)
-            print(f"  {warm['seconds']:.1f} s", flush=True)
-            phases = []
-            for devs in (devices[:1], devices):
+            report["warmup"] = run_phase(stack, devices[:1], shares, archive, params, 1)
+            print(f"  {report['warmup']['seconds']:.1f} s", flush=True)
+            for key, devs in (("one_worker", devices[:1]), ("all_workers", devices)):
                 print(f"[throughput] {args.jobs} jobs on {len(devs)} worker(s): {devs}, CPUs {shares}", flush=True)
                 phase = run_phase(stack, devs, shares, archive, params, args.jobs)
                 print(
@@ -163,29 +187,21 @@ def main(argv: list[str] | None = None) -> int:
                     f"{phase['mean_job_seconds']:.1f} s, at most {phase['most_jobs_running_at_once']} at once",
                     flush=True,
                 )
-                phases.append(phase)
+                report[key] = phase
+                write()
         except BaseException:
             print(stack.logs(8000), file=sys.stderr)
+            write()
             raise
-    one, many = phases
-    report = {
-        "benchmark": "throughput",
-        "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "machine": args.machine,
-        "host": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
-        "input": {"archive": archive.name, "bytes": archive.stat().st_size, "params": params},
-        "timing": "first POST to the last job's finished_at (server clock), all jobs posted at once, after a warm-up",
-        "warmup": warm,
-        "one_worker": one,
-        "all_workers": many,
-        "speedup": one["seconds"] / many["seconds"],
-        "ideal": len(devices),
-    }
+    report["speedup"] = report["one_worker"]["seconds"] / report["all_workers"]["seconds"]
     print(f"[throughput] speedup {report['speedup']:.2f}x with {len(devices)} workers", flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
+    write()
     print(f"[throughput] wrote {args.out}", flush=True)
     return 0
+
+
+def _exit_on_sigterm(signum: int, frame: Any) -> None:
+    raise SystemExit(128 + signum)
 
 
 if __name__ == "__main__":

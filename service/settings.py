@@ -10,7 +10,7 @@ import os
 import secrets
 from functools import lru_cache
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
@@ -43,6 +43,15 @@ class Settings(BaseSettings):
     stale_seconds: float = 60.0
     reconcile_seconds: float = 15.0
     heartbeat_seconds: float = 2.0
+    decode_threads: int | None = Field(
+        default=None, ge=1, description="threads (DICOM: processes) decoding an upload; default: the worker's CPUs"
+    )
+    decode_processes: bool | None = Field(
+        default=None, description="DICOM in processes: true, false; unset: for 64+ files on 4+ CPUs (engine.io)"
+    )
+    png_decoder: Literal["auto", "pillow"] = Field(
+        default="auto", description="auto: libpng for plain grayscale PNG; pillow: every PNG through Pillow (slower)"
+    )
     job_soft_time_limit: int = 3600
     job_time_limit: int = 3900
     max_attempts: int = 3

@@ -8,6 +8,7 @@ process after the fork, so CUDA is initialised there and never in the parent.
 from __future__ import annotations
 
 import multiprocessing
+import multiprocessing.process
 
 from celery import Celery
 from celery.signals import worker_process_init
@@ -40,5 +41,11 @@ app = make_app()
 @worker_process_init.connect
 def _allow_children(**_: object) -> None:
     """Celery's pool children are daemonic, and a daemonic process may not start processes; the decimation stage
-    runs MeshLab in a process pool, so the child drops the flag (its own children are reaped by the pool)."""
-    multiprocessing.current_process()._config["daemon"] = False  # the setter refuses on a started process
+    runs MeshLab in a process pool and DICOM ingest decodes in processes (``engine.io.procs``), so the child drops
+    the flag (its own children are reaped by those pools). Billiard also makes its own process the standard
+    library's current process, with an authentication key that refuses to be pickled outside billiard: a fork
+    server or spawn start (what ``engine.io.procs`` uses) pickles it, so the child's key becomes the standard
+    library's kind, with the same bytes."""
+    current = multiprocessing.current_process()
+    current._config["daemon"] = False  # the setter refuses on a started process
+    current._config["authkey"] = multiprocessing.process.AuthenticationString(bytes(current.authkey))

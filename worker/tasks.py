@@ -18,7 +18,7 @@ from celery.exceptions import SoftTimeLimitExceeded
 
 from service.db import Database, utcnow
 from service.logsafe import escape_control, safe_logger
-from service.settings import get_settings
+from service.settings import Settings, get_settings
 from service.storage import OUTPUTS, is_storage_full, storage_from_settings
 from service.uploads import relabel
 from worker.app import app
@@ -133,10 +133,12 @@ def reconstruct_job(self: Any, job_id: str) -> str:
             shutil.rmtree(staged, ignore_errors=True)
 
 
-def _run(job: Any, upload: Path, staged: Path, holder: _Holder, settings: Any, db: Database) -> list[dict[str, Any]]:
+def _run(
+    job: Any, upload: Path, staged: Path, holder: _Holder, settings: Settings, db: Database
+) -> list[dict[str, Any]]:
     """Load, reconstruct and write the files into ``staged`` (on ``settings.device``, within
     ``settings.max_device_bytes``); returns the output descriptions."""
-    from engine.io import load_volume
+    from engine.io import codecs, load_volume
     from engine.outputs import write_outputs
     from engine.params import ReconParams
     from engine.pipeline import reconstruct
@@ -145,7 +147,13 @@ def _run(job: Any, upload: Path, staged: Path, holder: _Holder, settings: Any, d
     params = ReconParams.from_dict(recon_dict)
     holder.progress("loading", 1.0)
     fetch_source(db, job.id, upload)  # a DICOMweb job's series (worker.pacs)
-    volume = load_volume(upload, spacing_zyx_mm=tuple(spacing) if spacing else None)
+    codecs.USE_IMAGECODECS = settings.png_decoder == "auto"
+    volume = load_volume(
+        upload,
+        spacing_zyx_mm=tuple(spacing) if spacing else None,
+        threads=settings.decode_threads,
+        processes=settings.decode_processes,
+    )
     holder.progress("loading", LOAD_END)
 
     def on_progress(stage: str, fraction: float) -> None:

@@ -78,6 +78,7 @@ def load_volume(
     limits: InputLimits | None = None,
     on_progress: Callable[[float], None] | None = None,
     threads: int | None = None,
+    processes: bool | None = None,
 ) -> Volume:
     """Load a scan as a (z, y, x) :class:`Volume`.
 
@@ -91,6 +92,10 @@ def load_volume(
         threads: threads that read and decode slices side by side (default: the CPUs this process may run on,
             ``engine.io.parallel.decode_threads``); 1 decodes on the calling thread. The result does not depend
             on it.
+        processes: DICOM only: parse and decode the files in ``threads`` worker processes instead of threads
+            (pydicom holds the GIL; ``engine.io.procs``). None (default): for inputs of at least
+            ``engine.io.dicom.PROCESS_MIN_FILES`` DICOM files and ``threads`` >= ``PROCESS_MIN_WORKERS``, where this
+            process may start processes; False: threads. The result does not depend on it.
 
     Returns:
         The volume: integer data stay integer (uint8/uint16/int16); DICOM CT is in HU (int16 where exact,
@@ -114,6 +119,7 @@ def load_volume(
                 limits=limits,
                 on_progress=on_progress,
                 threads=threads,
+                processes=processes,
             )
             if vol is not None:
                 vol.source["container"] = members.kind

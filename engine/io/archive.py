@@ -8,7 +8,9 @@ read later, one member at a time, when a loader asks for them: a zip member is d
 archive (never more than its declared size, so a header that lies is caught, not obeyed), through a handle of
 the reading thread's own, so loaders may read members from several threads at once; an uncompressed tar's
 members are read in place, by offset (``os.pread``); a compressed tar, which can only be read in order, is copied
-into anonymous temporary files, in memory up to a small total, then on disk.
+into anonymous temporary files, in memory up to a small total, then on disk. The readers are in
+``engine.io.readers``, with the :class:`~engine.io.readers.Where` that lets another process read a member that is
+not spooled.
 """
 
 from __future__ import annotations
@@ -17,7 +19,6 @@ import os
 import re
 import tarfile
 import tempfile
-import threading
 import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -25,6 +26,7 @@ from pathlib import Path
 from typing import IO
 
 from engine.errors import InputError
+from engine.io.readers import PlainTar, Where, ZipHandles
 
 _CHUNK = 1 << 20
 _SPOOL_IN_MEMORY = 64 << 20  # all of a tar's members held in memory together; the rest go to temporary files
@@ -73,6 +75,7 @@ class Member:
     _spool: IO[bytes] | None = field(default=None, repr=False)
     _path: Path | None = field(default=None, repr=False)
     _reader: Callable[[], bytes] | None = field(default=None, repr=False)
+    where: Where | None = field(default=None, repr=False)  # for readers in other processes (engine.io.readers)
 
     def read(self) -> bytes:
         """The member's whole content (not available in a ``heads_only`` listing of an archive).
@@ -90,73 +93,6 @@ class Member:
         raise RuntimeError(f"{self.name}: only the head of this member was read")
 
 
-class _ZipHandles:
-    """One open ``ZipFile`` per reading thread over the same archive.
-
-    A ``ZipFile`` keeps one file position and reference count for all its open members, which CPython does not
-    promise to keep consistent under concurrent reads, so each thread that reads members gets a handle of its own
-    (opening one re-reads the central directory: milliseconds). The listing's handle serves the thread that made it.
-    """
-
-    def __init__(self, path: Path, first: zipfile.ZipFile) -> None:
-        self.path = path
-        self._first, self._first_thread = first, threading.get_ident()
-        self._local = threading.local()
-        self._lock = threading.Lock()
-        self._opened: list[zipfile.ZipFile] = [first]
-
-    def get(self) -> zipfile.ZipFile:
-        """The calling thread's handle."""
-        if threading.get_ident() == self._first_thread:
-            return self._first
-        zf: zipfile.ZipFile | None = getattr(self._local, "zf", None)
-        if zf is None:
-            zf = zipfile.ZipFile(self.path)
-            with self._lock:
-                self._opened.append(zf)
-            self._local.zf = zf
-        return zf
-
-    def close(self) -> None:
-        """Close every handle opened so far."""
-        with self._lock:
-            for zf in self._opened:
-                zf.close()
-            self._opened.clear()
-
-
-class _PlainTar:
-    """An uncompressed tar read in place: each member's bytes sit at one offset of the file, so they are read with
-    ``os.pread`` (no file position shared between threads) when a loader asks, and never copied to temporary files.
-    """
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.fd: int | None = os.open(path, os.O_RDONLY)
-
-    def reader(self, name: str, offset: int, size: int) -> Callable[[], bytes]:
-        """Reads one member: exactly its declared size, or InputError when the file ends first."""
-
-        def read() -> bytes:
-            if self.fd is None:
-                raise RuntimeError(f"{name}: the archive was closed")
-            data = os.pread(self.fd, size, offset)
-            if len(data) != size:
-                raise InputError(
-                    f"archive member {name!r} declares {size:,} bytes but the archive ends after {len(data):,}: "
-                    "the archive is truncated"
-                )
-            return data
-
-        return read
-
-    def close(self) -> None:
-        """Close the file."""
-        if self.fd is not None:
-            os.close(self.fd)
-            self.fd = None
-
-
 @dataclass
 class Members:
     """The files of one input (use as a context manager: closing drops the temporary copies)."""
@@ -164,7 +100,7 @@ class Members:
     kind: str
     members: list[Member]
     ignored: list[str] = field(default_factory=list)
-    _archive: zipfile.ZipFile | _ZipHandles | _PlainTar | None = field(default=None, repr=False)
+    _archive: zipfile.ZipFile | ZipHandles | PlainTar | None = field(default=None, repr=False)
 
     def close(self) -> None:
         """Release the spooled copies and the open archive."""
@@ -283,43 +219,23 @@ def _head_only(src: IO[bytes], name: str, declared: int, budget: _Budget) -> tup
     return None, max(declared, len(head)), head
 
 
-def _zip_reader(handles: _ZipHandles, info: zipfile.ZipInfo, archive: Path) -> Callable[[], bytes]:
-    """Reads one member from the archive through the calling thread's handle: never more than its declared size
-    (+1 to see a lie), CRC checked."""
-
-    def read() -> bytes:
-        try:
-            with handles.get().open(info) as src:
-                data = src.read(info.file_size + 1)
-        except (zipfile.BadZipFile, NotImplementedError, RuntimeError, OSError, EOFError, ValueError) as exc:
-            raise InputError(f"{archive.name}: member {info.filename!r} cannot be read: {exc}") from None
-        if len(data) != info.file_size:
-            raise InputError(
-                f"archive member {info.filename!r} declares {info.file_size:,} bytes but holds "
-                f"{'more' if len(data) > info.file_size else f'{len(data):,}'}: the archive is corrupt"
-            )
-        return data
-
-    return read
-
-
 def _read_zip(path: Path, limits: InputLimits, heads_only: bool = False) -> Members:
     budget = _Budget(limits, path, path.stat().st_size)
     members: list[Member] = []
     ignored: list[str] = []
     zf: zipfile.ZipFile | None = None
-    handles: _ZipHandles | None = None
+    handles: ZipHandles | None = None
     try:
         zf = zipfile.ZipFile(path)
         # the archive stays open for the members' readers; Members.close() closes it (and the readers' own)
-        handles = _ZipHandles(path, zf)
+        handles = ZipHandles(path, zf)
         infos = zf.infolist()
         if len(infos) > limits.max_members:
             raise InputError(
                 f"{path.name} holds {len(infos):,} entries, more than the limit of {limits.max_members:,}; "
                 "expected one scan's slices"
             )
-        for info in infos:
+        for index, info in enumerate(infos):
             budget.entry()
             _check_name(info.filename, path)
             if info.is_dir():
@@ -332,8 +248,9 @@ def _read_zip(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
             budget.declare(info.filename, info.file_size, info.compress_size)
             with zf.open(info) as src:
                 head = src.read(HEAD_BYTES)
-            reader = None if heads_only else _zip_reader(handles, info, path)
-            members.append(Member(info.filename, max(info.file_size, len(head)), head, _reader=reader))
+            reader = None if heads_only else handles.reader(info)
+            where = Where("zip", str(path), info.filename, info.file_size, index=index)
+            members.append(Member(info.filename, max(info.file_size, len(head)), head, _reader=reader, where=where))
     except InputError:
         Members("zip", members, _archive=zf).close()
         raise
@@ -351,14 +268,14 @@ def _read_tar(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
     members: list[Member] = []
     ignored: list[str] = []
     kind = "tar"
-    plain: _PlainTar | None = None  # an uncompressed tar is read in place; a compressed one is spooled
+    plain: PlainTar | None = None  # an uncompressed tar is read in place; a compressed one is spooled
     try:
         with path.open("rb") as raw:
             magic = raw.read(6)
             raw.seek(0)
             kind = {b"\x1f\x8b": "tar.gz", b"BZ": "tar.bz2", b"\xfd7": "tar.xz"}.get(magic[:2], "tar")
             if kind == "tar" and not heads_only:
-                plain = _PlainTar(path)
+                plain = PlainTar(path)
             with tarfile.open(fileobj=raw, mode="r|*") as tf:
                 for ti in tf:
                     budget.entry()
@@ -379,7 +296,8 @@ def _read_tar(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
                         head = src.read(HEAD_BYTES)
                         budget.add(ti.size, ti.name)
                         reader = plain.reader(ti.name, ti.offset_data, ti.size)
-                        members.append(Member(ti.name, ti.size, head, _reader=reader))
+                        where = Where("tar", str(path), ti.name, ti.size, offset=ti.offset_data)
+                        members.append(Member(ti.name, ti.size, head, _reader=reader, where=where))
                         continue
                     else:
                         spool, n, head = _copy_limited(src, ti.name, ti.size, budget, None)
@@ -419,7 +337,7 @@ def _read_folder(path: Path, limits: InputLimits) -> Members:
                 )
             with full.open("rb") as fh:
                 head = fh.read(HEAD_BYTES)
-            members.append(Member(rel, size, head, _path=full))
+            members.append(Member(rel, size, head, _path=full, where=Where("file", str(full), rel, size)))
     return Members("folder", members, ignored)
 
 
@@ -455,7 +373,7 @@ def open_members(path: str | Path, limits: InputLimits | None = None, *, heads_o
         raise InputError(f"{path.name} holds {size:,} bytes, more than the limit of {limits.max_total_bytes:,}")
     with path.open("rb") as fh:
         head = fh.read(HEAD_BYTES)
-    return Members("file", [Member(path.name, size, head, _path=path)])
+    return Members("file", [Member(path.name, size, head, _path=path, where=Where("file", str(path), path.name, size))])
 
 
 def _is_tar(path: Path) -> bool:

@@ -9,11 +9,12 @@ linearly along the normal at the median gap.
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import warnings
 from collections import defaultdict
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -22,6 +23,8 @@ from engine.errors import InputError
 from engine.io.archive import InputLimits, Member, Members
 from engine.io.dicom_pixels import quiet, read_dataset, series_pixels
 from engine.io.parallel import ordered_map
+from engine.io.procs import DecodePool, start_pool
+from engine.io.readers import Where, read_where
 from engine.io.regrid import regularise as _regularise
 from engine.io.stack import SPACING_HINT, StackWarning, natural_key
 from engine.params import check_spacing_zyx_mm
@@ -29,6 +32,8 @@ from engine.types import Volume
 
 _RAW_GROUPS = (b"\x08\x00", b"\x02\x00", b"\x00\x08")  # first tag group of a dataset without preamble
 _NO_UID = "(no SeriesInstanceUID)"
+PROCESS_MIN_FILES = 64  # processes=None: processes from this many files (their start takes 0.02-0.5 s) ...
+PROCESS_MIN_WORKERS = 4  # ... and this many decode workers (on 2 busy cores threads did better)
 
 
 def looks_like_dicom(head: bytes) -> bool:
@@ -74,22 +79,52 @@ def _nonfinite(ds: Any) -> tuple[str, ...]:
 
 
 def _scan(
-    members: Members, on_progress: Callable[[float], None] | None = None, threads: int = 1
+    members: Members,
+    on_progress: Callable[[float], None] | None = None,
+    threads: int = 1,
+    procs: DecodePool | None = None,
 ) -> tuple[list[_Slice], int]:
-    """Headers of every DICOM image member (read and parsed on ``threads`` threads); also the count of DICOM files
-    without pixel data."""
+    """Headers of every DICOM image member (read and parsed on ``threads`` threads, or in ``procs``' processes);
+    also the count of DICOM files without pixel data."""
     slices: list[_Slice] = []
     non_image = 0
     n = len(members.members)
-    with quiet(), contextlib.closing(ordered_map(_header, members.members, threads)) as found_all:
+    if procs is None:
+        results = ordered_map(_header, members.members, threads)
+    else:
+        located = [(m.where, m.head) for m in members.members]
+        results = ordered_map(_header_at, located, procs.workers, procs.pool, procs.chunk(n))  # type: ignore[arg-type]
+    with quiet(), contextlib.closing(results) as found_all:
         for k, found in enumerate(found_all):
             if on_progress is not None:
                 on_progress((k + 1) / n)
             if found == "non-image":
                 non_image += 1
             elif isinstance(found, _Slice):
-                slices.append(found)
+                slices.append(found if procs is None else replace(found, member=members.members[k]))
     return slices, non_image
+
+
+def _header_at(item: tuple[Where, bytes]) -> _Slice | str | None:
+    """In a decode process: :func:`_header` of a member read through its :class:`Where`; the slice comes back
+    with a member that only names it (the caller puts its own back)."""
+    where, head = item
+    if not looks_like_dicom(head):
+        return None
+    found = _header(Member(where.name, where.size, head, _reader=functools.partial(read_where, where)))
+    return replace(found, member=Member(where.name, where.size, head)) if isinstance(found, _Slice) else found
+
+
+@contextlib.contextmanager
+def _decode_pool(members: Members, threads: int, processes: bool | None) -> Iterator[DecodePool | None]:
+    """Processes for the series' parsing and decoding where they are wanted and possible, else None (threads)."""
+    dicom = [m for m in members.members if looks_like_dicom(m.head)]
+    wanted = len(dicom) >= PROCESS_MIN_FILES and threads >= PROCESS_MIN_WORKERS if processes is None else processes
+    if not wanted or threads < 2 or len(dicom) < 2 or any(m.where is None for m in dicom):
+        yield None
+        return
+    with start_pool(min(threads, len(dicom))) as procs:
+        yield procs
 
 
 def _header(m: Member) -> _Slice | str | None:
@@ -148,20 +183,30 @@ def load_dicom(
     limits: InputLimits,
     on_progress: Callable[[float], None] | None = None,
     threads: int = 1,
+    processes: bool | None = None,
 ) -> Volume | None:
     """Load one DICOM series of ``members``; None when none of them is a DICOM image. Files are read, parsed and
-    decoded on ``threads`` threads (``engine.io.parallel``); the result does not depend on their number.
+    decoded on ``threads`` threads (``engine.io.parallel``), or in as many processes (``engine.io.procs``: pydicom's
+    parsing holds the GIL); the result does not depend on either.
+
+    Args:
+        processes: decode in processes (True), on threads (False), or by default (None) in processes for inputs of
+            at least ``PROCESS_MIN_FILES`` DICOM files and ``threads`` >= ``PROCESS_MIN_WORKERS``. Only with
+            ``threads`` >= 2; threads where processes cannot be started (a daemonic process, a compressed tar's
+            spooled members, no ``memfd_create``, a fork server that does not start).
 
     Raises:
         InputError: unknown ``series_uid``, inconsistent geometry, undecodable pixels, limits exceeded.
     """
-    slices, non_image = _scan(members, on_progress, threads)  # reading the files is most of the loading time
-    if not slices:
-        if series_uid is not None:
-            raise InputError(f"series_uid={series_uid!r} was given, but {label} holds no DICOM images")
-        return None
-    series, choice = _pick_series(slices, series_uid, label)
-    vol = _build(series, label, spacing_zyx_mm, limits, skipped=len(slices) - len(series) + non_image, threads=threads)
+    with _decode_pool(members, threads, processes) as procs:
+        slices, non_image = _scan(members, on_progress, threads, procs)  # reading the files is most of the time
+        if not slices:
+            if series_uid is not None:
+                raise InputError(f"series_uid={series_uid!r} was given, but {label} holds no DICOM images")
+            return None
+        series, choice = _pick_series(slices, series_uid, label)
+        skipped = len(slices) - len(series) + non_image
+        vol = _build(series, label, spacing_zyx_mm, limits, skipped=skipped, threads=threads, procs=procs)
     vol.source["series"] = choice
     return vol
 
@@ -212,6 +257,7 @@ def _build(
     limits: InputLimits,
     skipped: int,
     threads: int = 1,
+    procs: DecodePool | None = None,
 ) -> Volume:
     first = series[0]
     for s in series:
@@ -236,7 +282,7 @@ def _build(
     order = geo["order"]
     series = [series[i] for i in order]
     limits.check_voxels((len(series), first.rows, first.cols), label)
-    data, units, fill = series_pixels(series, threads)
+    data, units, fill = series_pixels(series, threads, procs)
     source: dict[str, Any] = {
         "format": "dicom",
         "files": len(series),

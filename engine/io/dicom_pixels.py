@@ -1,24 +1,33 @@
-"""Reading DICOM files and decoding a series' pixels into one (z, y, x) array on a pool of threads.
+"""Reading DICOM files and decoding a series' pixels into one (z, y, x) array on a pool of threads or processes.
 
 The parse (pydicom) is Python and holds the GIL; reading the member (zip inflate) and the decoders of compressed
 transfer syntaxes (pylibjpeg's OpenJPEG / libjpeg, pydicom's RLE) and the rescale to HU are where threads overlap.
+With a :class:`~engine.io.procs.DecodePool` the slices are decoded in its processes instead, straight into the
+shared volume; the result is the same.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import itertools
 import math
 import warnings
 from collections.abc import Iterator, Sequence
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from engine.errors import InputError
 from engine.io.archive import Member
 from engine.io.parallel import ordered_map
+from engine.io.readers import Where, read_where
+
+if TYPE_CHECKING:
+    from engine.io.procs import DecodePool
+
+_Stats = tuple[tuple[int, ...], np.dtype[Any], float, float]  # a decoded slice's shape, dtype, min and max
 
 
 class SliceLike(Protocol):
@@ -60,26 +69,43 @@ def read_dataset(member: Member, *, pixels: bool) -> Any | None:
     return ds
 
 
-def decode_pixels(s: SliceLike) -> np.ndarray:
+def decode_pixels(member: Member, transfer_syntax: str) -> np.ndarray:
     """One slice's stored pixel values (call inside :func:`quiet`).
 
     Raises:
         InputError: the pixel data cannot be decoded.
     """
-    ds = read_dataset(s.member, pixels=True)
+    ds = read_dataset(member, pixels=True)
     try:
         return ds.pixel_array  # type: ignore[union-attr,no-any-return]
     except Exception as exc:
-        raise InputError(
-            f"cannot decode the pixels of {s.member.name} ({s.header['transfer_syntax']}): {exc}"
-        ) from None
+        raise InputError(f"cannot decode the pixels of {member.name} ({transfer_syntax}): {exc}") from None
 
 
-def series_pixels(series: Sequence[SliceLike], threads: int = 1) -> tuple[np.ndarray, str, float]:
+def _store(raw: np.ndarray, k: int, arr: np.ndarray) -> _Stats:
+    """Put a decoded slice into plane ``k`` when it fits; what the caller checks and the rescale needs."""
+    if arr.shape == raw.shape[1:] and arr.dtype == raw.dtype:
+        raw[k] = arr
+    return arr.shape, arr.dtype, float(arr.min()), float(arr.max())
+
+
+def decode_into_shared(job: tuple[int, Where, bytes, str, tuple[int, ...], str]) -> _Stats:
+    """In a decode process: decode one slice into plane ``k`` of the pool's shared volume."""
+    from engine.io.procs import worker_array
+
+    k, where, head, syntax, shape, dtype = job
+    member = Member(where.name, where.size, head, _reader=functools.partial(read_where, where))
+    return _store(worker_array(shape, dtype), k, decode_pixels(member, syntax))
+
+
+def series_pixels(
+    series: Sequence[SliceLike], threads: int = 1, procs: DecodePool | None = None
+) -> tuple[np.ndarray, str, float]:
     """Decode the pixel data into one (z, y, x) array, rescaled to HU (CT) where the headers say so.
 
-    Slices after the first are decoded on ``threads`` threads straight into their planes; a failure is raised for
-    the first failing slice in slice order, as a serial loop would. The rescale runs in place, slice by slice.
+    Slices after the first are decoded on ``threads`` threads (or in the processes of ``procs``, into its shared
+    volume) straight into their planes; a failure is raised for the first failing slice in slice order, as a serial
+    loop would. The rescale runs in place, slice by slice.
 
     Returns:
         The array (uint8/uint16/int16 where exact, else float32), its units ("HU" for CT, else "raw") and the
@@ -92,19 +118,19 @@ def series_pixels(series: Sequence[SliceLike], threads: int = 1) -> tuple[np.nda
     inters = np.array([s.header["intercept"] for s in series])
     is_ct = series[0].header["modality"].upper() == "CT"
     with quiet():
-        first = decode_pixels(series[0])
-        raw = np.empty((len(series), series[0].rows, series[0].cols), dtype=first.dtype)
+        first = decode_pixels(series[0].member, series[0].header["transfer_syntax"])
+        shape = (len(series), series[0].rows, series[0].cols)
+        raw = np.empty(shape, dtype=first.dtype) if procs is None else procs.shared_array(shape, first.dtype)
 
-        def store(k: int, arr: np.ndarray) -> tuple[tuple[int, ...], np.dtype[Any], float, float]:
-            if arr.shape == raw.shape[1:] and arr.dtype == raw.dtype:
-                raw[k] = arr
-            return arr.shape, arr.dtype, float(arr.min()), float(arr.max())
+        def decode_into(k: int) -> _Stats:
+            return _store(raw, k, decode_pixels(series[k].member, series[k].header["transfer_syntax"]))
 
-        def decode_into(k: int) -> tuple[tuple[int, ...], np.dtype[Any], float, float]:
-            return store(k, decode_pixels(series[k]))
-
-        rest = ordered_map(decode_into, range(1, len(series)), threads)
-        first_stats = store(0, first)
+        if procs is None:
+            rest = ordered_map(decode_into, range(1, len(series)), threads)
+        else:
+            jobs = [_job(k, s, shape, first.dtype) for k, s in enumerate(series) if k]
+            rest = ordered_map(decode_into_shared, jobs, procs.workers, procs.pool, procs.chunk(len(jobs)))
+        first_stats = _store(raw, 0, first)
         del first
         lo, hi = math.inf, -math.inf
         with contextlib.closing(rest):  # no pool thread outlives the call, also when the loop raises
@@ -136,6 +162,14 @@ def series_pixels(series: Sequence[SliceLike], threads: int = 1) -> tuple[np.nda
     for _ in ordered_map(rescale32, range(len(series)), threads):
         pass
     return out32, units, lo
+
+
+def _job(
+    k: int, s: SliceLike, shape: tuple[int, ...], dtype: np.dtype[Any]
+) -> tuple[int, Where, bytes, str, tuple[int, ...], str]:
+    if s.member.where is None:
+        raise RuntimeError(f"{s.member.name} cannot be read from another process")
+    return k, s.member.where, s.member.head, s.header["transfer_syntax"], shape, dtype.str
 
 
 def narrow_raw(raw: np.ndarray) -> np.ndarray:

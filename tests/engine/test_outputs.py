@@ -113,8 +113,8 @@ def plate() -> tuple[np.ndarray, np.ndarray]:
 def _copies(v: np.ndarray, f: np.ndarray, budgets: list[int], closed: bool = True) -> list[tuple]:
     import warp as wp
 
-    from engine.viewing import viewing_copies
     from engine.stages.devmesh import mesh_stats_device
+    from engine.viewing import viewing_copies
 
     with wp.ScopedDevice("cpu"):
         copies = viewing_copies(wp.array(v, dtype=wp.vec3), wp.array(f, dtype=wp.vec3i), budgets, 1, closed)

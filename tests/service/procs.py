@@ -175,7 +175,7 @@ def find_redis_server(path: str | os.PathLike[str] | None = None, *, install: bo
     if path:
         if not Path(path).is_file():
             raise ProcessError(f"redis-server not found at {path}")
-        return str(path)
+        return str(Path(path).absolute())  # the server starts in its own working folder
     found = shutil.which("redis-server") or next(
         (p for p in ("/usr/bin/redis-server", "/usr/local/bin/redis-server") if Path(p).is_file()), None
     )
