@@ -175,9 +175,7 @@ def write_outputs(
     import warp as wp
 
     from engine.device import resolve_device
-    from engine.export import to_draco_glb, to_glb
     from engine.export.printcheck import PRINT_STL, check_print_model, stl_name
-    from engine.export.viewers import viewer_files
     from engine.memory import parse_bytes
     from engine.orient import Frame
     from engine.stages.devmesh import mesh_stats_device
@@ -222,14 +220,10 @@ def write_outputs(
                 ar = phone if apos is ppos else _host_mesh(apos, afaces)
                 seconds["viewing_copies"] = time.perf_counter() - t1
                 t1 = time.perf_counter()
-                small = {
-                    "phone.glb": to_draco_glb(phone.vertices, phone.faces, phone.normals),
-                    "ar.glb": to_glb(ar.vertices, ar.faces, ar.normals),
-                    **viewer_files(phone, ar),  # meshopt GLB, USDZ, preview.png (engine.export.viewers)
-                }
+                small, seconds["encode_parts"] = _encode_small(phone, ar)
                 for name, data in small.items():
                     (tmp / name).write_bytes(data)
-                seconds["encode_small"] = time.perf_counter() - t1
+                seconds["encode_small"] = time.perf_counter() - t1  # all of them, at once
                 t1 = time.perf_counter()
                 sizes = writing.result()
                 seconds["wait_print_files"] = time.perf_counter() - t1
@@ -246,6 +240,21 @@ def write_outputs(
         return paths
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _encode_small(phone: Mesh, ar: Mesh) -> tuple[dict[str, bytes], dict[str, float]]:
+    """The small files (``engine.export.viewers.small_files``), encoded at once in threads (the codecs run in
+    native code or numpy), and each one's seconds."""
+    from engine.export.viewers import small_files
+
+    def timed(encode: Any) -> tuple[bytes, float]:
+        t0 = time.perf_counter()
+        return encode(), time.perf_counter() - t0
+
+    jobs = small_files(phone, ar)
+    with ThreadPoolExecutor(len(jobs), thread_name_prefix="bonemesh-encode") as pool:
+        done = {name: pool.submit(timed, encode) for name, encode in jobs.items()}
+    return {n: f.result()[0] for n, f in done.items()}, {n: f.result()[1] for n, f in done.items()}
 
 
 def _check_budget(n_faces: int, budget: int | None) -> None:

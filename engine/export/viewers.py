@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from engine.export.meshopt import to_meshopt_glb
@@ -15,8 +16,19 @@ VIEWER_FILES = ("phone_meshopt.glb", "model.usdz", "preview.png")
 def viewer_files(phone: Any, ar: Any) -> dict[str, bytes]:
     """``{name: bytes}`` of :data:`VIEWER_FILES`, from meshes with ``vertices``, ``faces`` and ``normals``
     (engine order, mm; centred as the glTF files are)."""
+    encoders = small_files(phone, ar)
+    return {name: encoders[name]() for name in VIEWER_FILES}
+
+
+def small_files(phone: Any, ar: Any) -> dict[str, Callable[[], bytes]]:
+    """Every small file of a model as a function that encodes it: the Draco ``phone.glb``, the plain ``ar.glb``
+    and :data:`VIEWER_FILES` (independent of each other, so they may run at once)."""
+    from engine.export import to_draco_glb, to_glb
+
     return {
-        "phone_meshopt.glb": to_meshopt_glb(phone.vertices, phone.faces, phone.normals),
-        "model.usdz": to_usdz(ar.vertices, ar.faces, ar.normals),
-        "preview.png": to_preview_png(phone.vertices, phone.faces, phone.normals),
+        "phone.glb": lambda: to_draco_glb(phone.vertices, phone.faces, phone.normals),
+        "ar.glb": lambda: to_glb(ar.vertices, ar.faces, ar.normals),
+        "phone_meshopt.glb": lambda: to_meshopt_glb(phone.vertices, phone.faces, phone.normals),
+        "model.usdz": lambda: to_usdz(ar.vertices, ar.faces, ar.normals),
+        "preview.png": lambda: to_preview_png(phone.vertices, phone.faces, phone.normals),
     }

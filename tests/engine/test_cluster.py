@@ -72,7 +72,7 @@ def test_one_preparation_serves_several_budgets(plate, device) -> None:
         p, t, second = prepared.copy(1200)
         assert 0.6 * 3000 <= len(big) <= 3000 and 0.6 * 1200 <= len(t) <= 1200
         assert second["trials"] < SEARCH_STEPS and second["input_faces"] == first["input_faces"] == len(f)
-        assert len(p) == len(np.unique(t)) and second["faces"] == len(t)
+        assert len(p) == len(np.unique(t.numpy())) and second["faces"] == len(t)
 
 
 def test_over_budget_with_the_largest_cell_returns_it(plate, device) -> None:
