@@ -38,7 +38,9 @@ def _run(volume: Volume, device: str, budget: int | None, write: bool, repeat: i
     from engine.pipeline import reconstruct
 
     times = []
+    recon = None
     for _ in range(repeat):
+        recon = None  # the last run's mesh is not this run's memory
         gc.collect()
         t0 = time.perf_counter()
         try:

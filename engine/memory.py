@@ -42,21 +42,25 @@ def mib(n: int) -> str:
 
 
 class PeakMemory:
-    """The most device memory in use between ``start()`` and ``peak()``.
+    """The most device memory a job had in use between ``start()`` and ``peak()``, beyond what was in use before.
 
     CUDA: the memory pool's used-memory high-water mark (reset through the driver at ``start``; where the reset is
-    not available, the mark minus nothing, labelled ``since process start``). CPU: Warp's allocation tracker.
+    not available, the process's mark, labelled ``since process start``) minus the memory in use at ``start``
+    (``baseline``: e.g. a finished job's mesh still held). CPU: Warp's allocation tracker (new allocations only).
     """
 
     def __init__(self, device: Any) -> None:
         self.device = device
         self.how = "none"
+        self.baseline = 0  # device memory already in use at ``start`` (not the job's): subtracted from the peak
         self._tracker: Any = None
 
     def start(self) -> PeakMemory:
         import warp as wp
 
         if self.device.is_cuda and self.device.is_mempool_enabled:
+            wp.synchronize_device(self.device)
+            self.baseline = int(wp.get_mempool_used_mem_current(self.device))
             self.how = "cuda memory pool high-water mark" if _reset_pool_high(self.device) else "since process start"
         elif not self.device.is_cuda:
             self._tracker = wp.ScopedMemoryTracker("bonemesh", print=False)
@@ -69,7 +73,8 @@ class PeakMemory:
         import warp as wp
 
         if self.device.is_cuda and self.device.is_mempool_enabled:
-            return int(wp.get_mempool_used_mem_high(self.device))
+            wp.synchronize_device(self.device)
+            return int(wp.get_mempool_used_mem_high(self.device)) - self.baseline
         if self._tracker is not None:
             text: list[str] = []
             self._tracker.report_func = text.append

@@ -181,7 +181,12 @@ def reconstruct(
 
         report["mesh"] = mesh_stats_device(st.pos, st.faces, _incidence(st))  # sync point: the counts come back
         report["finish_seconds"] = time.perf_counter() - t0
-        report["memory"] = {"budget_bytes": budget, "peak_bytes": memory.peak(), "measured_by": memory.how}
+        report["memory"] = {
+            "budget_bytes": budget,
+            "peak_bytes": memory.peak(),
+            "measured_by": memory.how,
+            "in_use_before_bytes": memory.baseline,
+        }
         memory.stop()
         if st.stream is not None:
             report["memory"]["stream"] = st.stream.info
