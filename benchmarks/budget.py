@@ -69,6 +69,9 @@ def _run(volume: Volume, device: str, budget: int | None, write: bool, repeat: i
     if "stream" in mem:
         out["stream"] = mem["stream"]
     dec = rep.get("decimate", {})
+    out["decimate"] = {k: v for k, v in dec.items() if k not in ("rounds", "collapses_per_pass")}
+    if isinstance(out["decimate"].get("seams"), dict):
+        out["decimate"]["seams"] = {k: v for k, v in dec["seams"].items() if k != "tiles"}
     if dec.get("tiled"):
         out["tiled_rounds"] = [{k: v for k, v in r.items() if k != "tiles"} for r in dec.get("rounds", [])]
         out["final_pass_faces_in"] = dec.get("final_pass", {}).get("input_faces")
