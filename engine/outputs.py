@@ -40,16 +40,15 @@ HELD_BYTES_PER_FACE = 60  # the model and its patient/viewing copies, held while
 class Layout:
     """The print model laid out on the device: patient positions (z, y, x) mm and outward faces (``pos``,
     ``faces``), the viewing mesh (patient axes, centred: ``view_pos``, ``view_normals``), the centre (x, y, z) mm,
-    the STL facets (F, 12) (still on the device: the STL writer copies them back a chunk at a time), and on the
-    host the glTF positions (m), normals and their bounds, and the zero-area face count; ``seconds``: the device
-    work (``kernels``) and the copies to the host (``copies``)."""
+    and on the host the STL facets (F, 12), the glTF positions (m), normals and their bounds, and the zero-area
+    face count; ``seconds``: the device work (``kernels``) and the copies to the host (``copies``)."""
 
     pos: Any
     faces: Any
     view_pos: Any
     view_normals: Any
     centre_xyz: np.ndarray
-    facets: Any
+    facets: np.ndarray
     gltf_pos: np.ndarray
     gltf_normals: np.ndarray
     gltf_bounds: dict[str, list[float]]
@@ -60,7 +59,7 @@ class Layout:
 
 def lay_out(pos: Any, faces: Any, normals: Any, frame: Any) -> Layout:
     """Map a device mesh (grid (z, y, x) mm, unit normals) into the patient frame (``engine.orient.Frame``) and lay
-    out its file buffers; the glTF's host arrays come back in one sync."""
+    out its file buffers; the host arrays come back in one sync."""
     import warp as wp
 
     from engine.export.glb import MM_TO_M
@@ -99,7 +98,7 @@ def lay_out(pos: Any, faces: Any, normals: Any, frame: Any) -> Layout:
         view_pos=view,
         view_normals=turned,
         centre_xyz=centre[::-1],
-        facets=facets,  # on the device: the writer thread brings it back a chunk at a time
+        facets=facets.numpy(),
         gltf_pos=gpos.numpy().reshape(-1, 3),
         gltf_normals=gnrm.numpy().reshape(-1, 3),
         gltf_bounds={"min": [float(x) for x in glo], "max": [float(x) for x in ghi]},
@@ -144,15 +143,13 @@ def _device_mesh(recon: Reconstruction, dev: Any) -> tuple[Any, Any, Any]:
 
 
 def _write_print_files(tmp: Path, stl: str, lay: Layout) -> dict[str, int]:
-    """The print model's STL and its full-resolution GLB, streamed from the laid-out buffers (this runs in a thread
-    beside the device work: the STL's facets come back from the device a chunk at a time as they are written)."""
-    import warp as wp
-
+    """The print model's STL and its full-resolution GLB, streamed from the laid-out buffers (no Warp here: this
+    runs in a thread beside the device work)."""
     from engine.export.glb import mesh_document, write_glb
     from engine.export.stl import write_stl
 
     sizes = {}
-    with wp.ScopedDevice(lay.facets.device), open(tmp / stl, "wb") as fh:
+    with open(tmp / stl, "wb") as fh:
         sizes[stl] = write_stl(fh, lay.facets, STL_HEADER)
     document, parts = mesh_document(lay.gltf_pos, lay.gltf_normals, lay.tris, bounds=lay.gltf_bounds)
     with open(tmp / "model.glb", "wb") as fh:

@@ -40,16 +40,12 @@ def stl_head(n_faces: int, header: str) -> bytes:
 
 def write_stl(out: BinaryIO, facets: npt.NDArray[np.float32], header: str = "bonemesh") -> int:
     """Write a binary STL to an open file from its facets' 12 floats each (unit normal, then the three corners, in
-    (x, y, z) order, mm: ``engine.kernels.export.stl_facets``), a chunk at a time; returns the bytes written.
-    ``facets`` may be a 2-D Warp array (``(F, 12)`` float32) on a device: each chunk is copied back as it goes."""
-    if isinstance(facets, np.ndarray):
-        facets = np.ascontiguousarray(facets, dtype="<f4").reshape(-1, 12)
+    (x, y, z) order, mm: ``engine.kernels.export.stl_facets``), a chunk at a time; returns the bytes written."""
+    facets = np.ascontiguousarray(facets, dtype="<f4").reshape(-1, 12)
     out.write(stl_head(len(facets), header))
     buf = np.zeros((min(len(facets), _CHUNK), _FACET.itemsize), np.uint8)  # attribute bytes stay zero
     for lo in range(0, len(facets), _CHUNK):
-        part = facets[lo : min(lo + _CHUNK, len(facets))]
-        if not isinstance(part, np.ndarray):  # a device array (Warp): this chunk comes back now
-            part = np.ascontiguousarray(part.numpy(), dtype="<f4")
+        part = facets[lo : lo + _CHUNK]
         buf[: len(part), :48] = part.view(np.uint8).reshape(len(part), 48)
         out.write(memoryview(buf[: len(part)]).cast("B"))
     return 84 + _FACET.itemsize * len(facets)
