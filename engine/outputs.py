@@ -223,7 +223,7 @@ def write_outputs(
                 small, seconds["encode_parts"] = _encode_small(phone, ar)
                 for name, data in small.items():
                     (tmp / name).write_bytes(data)
-                seconds["encode_small"] = time.perf_counter() - t1  # all of them, at once
+                seconds["encode_small"] = time.perf_counter() - t1
                 t1 = time.perf_counter()
                 sizes = writing.result()
                 seconds["wait_print_files"] = time.perf_counter() - t1
@@ -243,18 +243,17 @@ def write_outputs(
 
 
 def _encode_small(phone: Mesh, ar: Mesh) -> tuple[dict[str, bytes], dict[str, float]]:
-    """The small files (``engine.export.viewers.small_files``), encoded at once in threads (the codecs run in
-    native code or numpy), and each one's seconds."""
+    """The small files (``engine.export.viewers.small_files``), one after another (in threads they hung on the
+    H100 host), and each one's seconds."""
     from engine.export.viewers import small_files
 
-    def timed(encode: Any) -> tuple[bytes, float]:
+    files: dict[str, bytes] = {}
+    seconds: dict[str, float] = {}
+    for name, encode in small_files(phone, ar).items():
         t0 = time.perf_counter()
-        return encode(), time.perf_counter() - t0
-
-    jobs = small_files(phone, ar)
-    with ThreadPoolExecutor(len(jobs), thread_name_prefix="bonemesh-encode") as pool:
-        done = {name: pool.submit(timed, encode) for name, encode in jobs.items()}
-    return {n: f.result()[0] for n, f in done.items()}, {n: f.result()[1] for n, f in done.items()}
+        files[name] = encode()
+        seconds[name] = time.perf_counter() - t0
+    return files, seconds
 
 
 def _check_budget(n_faces: int, budget: int | None) -> None:
