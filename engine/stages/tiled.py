@@ -23,6 +23,7 @@ from engine.memory import DECIMATE_BYTES_PER_FACE
 from engine.stages.stream import PIECE_TOLERANCE, HostMesh
 
 MAX_ROUNDS = 8
+SKIPPED: dict[str, Any] = {}  # why the last seam pass could not run on the device (reported)
 SEAM_MAX_PASSES = 60  # the seams' goal may be out of the guards' reach: passes past this win little
 MIN_PROGRESS = 0.01  # a round that removes less than this share of the faces ends the rounds
 
@@ -122,7 +123,10 @@ def finish_groups(
         pos, faces, quad = pieces
         if fits(len(faces), budget):
             return final_pass(pos, faces, quad, origin, target, budget, info, t0)
+        SKIPPED.clear()
         done = seam_pass_device(pos, faces, borders, seam_mm, target, budget) if borders else None
+        info["seam_device_skipped"] = dict(SKIPPED) or None
+        info["borders"] = len(borders)
         if done is not None:
             pos, faces, info["seams"] = done
             info.update(output_faces=len(faces), seconds=time.perf_counter() - t0)
@@ -214,10 +218,9 @@ def seam_pass_device(
         flag = wp.empty(n_faces, dtype=wp.int32)
         wp.launch(kt.seam_flags, dim=n_faces, inputs=[pos, faces, borders, float(width_mm), flag])
         slot, n_seam = exclusive_scan(flag)
-        held = n_faces * 12 + n_verts * 12
-        if n_seam == 0 or (
-            budget is not None and held + (n_seam + n_faces) * 12 + n_seam * DECIMATE_BYTES_PER_FACE > budget
-        ):
+        need = (n_faces + n_verts) * 12 + (n_seam + n_faces) * 12 + n_seam * DECIMATE_BYTES_PER_FACE
+        if n_seam == 0 or (budget is not None and need > budget):
+            SKIPPED.update(seam_faces=n_seam, faces=n_faces, need_bytes=need, budget_bytes=budget)
             return None
         in_seam = wp.zeros(n_verts, dtype=wp.int32)
         in_rest = wp.zeros(n_verts, dtype=wp.int32)
