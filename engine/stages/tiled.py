@@ -23,7 +23,6 @@ from engine.memory import DECIMATE_BYTES_PER_FACE
 from engine.stages.stream import PIECE_TOLERANCE, HostMesh
 
 MAX_ROUNDS = 8
-SKIPPED: dict[str, Any] = {}  # why the last seam pass could not run on the device (reported)
 SEAM_MAX_PASSES = 60  # the seams' goal may be out of the guards' reach: passes past this win little
 MIN_PROGRESS = 0.01  # a round that removes less than this share of the faces ends the rounds
 
@@ -123,12 +122,12 @@ def finish_groups(
         pos, faces, quad = pieces
         if fits(len(faces), budget):
             return final_pass(pos, faces, quad, origin, target, budget, info, t0)
-        SKIPPED.clear()
-        done = seam_pass_device(pos, faces, borders, seam_mm, target, budget) if borders else None
-        info["seam_device_skipped"] = dict(SKIPPED) or None
+        done, why = seam_pass_device(pos, faces, borders, seam_mm, target, budget) if borders else (None, {})
         info["borders"] = len(borders)
-        if done is not None:
-            pos, faces, info["seams"] = done
+        if done is None:
+            info["seam_device_skipped"] = why
+        else:
+            (pos, faces), info["seams"] = done, why
             info.update(output_faces=len(faces), seconds=time.perf_counter() - t0)
             return pos, faces, info
         dev = pos.device
@@ -202,9 +201,10 @@ def _shared_vertices(faces: np.ndarray, tile: np.ndarray, order: np.ndarray, bou
 
 def seam_pass_device(
     pos: Any, faces: Any, borders_z: list[float], width_mm: float, target: int, budget: int | None
-) -> tuple[Any, Any, dict[str, Any]] | None:
-    """``seam_pass`` on a device mesh, where the seam's decimation fits ``budget`` beside the mesh (else None):
-    the seam's faces are decimated (quadrics from the current faces), pinned where they meet the rest."""
+) -> tuple[tuple[Any, Any] | None, dict[str, Any]]:
+    """``seam_pass`` on a device mesh, where the seam's decimation fits ``budget`` beside the mesh: the seam's faces
+    are decimated (quadrics from the current faces), pinned where they meet the rest. ``((pos, faces), info)``, or
+    ``(None, why)`` where it does not fit."""
     import warp as wp
 
     from engine.kernels import tiles as kt
@@ -220,8 +220,7 @@ def seam_pass_device(
         slot, n_seam = exclusive_scan(flag)
         need = (n_faces + n_verts) * 12 + (n_seam + n_faces) * 12 + n_seam * DECIMATE_BYTES_PER_FACE
         if n_seam == 0 or (budget is not None and need > budget):
-            SKIPPED.update(seam_faces=n_seam, faces=n_faces, need_bytes=need, budget_bytes=budget)
-            return None
+            return None, {"seam_faces": n_seam, "faces": n_faces, "need_bytes": need, "budget_bytes": budget}
         in_seam = wp.zeros(n_verts, dtype=wp.int32)
         in_rest = wp.zeros(n_verts, dtype=wp.int32)
         wp.launch(kt.mark_used, dim=n_faces, inputs=[faces, flag, 1, in_seam])
@@ -259,7 +258,7 @@ def seam_pass_device(
         out_pos, out_faces = compact_vertices(joined_pos, joined)  # drops the seam's replaced vertices
     info = {"faces_in": n_faces, "seam_faces_in": n_seam, "seam_faces_out": len(res.faces), "pinned": None}
     info.update(faces_out=len(out_faces), passes=res.stats.passes, seconds=time.perf_counter() - t0, on="device")
-    return out_pos, out_faces, info
+    return (out_pos, out_faces), info
 
 
 def decimate_tiles(
