@@ -157,48 +157,23 @@ class Decimated:
     stats: DecimationStats
 
 
-def decimate_device(
-    pos: Any,
-    faces: Any,
-    target: int,
-    *,
-    max_normal_turn_deg: float = MAX_NORMAL_TURN_DEG,
-    candidate_fraction: float = CANDIDATE_FRACTION,
-    claim_rounds: int = CLAIM_ROUNDS,
-    stop_tolerance: float = STOP_TOLERANCE,
-    max_passes: int = MAX_PASSES,
-    on_pass: Any = None,
-    profile: bool = False,
-) -> tuple[Any, Any, DecimationStats]:
+def decimate_device(pos: Any, faces: Any, target: int, **options: Any) -> tuple[Any, Any, DecimationStats]:
     """Decimate a device mesh to about ``target`` faces (never fewer).
 
     Args:
         pos: ``wp.array(dtype=wp.vec3)`` (z, y, x) mm; not modified.
         faces: ``wp.array(dtype=wp.vec3i)``; not modified.
         target: faces to reach; passes stop within ``stop_tolerance`` above it, or when no edge may collapse.
-        max_normal_turn_deg: the largest turn of a face's normal in one collapse.
-        candidate_fraction: share of the collapsible edges, cheapest first, that compete in one pass.
-        claim_rounds: claim rounds per pass.
-        max_passes: stop after this many passes (``stats.stopped`` says so).
-        on_pass: called as ``on_pass(faces_now)`` after each pass.
-        profile: synchronise after each step and add its time to ``stats.profile`` (slower; for benchmarks).
+        options: as for ``decimate_carrying``: ``max_normal_turn_deg`` (the largest turn of a face's normal in one
+            collapse), ``candidate_fraction`` (share of the collapsible edges, cheapest first, that compete in one
+            pass), ``claim_rounds``, ``stop_tolerance``, ``max_passes`` (``stats.stopped`` says when it stopped
+            there), ``on_pass`` (called as ``on_pass(faces_now)`` after each pass), ``profile`` (synchronise after
+            each step and add its time to ``stats.profile``; for benchmarks).
 
     Returns:
         ``(pos, faces, stats)``: new compact device arrays (unused vertices dropped, order kept) and the stats.
     """
-    out = decimate_carrying(
-        pos,
-        faces,
-        target,
-        max_normal_turn_deg=max_normal_turn_deg,
-        candidate_fraction=candidate_fraction,
-        claim_rounds=claim_rounds,
-        stop_tolerance=stop_tolerance,
-        max_passes=max_passes,
-        on_pass=on_pass,
-        profile=profile,
-        carry=False,
-    )
+    out = decimate_carrying(pos, faces, target, carry=False, **options)
     return out.pos, out.faces, out.stats
 
 

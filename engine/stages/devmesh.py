@@ -97,6 +97,20 @@ def compact_faces(faces: Any, n_alive: int) -> Any:
     return out
 
 
+def _used_slots(pos: Any, faces: Any) -> tuple[Any, Any, int]:
+    """Per vertex its face count and its slot among the used vertices; the number used."""
+    import warp as wp
+
+    from engine.kernels import decimate as kd
+
+    count = wp.zeros(len(pos), dtype=wp.int32)
+    wp.launch(kd.count_incidence, dim=len(faces), inputs=[faces, count])
+    flag = wp.empty(len(pos), dtype=wp.int32)
+    wp.launch(kd.used_flags, dim=len(pos), inputs=[count, flag])
+    slot, n_used = exclusive_scan(flag)
+    return count, slot, n_used
+
+
 def compact_vertices(pos: Any, faces: Any) -> tuple[Any, Any]:
     """Drop the vertices no face uses (the kept ones keep their order); ``faces`` is remapped in place."""
     import warp as wp
@@ -104,11 +118,7 @@ def compact_vertices(pos: Any, faces: Any) -> tuple[Any, Any]:
     from engine.kernels import decimate as kd
 
     with wp.ScopedDevice(pos.device):
-        count = wp.zeros(len(pos), dtype=wp.int32)
-        wp.launch(kd.count_incidence, dim=len(faces), inputs=[faces, count])
-        flag = wp.empty(len(pos), dtype=wp.int32)
-        wp.launch(kd.used_flags, dim=len(pos), inputs=[count, flag])
-        slot, n_used = exclusive_scan(flag)
+        count, slot, n_used = _used_slots(pos, faces)
         if n_used == len(pos):
             return pos, faces
         out = wp.empty(n_used, dtype=wp.vec3)
@@ -126,11 +136,7 @@ def compact_carrying(pos: Any, faces: Any, quad: Any) -> tuple[Any, Any, Any, An
     from engine.kernels import decimate as kd
 
     with wp.ScopedDevice(pos.device):
-        count = wp.zeros(len(pos), dtype=wp.int32)
-        wp.launch(kd.count_incidence, dim=len(faces), inputs=[faces, count])
-        flag = wp.empty(len(pos), dtype=wp.int32)
-        wp.launch(kd.used_flags, dim=len(pos), inputs=[count, flag])
-        slot, n_used = exclusive_scan(flag)
+        count, slot, n_used = _used_slots(pos, faces)
         out = wp.empty(n_used, dtype=wp.vec3)
         kept = wp.empty(n_used, dtype=wp.int32)
         out_quad = wp.empty(n_used, dtype=kd.quadric)
