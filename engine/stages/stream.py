@@ -291,7 +291,7 @@ def stream_surface(
         ValueError: as ``engine.stages.isosurface`` (NaN in the data).
     """
     from engine.errors import BudgetError
-    from engine.stages.isosurface import SlabPlan, _run_slabs, join_parts
+    from engine.stages.slabs import SlabPlan, _run_slabs, join_parts
 
     get_slab, plane_bytes, halo = slab_getter(volume, gaussian, dev)
     mesh_room = int(budget * (1 - SLAB_SHARE))
