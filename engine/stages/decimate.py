@@ -43,7 +43,7 @@ from engine.stages.devmesh import (
     compact_vertices,
     vertex_classes,
 )
-from engine.stages.meshcheck import component_labels, edge_report, validate_mesh
+from engine.stages.meshcheck import boundary_kept, component_labels, edge_report, folds, signed_volume, validate_mesh
 
 TOLERANCE = 0.05  # a closed result this far over the target is reported as limited by the guards
 STOP_TOLERANCE = 0.0  # passes stop within this fraction over the target
@@ -53,7 +53,6 @@ CANDIDATE_FRACTION = 0.3  # share of the collapsible edges (cheapest first) that
 CLAIM_ROUNDS = 3
 MAX_PASSES = 400
 HIST_BINS = 1 << 16
-FOLDS_MAX_FACES = 10_000_000
 
 
 @dataclass
@@ -322,86 +321,7 @@ def decimate_carrying(
     return Decimated(out_pos, out_faces, out_quad, kept, origin, stats)
 
 
-def price_edges(
-    verts: npt.NDArray[Any],
-    faces: npt.NDArray[Any],
-    *,
-    max_normal_turn_deg: float = MAX_NORMAL_TURN_DEG,
-    device: Any = "cpu",
-) -> tuple[dict[tuple[int, int], int], int]:
-    """One pricing pass of the kernels on a small mesh: ``({(a, b): cost code}, NO_KEY)`` for every edge (a < b),
-    the code being ``NO_KEY`` where a guard refuses the collapse. For tests and diagnosis."""
-    import warp as wp
-
-    from engine.device import resolve_device
-    from engine.kernels import decimate as kd
-
-    verts, faces = validate_mesh(verts, faces)
-    with wp.ScopedDevice(resolve_device(device)):
-        pos = wp.array(np.asarray(verts, np.float32), dtype=wp.vec3)
-        f = wp.array(np.asarray(faces, np.int32), dtype=wp.vec3i)
-        inc, state, origin, quad = vertex_quadrics(pos, f)
-        key = wp.empty(3 * len(faces), dtype=wp.int32)
-        target = wp.empty(3 * len(faces), dtype=wp.vec3)
-        cos_max = wp.float64(math.cos(math.radians(max_normal_turn_deg)))
-        dirty = wp.ones(len(verts), dtype=wp.int32)
-        checked = wp.empty(len(key), dtype=wp.int32)
-        cand = wp.empty(len(key), dtype=wp.int32)
-        wp.launch(
-            kd.edge_costs, dim=len(key), inputs=[pos, f, inc.count, state, quad, origin, dirty, key, target, checked]
-        )
-        top = HIST_BINS  # every priced edge competes, so every one is checked
-        wp.launch(kd.select_candidates, dim=len(key), inputs=[key, top, wp.int64(0), cand])
-        wp.launch(
-            kd.check_candidates,
-            dim=len(key),
-            inputs=[cand, pos, f, *inc.inputs, state, quad, origin, cos_max, top, wp.int64(0)],
-            outputs=[key, target, checked],
-        )
-        codes = key.numpy()
-    out: dict[tuple[int, int], int] = {}
-    for h, c in enumerate(codes):
-        a, b = int(faces[h // 3][h % 3]), int(faces[h // 3][(h % 3 + 1) % 3])
-        e = (min(a, b), max(a, b))
-        out[e] = min(out.get(e, int(kd.NO_KEY)), int(c))
-    return out, int(kd.NO_KEY)
-
-
 # ------------------------------------------------------------------------------------------------ numpy entry point
-def _signed_volume(pts_xyz: np.ndarray, faces: np.ndarray) -> float:
-    a, b, c = (pts_xyz[faces[:, k]] for k in range(3))
-    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
-
-
-def _folds(pts_xyz: np.ndarray, faces: np.ndarray) -> int | None:
-    """Edges whose two faces' normals are more than 90 degrees apart (a flipped face makes such folds); None above
-    ``FOLDS_MAX_FACES`` faces, where the edge sort would cost more than the decimation."""
-    if len(faces) == 0:
-        return 0
-    if len(faces) > FOLDS_MAX_FACES:
-        return None
-    n = np.cross(pts_xyz[faces[:, 1]] - pts_xyz[faces[:, 0]], pts_xyz[faces[:, 2]] - pts_xyz[faces[:, 0]])
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
-    fid = np.tile(np.arange(len(faces)), 3)
-    key = np.minimum(e[:, 0], e[:, 1]) * (int(faces.max()) + 1) + np.maximum(e[:, 0], e[:, 1])
-    order = np.argsort(key, kind="stable")
-    k = key[order]
-    same = k[1:] == k[:-1]
-    a, b = fid[order][:-1][same], fid[order][1:][same]
-    return int(np.count_nonzero(np.einsum("ij,ij->i", n[a], n[b]) < 0))
-
-
-def _boundary_kept(pts: np.ndarray, faces: np.ndarray, out_pts: np.ndarray) -> bool:
-    from engine.stages.smooth import unique_edges
-
-    edges, on_border = unique_edges(faces)
-    border = pts[np.unique(edges[on_border])]
-    if len(border) == 0:
-        return True
-    kept = {tuple(p) for p in out_pts}
-    return all(tuple(p) in kept for p in border)
-
-
 def decimate_mesh(
     verts: npt.NDArray[Any],
     faces: npt.NDArray[Any],
@@ -478,16 +398,16 @@ def decimate_mesh(
     out_pts = out_v[:, ::-1].astype(np.float64)
     after = edge_report(out_faces, len(out_pts))
     closed_out = after["boundary_edges"] == 0 and after["nonmanifold_edges"] == 0
-    vol_in = _signed_volume(pts, faces)
-    vol_out = _signed_volume(out_pts, out_faces)
+    vol_in = signed_volume(pts, faces)
+    vol_out = signed_volume(out_pts, out_faces)
     info.update(
         output_faces=len(out_faces),
         achieved_ratio=len(out_faces) / len(faces),
         limited_by_watertightness=bool(closed and len(out_faces) > target * (1 + TOLERANCE)),
         closed_output=bool(closed_out),
-        boundary_preserved=bool(before["boundary_edges"] == 0 or _boundary_kept(pts, faces, out_pts)),
-        folds_before=_folds(pts, faces),
-        folds_after=_folds(out_pts, out_faces),
+        boundary_preserved=bool(before["boundary_edges"] == 0 or boundary_kept(pts, faces, out_pts)),
+        folds_before=folds(pts, faces),
+        folds_after=folds(out_pts, out_faces),
         components_after=component_labels(out_faces, len(out_pts))[0],
         volume_change=(vol_out - vol_in) / vol_in if vol_in else 0.0,
         seconds=time.perf_counter() - t0,

@@ -248,3 +248,40 @@ def validate_mesh(verts: npt.NDArray[Any], faces: npt.NDArray[Any]) -> tuple[npt
     if len(faces) and (faces.min() < 0 or faces.max() >= len(verts)):
         raise ValueError(f"Face indices must lie in [0, {len(verts) - 1}], got [{faces.min()}, {faces.max()}]")
     return verts, faces
+
+
+FOLDS_MAX_FACES = 10_000_000  # above this, ``folds`` is not counted (the edge sort would cost more than a decimation)
+
+
+def signed_volume(pts_xyz: np.ndarray, faces: np.ndarray) -> float:
+    a, b, c = (pts_xyz[faces[:, k]] for k in range(3))
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def folds(pts_xyz: np.ndarray, faces: np.ndarray) -> int | None:
+    """Edges whose two faces' normals are more than 90 degrees apart (a flipped face makes such folds); None above
+    ``FOLDS_MAX_FACES`` faces, where the edge sort would cost more than the decimation."""
+    if len(faces) == 0:
+        return 0
+    if len(faces) > FOLDS_MAX_FACES:
+        return None
+    n = np.cross(pts_xyz[faces[:, 1]] - pts_xyz[faces[:, 0]], pts_xyz[faces[:, 2]] - pts_xyz[faces[:, 0]])
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
+    fid = np.tile(np.arange(len(faces)), 3)
+    key = np.minimum(e[:, 0], e[:, 1]) * (int(faces.max()) + 1) + np.maximum(e[:, 0], e[:, 1])
+    order = np.argsort(key, kind="stable")
+    k = key[order]
+    same = k[1:] == k[:-1]
+    a, b = fid[order][:-1][same], fid[order][1:][same]
+    return int(np.count_nonzero(np.einsum("ij,ij->i", n[a], n[b]) < 0))
+
+
+def boundary_kept(pts: np.ndarray, faces: np.ndarray, out_pts: np.ndarray) -> bool:
+    from engine.stages.smooth import unique_edges
+
+    edges, on_border = unique_edges(faces)
+    border = pts[np.unique(edges[on_border])]
+    if len(border) == 0:
+        return True
+    kept = {tuple(p) for p in out_pts}
+    return all(tuple(p) in kept for p in border)

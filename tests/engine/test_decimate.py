@@ -13,7 +13,8 @@ import pytest
 
 from engine.io.stack import load_slice_zip
 from engine.isosurface import marching_cubes_33
-from engine.stages.decimate import decimate_mesh, price_edges
+from engine.stages.decimate import decimate_mesh
+from engine.stages.decimate_probe import price_edges
 from engine.stages.meshcheck import mesh_stats
 from tests.conftest import shared_file
 from tests.engine.meshutil import assert_closed_manifold, signed_volume, topology
