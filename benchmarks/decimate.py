@@ -50,8 +50,7 @@ def _mc33(data: np.ndarray, spacing: tuple[float, float, float], level: float, d
 
 def _check(v: np.ndarray, f: np.ndarray, ref: dict[str, Any] | None) -> dict[str, Any]:
     from engine.metrics import min_angles_deg
-    from engine.stages.decimate import _folds
-    from engine.stages.meshcheck import mesh_stats
+    from engine.stages.meshcheck import folds, mesh_stats
 
     s = mesh_stats(v, f)
     ang = min_angles_deg(v, f)
@@ -63,7 +62,7 @@ def _check(v: np.ndarray, f: np.ndarray, ref: dict[str, Any] | None) -> dict[str
         "components": s["components"],
         "euler": s["euler"],
         "volume_mm3": s["volume_mm3"],
-        "folds": _folds(v[:, ::-1].astype(np.float64), f),
+        "folds": folds(v[:, ::-1].astype(np.float64), f),
         "min_angle_p5_deg": float(np.percentile(ang, 5)),
         "below_10deg": float(np.mean(ang < 10)),
     }
