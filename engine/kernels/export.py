@@ -101,3 +101,45 @@ def gltf_vertices(
     else:
         g = wp.vec3d(wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
     out_normals[v] = wp.vec3(wp.float32(g[0]), wp.float32(g[1]), wp.float32(g[2]))
+
+
+DEPTH_STEPS = wp.constant(wp.float32(1073741823.0))  # depth in [0, 1] quantised to 30 bits for the packed key
+
+
+@wp.kernel
+def rasterize_nearest(
+    px: wp.array(dtype=wp.float32),
+    py: wp.array(dtype=wp.float32),
+    depth: wp.array(dtype=wp.float32),
+    tris: wp.array(dtype=wp.vec3i),
+    n: wp.int32,
+    nearest: wp.array(dtype=wp.int64),
+):
+    """Scan-convert one triangle (image coordinates, y downward; ``depth`` in [0, 1], smaller is nearer) into an
+    ``n`` x ``n`` z-buffer: every pixel centre inside the front-facing triangle takes the atomic min of
+    ``(depth code << 32) | triangle``, so the nearest triangle wins and ties go to the lower index
+    (deterministic, whatever the launch order)."""
+    t = wp.tid()
+    f = tris[t]
+    x0, x1, x2 = px[f[0]], px[f[1]], px[f[2]]
+    y0, y1, y2 = py[f[0]], py[f[1]], py[f[2]]
+    area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+    if not (area < wp.float32(0.0)):  # counter-clockwise in y-up is clockwise in the y-down image: front faces
+        return
+    bx0 = wp.max(wp.int32(wp.ceil(wp.min(x0, wp.min(x1, x2)) - 0.5)), 0)
+    bx1 = wp.min(wp.int32(wp.floor(wp.max(x0, wp.max(x1, x2)) - 0.5)), n - 1)
+    by0 = wp.max(wp.int32(wp.ceil(wp.min(y0, wp.min(y1, y2)) - 0.5)), 0)
+    by1 = wp.min(wp.int32(wp.floor(wp.max(y0, wp.max(y1, y2)) - 0.5)), n - 1)
+    d0, d1, d2 = depth[f[0]], depth[f[1]], depth[f[2]]
+    slack = wp.float32(-1.0e-6)  # a sample on a shared edge belongs to both triangles: no pinholes
+    for sy in range(by0, by1 + 1):
+        cy = wp.float32(sy) + 0.5
+        for sx in range(bx0, bx1 + 1):
+            cx = wp.float32(sx) + 0.5
+            w0 = ((x1 - cx) * (y2 - cy) - (x2 - cx) * (y1 - cy)) / area
+            w1 = ((x2 - cx) * (y0 - cy) - (x0 - cx) * (y2 - cy)) / area
+            w2 = wp.float32(1.0) - w0 - w1
+            if w0 >= slack and w1 >= slack and w2 >= slack:
+                z = wp.clamp(w0 * d0 + w1 * d1 + w2 * d2, wp.float32(0.0), wp.float32(1.0))
+                key = (wp.int64(z * DEPTH_STEPS) << wp.int64(32)) | wp.int64(t)
+                wp.atomic_min(nearest, sy * n + sx, key)

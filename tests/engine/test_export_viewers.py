@@ -111,3 +111,19 @@ def test_thumbnail_z_buffer_keeps_the_nearer_surface() -> None:
     assert image[32, 32, 3] == 255 and image[2, 2, 3] == 255
     assert centre.sum() != corner.sum(), "the near square must cover the far one in the centre"
     assert centre.sum() > corner.sum()  # the near one faces the light more
+
+
+def test_thumbnail_ties_go_to_the_lower_triangle() -> None:
+    """Two copies of a square at the same depth, shaded differently: the one listed first is seen, every run."""
+    quad = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], dtype=float)
+    positions = np.vstack([quad, quad])
+    bright, dark = np.tile([0.0, 0.0, 1.0], (4, 1)), np.tile([0.0, -0.6, 0.8], (4, 1))
+    first = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    seen = []
+    for normals in (np.vstack([bright, dark]), np.vstack([dark, bright])):
+        image = render(positions, first, normals, size=32, yaw_deg=0, pitch_deg=0, margin=0.0)
+        assert (image[..., 3] == 255).all()
+        seen.append(image[16, 16, :3].astype(int).sum())
+    assert seen[0] > seen[1], "the first-listed square must win the tie, whichever it is"
+    again = render(positions, first, np.vstack([bright, dark]), size=32, yaw_deg=0, pitch_deg=0, margin=0.0)
+    assert again[16, 16, :3].astype(int).sum() == seen[0]
