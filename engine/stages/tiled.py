@@ -122,14 +122,15 @@ def finish_groups(
         pos, faces, quad = pieces
         if fits(len(faces), budget):
             return final_pass(pos, faces, quad, origin, target, budget, info, t0)
-        done, why = seam_pass_device(pos, faces, borders, seam_mm, target, budget) if borders else (None, {})
-        info["borders"] = len(borders)
-        if done is None:
-            info["seam_device_skipped"] = why
-        else:
-            (pos, faces), info["seams"] = done, why
-            info.update(output_faces=len(faces), seconds=time.perf_counter() - t0)
-            return pos, faces, info
+        if borders:
+            (pos, faces), seams = seam_passes_device(pos, faces, borders, seam_mm, target, budget)
+            info["borders"], info["seams"] = len(borders), seams
+            if seams["complete"]:
+                info.update(output_faces=len(faces), seconds=time.perf_counter() - t0)
+                return pos, faces, info
+            info["seams_device"] = info.pop("seams")  # the host's seam pass finishes
+            if seams["batches"]:
+                quad = None  # the vertices were renumbered: the host pass takes quadrics of the current faces
         dev = pos.device
         q = quad.numpy().reshape(-1, 10) if quad is not None else np.zeros((0, 10))
         host = HostMesh(pos.numpy().reshape(-1, 3), faces.numpy().reshape(-1, 3), q, origin)
@@ -199,12 +200,56 @@ def _shared_vertices(faces: np.ndarray, tile: np.ndarray, order: np.ndarray, bou
     return lo != hi
 
 
-def seam_pass_device(
+def seam_passes_device(
     pos: Any, faces: Any, borders_z: list[float], width_mm: float, target: int, budget: int | None
+) -> tuple[tuple[Any, Any], dict[str, Any]]:
+    """``seam_pass`` on a device mesh, within ``budget``: all the seams at once where they fit beside the mesh, else
+    in batches of neighbouring borders (halved until each fits), every seam giving up the same share of its faces.
+    ``((pos, faces), info)``; ``info["complete"]`` is False where even one border's seam would not fit (the mesh
+    then holds the batches done so far, and ``info["skipped"]`` says why)."""
+    t0 = time.perf_counter()
+    n_faces = len(faces)
+    done, why = seam_pass_device(pos, faces, borders_z, width_mm, target, budget)
+    if done is not None:
+        return done, {**why, "batches": 1, "complete": True}
+    n_seam = why["seam_faces"]
+    info: dict[str, Any] = {"faces_in": n_faces, "seam_faces_in": n_seam, "on": "device", "passes": []}
+    info.update(batches=0, complete=False, skipped=why)
+    if n_seam == 0 or len(borders_z) < 2:
+        return (pos, faces), info
+    keep = max(1.0 - (n_faces - target) / n_seam, 0.0)
+    queue = [sorted(borders_z)]
+    while queue:
+        batch = queue.pop(0)
+        done, why = seam_pass_device(pos, faces, batch, width_mm, target, budget, keep=keep)
+        if done is None:
+            if len(batch) < 2 or why["seam_faces"] == 0:
+                info["skipped"] = why
+                break
+            half = len(batch) // 2
+            queue[:0] = [batch[:half], batch[half:]]
+            continue
+        (pos, faces), info["batches"] = done, info["batches"] + 1
+        info["passes"].append(why["passes"])
+    else:
+        info["complete"] = True
+        del info["skipped"]
+    info.update(faces_out=len(faces), seconds=time.perf_counter() - t0)
+    return (pos, faces), info
+
+
+def seam_pass_device(
+    pos: Any,
+    faces: Any,
+    borders_z: list[float],
+    width_mm: float,
+    target: int,
+    budget: int | None,
+    keep: float | None = None,
 ) -> tuple[tuple[Any, Any] | None, dict[str, Any]]:
     """``seam_pass`` on a device mesh, where the seam's decimation fits ``budget`` beside the mesh: the seam's faces
-    are decimated (quadrics from the current faces), pinned where they meet the rest. ``((pos, faces), info)``, or
-    ``(None, why)`` where it does not fit."""
+    are decimated (quadrics from the current faces), pinned where they meet the rest, down to the mesh's ``target``
+    (or to ``keep`` of the seam's faces). ``((pos, faces), info)``, or ``(None, why)`` where it does not fit."""
     import warp as wp
 
     from engine.kernels import tiles as kt
@@ -235,7 +280,7 @@ def seam_pass_device(
         lock = wp.empty(n_local, dtype=wp.int32)
         wp.launch(kt.gather_seam, dim=n_verts, inputs=[pos, in_seam, in_rest, vslot, vids, local_pos, lock])
         del in_seam, in_rest, vslot
-        goal = max(n_seam - (n_faces - target), 1)
+        goal = max(n_seam - (n_faces - target) if keep is None else round(keep * n_seam), 1)
         res = decimate_carrying(local_pos, seam, goal, locked=lock, max_passes=SEAM_MAX_PASSES)
         del local_pos, seam
         n_out = len(res.pos)

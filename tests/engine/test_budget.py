@@ -207,3 +207,31 @@ def test_write_outputs_within_a_budget_tiles_the_viewing_copies(unbounded, tmp_p
     with pytest.raises(BudgetError, match="laying out"):
         write_outputs(unbounded, tmp_path / "small", params, device="cpu", max_device_bytes=1 * MIB)
     assert not (tmp_path / "small" / "model.stl").exists()
+
+
+def test_device_seams_in_batches_when_all_at_once_would_not_fit(phantom, unbounded, monkeypatch):
+    """Seams that would not fit beside the mesh all at once are decimated a few borders at a time (here: one
+    border per batch), still on the device, each giving up its share of the faces."""
+    import engine.stages.stream as stream
+    import engine.stages.tiled as tiled
+
+    monkeypatch.setattr(tiled, "DECIMATE_BYTES_PER_FACE", 1000)
+    init, one_pass = stream.GroupDecimator.__init__, tiled.seam_pass_device
+
+    def seams_mode(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        self.mode = "seams"
+
+    def one_border_at_a_time(pos, faces, borders, width, target, budget, keep=None):
+        return one_pass(pos, faces, borders, width, target, budget if len(borders) == 1 else 1, keep=keep)
+
+    monkeypatch.setattr(stream.GroupDecimator, "__init__", seams_mode)
+    monkeypatch.setattr(tiled, "seam_pass_device", one_border_at_a_time)
+    got = reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=17 * MIB)
+    dec = got.report["decimate"]
+    assert dec["borders"] >= 2
+    assert dec["seams"]["complete"] and dec["seams"]["on"] == "device"
+    assert dec["seams"]["batches"] == dec["borders"]
+    assert topology(got.report) == topology(unbounded.report)
+    target = dec["target_faces"]
+    assert target <= got.report["mesh"]["n_faces"] <= target * 1.02
