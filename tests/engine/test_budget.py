@@ -209,7 +209,8 @@ def test_write_outputs_within_a_budget_tiles_the_viewing_copies(unbounded, tmp_p
     assert not (tmp_path / "small" / "model.stl").exists()
 
 
-def test_device_seams_in_batches_when_all_at_once_would_not_fit(phantom, unbounded, monkeypatch):
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
+def test_device_seams_in_batches_when_all_at_once_would_not_fit(phantom, unbounded, monkeypatch, device):
     """Seams that would not fit beside the mesh all at once are decimated a few borders at a time (here: one
     border per batch), still on the device, each giving up its share of the faces."""
     import engine.stages.stream as stream
@@ -227,7 +228,7 @@ def test_device_seams_in_batches_when_all_at_once_would_not_fit(phantom, unbound
 
     monkeypatch.setattr(stream.GroupDecimator, "__init__", seams_mode)
     monkeypatch.setattr(tiled, "seam_pass_device", one_border_at_a_time)
-    got = reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=17 * MIB)
+    got = reconstruct(phantom, ReconParams(), device=device, max_device_bytes=17 * MIB)
     dec = got.report["decimate"]
     assert dec["borders"] >= 2
     assert dec["seams"]["complete"] and dec["seams"]["on"] == "device"
