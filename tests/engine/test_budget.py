@@ -209,7 +209,6 @@ def test_write_outputs_within_a_budget_tiles_the_viewing_copies(unbounded, tmp_p
     assert not (tmp_path / "small" / "model.stl").exists()
 
 
-@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
 def test_device_seams_in_batches_when_all_at_once_would_not_fit(phantom, unbounded, monkeypatch, device):
     """Seams that would not fit beside the mesh all at once are decimated a few borders at a time (here: one
     border per batch), still on the device, each giving up its share of the faces."""
