@@ -31,6 +31,7 @@ from engine.viewing import viewing_copies
 
 if TYPE_CHECKING:
     from engine.pipeline import Reconstruction
+    from engine.staging import HostCopies
 
 STL_HEADER = "bonemesh model, patient LPS frame, mm"
 HELD_BYTES_PER_FACE = 60  # the model and its patient/viewing copies, held while the viewing copies are made
@@ -57,14 +58,24 @@ class Layout:
     seconds: dict[str, float]
 
 
-def lay_out(pos: Any, faces: Any, normals: Any, frame: Any) -> Layout:
+def layout_host_bytes(n_vertices: int, n_faces: int) -> int:
+    """The host bytes of a ``Layout``'s arrays (STL facets, glTF positions, normals and indices), with room for
+    their alignment in ``engine.staging``."""
+    from engine.staging import ALIGN
+
+    return n_faces * 60 + n_vertices * 24 + 4 * ALIGN
+
+
+def lay_out(pos: Any, faces: Any, normals: Any, frame: Any, to_host: HostCopies | None = None) -> Layout:
     """Map a device mesh (grid (z, y, x) mm, unit normals) into the patient frame (``engine.orient.Frame``) and lay
-    out its file buffers; the host arrays come back in one sync."""
+    out its file buffers; the host arrays come back in one sync (through ``to_host``: pinned memory where it
+    holds some, ``engine.staging``)."""
     import warp as wp
 
     from engine.export.glb import MM_TO_M
     from engine.kernels import export as kx
     from engine.stages.devmesh import bounds
+    from engine.staging import HostCopies
 
     t0 = time.perf_counter()
     n = len(pos)
@@ -92,21 +103,26 @@ def lay_out(pos: Any, faces: Any, normals: Any, frame: Any) -> Layout:
     wp.launch(kx.gltf_vertices, dim=n, inputs=[view, turned, wp.float64(MM_TO_M), gpos, gnrm])
     glo, ghi = bounds(gpos)  # sync point: every kernel above has run
     t1 = time.perf_counter()
+    to_host = to_host or HostCopies(None, pos.device)
+    host = [to_host(a) for a in (facets, gpos, gnrm, faces)]
+    to_host.wait()
+    gltf_pos, gltf_normals, tris = (a.reshape(-1, 3) for a in host[1:])
     lay = Layout(
         pos=patient,
         faces=faces,
         view_pos=view,
         view_normals=turned,
         centre_xyz=centre[::-1],
-        facets=facets.numpy(),
-        gltf_pos=gpos.numpy().reshape(-1, 3),
-        gltf_normals=gnrm.numpy().reshape(-1, 3),
+        facets=host[0],
+        gltf_pos=gltf_pos,
+        gltf_normals=gltf_normals,
         gltf_bounds={"min": [float(x) for x in glo], "max": [float(x) for x in ghi]},
-        tris=faces.numpy().reshape(-1, 3),
+        tris=tris,
         zero_area=int(zero_area.numpy()[0]),
         seconds={"kernels": t1 - t0},
     )
     lay.seconds["copies"] = time.perf_counter() - t1
+    lay.seconds["pinned"] = float(to_host.pinned)
     return lay
 
 
@@ -179,6 +195,7 @@ def write_outputs(
     from engine.memory import parse_bytes
     from engine.orient import Frame
     from engine.stages.devmesh import mesh_stats_device
+    from engine.staging import host_copies
 
     params = params or ReconParams()
     dev = resolve_device(device)
@@ -194,41 +211,27 @@ def write_outputs(
             budget = parse_bytes(max_device_bytes)
             _check_budget(len(faces), budget)
             frame = report.get("frame")
-            lay = lay_out(pos, faces, normals, Frame.from_dict(frame))
-            # the STL in patient LPS mm, the glTF files in patient axes centred on the model (engine.orient)
-            report["frame"] = {
-                **(frame or Frame.from_dict(None).to_dict()),
-                "gltf_centre_lps_mm": [round(float(c), 6) for c in lay.centre_xyz],
-            }
-            stats = report.get("mesh") or mesh_stats_device(lay.pos, lay.faces)
-            stl = stl_name(params)
-            if stl == PRINT_STL:  # an unprintable print model fails here (PrintCheckError), unwritten
-                report["print_check"] = check_print_model(None, None, stats, zero_area=lay.zero_area)
-            seconds["layout"] = time.perf_counter() - t0
-            seconds.update({f"layout_{k}": v for k, v in lay.seconds.items()})
-            with ThreadPoolExecutor(1, thread_name_prefix="bonemesh-write") as pool:
-                writing = pool.submit(_write_print_files, tmp, stl, lay)
-                t1 = time.perf_counter()
-                closed = bool(stats.get("watertight")) and bool(stats.get("manifold"))
-                budgets = [params.export.phone_max_triangles, params.export.ar_max_triangles]
-                room = None if budget is None else budget - HELD_BYTES_PER_FACE * len(lay.faces)
-                (ppos, pfaces, phone_info), (apos, afaces, ar_info) = viewing_copies(
-                    lay.view_pos, lay.faces, budgets, stats.get("components"), closed, room
-                )
-                keep_normals = lay.view_normals if ppos is lay.view_pos else None
-                phone = _host_mesh(ppos, pfaces, keep_normals)
-                ar = phone if apos is ppos else _host_mesh(apos, afaces)
-                seconds["viewing_copies"] = time.perf_counter() - t1
-                t1 = time.perf_counter()
-                small, seconds["encode_parts"] = _encode_small(phone, ar)
-                for name, data in small.items():
-                    (tmp / name).write_bytes(data)
-                seconds["encode_small"] = time.perf_counter() - t1
-                t1 = time.perf_counter()
-                sizes = writing.result()
-                seconds["wait_print_files"] = time.perf_counter() - t1
+            with host_copies(dev, layout_host_bytes(len(pos), len(faces))) as to_host:
+                lay = lay_out(pos, faces, normals, Frame.from_dict(frame), to_host)
+                # the STL in patient LPS mm, the glTF files in patient axes centred on the model (engine.orient)
+                report["frame"] = {
+                    **(frame or Frame.from_dict(None).to_dict()),
+                    "gltf_centre_lps_mm": [round(float(c), 6) for c in lay.centre_xyz],
+                }
+                stats = report.get("mesh") or mesh_stats_device(lay.pos, lay.faces)
+                stl = stl_name(params)
+                if stl == PRINT_STL:  # an unprintable print model fails here (PrintCheckError), unwritten
+                    report["print_check"] = check_print_model(None, None, stats, zero_area=lay.zero_area)
+                seconds["layout"] = time.perf_counter() - t0
+                seconds.update({f"layout_{k}": v for k, v in lay.seconds.items()})
+                with ThreadPoolExecutor(1, thread_name_prefix="bonemesh-write") as pool:
+                    writing = pool.submit(_write_print_files, tmp, stl, lay)
+                    small, infos = _viewing_files(lay, stats, params, budget, tmp, seconds)
+                    t1 = time.perf_counter()
+                    sizes = writing.result()
+                    seconds["wait_print_files"] = time.perf_counter() - t1
         sizes.update({name: len(data) for name, data in small.items()})
-        report["exports"] = {"phone.glb": phone_info, "ar.glb": ar_info}
+        report["exports"] = infos
         report["exports"].update({name: {**report["exports"].get(name, {}), "bytes": n} for name, n in sizes.items()})
         seconds["total"] = time.perf_counter() - t0
         report["write_seconds"] = seconds
@@ -240,6 +243,30 @@ def write_outputs(
         return paths
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _viewing_files(
+    lay: Layout, stats: dict[str, Any], params: ReconParams, budget: int | None, tmp: Path, seconds: dict[str, Any]
+) -> tuple[dict[str, bytes], dict[str, Any]]:
+    """The phone and AR copies (on the device) and the small files made from them, written into ``tmp``:
+    ``({name: bytes}, {"phone.glb": how the copy was made, "ar.glb": ...})``; their seconds go into ``seconds``."""
+    t1 = time.perf_counter()
+    closed = bool(stats.get("watertight")) and bool(stats.get("manifold"))
+    budgets = [params.export.phone_max_triangles, params.export.ar_max_triangles]
+    room = None if budget is None else budget - HELD_BYTES_PER_FACE * len(lay.faces)
+    (ppos, pfaces, phone_info), (apos, afaces, ar_info) = viewing_copies(
+        lay.view_pos, lay.faces, budgets, stats.get("components"), closed, room
+    )
+    keep_normals = lay.view_normals if ppos is lay.view_pos else None
+    phone = _host_mesh(ppos, pfaces, keep_normals)
+    ar = phone if apos is ppos else _host_mesh(apos, afaces)
+    seconds["viewing_copies"] = time.perf_counter() - t1
+    t1 = time.perf_counter()
+    small, seconds["encode_parts"] = _encode_small(phone, ar)
+    for name, data in small.items():
+        (tmp / name).write_bytes(data)
+    seconds["encode_small"] = time.perf_counter() - t1
+    return small, {"phone.glb": phone_info, "ar.glb": ar_info}
 
 
 def _encode_small(phone: Mesh, ar: Mesh) -> tuple[dict[str, bytes], dict[str, float]]:
