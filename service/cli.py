@@ -1,7 +1,7 @@
 """The ``bonemesh`` command: ``serve`` (the API) and ``worker`` (a Celery worker) here; every other command
 (``reconstruct``, ``isosurface``, ``sweep``) is the engine's (:mod:`engine.cli`).
 
-    bonemesh serve [--host 127.0.0.1] [--port 8000]
+    bonemesh serve [--host 127.0.0.1] [--port 8000] [--workers 1]
     bonemesh worker [--loglevel INFO] [--device auto|cpu|cuda:N]
     bonemesh pacs [--host H] [--port P] [--ae-title AE]   (service.pacs.gateway)
 
@@ -20,10 +20,26 @@ def _serve(argv: list[str]) -> int:
     parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--port", type=int, default=8000)
     parser.add_argument("--log-level", default="info")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="API processes sharing the port: each parses the uploads it receives, so several take uploads in "
+        "parallel (they share the data folder's signing key and database)",
+    )
     args = parser.parse_args(argv)
+    if args.workers < 1:
+        parser.error("--workers must be at least 1")
     import uvicorn
 
-    uvicorn.run("service.app:create_app", factory=True, host=args.host, port=args.port, log_level=args.log_level)
+    uvicorn.run(
+        "service.app:create_app",
+        factory=True,
+        host=args.host,
+        port=args.port,
+        log_level=args.log_level,
+        workers=args.workers if args.workers > 1 else None,
+    )
     return 0
 
 

@@ -96,8 +96,8 @@ class Database:
         if url.startswith("sqlite"):
             event.listen(self.engine, "connect", _sqlite_pragmas)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
-        Base.metadata.create_all(self.engine)
-        _add_missing_columns(self.engine)
+        create_tables(Base.metadata, self.engine)
+        _schema_step(lambda: _add_missing_columns(self.engine))
 
     @contextmanager
     def session(self) -> Iterator[Session]:
@@ -281,6 +281,25 @@ class Database:
             job.webhook_attempts = [*(job.webhook_attempts or []), attempt]
             job.webhook_state = state
             job.webhook_next_at = next_at
+
+
+def create_tables(metadata: Any, engine: Engine) -> None:
+    """``metadata.create_all``, safe when several processes start at once (API processes, workers): one that loses
+    the race to create a table sees it on the next try."""
+    _schema_step(lambda: metadata.create_all(engine))
+
+
+def _schema_step(step: Any, tries: int = 5) -> None:
+    """Run a schema step, again while it fails because another process did the same thing just before."""
+    from sqlalchemy.exc import OperationalError, ProgrammingError
+
+    for attempt in range(tries):
+        try:
+            step()
+            return
+        except (OperationalError, ProgrammingError) as exc:
+            if attempt == tries - 1 or not any(s in str(exc).lower() for s in ("already exists", "duplicate")):
+                raise
 
 
 def _add_missing_columns(engine: Engine) -> None:

@@ -49,6 +49,10 @@ class Settings(BaseSettings):
     decode_processes: bool | None = Field(
         default=None, description="DICOM in processes: true, false; unset: for 64+ files on 4+ CPUs (engine.io)"
     )
+    warmup: Literal["auto", "true", "false"] = Field(
+        default="auto",
+        description="the worker warms its device up with one small job before taking any (auto: on a GPU)",
+    )
     png_decoder: Literal["auto", "pillow"] = Field(
         default="auto", description="auto: libpng for plain grayscale PNG; pillow: every PNG through Pillow (slower)"
     )

@@ -13,8 +13,12 @@ import multiprocessing.process
 from celery import Celery
 from celery.signals import worker_process_init
 
+from service.logsafe import safe_logger
 from service.queue import celery_config
-from service.settings import get_settings
+from service.settings import Settings, get_settings
+
+log = safe_logger("bonemesh.worker")
+WARMUP_TIMEOUT_S = 300  # how long the pool waits for a child's start (its warm-up included)
 
 
 def make_app() -> Celery:
@@ -31,6 +35,7 @@ def make_app() -> Celery:
         worker_max_tasks_per_child=50,
         worker_hijack_root_logger=False,
         worker_send_task_events=False,
+        worker_proc_alive_timeout=WARMUP_TIMEOUT_S,
     )
     return app
 
@@ -49,3 +54,33 @@ def _allow_children(**_: object) -> None:
     current = multiprocessing.current_process()
     current._config["daemon"] = False  # the setter refuses on a started process
     current._config["authkey"] = multiprocessing.process.AuthenticationString(bytes(current.authkey))
+
+
+def warms_up(settings: Settings) -> bool:
+    """Whether the worker warms its device up at start: ``BONEMESH_WARMUP`` true, or auto on a CUDA device."""
+    if settings.warmup != "auto":
+        return settings.warmup == "true"
+    if settings.device.startswith("cuda"):
+        return True
+    if settings.device != "auto":
+        return False
+    from engine.device import cuda_available
+
+    return cuda_available()
+
+
+@worker_process_init.connect
+def _warm_device(**_: object) -> None:
+    """One small job on the device before the first real one (``engine.warmup``); a failure is logged, and the
+    first job then pays for what was not warmed (or fails with its own reason)."""
+    settings = get_settings()
+    if not warms_up(settings):
+        return
+    try:
+        from engine.warmup import warm_up
+
+        info = warm_up(settings.device, settings.max_device_bytes)
+    except Exception as exc:
+        log.warning("warm-up failed on %s: %s", settings.device, exc)
+        return
+    log.info("device %s warm in %.2f s", info["device"], info["seconds"])

@@ -334,10 +334,11 @@ class ServiceStack:
     def _count(self) -> int:
         return len(self.servers) + len(self.workers) + 1
 
-    def start_server(self, port: int | None = None, extra_env: dict[str, str] | None = None) -> str:
-        """Start ``bonemesh serve`` and wait for /healthz; returns its base URL (the first becomes ``base_url``)."""
+    def start_server(self, port: int | None = None, extra_env: dict[str, str] | None = None, workers: int = 1) -> str:
+        """Start ``bonemesh serve`` (with ``workers`` API processes) and wait for /healthz; returns its base URL (the
+        first becomes ``base_url``)."""
         port = port or free_port()
-        argv = [*bonemesh_argv(), "serve", "--host", "127.0.0.1", "--port", str(port)]
+        argv = [*bonemesh_argv(), "serve", "--host", "127.0.0.1", "--port", str(port), "--workers", str(workers)]
         proc = Proc(
             f"server:{port}",
             argv,
