@@ -301,7 +301,10 @@ def stream_surface(
     plan = SlabPlan(int(budget * SLAB_SHARE), plane_bytes, halo, max_faces=max(cap, 1), strict=True)
     origin = 0.5 * (np.array(volume.shape, np.float64) - 1) * np.asarray(spacing, np.float64)
     # the groups stop short of the target (GROUP_SLACK), leaving the last collapses to a pass across their borders
-    room = mesh_room if decimate else 1 << 62  # undecimated, the mesh stays whole (its size is checked below)
+    # a group is decimated between slabs, when the slab's working set is freed: it may use the whole budget but for
+    # what stays on the device meanwhile (the halo planes of the streamed Gaussian, the shared-plane vertex ids)
+    resident = halo * plane_bytes + 16 * (volume.shape[1] + 1) * (volume.shape[2] + 1)
+    room = budget - resident if decimate else 1 << 62  # undecimated, the mesh stays whole (checked below)
     group_ratio = ratio if ratio is not None else 0.5
     groups = GroupDecimator(group_ratio, GROUP_SLACK, room, int(budget * SPILL_SHARE), origin, volume.shape[0], dev)
     out = StreamResult(origin=origin)

@@ -218,9 +218,9 @@ def test_device_seams_in_batches_when_all_at_once_would_not_fit(phantom, unbound
     monkeypatch.setattr(tiled, "DECIMATE_BYTES_PER_FACE", 1000)
     init, one_pass = stream.GroupDecimator.__init__, tiled.seam_pass_device
 
-    def seams_mode(self, *args, **kwargs):
+    def seams_mode(self, *args, **kwargs):  # and smaller groups, so there are several borders
         init(self, *args, **kwargs)
-        self.mode = "seams"
+        self.mode, self.mesh_room = "seams", self.mesh_room * 2 // 3
 
     def one_border_at_a_time(pos, faces, borders, width, target, budget, keep=None):
         return one_pass(pos, faces, borders, width, target, budget if len(borders) == 1 else 1, keep=keep)
