@@ -16,15 +16,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime as dt
-import json
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from benchmarks.phantom import bone_phantom
+from benchmarks.report import write_json
 from engine.params import IsoParams, ReconParams
 from engine.types import Volume
 
@@ -108,10 +106,6 @@ def _bench(volume: Volume, device: str, repeat: int, params: ReconParams) -> dic
     }
 
 
-def _json_default(obj: Any) -> Any:
-    return obj.item() if isinstance(obj, np.generic) else str(obj)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--device", default="auto")
@@ -142,10 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         "parameters": CONFIGS[args.config].to_dict(),
         "results": results,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(
-        json.dumps(report, indent=2, default=lambda o: o.item() if isinstance(o, np.generic) else str(o))
-    )
+    write_json(args.out, report)
     return 0
 
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime as dt
-import json
 import tempfile
 import time
 from pathlib import Path
@@ -27,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.phantom import bone_phantom
+from benchmarks.report import write_json
 from engine.params import ExportParams, IsoParams, ReconParams
 from engine.types import Volume
 
@@ -78,10 +78,6 @@ def _budget_run(recon: Any, lay: Any, device: str, budgets: list[int], repeat: i
     out["write_outputs_seconds"], out["write_outputs_parts"] = writes[len(writes) // 2]
     out["write_outputs_seconds_all"] = [w[0] for w in writes]
     return out
-
-
-def _json_default(obj: Any) -> Any:
-    return obj.item() if isinstance(obj, np.generic) else str(obj)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -143,10 +139,7 @@ def main(argv: list[str] | None = None) -> int:
         "mesh": mesh,
         "results": results,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(
-        json.dumps(report, indent=2, default=lambda o: o.item() if isinstance(o, np.generic) else str(o))
-    )
+    write_json(args.out, report)
     return 0
 
 
