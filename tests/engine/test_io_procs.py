@@ -28,6 +28,7 @@ from engine.io.archive import open_members
 from engine.io.parallel import ordered_map
 from engine.io.readers import read_where
 from engine.types import Volume
+from tests.engine.decode_spy import load_counting_pools
 from tests.engine.dicom_factory import series
 
 REPO = Path(__file__).resolve().parents[2]
@@ -177,18 +178,7 @@ def _load_in_child(path: str, drop_daemon_flag: bool) -> dict[str, object]:
     """Runs in a daemonic pool child, as Celery's prefork children are (billiard: see the worker test)."""
     if drop_daemon_flag:
         multiprocessing.current_process()._config["daemon"] = False  # type: ignore[attr-defined]
-    used: list[int] = []
-    real = procs.DecodePool.close
-
-    def spy(pool: procs.DecodePool) -> None:
-        used.append(len(pool.pool._processes or {}))  # type: ignore[attr-defined]
-        real(pool)
-
-    procs.DecodePool.close = spy  # type: ignore[method-assign]
-    try:
-        vol = load_volume(path, threads=2, processes=True)
-    finally:
-        procs.DecodePool.close = real  # type: ignore[method-assign]
+    used, vol = load_counting_pools(path)
     return {"unavailable": procs.unavailable(), "pools": used, "data": vol.data.tolist()}
 
 
@@ -278,15 +268,7 @@ def test_read_where_reads_what_the_listing_reads(tmp_path: Path) -> None:
 
 
 def _load_forked(path: str, conn: Any) -> None:
-    ran: list[int] = []
-    real = procs.DecodePool.close
-
-    def spy(pool: procs.DecodePool) -> None:
-        ran.append(len(pool.pool._processes or {}))  # type: ignore[attr-defined]
-        real(pool)
-
-    procs.DecodePool.close = spy  # type: ignore[method-assign]
-    vol = load_volume(path, threads=2, processes=True)
+    ran, vol = load_counting_pools(path)
     conn.send((ran, vol.data.tolist()))
 
 

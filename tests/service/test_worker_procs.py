@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from engine.io import load_volume
+from tests.engine.decode_spy import load_counting_pools
 from tests.engine.dicom_factory import series
 
 billiard = pytest.importorskip("billiard")
@@ -19,20 +20,7 @@ billiard = pytest.importorskip("billiard")
 
 def _load(path: str) -> dict[str, Any]:
     """In the billiard child: load with processes asked for; whether a pool of processes was really used."""
-    import engine.io.procs as procs
-
-    used: list[int] = []
-    real = procs.DecodePool.close
-
-    def spy(pool: procs.DecodePool) -> None:  # a pool that ran is closed; one given up at start is not
-        used.append(len(pool.pool._processes or {}))  # type: ignore[attr-defined]
-        real(pool)
-
-    procs.DecodePool.close = spy  # type: ignore[method-assign]
-    try:
-        vol = load_volume(path, threads=2, processes=True)
-    finally:
-        procs.DecodePool.close = real  # type: ignore[method-assign]
+    used, vol = load_counting_pools(path)
     return {"pools": used, "data": vol.data.tolist(), "dtype": str(vol.data.dtype)}
 
 
