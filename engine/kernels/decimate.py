@@ -31,6 +31,7 @@ DEAD = wp.constant(3)  # collapsed away, or used by no face
 NO_KEY = wp.constant(0x7FFFFFFF)  # int32: not collapsible this pass
 CLAIM_FREE = wp.constant(wp.int64(0x7FFFFFFFFFFFFFFF))
 CLAIM_TAKEN = wp.constant(wp.int64(-1))
+TRIMMED = wp.constant(5)  # ``cand`` of a winner trimmed off (the pass has more winners than collapses left to do)
 HIST_SHIFT = wp.constant(15)  # 2^31 cost codes -> 65536 histogram bins
 QUALITY_MIN = wp.constant(wp.float64(1.0e-3))  # new faces below this quality are degenerate (unless not worse)
 QUALITY_SOFT = wp.constant(wp.float64(0.3))  # below this a collapse's cost is raised (MeshLab's qualitythr)
@@ -82,6 +83,12 @@ def mix32(x: int) -> wp.int64:
     h = h * MIX_B
     h = h ^ (h >> wp.uint32(16))
     return wp.int64(h)
+
+
+@wp.func
+def priority(code: int, h: int) -> wp.int64:
+    """An edge's claim priority, lower wins: its cost code, ties broken by the hashed slot."""
+    return (wp.int64(code) << wp.int64(32)) | mix32(h)
 
 
 @wp.func
@@ -565,7 +572,7 @@ def claim_stars(
     h = wp.tid()
     if cand[h] != 1:
         return
-    mine = (wp.int64(key[h]) << wp.int64(32)) | mix32(h)
+    mine = priority(key[h], h)
     ends = edge_ends(faces, h)
     for e in range(2):
         v = ends[e]
@@ -595,7 +602,7 @@ def settle_claims(
     h = wp.tid()
     if cand[h] != 1:
         return
-    mine = (wp.int64(key[h]) << wp.int64(32)) | mix32(h)
+    mine = priority(key[h], h)
     ends = edge_ends(faces, h)
     won = int(1)
     for e in range(2):
@@ -652,15 +659,34 @@ def winner_histogram(cand: wp.array(dtype=wp.int32), key: wp.array(dtype=wp.int3
 
 
 @wp.kernel
-def trim_winners(cand: wp.array(dtype=wp.int32), key: wp.array(dtype=wp.int32), bin_below: int, frac_bits: wp.int64):
-    """Keep only the cheapest winners (bins below ``bin_below``, a hashed share of that bin): near the target a
-    pass may collapse no more than what is left to do."""
+def trim_winners(
+    cand: wp.array(dtype=wp.int32), key: wp.array(dtype=wp.int32), bin_below: int, frac_bits: wp.int64, salt: int
+):
+    """Keep only the cheapest winners (bins below ``bin_below``, a share of that bin hashed with ``salt``): near the
+    target a pass may collapse no more than what is left to do. A repeated trim takes another salt, so that a share
+    that missed its count does not miss it the same way again."""
     h = wp.tid()
     if cand[h] != 2:
         return
     b = key[h] >> HIST_SHIFT
-    if b > bin_below or (b == bin_below and mix32(h) >= frac_bits):
-        cand[h] = 0
+    if b > bin_below or (b == bin_below and mix32(h ^ salt) >= frac_bits):
+        cand[h] = TRIMMED
+
+
+@wp.kernel
+def cheapest_trimmed(cand: wp.array(dtype=wp.int32), key: wp.array(dtype=wp.int32), best: wp.array(dtype=wp.int64)):
+    h = wp.tid()
+    if cand[h] == TRIMMED:
+        wp.atomic_min(best, 0, priority(key[h], h))
+
+
+@wp.kernel
+def restore_cheapest(cand: wp.array(dtype=wp.int32), key: wp.array(dtype=wp.int32), best: wp.array(dtype=wp.int64)):
+    """The cheapest trimmed winner collapses after all, where the trim (a hashed share of a cost bin) kept none:
+    a pass one collapse short of the target would otherwise trim the same way every pass."""
+    h = wp.tid()
+    if cand[h] == TRIMMED and priority(key[h], h) == best[0]:
+        cand[h] = 2
 
 
 # ------------------------------------------------------------------------------------------------ collapse
@@ -679,8 +705,10 @@ def apply_collapses(
     dirty: wp.array(dtype=wp.int32),
 ):
     """Collapse every winner: the survivor takes the position and both quadrics, the removed vertex's star is
-    rewritten. Marks dirty every vertex of the survivor's new star and their neighbours: exactly the edges whose
-    stars, positions, quadrics or opposite vertices' face counts changed have a dirty end."""
+    rewritten. Marks dirty exactly the vertices whose edges may price or check differently now: the survivor and
+    its new neighbours (every vertex of the two old stars: their stars, or the survivor's position, quadric and face
+    count, changed) and the neighbours of the two opposite vertices (each lost a face, and an edge reads the face
+    counts of the vertices opposite it)."""
     h = wp.tid()
     if cand[h] != 2:
         return
@@ -696,11 +724,16 @@ def apply_collapses(
         pos[s] = target[h]  # a border survivor keeps its position bit for bit
     quad[s] = quad[s] + quad[r]
     state[r] = DEAD
+    opposite = wp.vec2i(-1, -1)
+    n_opp = int(0)
     lo = offset[r]
     for i in range(count[r]):
         fi = star[lo + i]
         u = faces[fi]
         if has_vertex(u, s):
+            if n_opp < 2:
+                opposite[n_opp] = u[0] + u[1] + u[2] - r - s
+            n_opp += 1
             faces[fi] = wp.vec3i(-1, -1, -1)
             wp.atomic_add(removed_faces, 0, 1)
         else:
@@ -708,20 +741,20 @@ def apply_collapses(
                 if u[j] == r:
                     u[j] = s
             faces[fi] = u
-    # the changed stars' vertices (r's and s's old stars: s, r and their neighbours) and their neighbours
-    for e in range(2):
-        c = ends[e]
-        for i in range(count[c]):
-            u = faces[star[offset[c] + i]]
-            for j in range(3):
-                w = u[j]
-                if w >= 0:
-                    dirty[w] = 1
-                    for m in range(count[w]):
-                        x = faces[star[offset[w] + m]]  # another winner may be rewriting it: check each index
-                        for k in range(3):
-                            if x[k] >= 0:
-                                dirty[x[k]] = 1
+    # another winner may be rewriting a face of an opposite vertex's star: each index is checked (an old index is
+    # that winner's removed vertex, whose replacement that winner marks itself)
+    for e in range(4):
+        c = -1
+        if e < 2:
+            c = ends[e]
+        else:
+            c = opposite[e - 2]
+        if c >= 0:
+            for i in range(count[c]):
+                u = faces[star[offset[c] + i]]
+                for j in range(3):
+                    if u[j] >= 0:
+                        dirty[u[j]] = 1
 
 
 # ------------------------------------------------------------------------------------------------ compaction

@@ -64,6 +64,24 @@ def test_deterministic(ball, device) -> None:
     np.testing.assert_array_equal(a[1], b[1])
 
 
+@pytest.mark.parametrize("radius", [5.0, 7.0, 9.0])
+def test_targets_a_few_collapses_away_are_met_exactly(radius, device) -> None:
+    """The last pass keeps no more winners than collapses are left, and at least one: a hashed share of a cost bin
+    can keep none (then the cheapest winner collapses) or too many (then another share is taken)."""
+    import warp as wp
+
+    from engine.stages.decimate import decimate_device
+
+    z, y, x = np.mgrid[:24, :24, :24].astype(np.float32)
+    field = radius - np.sqrt((z - 11.3) ** 2 + (y - 11.6) ** 2 + (x - 11.5) ** 2)
+    v, f = marching_cubes_33(field, 0.0, spacing=(0.5, 0.5, 0.5), device="cpu", closed=True)
+    with wp.ScopedDevice(device):
+        pos, faces = wp.array(v, dtype=wp.vec3), wp.array(f, dtype=wp.vec3i)
+        for collapses in (1, 2, 3):
+            _, out, stats = decimate_device(pos, faces, len(f) - 2 * collapses, max_passes=8)
+            assert (len(out), stats.stopped) == (len(f) - 2 * collapses, "target reached"), stats.to_dict()
+
+
 def test_torus_keeps_its_handle_down_to_the_guards(device) -> None:
     """Decimated as far as the guards allow, a torus stays one closed handle (link condition at work)."""
     z, y, x = np.indices((24, 40, 40), dtype=np.float32)
