@@ -32,7 +32,7 @@ async def receive(request: Request, svc: Services, who: str, limit: int, base_ur
         parsed = await read_multipart(
             request.headers.get("content-type", ""),
             request.stream(),
-            lambda data: svc.in_upload_thread(writer.write, data),
+            lambda batch: svc.in_upload_thread(writer.write_many, batch),
         )
         params, engine = parse_params(parsed.fields.get("params"))
         callback = parsed.fields.get("callback_url", "").strip() or None

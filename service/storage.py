@@ -61,8 +61,13 @@ class UploadWriter(ABC):
     size: int
 
     @abstractmethod
-    def write(self, chunk: bytes) -> None:
+    def write(self, chunk: bytes | memoryview) -> None:
         """Append; raises UploadTooLarge past the limit."""
+
+    def write_many(self, chunks: list[memoryview]) -> None:
+        """Append each in order (one call for a batch of received buffers)."""
+        for chunk in chunks:
+            self.write(chunk)
 
     @abstractmethod
     def commit(self) -> None:
@@ -183,7 +188,7 @@ class _LocalUpload(UploadWriter):
         self.tmp = folder / f".upload-{uuid.uuid4().hex}.part"
         self.fh = self.tmp.open("wb")
 
-    def write(self, chunk: bytes) -> None:
+    def write(self, chunk: bytes | memoryview) -> None:
         self.size += len(chunk)
         if self.size > self.max_bytes:
             self.abort()

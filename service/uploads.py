@@ -1,13 +1,16 @@
 """Strict, streaming ``multipart/form-data`` reader for job uploads.
 
-The ``file`` part goes to an async sink in chunks of about a MiB (the API writes them to storage off the event
-loop), never held whole in memory; the small text field ``params`` is kept. The body must be complete: a missing
+The ``file`` part goes to an async sink in batches of about 4 MiB (the API writes them to storage off the event
+loop), never held whole in memory: the batch is the received buffers themselves (views, not copies), and one batch
+is written while the next is parsed. The small text field ``params`` is kept. The body must be complete: a missing
 closing boundary, a part sent twice, or oversized part headers are 400s, never a silent default or "last one wins".
 The uploaded file's name is client text: it is kept with its control characters escaped.
 """
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 
@@ -17,9 +20,9 @@ from service.logsafe import escape_control
 
 MAX_FIELD_BYTES = 64 << 10
 MAX_HEADER_BYTES = 16 << 10
-FLUSH_BYTES = 1 << 20
+FLUSH_BYTES = 4 << 20
 FIELDS = ("params", "callback_url")
-Sink = Callable[[bytes], Awaitable[None]]
+Sink = Callable[[list[memoryview]], Awaitable[None]]  # awaited with the file's next buffers, in order
 
 
 class UploadError(Exception):
@@ -61,7 +64,8 @@ async def read_multipart(content_type: str, body: AsyncIterator[bytes], sink: Si
         raise UploadError(415, "send the scan as multipart/form-data with a 'file' part (and optional 'params')")
     out = ParsedUpload()
     part = _Part()
-    pending = bytearray()  # file bytes parsed but not yet handed to the sink
+    pending: list[memoryview] = []  # file bytes parsed but not yet handed to the sink: views of the received chunks
+    pending_bytes = 0
     seen: set[str] = set()
 
     def on_part_begin() -> None:
@@ -103,8 +107,11 @@ async def read_multipart(content_type: str, body: AsyncIterator[bytes], sink: Si
         part.name = name
 
     def on_part_data(data: bytes, start: int, end: int) -> None:
+        nonlocal pending_bytes
         if part.name == "file":
-            pending.extend(data[start:end])
+            view = memoryview(data)[start:end]  # the received chunk itself (immutable bytes), not a copy
+            pending.append(view if isinstance(data, bytes) else memoryview(bytes(view)))
+            pending_bytes += end - start
             return
         part.buf.extend(data[start:end])
         if len(part.buf) > MAX_FIELD_BYTES:
@@ -129,19 +136,33 @@ async def read_multipart(content_type: str, body: AsyncIterator[bytes], sink: Si
             "on_part_end": on_part_end,
         },
     )
+    writing: asyncio.Future[None] | None = None  # the batch being written while the next one is parsed
+
+    async def flush() -> None:
+        nonlocal pending, pending_bytes, writing
+        if writing is not None:
+            await writing
+        batch, pending, pending_bytes = pending, [], 0
+        writing = asyncio.ensure_future(sink(batch)) if batch else None
+
     try:
-        async for chunk in body:
-            parser.write(chunk)
-            if len(pending) >= FLUSH_BYTES:
-                await sink(bytes(pending))
-                pending.clear()
-        parser.finalize()
-    except MultipartParseError as exc:
-        raise UploadError(400, f"the multipart body is malformed: {exc}") from None
-    if parser.state != MultipartState.END:
-        raise UploadError(400, "the multipart body ends before its closing boundary: the upload is incomplete")
-    if pending:
-        await sink(bytes(pending))
+        try:
+            async for chunk in body:
+                parser.write(chunk)
+                if pending_bytes >= FLUSH_BYTES:
+                    await flush()
+            parser.finalize()
+        except MultipartParseError as exc:
+            raise UploadError(400, f"the multipart body is malformed: {exc}") from None
+        if parser.state != MultipartState.END:
+            raise UploadError(400, "the multipart body ends before its closing boundary: the upload is incomplete")
+        await flush()
+        if writing is not None:
+            await writing
+    finally:  # never leave a write running behind a refused or cancelled upload (its file is discarded next)
+        if writing is not None and not writing.done():
+            with contextlib.suppress(BaseException):
+                await asyncio.shield(writing)
     if not out.got_file:
         raise UploadError(422, "the 'file' part is missing: attach the scan archive as 'file'")
     return out
