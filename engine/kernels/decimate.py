@@ -86,6 +86,16 @@ def mix32(x: int) -> wp.int64:
 
 
 @wp.func
+def listed(listing: wp.array(dtype=wp.int32), n_listed: wp.array(dtype=wp.int32), i: int) -> int:
+    """The ``i``-th slot of the pass's candidate list (``select_candidates``), or -1 past its end: the kernels after
+    the selection run over the candidates only, not over every slot."""
+    h = int(-1)
+    if i < n_listed[0]:
+        h = listing[i]
+    return h
+
+
+@wp.func
 def priority(code: int, h: int) -> wp.int64:
     """An edge's claim priority, lower wins: its cost code, ties broken by the hashed slot."""
     return (wp.int64(code) << wp.int64(32)) | mix32(h)
@@ -460,6 +470,8 @@ def below_cut(c: int, h: int, bin_below: int, frac_bits: wp.int64) -> bool:
 
 @wp.kernel
 def check_candidates(
+    listing: wp.array(dtype=wp.int32),
+    n_listed: wp.array(dtype=wp.int32),
     cand: wp.array(dtype=wp.int32),
     pos: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.vec3i),
@@ -479,7 +491,9 @@ def check_candidates(
     """Pricing, second phase, for the competing edges not checked since they were priced: the guards. An edge that
     fails one gets ``NO_KEY`` (until something it reads changes); one that passes keeps its code, raised where the
     new faces are poor (MeshLab's quality threshold), and competes only if that code is still under the cut."""
-    h = wp.tid()
+    h = listed(listing, n_listed, wp.tid())
+    if h < 0:
+        return
     if cand[h] != 1 or checked[h] != 0:
         return
     checked[h] = 1
@@ -548,18 +562,27 @@ def cost_histogram(key: wp.array(dtype=wp.int32), hist: wp.array(dtype=wp.int32)
 
 @wp.kernel
 def select_candidates(
-    key: wp.array(dtype=wp.int32), bin_below: int, frac_bits: wp.int64, cand: wp.array(dtype=wp.int32)
+    key: wp.array(dtype=wp.int32),
+    bin_below: int,
+    frac_bits: wp.int64,
+    cand: wp.array(dtype=wp.int32),
+    listing: wp.array(dtype=wp.int32),
+    n_listed: wp.array(dtype=wp.int32),
 ):
-    """Edges under the pass's cost quantile compete (``below_cut``)."""
+    """Edges under the pass's cost quantile compete (``below_cut``), and are listed (in no particular order: what
+    the later kernels decide does not depend on the order of the list)."""
     h = wp.tid()
     cand[h] = 0
     if below_cut(key[h], h, bin_below, frac_bits):
         cand[h] = 1
+        listing[wp.atomic_add(n_listed, 0, 1)] = h
 
 
 # ------------------------------------------------------------------------------------------------ claims
 @wp.kernel
 def claim_stars(
+    listing: wp.array(dtype=wp.int32),
+    n_listed: wp.array(dtype=wp.int32),
     cand: wp.array(dtype=wp.int32),
     key: wp.array(dtype=wp.int32),
     faces: wp.array(dtype=wp.vec3i),
@@ -569,7 +592,9 @@ def claim_stars(
     claim: wp.array(dtype=wp.int64),
 ):
     """Each competing edge bids its key on every face of its two stars."""
-    h = wp.tid()
+    h = listed(listing, n_listed, wp.tid())
+    if h < 0:
+        return
     if cand[h] != 1:
         return
     mine = priority(key[h], h)
@@ -583,6 +608,8 @@ def claim_stars(
 
 @wp.kernel
 def settle_claims(
+    listing: wp.array(dtype=wp.int32),
+    n_listed: wp.array(dtype=wp.int32),
     cand: wp.array(dtype=wp.int32),
     key: wp.array(dtype=wp.int32),
     faces: wp.array(dtype=wp.vec3i),
@@ -599,7 +626,9 @@ def settle_claims(
     writes only its own stars, the vertices it reads do not move, and a vertex opposite several winners has at
     least three faces per winner around it, so the guards of each hold together.
     """
-    h = wp.tid()
+    h = listed(listing, n_listed, wp.tid())
+    if h < 0:
+        return
     if cand[h] != 1:
         return
     mine = priority(key[h], h)
@@ -623,6 +652,8 @@ def settle_claims(
 
 @wp.kernel
 def take_stars(
+    listing: wp.array(dtype=wp.int32),
+    n_listed: wp.array(dtype=wp.int32),
     cand: wp.array(dtype=wp.int32),
     faces: wp.array(dtype=wp.vec3i),
     offset: wp.array(dtype=wp.int32),
@@ -632,7 +663,9 @@ def take_stars(
 ):
     """This round's winners take their faces for the rest of the pass (a kernel of its own, so that what a losing
     edge saw in ``settle_claims`` does not depend on the order threads ran in)."""
-    h = wp.tid()
+    h = listed(listing, n_listed, wp.tid())
+    if h < 0:
+        return
     if cand[h] != 3:
         return
     cand[h] = 2
@@ -652,20 +685,36 @@ def release_claims(claim: wp.array(dtype=wp.int64)):
 
 
 @wp.kernel
-def winner_histogram(cand: wp.array(dtype=wp.int32), key: wp.array(dtype=wp.int32), hist: wp.array(dtype=wp.int32)):
-    h = wp.tid()
+def winner_histogram(
+    listing: wp.array(dtype=wp.int32),
+    n_listed: wp.array(dtype=wp.int32),
+    cand: wp.array(dtype=wp.int32),
+    key: wp.array(dtype=wp.int32),
+    hist: wp.array(dtype=wp.int32),
+):
+    h = listed(listing, n_listed, wp.tid())
+    if h < 0:
+        return
     if cand[h] == 2:
         wp.atomic_add(hist, key[h] >> HIST_SHIFT, 1)
 
 
 @wp.kernel
 def trim_winners(
-    cand: wp.array(dtype=wp.int32), key: wp.array(dtype=wp.int32), bin_below: int, frac_bits: wp.int64, salt: int
+    listing: wp.array(dtype=wp.int32),
+    n_listed: wp.array(dtype=wp.int32),
+    cand: wp.array(dtype=wp.int32),
+    key: wp.array(dtype=wp.int32),
+    bin_below: int,
+    frac_bits: wp.int64,
+    salt: int,
 ):
     """Keep only the cheapest winners (bins below ``bin_below``, a share of that bin hashed with ``salt``): near the
     target a pass may collapse no more than what is left to do. A repeated trim takes another salt, so that a share
     that missed its count does not miss it the same way again."""
-    h = wp.tid()
+    h = listed(listing, n_listed, wp.tid())
+    if h < 0:
+        return
     if cand[h] != 2:
         return
     b = key[h] >> HIST_SHIFT
@@ -674,17 +723,33 @@ def trim_winners(
 
 
 @wp.kernel
-def cheapest_trimmed(cand: wp.array(dtype=wp.int32), key: wp.array(dtype=wp.int32), best: wp.array(dtype=wp.int64)):
-    h = wp.tid()
+def cheapest_trimmed(
+    listing: wp.array(dtype=wp.int32),
+    n_listed: wp.array(dtype=wp.int32),
+    cand: wp.array(dtype=wp.int32),
+    key: wp.array(dtype=wp.int32),
+    best: wp.array(dtype=wp.int64),
+):
+    h = listed(listing, n_listed, wp.tid())
+    if h < 0:
+        return
     if cand[h] == TRIMMED:
         wp.atomic_min(best, 0, priority(key[h], h))
 
 
 @wp.kernel
-def restore_cheapest(cand: wp.array(dtype=wp.int32), key: wp.array(dtype=wp.int32), best: wp.array(dtype=wp.int64)):
+def restore_cheapest(
+    listing: wp.array(dtype=wp.int32),
+    n_listed: wp.array(dtype=wp.int32),
+    cand: wp.array(dtype=wp.int32),
+    key: wp.array(dtype=wp.int32),
+    best: wp.array(dtype=wp.int64),
+):
     """The cheapest trimmed winner collapses after all, where the trim (a hashed share of a cost bin) kept none:
     a pass one collapse short of the target would otherwise trim the same way every pass."""
-    h = wp.tid()
+    h = listed(listing, n_listed, wp.tid())
+    if h < 0:
+        return
     if cand[h] == TRIMMED and priority(key[h], h) == best[0]:
         cand[h] = 2
 
@@ -692,6 +757,8 @@ def restore_cheapest(cand: wp.array(dtype=wp.int32), key: wp.array(dtype=wp.int3
 # ------------------------------------------------------------------------------------------------ collapse
 @wp.kernel
 def apply_collapses(
+    listing: wp.array(dtype=wp.int32),
+    n_listed: wp.array(dtype=wp.int32),
     cand: wp.array(dtype=wp.int32),
     target: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.vec3i),
@@ -709,7 +776,9 @@ def apply_collapses(
     its new neighbours (every vertex of the two old stars: their stars, or the survivor's position, quadric and face
     count, changed) and the neighbours of the two opposite vertices (each lost a face, and an edge reads the face
     counts of the vertices opposite it)."""
-    h = wp.tid()
+    h = listed(listing, n_listed, wp.tid())
+    if h < 0:
+        return
     if cand[h] != 2:
         return
     ends = edge_ends(faces, h)

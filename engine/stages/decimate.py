@@ -230,7 +230,8 @@ def decimate_carrying(
         hist = wp.zeros(HIST_BINS, dtype=wp.int32)
         counter = wp.zeros(1, dtype=wp.int32)
         removed = wp.zeros(1, dtype=wp.int32)
-        key = target_pos = cand = checked = None
+        key = target_pos = cand = checked = listing = None
+        n_listed = wp.zeros(1, dtype=wp.int32)
         dirty = wp.ones(nv, dtype=wp.int32)
         boost = 1  # grows while passes fall short of what is needed (candidates refused by the guards)
         stats.stopped = "target reached"
@@ -250,6 +251,7 @@ def decimate_carrying(
                 target_pos = wp.empty(slots, dtype=wp.vec3)
                 cand = wp.empty(slots, dtype=wp.int32)
                 checked = wp.empty(slots, dtype=wp.int32)
+                listing = wp.empty(slots, dtype=wp.int32)
             wp.launch(
                 kd.edge_costs,
                 dim=slots,
@@ -266,44 +268,59 @@ def decimate_carrying(
                 break
             m = max(1, min(int(candidate_fraction * n_valid), OVERSHOOT * needed * boost))
             kbin, frac_bits = _quantile(h, m)
-            wp.launch(kd.select_candidates, dim=slots, inputs=[key, kbin, wp.int64(frac_bits), cand])
+            n_listed.zero_()
+            wp.launch(kd.select_candidates, dim=slots, inputs=[key, kbin, wp.int64(frac_bits), cand, listing, n_listed])
+            listed = (listing, n_listed)
+            most = int(h[: kbin + 1].sum())  # at least the candidates listed: the kernels below run over this many
             wp.launch(
                 kd.check_candidates,
-                dim=slots,
-                inputs=[cand, pos, faces, *inc.inputs, state, quad, origin, cos_max, kbin, wp.int64(frac_bits)],
+                dim=most,
+                inputs=[
+                    *listed,
+                    cand,
+                    pos,
+                    faces,
+                    *inc.inputs,
+                    state,
+                    quad,
+                    origin,
+                    cos_max,
+                    kbin,
+                    wp.int64(frac_bits),
+                ],
                 outputs=[key, target_pos, checked],
             )
             clock.tick("guards")
             claim = wp.full(len(faces), kd.CLAIM_FREE, dtype=wp.int64)
             counter.zero_()
             for _ in range(claim_rounds):
-                wp.launch(kd.claim_stars, dim=slots, inputs=[cand, key, faces, *inc.inputs, claim])
-                wp.launch(kd.settle_claims, dim=slots, inputs=[cand, key, faces, *inc.inputs, claim, counter])
-                wp.launch(kd.take_stars, dim=slots, inputs=[cand, faces, *inc.inputs, claim])
+                wp.launch(kd.claim_stars, dim=most, inputs=[*listed, cand, key, faces, *inc.inputs, claim])
+                wp.launch(kd.settle_claims, dim=most, inputs=[*listed, cand, key, faces, *inc.inputs, claim, counter])
+                wp.launch(kd.take_stars, dim=most, inputs=[*listed, cand, faces, *inc.inputs, claim])
                 wp.launch(kd.release_claims, dim=len(claim), inputs=[claim])
             won = int(counter.numpy()[0])  # sync point
             for salt in range(TRIMS):  # keep no more than the collapses still needed, cheapest first
                 if won <= needed:
                     break
                 hist.zero_()
-                wp.launch(kd.winner_histogram, dim=slots, inputs=[cand, key, hist])
+                wp.launch(kd.winner_histogram, dim=most, inputs=[*listed, cand, key, hist])
                 kbin, frac_bits = _quantile(hist.numpy(), needed)
-                wp.launch(kd.trim_winners, dim=slots, inputs=[cand, key, kbin, wp.int64(frac_bits), salt])
+                wp.launch(kd.trim_winners, dim=most, inputs=[*listed, cand, key, kbin, wp.int64(frac_bits), salt])
                 hist.zero_()
-                wp.launch(kd.winner_histogram, dim=slots, inputs=[cand, key, hist])
+                wp.launch(kd.winner_histogram, dim=most, inputs=[*listed, cand, key, hist])
                 won = int(hist.numpy().sum())
                 if won == 0:
                     best = wp.full(1, kd.CLAIM_FREE, dtype=wp.int64)
-                    wp.launch(kd.cheapest_trimmed, dim=slots, inputs=[cand, key, best])
-                    wp.launch(kd.restore_cheapest, dim=slots, inputs=[cand, key, best])
+                    wp.launch(kd.cheapest_trimmed, dim=most, inputs=[*listed, cand, key, best])
+                    wp.launch(kd.restore_cheapest, dim=most, inputs=[*listed, cand, key, best])
                     won = 1
             clock.tick("claims")
             dirty.zero_()
             removed.zero_()
             wp.launch(
                 kd.apply_collapses,
-                dim=slots,
-                inputs=[cand, target_pos, faces, *inc.inputs, state, quad, pos, removed, dirty],
+                dim=most,
+                inputs=[*listed, cand, target_pos, faces, *inc.inputs, state, quad, pos, removed, dirty],
             )
             n_removed = int(removed.numpy()[0])  # sync point
             stats.passes += 1

@@ -41,11 +41,13 @@ def price_edges(
             kd.edge_costs, dim=len(key), inputs=[pos, f, inc.count, state, quad, origin, dirty, key, target, checked]
         )
         top = HIST_BINS  # every priced edge competes, so every one is checked
-        wp.launch(kd.select_candidates, dim=len(key), inputs=[key, top, wp.int64(0), cand])
+        listing = wp.empty(len(key), dtype=wp.int32)
+        n_listed = wp.zeros(1, dtype=wp.int32)
+        wp.launch(kd.select_candidates, dim=len(key), inputs=[key, top, wp.int64(0), cand, listing, n_listed])
         wp.launch(
             kd.check_candidates,
             dim=len(key),
-            inputs=[cand, pos, f, *inc.inputs, state, quad, origin, cos_max, top, wp.int64(0)],
+            inputs=[listing, n_listed, cand, pos, f, *inc.inputs, state, quad, origin, cos_max, top, wp.int64(0)],
             outputs=[key, target, checked],
         )
         codes = key.numpy()
