@@ -37,6 +37,15 @@ def parse_bytes(text: str | int | None) -> int | None:
     return value or None
 
 
+def host_fallback(device: Any) -> Any:
+    """Where the stages go that cannot fit a GPU's budget (the finished model's islands, smoothing, normals and file
+    layout): Warp's CPU device, outside the budget. ``None`` for the CPU device itself, whose memory the budget is:
+    there a model over the budget stays an error."""
+    import warp as wp
+
+    return wp.get_device("cpu") if device.is_cuda else None
+
+
 def mib(n: int) -> str:
     return f"{n / 2**20:,.0f} MiB"
 

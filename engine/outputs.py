@@ -206,12 +206,12 @@ def write_outputs(
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     try:
-        with wp.ScopedDevice(dev):
-            pos, faces, normals = _device_mesh(recon, dev)
-            budget = parse_bytes(max_device_bytes)
-            _check_budget(len(faces), budget)
+        budget = parse_bytes(max_device_bytes)
+        where, on_host = _layout_device(recon, dev, budget, report)  # the host, past the budget
+        with wp.ScopedDevice(where):
+            pos, faces, normals = _device_mesh(recon, where)
             frame = report.get("frame")
-            with host_copies(dev, layout_host_bytes(len(pos), len(faces))) as to_host:
+            with host_copies(where, layout_host_bytes(len(pos), len(faces))) as to_host:
                 lay = lay_out(pos, faces, normals, Frame.from_dict(frame), to_host)
                 # the STL in patient LPS mm, the glTF files in patient axes centred on the model (engine.orient)
                 report["frame"] = {
@@ -226,7 +226,9 @@ def write_outputs(
                 seconds.update({f"layout_{k}": v for k, v in lay.seconds.items()})
                 with ThreadPoolExecutor(1, thread_name_prefix="bonemesh-write") as pool:
                     writing = pool.submit(_write_print_files, tmp, stl, lay)
-                    small, infos = _viewing_files(lay, stats, params, budget, tmp, seconds)
+                    held = 0 if on_host else HELD_BYTES_PER_FACE * len(lay.faces)
+                    room = None if budget is None else budget - held  # beside the model, where it is on the device
+                    small, infos = _viewing_files(lay, stats, params, room, tmp, seconds, dev)
                     t1 = time.perf_counter()
                     sizes = writing.result()
                     seconds["wait_print_files"] = time.perf_counter() - t1
@@ -246,16 +248,22 @@ def write_outputs(
 
 
 def _viewing_files(
-    lay: Layout, stats: dict[str, Any], params: ReconParams, budget: int | None, tmp: Path, seconds: dict[str, Any]
+    lay: Layout,
+    stats: dict[str, Any],
+    params: ReconParams,
+    room: int | None,
+    tmp: Path,
+    seconds: dict[str, Any],
+    dev: Any,
 ) -> tuple[dict[str, bytes], dict[str, Any]]:
-    """The phone and AR copies (on the device) and the small files made from them, written into ``tmp``:
-    ``({name: bytes}, {"phone.glb": how the copy was made, "ar.glb": ...})``; their seconds go into ``seconds``."""
+    """The phone and AR copies (decimated on ``dev`` within ``room`` bytes) and the small files made from them,
+    written into ``tmp``: ``({name: bytes}, {"phone.glb": how the copy was made, "ar.glb": ...})``; their seconds go
+    into ``seconds``."""
     t1 = time.perf_counter()
     closed = bool(stats.get("watertight")) and bool(stats.get("manifold"))
     budgets = [params.export.phone_max_triangles, params.export.ar_max_triangles]
-    room = None if budget is None else budget - HELD_BYTES_PER_FACE * len(lay.faces)
     (ppos, pfaces, phone_info), (apos, afaces, ar_info) = viewing_copies(
-        lay.view_pos, lay.faces, budgets, stats.get("components"), closed, room
+        lay.view_pos, lay.faces, budgets, stats.get("components"), closed, room, dev
     )
     keep_normals = lay.view_normals if ppos is lay.view_pos else None
     phone = _host_mesh(ppos, pfaces, keep_normals)
@@ -283,17 +291,25 @@ def _encode_small(phone: Mesh, ar: Mesh) -> tuple[dict[str, bytes], dict[str, fl
     return files, seconds
 
 
-def _check_budget(n_faces: int, budget: int | None) -> None:
+def _layout_device(recon: Reconstruction, dev: Any, budget: int | None, report: dict[str, Any]) -> tuple[Any, bool]:
+    """Where the model is laid out for its files, and whether that is the host: ``dev``, or, where that cannot
+    hold it within the budget, the host (``engine.memory.host_fallback``; noted in ``report["finish"]["layout"]``);
+    on the CPU device a ``BudgetError``."""
     from engine.errors import BudgetError
-    from engine.memory import LAYOUT_BYTES_PER_FACE, mib
+    from engine.memory import LAYOUT_BYTES_PER_FACE, host_fallback, mib
 
+    n_faces = len(recon.device_mesh[1]) if recon.device_mesh is not None else len(recon.mesh.faces)
     need = n_faces * LAYOUT_BYTES_PER_FACE
-    if budget is not None and need > budget:
-        raise BudgetError(
-            f"laying out the model ({n_faces:,} faces) for its files needs about {mib(need)} of device memory, "
-            f"over the budget of {mib(budget)}: give at least {mib(need)}",
-            needed=need,
-        )
+    if report.get("finish", {}).pop("layout", None) is not None and not report["finish"]:  # an earlier call's
+        del report["finish"]
+    if budget is None or need <= budget:
+        return dev, False
+    what = f"laying out the model ({n_faces:,} faces) for its files needs about {mib(need)} of device memory"
+    host = host_fallback(dev)
+    if host is None:
+        raise BudgetError(f"{what}, over the budget of {mib(budget)}: give at least {mib(need)}", needed=need)
+    report.setdefault("finish", {})["layout"] = {"device": str(host), "reason": f"{what}, over {mib(budget)}"}
+    return host, True
 
 
 def _json_default(obj: Any) -> Any:

@@ -167,7 +167,8 @@ def reconstruct(
             progress.start(name)
             t0 = time.perf_counter()
             try:
-                stages[name](st, params, report, within)
+                with wp.ScopedDevice(dev if st.pos is None else st.pos.device):  # the host, past the budget
+                    stages[name](st, params, report, within)
             except (InputError, StageError):
                 raise
             except Exception as exc:
@@ -179,7 +180,8 @@ def reconstruct(
         t0 = time.perf_counter()
         from engine.stages.devmesh import mesh_stats_device
 
-        report["mesh"] = mesh_stats_device(st.pos, st.faces, _incidence(st))  # sync point: the counts come back
+        with wp.ScopedDevice(st.pos.device):  # sync point: the counts come back
+            report["mesh"] = mesh_stats_device(st.pos, st.faces, _incidence(st))
         report["finish_seconds"] = time.perf_counter() - t0
         report["memory"] = {
             "budget_bytes": budget,
@@ -332,25 +334,35 @@ def _decimate_tiled(st: _State, params: ReconParams, report: dict[str, Any]) -> 
     report["counts"]["decimate"] = {"vertices": len(st.pos), "faces": out}
 
 
-def _check_fits(st: _State) -> None:
-    """The finishing stages hold the whole final mesh: within a budget, say so early if it cannot fit."""
+def _fit_or_host(st: _State, report: dict[str, Any]) -> None:
+    """The finishing stages hold the whole final mesh: within a budget it cannot fit, they run on the host
+    (``engine.memory.host_fallback``: Warp's CPU device, outside the budget; reported as ``report["finish"]``), or,
+    where the device is the host, the job stops early with the budget that would work."""
+    import warp as wp
+
     from engine.errors import BudgetError
-    from engine.memory import FINISH_BYTES_PER_FACE, mib
+    from engine.memory import FINISH_BYTES_PER_FACE, host_fallback, mib
 
     if st.budget is None or st.faces is None:
         return
     need = len(st.faces) * FINISH_BYTES_PER_FACE
-    if need > st.budget:
+    if need <= st.budget:
+        return
+    what = f"the model ({len(st.faces):,} faces) needs about {mib(need)} of device memory to finish"
+    host = host_fallback(st.faces.device)
+    if host is None:
         raise BudgetError(
-            f"the model ({len(st.faces):,} faces) needs about {mib(need)} of device memory to finish "
-            f"(islands, smoothing, normals, outputs), over the budget of {mib(st.budget)}: give at least "
+            f"{what} (islands, smoothing, normals, outputs), over the budget of {mib(st.budget)}: give at least "
             f"{mib(need)} or decimate further",
             needed=need,
         )
+    st.pos, st.faces = wp.clone(st.pos, device=host), wp.clone(st.faces, device=host)
+    st.incidence = None
+    report["finish"] = {"device": str(host), "reason": f"{what}, over the budget of {mib(st.budget)}"}
 
 
 def _islands(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
-    _check_fits(st)
+    _fit_or_host(st, report)
     if params.islands is None:
         return
     from engine.stages.islands import remove_islands_device

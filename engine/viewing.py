@@ -38,21 +38,33 @@ def _stalled(stats: Any, excess: int) -> bool:
     return 2 * sum(tail) * VIEW_MAX_PASSES < excess * max(len(tail), 1)
 
 
-def _decimate(pos: Any, faces: Any, max_triangles: int, room: int | None) -> tuple[Any, Any, Any]:
-    """``decimate_device`` for a viewing copy, tiled (``engine.stages.tiled``) where it would not fit ``room``."""
+def _decimate(pos: Any, faces: Any, max_triangles: int, room: int | None, device: Any = None) -> tuple[Any, Any, Any]:
+    """``decimate_device`` for a viewing copy on ``device`` (default: where the mesh is; a host mesh is taken there),
+    tiled (``engine.stages.tiled``) where it would not fit ``room``."""
+    import warp as wp
+
     from engine.stages.decimate import DecimationStats, decimate_device
     from engine.stages.tiled import decimate_within, fits
 
+    dev = pos.device if device is None else device
     if fits(len(faces), room):
+        if pos.device != dev:
+            pos, faces = wp.clone(pos, device=dev), wp.clone(faces, device=dev)
         return decimate_device(pos, faces, max_triangles, max_passes=VIEW_MAX_PASSES)
-    pos, faces, _ = decimate_within(pos, faces, max_triangles, room, pos.device, max_passes=VIEW_MAX_PASSES)
+    pos, faces, _ = decimate_within(pos, faces, max_triangles, room, dev, max_passes=VIEW_MAX_PASSES)
     return pos, faces, DecimationStats(output_faces=len(faces), passes=0, stopped="tiled (memory budget)")
 
 
 def _make_copy(
-    pos: Any, faces: Any, max_triangles: int, pieces: int | None, closed: bool, room: int | None = None
+    pos: Any,
+    faces: Any,
+    max_triangles: int,
+    pieces: int | None,
+    closed: bool,
+    room: int | None = None,
+    device: Any = None,
 ) -> ViewingCopy:
-    """One viewing copy (see ``viewing_copy``), its decimation within ``room`` bytes of device memory."""
+    """One viewing copy (see ``viewing_copy``), its decimation on ``device`` within ``room`` bytes."""
     if len(faces) <= max_triangles:
         return ViewingCopy(pos, faces, {"faces": len(faces), "decimated": False}, pieces, closed)
     from engine.stages.cluster import Clustering, piece_census
@@ -79,7 +91,7 @@ def _make_copy(
     )
     stats = None
     if not hopeless:
-        pos, faces, stats = _decimate(pos, faces, max_triangles, room)
+        pos, faces, stats = _decimate(pos, faces, max_triangles, room, device)
         passes += stats.passes
     while stats is not None and len(faces) > max_triangles:
         census = piece_census(pos, faces)
@@ -97,7 +109,7 @@ def _make_copy(
             else max(1, min(keep // 2, pieces - 1))
         )
         drop(keep)
-        pos, faces, stats = _decimate(pos, faces, max_triangles, room)
+        pos, faces, stats = _decimate(pos, faces, max_triangles, room, device)
         passes += stats.passes
     clustering = None
     if len(faces) > max_triangles:  # pieces of high genus: this viewing copy may close tunnels to meet the budget
@@ -133,7 +145,13 @@ def viewing_copy(
 
 
 def viewing_copies(
-    pos: Any, faces: Any, budgets: list[int], pieces: int | None = None, closed: bool = False, room: int | None = None
+    pos: Any,
+    faces: Any,
+    budgets: list[int],
+    pieces: int | None = None,
+    closed: bool = False,
+    room: int | None = None,
+    device: Any = None,
 ) -> list[tuple[Any, Any, dict]]:
     """Viewing copies within each of ``budgets`` (largest first: the phone copy, then the AR copy), each made from
     the one before (``viewing_copy``; the first from the print model ``pos``, ``faces`` of ``pieces`` pieces,
@@ -143,13 +161,14 @@ def viewing_copies(
     keep it either: the next copy is clustered at once from the same mesh (its quadrics and cell-size trials
     reused; ``clustered.input_faces`` says which mesh), rather than decimated from the clustered copy, which the
     guards can barely touch. Its ``pieces_dropped`` counts the pieces dropped beyond the copy before it (none).
-    ``room``: the device memory a copy's decimation may use (bytes; None: no limit).
+    ``room``: the device memory a copy's decimation may use (bytes; None: no limit); ``device``: where the copies
+    are decimated (default: where ``pos`` is; a print model laid out on the host is decimated on the GPU).
     """
     out: list[tuple[Any, Any, dict]] = []
     prev: ViewingCopy | None = None
     for budget in budgets:
         if prev is None:
-            copy = _make_copy(pos, faces, budget, pieces, closed, room)
+            copy = _make_copy(pos, faces, budget, pieces, closed, room, device)
         elif len(prev.faces) <= budget:
             copy = ViewingCopy(prev.pos, prev.faces, {"faces": len(prev.faces), "decimated": False}, prev.pieces)
             copy.closed, copy.clustering = prev.closed, prev.clustering
@@ -159,7 +178,7 @@ def viewing_copies(
             summary.update(passes=0, pieces_dropped=0, over_budget=len(cfaces) > budget)
             copy = ViewingCopy(cpos, cfaces, summary, None, False, prev.clustering)
         else:
-            copy = _make_copy(prev.pos, prev.faces, budget, prev.pieces, prev.closed, room)
+            copy = _make_copy(prev.pos, prev.faces, budget, prev.pieces, prev.closed, room, device)
         out.append((copy.pos, copy.faces, copy.summary))
         prev = copy
     return out

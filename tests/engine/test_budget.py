@@ -235,3 +235,51 @@ def test_device_seams_in_batches_when_all_at_once_would_not_fit(phantom, unbound
     assert topology(got.report) == topology(unbounded.report)
     target = dec["target_faces"]
     assert target <= got.report["mesh"]["n_faces"] <= target * 1.02
+
+
+@pytest.fixture
+def host_takes_over(monkeypatch):
+    """As on a GPU: stages that cannot fit the budget go to Warp's CPU device (here the device is the CPU too, so
+    what is checked is the hand-over, not the memory saved)."""
+    import warp as wp
+
+    monkeypatch.setattr("engine.memory.host_fallback", lambda device: wp.get_device("cpu"))
+
+
+def test_model_over_the_budget_finishes_on_the_host(host_takes_over):
+    """The undecimated noise surface above: over the budget to finish, it is finished on the host instead of
+    failing, the same model as without a budget."""
+    from engine.params import IsoParams
+
+    noise = Volume(np.random.default_rng(0).integers(0, 100, (16, 128, 128)).astype(np.uint8), (1.0, 1.0, 1.0))
+    params = ReconParams(iso=IsoParams(iso=49.5), body=None, islands=None, decimate=None, smooth=None)
+    got = reconstruct(noise, params, device="cpu", max_device_bytes=60 * MIB)
+    assert got.report["finish"]["device"] == "cpu" and "over the budget" in got.report["finish"]["reason"]
+    free = reconstruct(noise, params, device="cpu")
+    assert "finish" not in free.report
+    assert topology(got.report) == topology(free.report)
+    np.testing.assert_array_equal(got.mesh.faces, free.mesh.faces)
+    np.testing.assert_array_equal(got.mesh.vertices, free.mesh.vertices)
+
+
+def test_model_over_the_layout_budget_is_laid_out_on_the_host(unbounded, tmp_path, host_takes_over):
+    """Too large to lay out within the budget: laid out on the host, its viewing copies decimated on the device
+    within the whole budget; the files are those of the unbounded run."""
+    import json
+
+    from engine.outputs import write_outputs
+    from engine.params import ExportParams
+
+    params = dataclasses.replace(ReconParams(), export=ExportParams(phone_max_triangles=5000, ar_max_triangles=2000))
+    from engine.memory import LAYOUT_BYTES_PER_FACE
+
+    budget = LAYOUT_BYTES_PER_FACE * len(unbounded.mesh.faces) - 1  # just under the layout; the copy goes in tiles
+    write_outputs(unbounded, tmp_path / "host", params, device="cpu", max_device_bytes=budget)
+    write_outputs(unbounded, tmp_path / "free", params, device="cpu")
+    report = json.loads((tmp_path / "host" / "report.json").read_text())
+    assert report["finish"]["layout"]["device"] == "cpu"
+    phone = report["exports"]["phone.glb"]
+    assert phone["faces"] <= 5000 and phone["topology_preserved"]
+    assert report["exports"]["ar.glb"]["faces"] <= 2000
+    for name in ("model.stl", "model.glb"):
+        assert (tmp_path / "host" / name).read_bytes() == (tmp_path / "free" / name).read_bytes()
