@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import datetime as dt
 import hashlib
+import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -312,8 +313,24 @@ def _add_missing_columns(engine: Engine) -> None:
             conn.execute(text(f"ALTER TABLE {Job.__tablename__} ADD COLUMN {column.name} {kind}"))
 
 
+WAL_TRIES = 100  # x 0.05 s: how long a new connection waits for another process to finish switching to WAL
+
+
 def _sqlite_pragmas(dbapi_conn: Any, _record: Any) -> None:
+    """WAL and a 30 s busy timeout for every connection. Processes starting together on a new database (API
+    processes, workers) all switch it to WAL; SQLite answers one of two such switches "database is locked" at once,
+    without waiting (its deadlock avoidance), so the switch is tried again: by then the other made it, and it is a
+    no-op."""
+    import sqlite3
+
     cur = dbapi_conn.cursor()
-    cur.execute("PRAGMA journal_mode=WAL")
     cur.execute("PRAGMA busy_timeout=30000")
+    for attempt in range(WAL_TRIES):
+        try:
+            cur.execute("PRAGMA journal_mode=WAL")
+            break
+        except sqlite3.OperationalError as exc:
+            if "locked" not in str(exc) or attempt == WAL_TRIES - 1:
+                raise
+            time.sleep(0.05)
     cur.close()

@@ -199,3 +199,23 @@ def test_accepted_job_is_private_to_its_key_and_stays_queued_without_broker(clie
     assert client.get(f"/v1/jobs/{job['id']}", headers={"X-API-Key": "key-a"}).status_code == 404
     ready = client.get("/readyz")
     assert ready.status_code == 503 and ready.json()["checks"]["redis"].startswith("unreachable")
+
+
+def test_a_new_database_switched_to_wal_by_another_process_is_waited_for(tmp_path: Path) -> None:
+    """Processes starting together on a new SQLite database all switch it to WAL; SQLite answers one of two such
+    switches "locked" at once (no busy wait), which stopped an API process at start-up. The switch is retried."""
+    import sqlite3
+    import threading
+
+    from service.db import _sqlite_pragmas
+
+    path = tmp_path / "jobs.db"
+    other = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+    other.execute("CREATE TABLE t (a)")
+    other.execute("BEGIN EXCLUSIVE")  # as another process in the middle of its own switch
+    threading.Timer(0.5, lambda: other.execute("COMMIT")).start()
+    conn = sqlite3.connect(path, timeout=0, check_same_thread=False)  # no busy wait: the retry is what waits
+    _sqlite_pragmas(conn, None)
+    assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    conn.close()
+    other.close()
