@@ -293,11 +293,12 @@ def decimate_carrying(
             clock.tick("guards")
             claim = wp.full(len(faces), kd.CLAIM_FREE, dtype=wp.int64)
             counter.zero_()
-            for _ in range(claim_rounds):
+            for r in range(claim_rounds):
                 wp.launch(kd.claim_stars, dim=most, inputs=[*listed, cand, key, faces, *inc.inputs, claim])
                 wp.launch(kd.settle_claims, dim=most, inputs=[*listed, cand, key, faces, *inc.inputs, claim, counter])
                 wp.launch(kd.take_stars, dim=most, inputs=[*listed, cand, faces, *inc.inputs, claim])
-                wp.launch(kd.release_claims, dim=len(claim), inputs=[claim])
+                if r < claim_rounds - 1:  # (the claims are made afresh next pass)
+                    wp.launch(kd.release_claims, dim=len(claim), inputs=[claim])
             won = int(counter.numpy()[0])  # sync point
             for salt in range(TRIMS):  # keep no more than the collapses still needed, cheapest first
                 if won <= needed:
