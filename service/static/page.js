@@ -108,18 +108,24 @@ function upload() {
   xhr.onerror = () => { $("start").disabled = false; $("upload-text").textContent = "the upload failed (network)"; };
   xhr.send(form);
 }
+const QUICK_POLL_MS = 250, QUICK_FOR_MS = 10000, POLL_MS = 1000;
 function follow(id) {
-  clearInterval(polling); current = id;
+  clearTimeout(polling); current = id;
   $("job-box").hidden = false; $("result-box").hidden = true; $("job-error").hidden = true;
   $("job-id").textContent = id; $("cancel").hidden = false;
+  const since = Date.now();
   const tick = async () => {
-    let job;
-    try { job = await api(`/v1/jobs/${id}`); } catch (e) { $("job-state").textContent = e.message; return; }
+    let job = null;
+    try { job = await api(`/v1/jobs/${id}`); } catch (e) { $("job-state").textContent = e.message; }
     if (current !== id) return;
-    show(job);
-    if (["succeeded", "failed", "cancelled"].includes(job.state)) { clearInterval(polling); loadJobs(); }
+    if (job) {
+      show(job);
+      if (["succeeded", "failed", "cancelled"].includes(job.state)) { loadJobs(); return; }
+    }
+    // a young job is asked about four times a second (a job of a few seconds shows its stages), then once a second
+    polling = setTimeout(tick, Date.now() - since < QUICK_FOR_MS ? QUICK_POLL_MS : POLL_MS);
   };
-  tick(); polling = setInterval(tick, 1000);
+  tick();
 }
 function show(job) {
   $("job-bar").value = job.progress;
