@@ -80,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
         print("curl: skipped (not installed)")
         clients.remove("curl")
     root = Path(args.workdir or tempfile.mkdtemp(prefix="bonemesh-upload-"))
+    root.mkdir(parents=True, exist_ok=True)
     result: dict[str, Any] = {
         "benchmark": "upload",
         "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
