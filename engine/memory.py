@@ -46,6 +46,21 @@ def host_fallback(device: Any) -> Any:
     return wp.get_device("cpu") if device.is_cuda else None
 
 
+def place(device: Any, need: int, budget: int | None, what: str, remedy: str = "") -> tuple[Any, dict | None]:
+    """Where work that needs ``need`` bytes of device memory runs: ``(device, None)`` within the budget; past it
+    ``(host, note)``, the host of ``host_fallback`` with a note for the report (``device``, ``reason``); on the CPU
+    device a ``BudgetError`` naming the budget that works (``what``: the work, ``remedy``: another way out)."""
+    from engine.errors import BudgetError
+
+    if budget is None or need <= budget:
+        return device, None
+    reason = f"{what} needs about {mib(need)} of device memory, over the budget of {mib(budget)}"
+    host = host_fallback(device)
+    if host is None:
+        raise BudgetError(f"{reason}: give at least {mib(need)}{remedy}", needed=need)
+    return host, {"device": str(host), "reason": reason}
+
+
 def mib(n: int) -> str:
     return f"{n / 2**20:,.0f} MiB"
 

@@ -139,15 +139,17 @@ def _host_mesh(pos: Any, faces: Any, normals: Any = None) -> Mesh:
 
 
 def _device_mesh(recon: Reconstruction, dev: Any) -> tuple[Any, Any, Any]:
-    """The reconstruction's mesh on ``dev``: the pipeline's own device arrays when they are there, else uploaded
-    (with fresh normals when it has none)."""
+    """The reconstruction's mesh on ``dev``: the pipeline's own arrays (copied across where they are on another
+    device, e.g. a model finished on the host), else uploaded (with fresh normals when it has none)."""
     import warp as wp
 
     from engine.export.glb import check_mesh
     from engine.stages.normals import normals_device
 
     held = recon.device_mesh
-    if held is not None and held[0].device == dev:
+    if held is not None:
+        if held[0].device != dev:
+            held = tuple(wp.clone(a, device=dev) for a in held)
         return held
     mesh = recon.mesh
     check_mesh(mesh.vertices, mesh.faces, mesh.normals)  # InputError: empty, malformed, out-of-range indices
@@ -292,24 +294,15 @@ def _encode_small(phone: Mesh, ar: Mesh) -> tuple[dict[str, bytes], dict[str, fl
 
 
 def _layout_device(recon: Reconstruction, dev: Any, budget: int | None, report: dict[str, Any]) -> tuple[Any, bool]:
-    """Where the model is laid out for its files, and whether that is the host: ``dev``, or, where that cannot
-    hold it within the budget, the host (``engine.memory.host_fallback``; noted in ``report["finish"]["layout"]``);
-    on the CPU device a ``BudgetError``."""
-    from engine.errors import BudgetError
-    from engine.memory import LAYOUT_BYTES_PER_FACE, host_fallback, mib
+    """Where the model is laid out for its files, and whether that is the host (``engine.memory.place``: past the
+    budget of a GPU; ``report["layout"]`` says where and why)."""
+    from engine.memory import LAYOUT_BYTES_PER_FACE, place
 
     n_faces = len(recon.device_mesh[1]) if recon.device_mesh is not None else len(recon.mesh.faces)
-    need = n_faces * LAYOUT_BYTES_PER_FACE
-    if report.get("finish", {}).pop("layout", None) is not None and not report["finish"]:  # an earlier call's
-        del report["finish"]
-    if budget is None or need <= budget:
-        return dev, False
-    what = f"laying out the model ({n_faces:,} faces) for its files needs about {mib(need)} of device memory"
-    host = host_fallback(dev)
-    if host is None:
-        raise BudgetError(f"{what}, over the budget of {mib(budget)}: give at least {mib(need)}", needed=need)
-    report.setdefault("finish", {})["layout"] = {"device": str(host), "reason": f"{what}, over {mib(budget)}"}
-    return host, True
+    what = f"laying out the model ({n_faces:,} faces) for its files"
+    where, note = place(dev, n_faces * LAYOUT_BYTES_PER_FACE, budget, what)
+    report["layout"] = note or {"device": str(where)}
+    return where, note is not None
 
 
 def _json_default(obj: Any) -> Any:

@@ -336,29 +336,21 @@ def _decimate_tiled(st: _State, params: ReconParams, report: dict[str, Any]) -> 
 
 def _fit_or_host(st: _State, report: dict[str, Any]) -> None:
     """The finishing stages hold the whole final mesh: within a budget it cannot fit, they run on the host
-    (``engine.memory.host_fallback``: Warp's CPU device, outside the budget; reported as ``report["finish"]``), or,
-    where the device is the host, the job stops early with the budget that would work."""
+    (``engine.memory.place``: Warp's CPU device, outside the budget; reported as ``report["finish"]``), or, where
+    the device is the host, the job stops early with the budget that would work."""
     import warp as wp
 
-    from engine.errors import BudgetError
-    from engine.memory import FINISH_BYTES_PER_FACE, host_fallback, mib
+    from engine.memory import FINISH_BYTES_PER_FACE, place
 
     if st.budget is None or st.faces is None:
         return
+    what = f"finishing the model ({len(st.faces):,} faces: islands, smoothing, normals, outputs)"
     need = len(st.faces) * FINISH_BYTES_PER_FACE
-    if need <= st.budget:
-        return
-    what = f"the model ({len(st.faces):,} faces) needs about {mib(need)} of device memory to finish"
-    host = host_fallback(st.faces.device)
-    if host is None:
-        raise BudgetError(
-            f"{what} (islands, smoothing, normals, outputs), over the budget of {mib(st.budget)}: give at least "
-            f"{mib(need)} or decimate further",
-            needed=need,
-        )
-    st.pos, st.faces = wp.clone(st.pos, device=host), wp.clone(st.faces, device=host)
-    st.incidence = None
-    report["finish"] = {"device": str(host), "reason": f"{what}, over the budget of {mib(st.budget)}"}
+    where, note = place(st.faces.device, need, st.budget, what, " or decimate further")
+    if note is not None:
+        st.pos, st.faces = wp.clone(st.pos, device=where), wp.clone(st.faces, device=where)
+        st.incidence = None
+        report["finish"] = note
 
 
 def _islands(st: _State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:

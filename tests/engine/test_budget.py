@@ -277,7 +277,7 @@ def test_model_over_the_layout_budget_is_laid_out_on_the_host(unbounded, tmp_pat
     write_outputs(unbounded, tmp_path / "host", params, device="cpu", max_device_bytes=budget)
     write_outputs(unbounded, tmp_path / "free", params, device="cpu")
     report = json.loads((tmp_path / "host" / "report.json").read_text())
-    assert report["finish"]["layout"]["device"] == "cpu"
+    assert report["layout"]["device"] == "cpu" and "over the budget" in report["layout"]["reason"]
     phone = report["exports"]["phone.glb"]
     assert phone["faces"] <= 5000 and phone["topology_preserved"]
     assert report["exports"]["ar.glb"]["faces"] <= 2000
