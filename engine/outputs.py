@@ -144,13 +144,12 @@ def _device_mesh(recon: Reconstruction, dev: Any) -> tuple[Any, Any, Any]:
     import warp as wp
 
     from engine.export.glb import check_mesh
+    from engine.stages.devmesh import on_device
     from engine.stages.normals import normals_device
 
     held = recon.device_mesh
     if held is not None:
-        if held[0].device != dev:
-            held = tuple(wp.clone(a, device=dev) for a in held)
-        return held
+        return on_device(dev, *held)  # type: ignore[return-value]
     mesh = recon.mesh
     check_mesh(mesh.vertices, mesh.faces, mesh.normals)  # InputError: empty, malformed, out-of-range indices
     pos = wp.array(np.ascontiguousarray(mesh.vertices, np.float32), dtype=wp.vec3)

@@ -338,9 +338,8 @@ def _fit_or_host(st: _State, report: dict[str, Any]) -> None:
     """The finishing stages hold the whole final mesh: within a budget it cannot fit, they run on the host
     (``engine.memory.place``: Warp's CPU device, outside the budget; reported as ``report["finish"]``), or, where
     the device is the host, the job stops early with the budget that would work."""
-    import warp as wp
-
     from engine.memory import FINISH_BYTES_PER_FACE, place
+    from engine.stages.devmesh import on_device
 
     if st.budget is None or st.faces is None:
         return
@@ -348,7 +347,7 @@ def _fit_or_host(st: _State, report: dict[str, Any]) -> None:
     need = len(st.faces) * FINISH_BYTES_PER_FACE
     where, note = place(st.faces.device, need, st.budget, what, " or decimate further")
     if note is not None:
-        st.pos, st.faces = wp.clone(st.pos, device=where), wp.clone(st.faces, device=where)
+        st.pos, st.faces = on_device(where, st.pos, st.faces)
         st.incidence = None
         report["finish"] = note
 

@@ -41,16 +41,13 @@ def _stalled(stats: Any, excess: int) -> bool:
 def _decimate(pos: Any, faces: Any, max_triangles: int, room: int | None, device: Any = None) -> tuple[Any, Any, Any]:
     """``decimate_device`` for a viewing copy on ``device`` (default: where the mesh is; a host mesh is taken there),
     tiled (``engine.stages.tiled``) where it would not fit ``room``."""
-    import warp as wp
-
     from engine.stages.decimate import DecimationStats, decimate_device
+    from engine.stages.devmesh import on_device
     from engine.stages.tiled import decimate_within, fits
 
     dev = pos.device if device is None else device
     if fits(len(faces), room):
-        if pos.device != dev:
-            pos, faces = wp.clone(pos, device=dev), wp.clone(faces, device=dev)
-        return decimate_device(pos, faces, max_triangles, max_passes=VIEW_MAX_PASSES)
+        return decimate_device(*on_device(dev, pos, faces), max_triangles, max_passes=VIEW_MAX_PASSES)
     pos, faces, _ = decimate_within(pos, faces, max_triangles, room, dev, max_passes=VIEW_MAX_PASSES)
     return pos, faces, DecimationStats(output_faces=len(faces), passes=0, stopped="tiled (memory budget)")
 

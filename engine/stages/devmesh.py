@@ -46,6 +46,13 @@ class Incidence:
         return [self.offset, self.count, self.star]
 
 
+def on_device(dev: Any, *arrays: Any) -> tuple[Any, ...]:
+    """The arrays on ``dev``: themselves where they are there, else copies."""
+    import warp as wp
+
+    return tuple(a if a.device == dev else wp.clone(a, device=dev) for a in arrays)
+
+
 def vertex_classes(faces: Any, inc: Incidence) -> Any:
     """Per vertex: FREE (one closed fan), BORDER (one open fan), LOCKED (non-manifold, inconsistent or degenerate
     surroundings) or DEAD (no face), as ``wp.array(dtype=wp.int32)``."""

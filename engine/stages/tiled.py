@@ -42,11 +42,13 @@ def to_host(pos: Any, faces: Any) -> HostMesh:
 def decimate_within(
     pos: Any, faces: Any, target: int, budget: int | None, dev: Any, **kwargs: Any
 ) -> tuple[Any, Any, dict[str, Any]]:
-    """``decimate_device`` within ``budget`` bytes of device memory: ``(pos, faces, info)``, device arrays."""
+    """``decimate_device`` on ``dev`` within ``budget`` bytes of its memory: ``(pos, faces, info)``, arrays on
+    ``dev`` (a mesh elsewhere, e.g. on the host, is taken there or tiled from where it is)."""
     from engine.stages.decimate import decimate_device
+    from engine.stages.devmesh import on_device
 
     if fits(len(faces), budget):
-        p, f, st = decimate_device(pos, faces, target, **kwargs)
+        p, f, st = decimate_device(*on_device(dev, pos, faces), target, **kwargs)
         return p, f, {"tiled": False, **st.to_dict()}
     host = to_host(pos, faces)
     del pos, faces
