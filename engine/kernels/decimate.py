@@ -86,12 +86,20 @@ def mix32(x: int) -> wp.int64:
 
 
 @wp.func
-def listed(listing: wp.array(dtype=wp.int32), n_listed: wp.array(dtype=wp.int32), i: int) -> int:
-    """The ``i``-th slot of the pass's candidate list (``select_candidates``), or -1 past its end: the kernels after
-    the selection run over the candidates only, not over every slot."""
+def listed(
+    listing: wp.array(dtype=wp.int32),
+    n_listed: wp.array(dtype=wp.int32),
+    cand: wp.array(dtype=wp.int32),
+    want: int,
+    i: int,
+) -> int:
+    """The ``i``-th slot of the pass's candidate list (``select_candidates``) where its ``cand`` state is ``want``,
+    else -1 (past the list's end too): the kernels after the selection run over the candidates only, not over every
+    slot."""
     h = int(-1)
     if i < n_listed[0]:
-        h = listing[i]
+        if cand[listing[i]] == want:
+            h = listing[i]
     return h
 
 
@@ -491,10 +499,8 @@ def check_candidates(
     """Pricing, second phase, for the competing edges not checked since they were priced: the guards. An edge that
     fails one gets ``NO_KEY`` (until something it reads changes); one that passes keeps its code, raised where the
     new faces are poor (MeshLab's quality threshold), and competes only if that code is still under the cut."""
-    h = listed(listing, n_listed, wp.tid())
-    if h < 0:
-        return
-    if cand[h] != 1 or checked[h] != 0:
+    h = listed(listing, n_listed, cand, 1, wp.tid())
+    if h < 0 or checked[h] != 0:
         return
     checked[h] = 1
     ends = edge_ends(faces, h)
@@ -592,10 +598,8 @@ def claim_stars(
     claim: wp.array(dtype=wp.int64),
 ):
     """Each competing edge bids its key on every face of its two stars."""
-    h = listed(listing, n_listed, wp.tid())
+    h = listed(listing, n_listed, cand, 1, wp.tid())
     if h < 0:
-        return
-    if cand[h] != 1:
         return
     mine = priority(key[h], h)
     ends = edge_ends(faces, h)
@@ -626,10 +630,8 @@ def settle_claims(
     writes only its own stars, the vertices it reads do not move, and a vertex opposite several winners has at
     least three faces per winner around it, so the guards of each hold together.
     """
-    h = listed(listing, n_listed, wp.tid())
+    h = listed(listing, n_listed, cand, 1, wp.tid())
     if h < 0:
-        return
-    if cand[h] != 1:
         return
     mine = priority(key[h], h)
     ends = edge_ends(faces, h)
@@ -663,10 +665,8 @@ def take_stars(
 ):
     """This round's winners take their faces for the rest of the pass (a kernel of its own, so that what a losing
     edge saw in ``settle_claims`` does not depend on the order threads ran in)."""
-    h = listed(listing, n_listed, wp.tid())
+    h = listed(listing, n_listed, cand, 3, wp.tid())
     if h < 0:
-        return
-    if cand[h] != 3:
         return
     cand[h] = 2
     ends = edge_ends(faces, h)
@@ -692,10 +692,8 @@ def winner_histogram(
     key: wp.array(dtype=wp.int32),
     hist: wp.array(dtype=wp.int32),
 ):
-    h = listed(listing, n_listed, wp.tid())
-    if h < 0:
-        return
-    if cand[h] == 2:
+    h = listed(listing, n_listed, cand, 2, wp.tid())
+    if h >= 0:
         wp.atomic_add(hist, key[h] >> HIST_SHIFT, 1)
 
 
@@ -712,10 +710,8 @@ def trim_winners(
     """Keep only the cheapest winners (bins below ``bin_below``, a share of that bin hashed with ``salt``): near the
     target a pass may collapse no more than what is left to do. A repeated trim takes another salt, so that a share
     that missed its count does not miss it the same way again."""
-    h = listed(listing, n_listed, wp.tid())
+    h = listed(listing, n_listed, cand, 2, wp.tid())
     if h < 0:
-        return
-    if cand[h] != 2:
         return
     b = key[h] >> HIST_SHIFT
     if b > bin_below or (b == bin_below and mix32(h ^ salt) >= frac_bits):
@@ -730,10 +726,8 @@ def cheapest_trimmed(
     key: wp.array(dtype=wp.int32),
     best: wp.array(dtype=wp.int64),
 ):
-    h = listed(listing, n_listed, wp.tid())
-    if h < 0:
-        return
-    if cand[h] == TRIMMED:
+    h = listed(listing, n_listed, cand, TRIMMED, wp.tid())
+    if h >= 0:
         wp.atomic_min(best, 0, priority(key[h], h))
 
 
@@ -747,10 +741,8 @@ def restore_cheapest(
 ):
     """The cheapest trimmed winner collapses after all, where the trim (a hashed share of a cost bin) kept none:
     a pass one collapse short of the target would otherwise trim the same way every pass."""
-    h = listed(listing, n_listed, wp.tid())
-    if h < 0:
-        return
-    if cand[h] == TRIMMED and priority(key[h], h) == best[0]:
+    h = listed(listing, n_listed, cand, TRIMMED, wp.tid())
+    if h >= 0 and priority(key[h], h) == best[0]:
         cand[h] = 2
 
 
@@ -776,10 +768,8 @@ def apply_collapses(
     its new neighbours (every vertex of the two old stars: their stars, or the survivor's position, quadric and face
     count, changed) and the neighbours of the two opposite vertices (each lost a face, and an edge reads the face
     counts of the vertices opposite it)."""
-    h = listed(listing, n_listed, wp.tid())
+    h = listed(listing, n_listed, cand, 2, wp.tid())
     if h < 0:
-        return
-    if cand[h] != 2:
         return
     ends = edge_ends(faces, h)
     a = ends[0]

@@ -109,6 +109,17 @@ def _quantile(hist: np.ndarray, m: int) -> tuple[int, int]:
     return kbin, frac_bits
 
 
+def _winner_histogram(hist: Any, n: int, listed: tuple[Any, Any], cand: Any, key: Any) -> np.ndarray:
+    """The pass's winners counted by cost bin (on the host)."""
+    import warp as wp
+
+    from engine.kernels import decimate as kd
+
+    hist.zero_()
+    wp.launch(kd.winner_histogram, dim=n, inputs=[*listed, cand, key, hist])
+    return hist.numpy()  # type: ignore[no-any-return]
+
+
 class _Clock:
     """Per-step wall times for ``profile=True`` (synchronises the device at each tick); does nothing otherwise."""
 
@@ -303,13 +314,12 @@ def decimate_carrying(
             for salt in range(TRIMS):  # keep no more than the collapses still needed, cheapest first
                 if won <= needed:
                     break
-                hist.zero_()
-                wp.launch(kd.winner_histogram, dim=most, inputs=[*listed, cand, key, hist])
-                kbin, frac_bits = _quantile(hist.numpy(), needed)
+                if salt == 0:
+                    h_won = _winner_histogram(hist, most, listed, cand, key)
+                kbin, frac_bits = _quantile(h_won, needed)
                 wp.launch(kd.trim_winners, dim=most, inputs=[*listed, cand, key, kbin, wp.int64(frac_bits), salt])
-                hist.zero_()
-                wp.launch(kd.winner_histogram, dim=most, inputs=[*listed, cand, key, hist])
-                won = int(hist.numpy().sum())
+                h_won = _winner_histogram(hist, most, listed, cand, key)
+                won = int(h_won.sum())
                 if won == 0:
                     best = wp.full(1, kd.CLAIM_FREE, dtype=wp.int64)
                     wp.launch(kd.cheapest_trimmed, dim=most, inputs=[*listed, cand, key, best])
