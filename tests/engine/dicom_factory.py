@@ -132,3 +132,12 @@ def series(
             stored, ipp=ipp, iop=iop, pixel_spacing=pixel_spacing, series_uid=uid, instance=k + 1, **kwargs
         )
     return files
+
+
+def break_rle(files: dict[str, bytes], names: Sequence[str]) -> None:
+    """Make the RLE pixel data of ``names`` undecodable, in place: each first frame's header claims 9 segments."""
+    for name in names:
+        data = bytearray(files[name])
+        frame = data.find(b"\xfe\xff\x00\xe0", data.find(b"\xfe\xff\x00\xe0") + 8) + 8  # after the offset table
+        data[frame : frame + 4] = (9).to_bytes(4, "little")
+        files[name] = bytes(data)

@@ -19,7 +19,7 @@ from engine.io import load_volume
 from engine.io.archive import open_members
 from engine.io.parallel import MAX_THREADS, decode_threads, ordered_map
 from engine.types import Volume
-from tests.engine.dicom_factory import series
+from tests.engine.dicom_factory import break_rle, series
 
 SP = (1.5, 0.4, 0.3)
 THREADS = 4  # more threads than the 2-core CI machine has CPUs: interleaving is forced
@@ -178,11 +178,7 @@ def test_dicom_uneven_tilted_series_threads_equal_serial(tmp_path: Path) -> None
 
 def test_dicom_undecodable_pixels_named_in_both_paths(tmp_path: Path) -> None:
     files = series(_field, positions_mm=[0.0, 1.0, 2.0, 3.0, 4.0, 5.0], transfer_syntax=RLELossless)
-    for name in ("IM3", "IM5"):
-        data = bytearray(files[name])
-        frame = data.find(b"\xfe\xff\x00\xe0", data.find(b"\xfe\xff\x00\xe0") + 8) + 8  # after the offset table
-        data[frame : frame + 4] = (9).to_bytes(4, "little")  # the RLE header now claims 9 segments
-        files[name] = bytes(data)
+    break_rle(files, ("IM3", "IM5"))
     path = _zip(tmp_path / "r.zip", files)
     errors = []
     for threads in (1, THREADS):

@@ -29,7 +29,7 @@ from engine.io.parallel import ordered_map
 from engine.io.readers import read_where
 from engine.types import Volume
 from tests.engine.decode_spy import load_counting_pools
-from tests.engine.dicom_factory import series
+from tests.engine.dicom_factory import break_rle, series
 
 REPO = Path(__file__).resolve().parents[2]
 POSITIONS = [float(z) for z in range(11)]
@@ -144,11 +144,7 @@ def test_other_containers(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, kind:
 
 def test_first_failing_slice_is_named_as_in_the_serial_loop(tmp_path: Path) -> None:
     files = series(_field, positions_mm=[float(z) for z in range(30)], transfer_syntax=RLELossless)
-    for name in ("IM13", "IM21"):
-        data = bytearray(files[name])
-        frame = data.find(b"\xfe\xff\x00\xe0", data.find(b"\xfe\xff\x00\xe0") + 8) + 8  # after the offset table
-        data[frame : frame + 4] = (9).to_bytes(4, "little")  # the RLE header now claims 9 segments
-        files[name] = bytes(data)
+    break_rle(files, ("IM13", "IM21"))
     path = _zip(tmp_path / "r.zip", files)
     messages = []
     for threads, processes in ((1, False), (3, True)):
