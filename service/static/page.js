@@ -12,6 +12,7 @@ const FOR = {
 let picked = null; // {name, blob}
 let polling = null;
 let current = null;
+let following = 0; // which call of follow() the running poll belongs to
 
 function key() { return sessionStorage.getItem(KEY) || ""; }
 function headers() { return { "X-API-Key": key() }; }
@@ -111,13 +112,15 @@ function upload() {
 const QUICK_POLL_MS = 250, QUICK_FOR_MS = 10000, POLL_MS = 1000;
 function follow(id) {
   clearTimeout(polling); current = id;
+  const mine = ++following; // a request still in flight from an earlier follow() ends its poll when it returns
   $("job-box").hidden = false; $("result-box").hidden = true; $("job-error").hidden = true;
   $("job-id").textContent = id; $("cancel").hidden = false;
   const since = Date.now();
   const tick = async () => {
-    let job = null;
-    try { job = await api(`/v1/jobs/${id}`); } catch (e) { $("job-state").textContent = e.message; }
-    if (current !== id) return;
+    let job = null, error = null;
+    try { job = await api(`/v1/jobs/${id}`); } catch (e) { error = e; }
+    if (mine !== following) return;
+    if (error) $("job-state").textContent = error.message;
     if (job) {
       show(job);
       if (["succeeded", "failed", "cancelled"].includes(job.state)) { loadJobs(); return; }
