@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 from pathlib import Path
 from typing import Any
 
@@ -17,3 +18,13 @@ def write_json(path: Path, report: dict[str, Any]) -> None:
     """``report`` as indented JSON at ``path`` (its folder made; numpy scalars as numbers, anything else as text)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(report, indent=2, default=_json_default) + "\n")
+
+
+def stop_on_sigterm() -> None:
+    """SIGTERM (``timeout``) exits through ``SystemExit``, so the benchmark's with-blocks stop every process it
+    started and the JSON written so far stays."""
+
+    def _exit(signum: int, frame: Any) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, _exit)

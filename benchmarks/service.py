@@ -34,7 +34,6 @@ import datetime as dt
 import json
 import os
 import platform
-import signal
 import statistics
 import sys
 import tempfile
@@ -46,6 +45,7 @@ from typing import Any
 import httpx
 
 from benchmarks.phantom_zip import PHANTOM_SPACING_MM, write_phantom_zip
+from benchmarks.report import stop_on_sigterm, write_json
 from tests.service.procs import RedisServer, ServiceStack
 
 BASELINE_ENV = {"BONEMESH_DECODE_THREADS": "1", "BONEMESH_PNG_DECODER": "pillow"}
@@ -183,10 +183,6 @@ def _warm_up(stack: ServiceStack, tag: str) -> dict[str, Any]:
     return warm
 
 
-def _exit_on_sigterm(signum: int, frame: Any) -> None:
-    raise SystemExit(128 + signum)
-
-
 def _failed(results: dict[str, Any]) -> bool:
     return any("error" in r for res in results.values() for r in res.get("failed_runs", res.get("runs", [])))
 
@@ -240,10 +236,9 @@ def main(argv: list[str] | None = None) -> int:
         report["baseline"] = {"what": BASELINE, "worker_env": BASELINE_ENV, "runs_per_input": args.baseline_repeat}
 
     def write() -> None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(report, indent=2, default=str) + "\n")
+        write_json(args.out, report)
 
-    signal.signal(signal.SIGTERM, _exit_on_sigterm)  # `timeout`: the with-blocks below stop every process
+    stop_on_sigterm()  # `timeout`: the with-blocks below stop every process
     with (
         RedisServer(workdir / "redis", args.redis_server) as redis,
         ServiceStack(

@@ -31,7 +31,6 @@ import datetime as dt
 import json
 import os
 import platform
-import signal
 import sys
 import tempfile
 import time
@@ -39,6 +38,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from benchmarks.report import stop_on_sigterm, write_json
 from tests.service.procs import Proc, RedisServer, ServiceStack, bonemesh_argv, submit, wait_for_job, wait_until
 
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
@@ -61,12 +61,21 @@ def start_worker(stack: ServiceStack, index: int, device: str, cpus: list[int]) 
     return proc
 
 
-def _ready(proc: Proc, device: str) -> bool:
-    """Celery's ready line, and on a GPU the worker's warm-up (``BONEMESH_WARMUP``: on by default there)."""
+def _ready(proc: Proc, warm: bool) -> bool:
+    """Celery's ready line, and for a worker that warms its device up, the end of the warm-up."""
     if not proc.alive():
         raise RuntimeError(f"{proc.describe()}:\n{proc.tail()}")
     log = proc.tail(20000)
-    return " ready." in log and (not device.startswith("cuda") or " warm in " in log or "warm-up failed" in log)
+    return " ready." in log and (not warm or " warm in " in log or "warm-up failed" in log)
+
+
+def _warms_up(stack: ServiceStack, device: str) -> bool:
+    """Whether a worker of ``stack`` on ``device`` warms up at start (``worker.app.warms_up``: its
+    ``BONEMESH_WARMUP``, on by default on a GPU)."""
+    from service.settings import Settings
+    from worker.app import warms_up
+
+    return warms_up(Settings(device=device, warmup=stack.env.get("BONEMESH_WARMUP", "auto")))
 
 
 def _ts(job: dict[str, Any], key: str) -> float:
@@ -86,7 +95,8 @@ def run_phase(
     once, wait for all; stop the workers. The phase's timings."""
     workers = [start_worker(stack, i, dev, shares[i]) for i, dev in enumerate(devices)]
     for w, dev in zip(workers, devices, strict=True):
-        wait_until(lambda w=w, dev=dev: _ready(w, dev), 300, f"{w.name} to be ready", interval=0.2)
+        warm = _warms_up(stack, dev)
+        wait_until(lambda w=w, warm=warm: _ready(w, warm), 300, f"{w.name} to be ready", interval=0.2)
 
     def post(_: int) -> str:
         with stack.client(timeout=600) as client:
@@ -181,10 +191,9 @@ def main(argv: list[str] | None = None) -> int:
     }
 
     def write() -> None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(report, indent=2) + "\n")
+        write_json(args.out, report)
 
-    signal.signal(signal.SIGTERM, _exit_on_sigterm)  # `timeout`: the with-blocks below stop every process
+    stop_on_sigterm()  # `timeout`: the with-blocks below stop every process
     with (
         RedisServer(workdir / "redis", args.redis_server) as redis,
         ServiceStack(
@@ -220,10 +229,6 @@ def main(argv: list[str] | None = None) -> int:
     write()
     print(f"[throughput] wrote {args.out}", flush=True)
     return 0
-
-
-def _exit_on_sigterm(signum: int, frame: Any) -> None:
-    raise SystemExit(128 + signum)
 
 
 if __name__ == "__main__":

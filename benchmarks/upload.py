@@ -33,7 +33,7 @@ from typing import Any
 
 import httpx
 
-from benchmarks.report import write_json
+from benchmarks.report import stop_on_sigterm, write_json
 from tests.service.procs import API_KEYS, RedisServer, ServiceStack
 
 PHANTOM_PARAMS = {"preset": "bone", "hu_offset": 1024, "spacing": [0.05, 0.05, 0.05]}
@@ -101,6 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     result["input"]["archive_bytes"] = size
     result["clients"] = {}
     limit = size + (1 << 20)
+    stop_on_sigterm()  # `timeout`: the with-blocks below stop every process
     with RedisServer(root / "redis") as redis, ServiceStack(root / "stack", redis.url, max_upload_bytes=limit) as stack:
         servers = {"current": stack.start_server(workers=args.api_workers)}
         if args.baseline:
