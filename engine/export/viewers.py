@@ -10,19 +10,11 @@ from engine.export.meshopt import to_meshopt_glb
 from engine.export.preview import to_preview_png
 from engine.export.usdz import to_usdz
 
-VIEWER_FILES = ("phone_meshopt.glb", "model.usdz", "preview.png")
-
-
-def viewer_files(phone: Any, ar: Any) -> dict[str, bytes]:
-    """``{name: bytes}`` of :data:`VIEWER_FILES`, from meshes with ``vertices``, ``faces`` and ``normals``
-    (engine order, mm; centred as the glTF files are)."""
-    encoders = small_files(phone, ar)
-    return {name: encoders[name]() for name in VIEWER_FILES}
-
 
 def small_files(phone: Any, ar: Any) -> dict[str, Callable[[], bytes]]:
-    """Every small file of a model as a function that encodes it: the Draco ``phone.glb``, the plain ``ar.glb``
-    and :data:`VIEWER_FILES` (independent of each other, so they may run at once)."""
+    """Every small file of a model as a function that encodes it, from meshes with ``vertices``, ``faces`` and
+    ``normals`` (engine order, mm; centred as the glTF files are): the Draco ``phone.glb``, the plain ``ar.glb``,
+    the meshopt GLB, the USDZ and the preview (``engine.outputs`` runs them one after another)."""
     from engine.export import to_draco_glb, to_glb
 
     return {

@@ -30,15 +30,6 @@ def localize_faces(
 
 
 @wp.kernel
-def lock_plane(plane: wp.array3d(dtype=wp.int32), v0: int, n_foreign: int, lock: wp.array(dtype=wp.int32)):
-    """Pin the group's own vertices that lie on its top plane (shared with the next slab)."""
-    a, y, x = wp.tid()
-    v = plane[a, y, x]
-    if v >= v0:
-        lock[v - v0 + n_foreign] = 1
-
-
-@wp.kernel
 def globalize_faces(faces: wp.array(dtype=wp.vec3i), n_foreign: int, foreign_out: wp.array(dtype=wp.int32), base: int):
     """A decimated group's faces in the output's numbering: its first ``n_foreign`` vertices are shared with the
     group below (ids ``foreign_out``), the others follow the output's vertices so far (``base`` + row)."""
@@ -157,10 +148,3 @@ def join_seam(
     else:
         out_id[i] = n_old + new_slot[i]
         new_pos[new_slot[i]] = out_pos[i]
-
-
-@wp.kernel
-def remap_by(faces: wp.array(dtype=wp.vec3i), ids: wp.array(dtype=wp.int32)):
-    f = wp.tid()
-    t = faces[f]
-    faces[f] = wp.vec3i(ids[t[0]], ids[t[1]], ids[t[2]])
