@@ -142,16 +142,8 @@ def cell_positions(
 
 
 @wp.kernel
-def mark_used(faces: wp.array(dtype=wp.vec3i), used: wp.array(dtype=wp.int32)):
-    f = wp.tid()
-    t = faces[f]
-    for k in range(3):
-        used[t[k]] = 1
-
-
-@wp.kernel
 def piece_vertices(used: wp.array(dtype=wp.int32), label: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32)):
-    """The used vertices of every piece, counted at its root."""
+    """The used vertices of every piece (``used``: a vertex's face count), counted at its root."""
     v = wp.tid()
-    if used[v] == 1:
+    if used[v] > 0:
         wp.atomic_add(count, label[v], 1)

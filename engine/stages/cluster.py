@@ -230,27 +230,20 @@ class Pieces:
 
 
 def piece_census(pos: Any, faces: Any) -> Pieces:
-    """Count the pieces of a device mesh (device labels; one volume, face and vertex count per vertex slot come
-    back to the host)."""
+    """Count the pieces of a device mesh (``engine.stages.islands.measure_pieces``, and the used vertices of each)."""
     import warp as wp
 
     from engine.kernels import cluster as kc
     from engine.kernels import decimate as kd
-    from engine.stages.devmesh import component_labels_device
+    from engine.stages.islands import measure_pieces
 
     nv, nf = len(pos), len(faces)
     with wp.ScopedDevice(pos.device):
-        label = component_labels_device(faces, nv)
-        vol = wp.zeros(nv, dtype=wp.float64)
-        nfaces = wp.zeros(nv, dtype=wp.int32)
+        label, roots, counts, volume = measure_pieces(pos, faces)
         used = wp.zeros(nv, dtype=wp.int32)
         nverts = wp.zeros(nv, dtype=wp.int32)
         if nf:
-            wp.launch(kd.piece_volumes, dim=nf, inputs=[pos, faces, label, vol, nfaces])
-            wp.launch(kc.mark_used, dim=nf, inputs=[faces, used])
+            wp.launch(kd.count_incidence, dim=nf, inputs=[faces, used])
             wp.launch(kc.piece_vertices, dim=nv, inputs=[used, label, nverts])
-        counts = nfaces.numpy()  # sync point
-        roots = np.flatnonzero(counts)
-        volume = np.abs(vol.numpy()[roots])
         order = np.argsort(-volume, kind="stable")
         return Pieces(volume[order], counts[roots][order], nverts.numpy()[roots][order])

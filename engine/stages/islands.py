@@ -112,6 +112,27 @@ def remove_islands(
     return out_v, out_f, info
 
 
+def measure_pieces(pos: Any, faces: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
+    """The pieces of a device mesh: ``(label, roots, faces, volume)``, the device label of every vertex (its piece's
+    root vertex), and on the host the roots in vertex order, the face count per vertex slot and each root's piece
+    volume (mm^3). One sync: V ints and doubles come back, no mesh."""
+    import warp as wp
+
+    from engine.kernels import decimate as kd
+    from engine.stages.devmesh import component_labels_device
+
+    nv, nf = len(pos), len(faces)
+    with wp.ScopedDevice(pos.device):
+        label = component_labels_device(faces, nv)
+        vol = wp.zeros(nv, dtype=wp.float64)
+        nfaces = wp.zeros(nv, dtype=wp.int32)
+        if nf:
+            wp.launch(kd.piece_volumes, dim=nf, inputs=[pos, faces, label, vol, nfaces])
+        counts = nfaces.numpy()  # sync point
+        roots = np.flatnonzero(counts)
+        return label, roots, counts, np.abs(vol.numpy()[roots])
+
+
 def remove_islands_device(
     pos: Any, faces: Any, *, min_volume_mm3: float | None = None, keep_largest: int | None = None
 ) -> tuple[Any, Any, dict[str, Any]]:
@@ -122,19 +143,12 @@ def remove_islands_device(
     import warp as wp
 
     from engine.kernels import decimate as kd
-    from engine.stages.devmesh import compact_faces, compact_vertices, component_labels_device
+    from engine.stages.devmesh import compact_faces, compact_vertices
 
     _check_limits(min_volume_mm3, keep_largest)
     nv, nf = len(pos), len(faces)
     with wp.ScopedDevice(pos.device):
-        label = component_labels_device(faces, nv)
-        vol = wp.zeros(nv, dtype=wp.float64)
-        nfaces = wp.zeros(nv, dtype=wp.int32)
-        if nf:
-            wp.launch(kd.piece_volumes, dim=nf, inputs=[pos, faces, label, vol, nfaces])
-        counts = nfaces.numpy()  # sync point: V ints and doubles, no mesh
-        roots = np.flatnonzero(counts)
-        volume = np.abs(vol.numpy()[roots])
+        label, roots, counts, volume = measure_pieces(pos, faces)
         keep = _kept_pieces(volume, min_volume_mm3, keep_largest)
         info = _report(volume, keep, int(counts[roots[~keep]].sum()))
         if info["removed_pieces"] == 0:
