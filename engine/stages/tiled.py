@@ -187,19 +187,14 @@ def seam_pass(
     return decimate_tiles(mesh, tile, {0: goal}, dev, **kwargs)
 
 
-def _shared_vertices(faces: np.ndarray, tile: np.ndarray, order: np.ndarray, bounds: np.ndarray, n: int) -> np.ndarray:
-    """The vertices used by faces of more than one tile."""
-    if len(bounds) <= 3:  # two tiles: where both use a vertex
-        used = [np.zeros(n, bool) for _ in range(2)]
-        for t in range(len(bounds) - 1):
-            used[t][faces[order[bounds[t] : bounds[t + 1]]].ravel()] = True
-        return used[0] & used[1]
-    refs, ftile = faces.ravel(), np.repeat(tile, 3)
-    lo = np.full(n, np.iinfo(np.int16).max, np.int16)
-    hi = np.full(n, -1, np.int16)
-    np.minimum.at(lo, refs, ftile)
-    np.maximum.at(hi, refs, ftile)
-    return lo != hi
+def _shared_vertices(faces: np.ndarray, order: np.ndarray, bounds: np.ndarray, n: int) -> np.ndarray:
+    """The vertices used by faces of more than one tile (tile ``t``: faces ``order[bounds[t]:bounds[t + 1]]``)."""
+    tiles = np.zeros(n, np.int32)  # how many tiles use each vertex
+    for t in range(len(bounds) - 1):
+        used = np.zeros(n, bool)
+        used[faces[order[bounds[t] : bounds[t + 1]]].ravel()] = True
+        tiles += used
+    return tiles >= 2
 
 
 def seam_passes_device(
@@ -327,7 +322,7 @@ def decimate_tiles(
     tile = tile.astype(np.int16)
     order = np.argsort(tile, kind="stable")
     bounds = np.searchsorted(tile[order], np.arange(int(tile.max()) + 2))
-    shared = _shared_vertices(mesh.faces, tile, order, bounds, n_verts)
+    shared = _shared_vertices(mesh.faces, order, bounds, n_verts)
     carried = len(mesh.quad) == n_verts
     quad = mesh.quad if carried else np.zeros((n_verts, 10))
     times = {"split": time.perf_counter() - t0, "tiles": 0.0, "decimate": 0.0}
