@@ -135,9 +135,10 @@ def marching_cubes_33(
 
         plan = SlabPlan(budget, vol.shape[1] * vol.shape[2] * vol.itemsize)
         for part in _run_slabs(upload, vol.shape, plan, vol.dtype == np.float32, lvl, sp, closed, dev, st):
+            timer = _Timer(st, dev)
             vert_parts.append(part.verts.numpy()[: part.nv])  # sync point
             face_parts.append(part.faces.numpy()[: part.nt])  # sync point
-            _Timer(st, dev).lap("download")
+            timer.lap("download")
     if not st.level_in_range or not face_parts:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
     verts_np = np.concatenate(vert_parts).astype(np.float32, copy=False).reshape(-1, 3)
