@@ -8,6 +8,8 @@ import tempfile
 import time
 from typing import Any
 
+import numpy as np
+
 WARMUP_SHAPE = (40, 64, 64)  # a bone phantom this size touches every stage (decimation, copies, files) in ~0.3 s
 
 
@@ -26,7 +28,8 @@ def warm_up(device: str = "auto", max_device_bytes: int | str | None = None) -> 
 
     t0 = time.perf_counter()
     dev = resolve_device(device)
-    volume = Volume(bone_phantom(WARMUP_SHAPE), (0.5, 0.5, 0.5), units="HU")
+    hu = bone_phantom(WARMUP_SHAPE, dtype=np.int16) - np.int16(1024)  # the phantom is in HU + 1024
+    volume = Volume(hu, (0.5, 0.5, 0.5), units="HU")
     recon = reconstruct(volume, ReconParams(), device=str(dev), max_device_bytes=max_device_bytes)
     with tempfile.TemporaryDirectory(prefix="bonemesh-warmup-") as out:
         write_outputs(recon, out, device=str(dev), max_device_bytes=max_device_bytes)
