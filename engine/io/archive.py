@@ -22,11 +22,12 @@ import tempfile
 import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import IO
 
 from engine.errors import InputError
-from engine.io.readers import PlainTar, Where, ZipHandles
+from engine.io.readers import PlainTar, Where, ZipHandles, read_where
 
 _CHUNK = 1 << 20
 _SPOOL_IN_MEMORY = 64 << 20  # all of a tar's members held in memory together; the rest go to temporary files
@@ -76,6 +77,11 @@ class Member:
     _path: Path | None = field(default=None, repr=False)
     _reader: Callable[[], bytes] | None = field(default=None, repr=False)
     where: Where | None = field(default=None, repr=False)  # for readers in other processes (engine.io.readers)
+
+    @classmethod
+    def at(cls, where: Where, head: bytes) -> Member:
+        """The member that ``where`` locates, read from there (in any process: ``engine.io.readers.read_where``)."""
+        return cls(where.name, where.size, head, _reader=partial(read_where, where), where=where)
 
     def read(self) -> bytes:
         """The member's whole content (not available in a ``heads_only`` listing of an archive).

@@ -9,7 +9,6 @@ linearly along the normal at the median gap.
 from __future__ import annotations
 
 import contextlib
-import functools
 import math
 import warnings
 from collections import defaultdict
@@ -24,7 +23,7 @@ from engine.io.archive import InputLimits, Member, Members
 from engine.io.dicom_pixels import quiet, read_dataset, series_pixels
 from engine.io.parallel import ordered_map
 from engine.io.procs import DecodePool, start_pool
-from engine.io.readers import Where, read_where
+from engine.io.readers import Where
 from engine.io.regrid import regularise as _regularise
 from engine.io.stack import SPACING_HINT, StackWarning, natural_key
 from engine.params import check_spacing_zyx_mm
@@ -111,7 +110,7 @@ def _header_at(item: tuple[Where, bytes]) -> _Slice | str | None:
     where, head = item
     if not looks_like_dicom(head):
         return None
-    found = _header(Member(where.name, where.size, head, _reader=functools.partial(read_where, where)))
+    found = _header(Member.at(where, head))
     return replace(found, member=Member(where.name, where.size, head)) if isinstance(found, _Slice) else found
 
 

@@ -9,7 +9,6 @@ shared volume; the result is the same.
 from __future__ import annotations
 
 import contextlib
-import functools
 import io
 import itertools
 import math
@@ -22,7 +21,7 @@ import numpy as np
 from engine.errors import InputError
 from engine.io.archive import Member
 from engine.io.parallel import ordered_map
-from engine.io.readers import Where, read_where
+from engine.io.readers import Where
 
 if TYPE_CHECKING:
     from engine.io.procs import DecodePool
@@ -94,7 +93,7 @@ def decode_into_shared(job: tuple[int, Where, bytes, str, tuple[int, ...], str])
     from engine.io.procs import worker_array
 
     k, where, head, syntax, shape, dtype = job
-    member = Member(where.name, where.size, head, _reader=functools.partial(read_where, where))
+    member = Member.at(where, head)
     return _store(worker_array(shape, dtype), k, decode_pixels(member, syntax))
 
 
