@@ -45,6 +45,17 @@ MAX_CHUNK = 8  # files per task at most
 START_TIMEOUT_S = 120.0  # a first worker that has not answered by then: decode on threads instead
 
 
+def _close_alive_fd(server: Any) -> None:
+    """Close this process's copy of the fork server's "alive" pipe end (the server exits only when every holder
+    has closed it)."""
+    alive = getattr(server, "_forkserver_alive_fd", None)
+    if isinstance(alive, int):
+        with contextlib.suppress(OSError):
+            os.close(alive)
+    if server is not None:
+        server._forkserver_alive_fd = None
+
+
 def _forget_fork_server() -> None:
     """In a child made by ``fork``: the parent's fork server is not the child's (it is not the child's child, and it
     serves the parent), and a kept copy of its "alive" pipe end would keep it running after the parent: forget it,
@@ -54,11 +65,8 @@ def _forget_fork_server() -> None:
     server = getattr(forkserver, "_forkserver", None)
     if server is None or getattr(server, "_forkserver_pid", None) is None:
         return
-    alive = getattr(server, "_forkserver_alive_fd", None)
-    if isinstance(alive, int):
-        with contextlib.suppress(OSError):
-            os.close(alive)
-    server._forkserver_address = server._forkserver_alive_fd = server._forkserver_pid = None
+    _close_alive_fd(server)
+    server._forkserver_address = server._forkserver_pid = None
     server._lock = threading.Lock()  # another thread of the parent may have held it
 
 
@@ -178,11 +186,7 @@ def _init(fd: int) -> None:
     # it: a worker that kept it would keep the server, and so itself, alive after the parent's death
     from multiprocessing import forkserver
 
-    alive = getattr(getattr(forkserver, "_forkserver", None), "_forkserver_alive_fd", None)
-    if isinstance(alive, int):
-        with contextlib.suppress(OSError):
-            os.close(alive)
-        forkserver._forkserver._forkserver_alive_fd = None  # type: ignore[attr-defined]
+    _close_alive_fd(getattr(forkserver, "_forkserver", None))
     if sys.platform == "linux":
         with contextlib.suppress(Exception):
             import ctypes
