@@ -130,7 +130,8 @@ def finish_groups(
             if seams["complete"]:
                 info.update(output_faces=len(faces), seconds=time.perf_counter() - t0)
                 return pos, faces, info
-            info["seams_device"] = info.pop("seams")  # the host's seam pass finishes
+            info["seams_device"] = info.pop("seams")  # the host's seam pass finishes the borders not done
+            borders = seams["remaining"]
             if seams["batches"]:
                 quad = None  # the vertices were renumbered: the host pass takes quadrics of the current faces
         dev = pos.device
@@ -141,7 +142,7 @@ def finish_groups(
         dev = wp.get_device()
     assert host is not None
     if borders and len(host.faces) > target:
-        host, info["seams"] = seam_pass(host, borders, seam_mm, target, dev)
+        host, info["seams"] = seam_pass(host, borders, seam_mm, target, budget, dev)
     pos, faces, more = finish_host(host, target, budget, dev)
     more["rounds"] = more.get("rounds", [])
     info.update(more)
@@ -173,16 +174,19 @@ def tiled_round(
 
 
 def seam_pass(
-    mesh: HostMesh, borders_z: list[float], width_mm: float, target: int, dev: Any, **kwargs: Any
+    mesh: HostMesh, borders_z: list[float], width_mm: float, target: int, budget: int | None, dev: Any, **kwargs: Any
 ) -> tuple[HostMesh, dict[str, Any]]:
     """Decimate across the borders of the slab groups: the faces within ``width_mm`` of a border (in z) form one
-    tile, pinned where they meet the rest, which is left as it is; the tile gives up the faces over ``target``."""
+    tile, pinned where they meet the rest, which is left as it is; the tile gives up the faces over ``target``.
+    A tile that does not fit ``budget`` is left to the tiled rounds (``info["skipped"]``)."""
     z = mesh.pos[mesh.faces[:, 0], 0]
     b = np.sort(np.asarray(borders_z, np.float64))
     i = np.clip(np.searchsorted(b, z), 1, len(b) - 1) if len(b) > 1 else np.zeros(len(z), np.int64)
     near = np.minimum(np.abs(z - b[i]), np.abs(z - b[np.maximum(i - 1, 0)])) <= width_mm
     tile = np.where(near, 0, 1).astype(np.int16)
     n_seam = int(near.sum())
+    if not fits(n_seam, budget):
+        return mesh, {"skipped": {"seam_faces": n_seam, "budget_bytes": budget}}
     goal = max(n_seam - (len(mesh.faces) - target), 1)
     return decimate_tiles(mesh, tile, {0: goal}, dev, **kwargs)
 
@@ -203,7 +207,8 @@ def seam_passes_device(
     """``seam_pass`` on a device mesh, within ``budget``: all the seams at once where they fit beside the mesh, else
     in batches of neighbouring borders (halved until each fits), every seam giving up the same share of its faces.
     ``((pos, faces), info)``; ``info["complete"]`` is False where even one border's seam would not fit (the mesh
-    then holds the batches done so far, and ``info["skipped"]`` says why)."""
+    then holds the batches done so far, ``info["skipped"]`` says why and ``info["remaining"]`` lists the borders
+    not done)."""
     t0 = time.perf_counter()
     n_faces = len(faces)
     done, why = seam_pass_device(pos, faces, borders_z, width_mm, target, budget)
@@ -211,7 +216,7 @@ def seam_passes_device(
         return done, {**why, "batches": 1, "complete": True}
     n_seam = why["seam_faces"]
     info: dict[str, Any] = {"faces_in": n_faces, "seam_faces_in": n_seam, "on": "device", "passes": []}
-    info.update(batches=0, complete=False, skipped=why)
+    info.update(batches=0, complete=False, skipped=why, remaining=sorted(borders_z))
     if n_seam == 0 or len(borders_z) < 2:
         return (pos, faces), info
     keep = max(1.0 - (n_faces - target) / n_seam, 0.0)
@@ -221,7 +226,7 @@ def seam_passes_device(
         done, why = seam_pass_device(pos, faces, batch, width_mm, target, budget, keep=keep)
         if done is None:
             if len(batch) < 2 or why["seam_faces"] == 0:
-                info["skipped"] = why
+                info["skipped"], info["remaining"] = why, sorted(b for part in [batch, *queue] for b in part)
                 break
             half = len(batch) // 2
             queue[:0] = [batch[:half], batch[half:]]
@@ -230,7 +235,7 @@ def seam_passes_device(
         info["passes"].append(why["passes"])
     else:
         info["complete"] = True
-        del info["skipped"]
+        del info["skipped"], info["remaining"]
     info.update(faces_out=len(faces), seconds=time.perf_counter() - t0)
     return (pos, faces), info
 
