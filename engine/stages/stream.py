@@ -115,6 +115,12 @@ class GroupDecimator:
         """Faces a group may have now (its decimation beside the groups held on the device)."""
         return max((self.mesh_room - self.held) // DECIMATE_BYTES_PER_FACE, 1)
 
+    @property
+    def carries_quadrics(self) -> bool:
+        """Whether the groups' quadrics go on to a last pass (in "seams" mode the seams are decimated with quadrics
+        of their current faces)."""
+        return self.mode == "last pass"
+
     def add(self, part: Any) -> None:
         if self.pending and self.pending_faces + part.nt > self.cap:
             self.flush()
@@ -193,7 +199,7 @@ class GroupDecimator:
         kept = res.kept.numpy()  # sync point: 4 bytes per vertex
         if nf and not np.array_equal(kept[:nf], np.arange(nf)):
             raise RuntimeError("a pinned vertex was removed by the decimation of a group of slabs")
-        carry = self.mode == "last pass"  # the seams are decimated with quadrics of their current faces
+        carry = self.carries_quadrics
         if nf and carry:
             self.deferred.append((self.top_out, res.quad[:nf].numpy().reshape(-1, 10)))
         foreign_out = wp.array(self.top_out.astype(np.int32) if nf else np.zeros(1, np.int32), dtype=wp.int32)
@@ -235,7 +241,7 @@ class GroupDecimator:
             faces = np.concatenate([h[1] for h in self.host])
             return HostMesh(pos, faces, quad, self.origin), None
         with wp.ScopedDevice(self.dev):
-            carried = self.mode == "last pass"
+            carried = self.carries_quadrics
             pos = wp.empty(self.n_out, dtype=wp.vec3)
             quad = wp.empty(self.n_out, dtype=quadric) if carried else None
             faces = wp.empty(sum(len(p[1]) for p in self.pieces), dtype=wp.vec3i)
