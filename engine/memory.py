@@ -18,7 +18,10 @@ MESH_BYTES_PER_FACE = 18  # positions (12 B per vertex) and faces (12 B)
 DECIMATE_BYTES_PER_FACE = 300  # the mesh, its copy, stars, classes, quadrics, per-edge keys and positions
 FINISH_BYTES_PER_FACE = 90  # islands, smoothing and normals of the final mesh (its stars, copies, normals)
 LAYOUT_BYTES_PER_FACE = 120  # write_outputs: the mesh, its patient-frame copies, STL facets and glTF buffers
-SLAB_SHARE = 0.25  # of the budget, for one slab of the volume stages (the rest holds the mesh being built)
+SLAB_SHARE = 0.25  # of the budget, for one slab of the volume stages when the whole mesh is kept (undecimated)
+# or this share when the mesh is decimated in groups of slabs: besides a slab, only the groups decimated so far
+# (``engine.stages.stream.SPILL_SHARE``, then they go to the host) and the slabs' meshes not yet decimated (a few %)
+STREAM_SLAB_SHARE = 0.5
 
 _UNITS = {"": 1, "b": 1, "k": 1 << 10, "kb": 1000, "kib": 1 << 10, "m": 1 << 20, "mb": 10**6, "mib": 1 << 20}
 _UNITS |= {"g": 1 << 30, "gb": 10**9, "gib": 1 << 30, "t": 1 << 40, "tb": 10**12, "tib": 1 << 40}

@@ -101,13 +101,16 @@ class SlabMesh:
 class SlabPlan:
     """How ``_run_slabs`` sizes its slabs: ``budget`` bytes for a slab's working set, of which a z plane of the
     source costs ``plane_bytes`` (the slab getter's own working set per plane, e.g. the streamed Gaussian's);
-    ``max_faces`` caps a slab's output; ``strict`` raises ``BudgetError`` where one block layer does not fit
-    (otherwise one layer is used anyway, as MC33 alone always did)."""
+    ``max_faces`` caps a slab's output (a slab over it is redone smaller) and ``target_faces`` is what slabs are
+    sized for (no more than the densest layers seen so far would give; fewer, larger slabs cost less than many thin
+    ones); ``strict`` raises ``BudgetError`` where one block layer does not fit (otherwise one layer is used
+    anyway, as MC33 alone always did)."""
 
     budget: int
     plane_bytes: int
     halo_planes: int = 0
     max_faces: int | None = None
+    target_faces: int | None = None
     strict: bool = False
 
 
@@ -322,11 +325,15 @@ def _next_layers(
     nbz_total: int,
 ) -> int:
     """The next slab's block layers: what the budget allows at twice the densest active blocks (and faces) per
-    layer seen so far, growing at most fourfold per slab (a slab found too large is redone smaller)."""
+    layer seen so far, and no more than ``plan.target_faces`` (or half ``plan.max_faces``) at the densest faces per
+    layer seen; growing at most fourfold per slab (a slab found too large is redone smaller)."""
     per_layer = fixed + 2.0 * (active_per_layer * per_block + faces_per_layer * 18)
     n = int((plan.budget - halo) // max(per_layer, 1.0))
-    if plan.max_faces is not None and faces_per_layer > 0:
-        n = min(n, int(plan.max_faces // (2.0 * faces_per_layer)))
+    if faces_per_layer > 0:
+        if plan.target_faces is not None:
+            n = min(n, int(plan.target_faces // faces_per_layer))
+        if plan.max_faces is not None:
+            n = min(n, int(plan.max_faces // (2.0 * faces_per_layer)))
     return int(min(max(n, 1), 4 * layers, nbz_total))
 
 

@@ -18,13 +18,14 @@ from typing import Any
 
 import numpy as np
 
-from engine.memory import DECIMATE_BYTES_PER_FACE, MESH_BYTES_PER_FACE, SLAB_SHARE, mib
+from engine.memory import DECIMATE_BYTES_PER_FACE, MESH_BYTES_PER_FACE, SLAB_SHARE, STREAM_SLAB_SHARE, mib
 from engine.params import GaussianParams
 
 PIECE_TOLERANCE = 0.01  # a group or tile stops this close to its share (the last pass across them is exact)
 GROUP_SLACK = 1.15  # groups of slabs keep this many times their share of the target
 SEAM_SLACK = 1.03  # or this many, when only the faces near their borders get a last pass (the seams)
 SPILL_SHARE = 0.25  # of the budget: decimated groups held on the device beyond this go to the host
+GROUP_SLABS = 4  # slabs are sized for this share of a group's faces (a group then fills at least 3/4 of its cap)
 
 
 @dataclass
@@ -124,6 +125,9 @@ class GroupDecimator:
     def add(self, part: Any) -> None:
         if self.pending and self.pending_faces + part.nt > self.cap:
             self.flush()
+        for p in self.pending:  # a group reads only its top slab's shared plane: the others' are freed
+            p.plane_above = None
+        part.plane_below = None
         self.pending.append(part)
         self.pending_faces += part.nt
 
@@ -264,14 +268,14 @@ class GroupDecimator:
         return now
 
 
-def _slabs_within(slabs: Any) -> Any:
-    """The slab generator, its budget errors restated for the whole budget (slabs get ``SLAB_SHARE`` of it)."""
+def _slabs_within(slabs: Any, share: float) -> Any:
+    """The slab generator, its budget errors restated for the whole budget (slabs get ``share`` of it)."""
     from engine.errors import BudgetError
 
     try:
         yield from slabs
     except BudgetError as exc:
-        needed = (int(exc.needed / SLAB_SHARE) // 2**20 + 1) * 2**20  # whole MiB, rounded up
+        needed = (int(exc.needed / share) // 2**20 + 1) * 2**20  # whole MiB, rounded up
         msg = f"{exc}: give at least {mib(needed)}"
         raise BudgetError(msg, needed) from None
 
@@ -300,27 +304,31 @@ def stream_surface(
     from engine.stages.slabs import SlabPlan, _run_slabs, join_parts
 
     get_slab, plane_bytes, halo = slab_getter(volume, gaussian, dev)
-    mesh_room = int(budget * (1 - SLAB_SHARE))
-    cap = (mesh_room - int(budget * SPILL_SHARE)) // DECIMATE_BYTES_PER_FACE
-    if not decimate:
-        cap = mesh_room // MESH_BYTES_PER_FACE
-    plan = SlabPlan(int(budget * SLAB_SHARE), plane_bytes, halo, max_faces=max(cap, 1), strict=True)
-    origin = 0.5 * (np.array(volume.shape, np.float64) - 1) * np.asarray(spacing, np.float64)
-    # the groups stop short of the target (GROUP_SLACK), leaving the last collapses to a pass across their borders
     # a group is decimated between slabs, when the slab's working set is freed: it may use the whole budget but for
     # what stays on the device meanwhile (the halo planes of the streamed Gaussian, the shared-plane vertex ids)
     resident = halo * plane_bytes + 16 * (volume.shape[1] + 1) * (volume.shape[2] + 1)
-    room = budget - resident if decimate else 1 << 62  # undecimated, the mesh stays whole (checked below)
+    spill = int(budget * SPILL_SHARE)
+    if decimate:  # a slab runs beside the groups decimated so far (up to ``spill``) and the slabs not yet decimated
+        share, room = STREAM_SLAB_SHARE, budget - resident
+        cap = (room - spill) // DECIMATE_BYTES_PER_FACE  # a slab's faces must fit a group however many are held
+        target: int | None = max(cap // GROUP_SLABS, 1)
+    else:  # undecimated, the mesh stays whole beside the slab (checked below)
+        share, room = SLAB_SHARE, 1 << 62
+        cap, target = int(budget * (1 - share)) // MESH_BYTES_PER_FACE, None
+    plan = SlabPlan(int(budget * share), plane_bytes, halo, max_faces=max(cap, 1), target_faces=target, strict=True)
+    origin = 0.5 * (np.array(volume.shape, np.float64) - 1) * np.asarray(spacing, np.float64)
+    # the groups stop short of the target (GROUP_SLACK), leaving the last collapses to a pass across their borders
     group_ratio = ratio if ratio is not None else 0.5
-    groups = GroupDecimator(group_ratio, GROUP_SLACK, room, int(budget * SPILL_SHARE), origin, volume.shape[0], dev)
+    groups = GroupDecimator(group_ratio, GROUP_SLACK, room, spill, origin, volume.shape[0], dev)
     out = StreamResult(origin=origin)
     t0 = time.perf_counter()
     is_float = gaussian is not None or volume.dtype == np.float32
-    for part in _slabs_within(_run_slabs(get_slab, volume.shape, plan, is_float, level, spacing, closed, dev, stats)):
+    slabs = _run_slabs(get_slab, volume.shape, plan, is_float, level, spacing, closed, dev, stats)
+    for part in _slabs_within(slabs, share):
         out.mc33_faces += part.nt
         out.mc33_vertices += part.nv
         if not decimate and out.mc33_faces > cap:
-            needed = int(out.mc33_faces * MESH_BYTES_PER_FACE / (1 - SLAB_SHARE))
+            needed = int(out.mc33_faces * MESH_BYTES_PER_FACE / (1 - share))
             raise BudgetError(
                 f"the undecimated model does not fit the device memory budget of {mib(budget)} "
                 f"(more than {out.mc33_faces:,} faces); decimate it or give at least {mib(needed)}",
