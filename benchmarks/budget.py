@@ -76,11 +76,14 @@ def _run(volume: Volume, device: str, budget: int | None, write: bool, repeat: i
         out["tiled_rounds"] = [{k: v for k, v in r.items() if k != "tiles"} for r in dec.get("rounds", [])]
         out["final_pass_faces_in"] = dec.get("final_pass", {}).get("input_faces")
     if write:
+        from engine.device import resolve_device
         from engine.memory import PeakMemory
         from engine.outputs import write_outputs
 
         with tempfile.TemporaryDirectory() as tmp:
-            peak = PeakMemory(recon.device_mesh[0].device).start()
+            # the job's device (a model finished on the host is laid out there, outside the budget, and its
+            # viewing copies are decimated back on the job's device)
+            peak = PeakMemory(resolve_device(device)).start()
             t1 = time.perf_counter()
             try:
                 write_outputs(recon, tmp, PAPER, device=device, max_device_bytes=budget)

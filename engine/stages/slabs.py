@@ -146,7 +146,7 @@ def _run_slabs(
     """Yield each slab's mesh (``SlabMesh``); check NaN and the level's range at the end.
 
     ``get_slab(zlo, zhi)`` returns the (zhi - zlo + 1, ny, nx) samples of planes zlo..zhi on ``dev``. Slabs start
-    at the worst-case size for ``plan.budget`` and adapt to the active blocks and faces seen so far; a slab found
+    at the worst-case size for ``plan.budget`` and adapt to the active blocks and faces of the slab before; a slab found
     over the budget (or over ``plan.max_faces``) after its blocks are classified or counted is redone with half
     the layers, so the result never depends on the slabbing.
     """
@@ -168,7 +168,7 @@ def _run_slabs(
     vstart = 0
     timer = _Timer(st, dev)
     bz0 = 0
-    active_per_layer = faces_per_layer = 0.0  # the most seen so far, for sizing the next slab
+    active_per_layer = faces_per_layer = 0.0  # the last slab's (with any), for sizing the next slab
     while bz0 < nbz_total:
         bz1 = min(bz0 + layers, nbz_total)
         n_layers = bz1 - bz0
@@ -292,8 +292,9 @@ def _run_slabs(
         timer.lap("emit")
         del sub, alist, bmap, voff, toff, code  # the consumer may use the memory while this generator waits
         _accept(st, nblocks, n_active, cz_last - cz_first + 1, slab_bytes + nslots * 8 + nv * 12 + nt * 12)
-        active_per_layer = max(active_per_layer, n_active / n_layers)
-        faces_per_layer = max(faces_per_layer, nt / n_layers)
+        # the density of this slab, not the densest seen: a dense end of a scan does not keep the rest in thin
+        # slabs (a slab found denser than this is redone with fewer layers)
+        active_per_layer, faces_per_layer = n_active / n_layers, nt / n_layers
         yield SlabMesh(verts, faces, nv, nt, vstart, plane_prev, plane_next, cz_last + 1)
         plane_prev = plane_next
         vstart += nv
@@ -324,9 +325,9 @@ def _next_layers(
     layers: int,
     nbz_total: int,
 ) -> int:
-    """The next slab's block layers: what the budget allows at twice the densest active blocks (and faces) per
-    layer seen so far, and no more than ``plan.target_faces`` (or half ``plan.max_faces``) at the densest faces per
-    layer seen; growing at most fourfold per slab (a slab found too large is redone smaller)."""
+    """The next slab's block layers: what the budget allows at twice the last slab's active blocks (and faces) per
+    layer, and no more than ``plan.target_faces`` (or half ``plan.max_faces``) at its faces per layer; growing at
+    most fourfold per slab (a slab found too large is redone smaller)."""
     per_layer = fixed + 2.0 * (active_per_layer * per_block + faces_per_layer * 18)
     n = int((plan.budget - halo) // max(per_layer, 1.0))
     if faces_per_layer > 0:
