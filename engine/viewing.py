@@ -8,6 +8,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from engine.memory import DECIMATE_BYTES_PER_FACE
+
 SPECK_FACES = 4  # a closed piece keeps at least a tetrahedron under the topology guard
 FACES_PER_PIECE = 200  # when pieces must go, a viewing copy keeps about this many faces per piece
 HOPELESS = 2  # a copy whose topology needs this many times its budget is clustered at once
@@ -52,6 +54,22 @@ def _decimate(pos: Any, faces: Any, max_triangles: int, room: int | None, device
     return pos, faces, DecimationStats(output_faces=len(faces), passes=0, stopped="tiled (memory budget)")
 
 
+def _take_to(pos: Any, faces: Any, max_triangles: int, room: int | None, device: Any) -> tuple[Any, Any, dict]:
+    """A mesh taken to ``device`` for its viewing copies (their speck removal, censuses, decimation and clustering
+    run there, not on Warp's one CPU thread): as it is where it fits ``room``, else first decimated in tiles on the
+    device (``engine.stages.tiled``, every guard kept, no piece dropped) to what fits."""
+    from engine.stages.devmesh import on_device
+    from engine.stages.tiled import decimate_within, fits
+
+    if fits(len(faces), room):
+        return (*on_device(device, pos, faces), {"device": str(device), "faces": len(faces)})
+    fitting = max((room or 0) // DECIMATE_BYTES_PER_FACE, max_triangles)
+    n_in = len(faces)
+    pos, faces, info = decimate_within(pos, faces, fitting, room, device, max_passes=VIEW_MAX_PASSES)
+    note = {"device": str(device), "faces": len(faces), "tiled_from_faces": n_in, "tiled": bool(info.get("tiled"))}
+    return pos, faces, note
+
+
 def _make_copy(
     pos: Any,
     faces: Any,
@@ -70,6 +88,8 @@ def _make_copy(
     passes = dropped = 0
     keep: int | None = None
     summary: dict[str, Any] = {"topology_preserved": True}
+    if device is not None and pos.device != device:  # e.g. a print model laid out on the host, past the budget
+        pos, faces, summary["taken_to"] = _take_to(pos, faces, max_triangles, room, device)
 
     def drop(n: int) -> None:
         nonlocal pos, faces, dropped, pieces
