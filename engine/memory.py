@@ -16,8 +16,14 @@ from typing import Any
 # docs/benchmarks.md, "Any scan size in a fixed memory budget").
 MESH_BYTES_PER_FACE = 18  # positions (12 B per vertex) and faces (12 B)
 DECIMATE_BYTES_PER_FACE = 300  # the mesh, its copy, stars, classes, quadrics, per-edge keys and positions
-FINISH_BYTES_PER_FACE = 90  # islands, smoothing and normals of the final mesh (its stars, copies, normals)
-LAYOUT_BYTES_PER_FACE = 120  # write_outputs: the mesh, its patient-frame copies, STL facets and glTF buffers
+# islands, smoothing, normals and the model's checks: the mesh, its stars (18 B), smoothing's moved copy and flags
+# or the compacted copy of islands (measured on the H100 and the CPU: at most 46 B per face, docs/benchmarks.md)
+FINISH_BYTES_PER_FACE = 52
+STATS_CHUNK_FACES = 1 << 22  # the model's checks measure its faces this many at a time (20 B each)
+# write_outputs: the mesh and its normals (24 B), the faces rewound (12 B), the patient, viewing and glTF copies of
+# positions and normals (30 B); the STL facets (48 B a face) go to the host LAYOUT_CHUNK_FACES at a time
+LAYOUT_BYTES_PER_FACE = 72
+LAYOUT_CHUNK_FACES = 1 << 20
 SLAB_SHARE = 0.25  # of the budget, for one slab of the volume stages when the whole mesh is kept (undecimated)
 # or this share when the mesh is decimated in groups of slabs: besides a slab, only the groups decimated so far
 # (``engine.stages.stream.SPILL_SHARE``, then they go to the host) and the slabs' meshes not yet decimated (a few %)
@@ -62,6 +68,17 @@ def place(device: Any, need: int, budget: int | None, what: str, remedy: str = "
     if host is None:
         raise BudgetError(f"{reason}: give at least {mib(need)}{remedy}", needed=need)
     return host, {"device": str(host), "reason": reason}
+
+
+def finish_bytes(n_faces: int) -> int:
+    """Device bytes the finishing stages of an ``n_faces`` model need (``FINISH_BYTES_PER_FACE`` and the checks'
+    chunk of face measures)."""
+    return n_faces * FINISH_BYTES_PER_FACE + min(n_faces, STATS_CHUNK_FACES) * 20
+
+
+def layout_bytes(n_faces: int) -> int:
+    """Device bytes of laying out an ``n_faces`` model for its files (``engine.outputs.lay_out``)."""
+    return n_faces * LAYOUT_BYTES_PER_FACE + min(n_faces, LAYOUT_CHUNK_FACES) * 48
 
 
 def mib(n: int) -> str:

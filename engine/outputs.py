@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from engine.memory import LAYOUT_CHUNK_FACES
 from engine.params import ReconParams
 from engine.types import Mesh
 from engine.viewing import viewing_copies
@@ -95,25 +96,32 @@ def lay_out(pos: Any, faces: Any, normals: Any, frame: Any, to_host: HostCopies 
     wp.launch(
         kx.affine_points, dim=n, inputs=[patient, wp.mat33d(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), shift, view]
     )
-    facets = wp.empty((len(faces), 12), dtype=wp.float32)
-    zero_area = wp.zeros(1, dtype=wp.int32)
-    wp.launch(kx.stl_facets, dim=len(faces), inputs=[patient, faces, facets, zero_area])
     gpos = wp.empty(n, dtype=wp.vec3)
     gnrm = wp.empty(n, dtype=wp.vec3)
     wp.launch(kx.gltf_vertices, dim=n, inputs=[view, turned, wp.float64(MM_TO_M), gpos, gnrm])
     glo, ghi = bounds(gpos)  # sync point: every kernel above has run
     t1 = time.perf_counter()
     to_host = to_host or HostCopies(None, pos.device)
-    host = [to_host(a) for a in (facets, gpos, gnrm, faces)]
+    host = [to_host(a) for a in (gpos, gnrm, faces)]
+    del gpos, gnrm
+    # the STL's facet records (48 B a face) go to the host a chunk at a time, never whole on the device
+    nf = len(faces)
+    facets, host_facets = to_host.empty((nf, 12), wp.float32)
+    chunk = wp.empty((max(min(nf, LAYOUT_CHUNK_FACES), 1), 12), dtype=wp.float32)
+    zero_area = wp.zeros(1, dtype=wp.int32)
+    for first in range(0, nf, len(chunk)):
+        k = min(len(chunk), nf - first)
+        wp.launch(kx.stl_facets, dim=k, inputs=[patient, faces, first, chunk, zero_area])
+        wp.copy(facets[first : first + k], chunk[:k])  # stream-ordered: the next chunk waits for this copy
     to_host.wait()
-    gltf_pos, gltf_normals, tris = (a.reshape(-1, 3) for a in host[1:])
+    gltf_pos, gltf_normals, tris = (a.reshape(-1, 3) for a in host)
     lay = Layout(
         pos=patient,
         faces=faces,
         view_pos=view,
         view_normals=turned,
         centre_xyz=centre[::-1],
-        facets=host[0],
+        facets=host_facets,
         gltf_pos=gltf_pos,
         gltf_normals=gltf_normals,
         gltf_bounds={"min": [float(x) for x in glo], "max": [float(x) for x in ghi]},
@@ -295,11 +303,11 @@ def _encode_small(phone: Mesh, ar: Mesh) -> tuple[dict[str, bytes], dict[str, fl
 def _layout_device(recon: Reconstruction, dev: Any, budget: int | None, report: dict[str, Any]) -> tuple[Any, bool]:
     """Where the model is laid out for its files, and whether that is the host (``engine.memory.place``: past the
     budget of a GPU; ``report["layout"]`` says where and why)."""
-    from engine.memory import LAYOUT_BYTES_PER_FACE, place
+    from engine.memory import layout_bytes, place
 
     n_faces = len(recon.device_mesh[1]) if recon.device_mesh is not None else len(recon.mesh.faces)
     what = f"laying out the model ({n_faces:,} faces) for its files"
-    where, note = place(dev, n_faces * LAYOUT_BYTES_PER_FACE, budget, what)
+    where, note = place(dev, layout_bytes(n_faces), budget, what)
     report["layout"] = note or {"device": str(where)}
     return where, note is not None
 

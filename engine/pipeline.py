@@ -338,13 +338,13 @@ def _fit_or_host(st: _State, report: dict[str, Any]) -> None:
     """The finishing stages hold the whole final mesh: within a budget it cannot fit, they run on the host
     (``engine.memory.place``: Warp's CPU device, outside the budget; reported as ``report["finish"]``), or, where
     the device is the host, the job stops early with the budget that would work."""
-    from engine.memory import FINISH_BYTES_PER_FACE, place
+    from engine.memory import finish_bytes, place
     from engine.stages.devmesh import on_device
 
     if st.budget is None or st.faces is None:
         return
     what = f"finishing the model ({len(st.faces):,} faces: islands, smoothing, normals, outputs)"
-    need = len(st.faces) * FINISH_BYTES_PER_FACE
+    need = finish_bytes(len(st.faces))
     where, note = place(st.faces.device, need, st.budget, what, " or decimate further")
     if note is not None:
         st.pos, st.faces = on_device(where, st.pos, st.faces)
@@ -360,7 +360,7 @@ def _islands(st: _State, params: ReconParams, report: dict[str, Any], progress: 
 
     min_volume = params.islands.min_volume_for(st.volume.spacing_zyx_mm)
     st.pos, st.faces, info = remove_islands_device(
-        st.pos, st.faces, min_volume_mm3=min_volume, keep_largest=params.islands.keep_largest
+        st.pos, st.faces, min_volume_mm3=min_volume, keep_largest=params.islands.keep_largest, consume=True
     )
     if len(st.faces) == 0:
         raise EmptySurfaceError("island removal left nothing: lower --min-island-mm3 or keep more pieces")

@@ -51,11 +51,25 @@ class HostCopies:
         wp.copy(dest, arr)
         return dest.numpy()
 
+    def empty(self, shape: tuple[int, ...], dtype: Any) -> tuple[Any, np.ndarray]:
+        """A host array to fill piece by piece (``wp.copy`` into its row slices): ``(warp CPU array, numpy view)``,
+        in the pinned buffer where one is held."""
+        import warp as wp
+
+        if self.buf is None:
+            dest = wp.empty(shape, dtype=dtype, device="cpu")
+            return dest, dest.numpy()
+        nbytes = int(np.prod(shape)) * wp.types.type_size_in_bytes(dtype)
+        if self.used + nbytes > self.buf.capacity:
+            raise ValueError("host copies past the size they were planned for")
+        dest = wp.array(ptr=self.buf.ptr + self.used, dtype=dtype, shape=shape, device="cpu")
+        self.used += -(-nbytes // ALIGN) * ALIGN
+        return dest, dest.numpy()
+
     def wait(self) -> None:
         import warp as wp
 
-        if self.buf is not None:
-            wp.synchronize_device(self.device)
+        wp.synchronize_device(self.device)  # pinned or pageable, the copies have landed
 
 
 class _Pinned:

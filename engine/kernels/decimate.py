@@ -961,13 +961,15 @@ def edge_census(
 def face_measures(
     pos: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.vec3i),
+    first: int,
     volume: wp.array(dtype=wp.float64),
     area: wp.array(dtype=wp.float64),
     degenerate: wp.array(dtype=wp.float32),
 ):
-    """Per face: signed volume a.(b x c)/6 with vertices in (x, y, z) order, area, and whether a vertex repeats."""
+    """Per face ``first + f``, into slot ``f``: signed volume a.(b x c)/6 with vertices in (x, y, z) order, area,
+    and whether a vertex repeats."""
     f = wp.tid()
-    t = faces[f]
+    t = faces[first + f]
     a = xyz64(pos[t[0]])
     b = xyz64(pos[t[1]])
     c = xyz64(pos[t[2]])

@@ -50,13 +50,15 @@ def reverse_faces(faces: wp.array(dtype=wp.vec3i), out: wp.array(dtype=wp.vec3i)
 def stl_facets(
     pos: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.vec3i),
+    first: int,
     out: wp.array2d(dtype=wp.float32),
     zero_area: wp.array(dtype=wp.int32),
 ):
-    """Per face, the 12 floats of its STL record: the unit normal, then the corners, all in (x, y, z) order (a zero
-    normal for a zero-area face); and the count of faces whose corners span exactly zero area in float64."""
+    """Per face ``first + f``, into row ``f``: the 12 floats of its STL record: the unit normal, then the corners,
+    all in (x, y, z) order (a zero normal for a zero-area face); and the count of faces whose corners span exactly
+    zero area in float64."""
     f = wp.tid()
-    t = faces[f]
+    t = faces[first + f]
     pa = pos[t[0]]
     pb = pos[t[1]]
     pc = pos[t[2]]

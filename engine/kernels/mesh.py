@@ -111,10 +111,12 @@ def accept_kernel(
     fixed: wp.array(dtype=wp.int32),
     moved: wp.array(dtype=wp.int32),
 ):
+    """``cand`` becomes the new positions: a vertex's candidate where it may move, else its position."""
     i = wp.tid()
     if reject[i] == 0 and fixed[i] == 0:
-        pos[i] = cand[i]
         wp.atomic_add(moved, 0, 1)
+    else:
+        cand[i] = pos[i]
 
 
 @wp.kernel

@@ -181,6 +181,31 @@ def component_labels_device(faces: Any, n_vertices: int) -> Any:
             return label
 
 
+def _face_sums(pos: Any, faces: Any) -> tuple[float, float, int]:
+    """Signed volume (mm^3), area (mm^2) and degenerate faces of a device mesh: per-chunk sums on the device,
+    added on the host in chunk order (the same mesh gives the same sums)."""
+    import warp as wp
+
+    from engine.kernels import decimate as kd
+    from engine.memory import STATS_CHUNK_FACES
+
+    nf = len(faces)
+    size = min(nf, STATS_CHUNK_FACES)  # no per-face array of the whole model
+    if size == 0:
+        return 0.0, 0.0, 0
+    vol = wp.empty(size, dtype=wp.float64)
+    area = wp.empty(size, dtype=wp.float64)
+    degen = wp.empty(size, dtype=wp.float32)
+    volume = area_sum = degenerate = 0.0
+    for first in range(0, nf, size):
+        n = min(size, nf - first)
+        wp.launch(kd.face_measures, dim=n, inputs=[pos, faces, first, vol, area, degen])
+        volume += float(wp.utils.array_sum(vol[:n]))  # sync point
+        area_sum += float(wp.utils.array_sum(area[:n]))
+        degenerate += float(wp.utils.array_sum(degen[:n]))
+    return volume, area_sum, round(degenerate)
+
+
 def mesh_stats_device(pos: Any, faces: Any, inc: Incidence | None = None) -> dict[str, Any]:
     """``engine.stages.meshcheck.mesh_stats`` of a device mesh, computed on its device (same keys and meaning):
     only counts and a few numbers come back to the host."""
@@ -194,14 +219,7 @@ def mesh_stats_device(pos: Any, faces: Any, inc: Incidence | None = None) -> dic
             inc = Incidence(nv).build(faces, nf)
         totals = wp.zeros(4, dtype=wp.int64)
         wp.launch(kd.edge_census, dim=nv, inputs=[faces, *inc.inputs, totals])
-        vol = wp.empty(nf, dtype=wp.float64)
-        area = wp.empty(nf, dtype=wp.float64)
-        degen = wp.empty(nf, dtype=wp.float32)
-        if nf:
-            wp.launch(kd.face_measures, dim=nf, inputs=[pos, faces, vol, area, degen])
-        volume = float(wp.utils.array_sum(vol)) if nf else 0.0
-        area_sum = float(wp.utils.array_sum(area)) if nf else 0.0
-        degenerate = round(float(wp.utils.array_sum(degen))) if nf else 0
+        volume, area_sum, degenerate = _face_sums(pos, faces)
         classes = np.bincount(vertex_classes(faces, inc).numpy(), minlength=4)
         label = component_labels_device(faces, nv)
         roots = wp.zeros(1, dtype=wp.int32)

@@ -134,12 +134,18 @@ def measure_pieces(pos: Any, faces: Any) -> tuple[Any, np.ndarray, np.ndarray, n
 
 
 def remove_islands_device(
-    pos: Any, faces: Any, *, min_volume_mm3: float | None = None, keep_largest: int | None = None
+    pos: Any,
+    faces: Any,
+    *,
+    min_volume_mm3: float | None = None,
+    keep_largest: int | None = None,
+    consume: bool = False,
 ) -> tuple[Any, Any, dict[str, Any]]:
     """:func:`remove_islands` on a device mesh (``wp.array`` vec3 / vec3i): pieces found and measured on the device;
     only one volume and face count per piece come to the host to choose the kept ones. Pieces are ordered by their
     smallest vertex index (ties of ``keep_largest`` keep the earlier piece). Returns new device arrays and the same
-    ``info`` as :func:`remove_islands`."""
+    ``info`` as :func:`remove_islands`. ``consume``: the caller drops ``faces`` afterwards, so the removed pieces
+    are marked in them rather than in a copy (a model's finishing within a memory budget)."""
     import warp as wp
 
     from engine.kernels import decimate as kd
@@ -155,8 +161,9 @@ def remove_islands_device(
             return pos, faces, info
         flag = np.zeros(nv, np.int32)
         flag[roots[keep]] = 1
-        faces = wp.clone(faces)
+        faces = faces if consume else wp.clone(faces)
         wp.launch(kd.drop_pieces, dim=nf, inputs=[faces, label, wp.array(flag)])
+        del label
         faces = compact_faces(faces, nf - info["removed_faces"])
         pos, faces = compact_vertices(pos, faces)
     return pos, faces, info

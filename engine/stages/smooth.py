@@ -43,26 +43,25 @@ def smooth_device(pos: Any, faces: Any, params: SmoothParams, inc: Any = None) -
             inc = Incidence(n).build(faces, len(faces))
         fixed = wp.empty(n, dtype=wp.int32)
         wp.launch(km.fixed_from_classes, dim=n, inputs=[vertex_classes(faces, inc), fixed])
-        old = wp.empty_like(pos)
-        cand = wp.empty(n, dtype=wp.vec3)
+        new = wp.empty(n, dtype=wp.vec3)  # the candidates, then the moved positions (``pos`` keeps the old ones)
         flag = wp.empty(n, dtype=wp.int32)
         counter = wp.zeros(1, dtype=wp.int32)
         viol = wp.zeros(1, dtype=wp.int32)
         moved: list[int] = []
         for _ in range(params.iterations):
-            wp.copy(old, pos)
             flag.zero_()
             counter.zero_()
-            wp.launch(km.star_neighbour_mean_kernel, dim=n, inputs=[pos, faces, *inc.inputs, cand])
-            wp.launch(km.reject_kernel, dim=len(faces), inputs=[pos, cand, faces, cos_max, flag])
-            wp.launch(km.accept_kernel, dim=n, inputs=[pos, cand, flag, fixed, counter])
+            wp.launch(km.star_neighbour_mean_kernel, dim=n, inputs=[pos, faces, *inc.inputs, new])
+            wp.launch(km.reject_kernel, dim=len(faces), inputs=[pos, new, faces, cos_max, flag])
+            wp.launch(km.accept_kernel, dim=n, inputs=[pos, new, flag, fixed, counter])
             flag.zero_()
             for _pass in range(50):
                 viol.zero_()
-                wp.launch(km.violation_kernel, dim=len(faces), inputs=[old, pos, faces, cos_max, flag, viol])
+                wp.launch(km.violation_kernel, dim=len(faces), inputs=[pos, new, faces, cos_max, flag, viol])
                 if int(viol.numpy()[0]) == 0:  # sync point
                     break
-                wp.launch(km.revert_kernel, dim=n, inputs=[old, pos, flag])
+                wp.launch(km.revert_kernel, dim=n, inputs=[pos, new, flag])
+            wp.copy(pos, new)
             moved.append(int(counter.numpy()[0]))  # sync point
     return pos, {"moved_per_iteration": moved}
 

@@ -120,6 +120,16 @@ def finish_groups(
 
     t0 = time.perf_counter()
     info: dict[str, Any] = {"tiled": True, "rounds": []}
+    if pieces is None and host is not None and borders and seams_fit_beside(len(host.pos), len(host.faces), budget):
+        # groups spilled to the host while the volume streamed, but the joined mesh fits the device seam pass: it
+        # goes back up (with its quadrics where the last pass fits too)
+        from engine.kernels.decimate import quadric
+
+        carry = len(host.quad) == len(host.pos) and fits(len(host.faces), budget)
+        quad = wp.array(host.quad, dtype=quadric) if carry else None
+        pieces = (wp.array(host.pos, dtype=wp.vec3), wp.array(host.faces, dtype=wp.vec3i), quad)
+        info["uploaded"] = {"faces": len(host.faces), "why": "the spilled groups fit the device seam pass"}
+        host = None
     if pieces is not None:
         pos, faces, quad = pieces
         if fits(len(faces), budget):
@@ -240,6 +250,19 @@ def seam_passes_device(
     return (pos, faces), info
 
 
+def _seam_need(n_verts: int, n_faces: int, n_seam: int) -> int:
+    """Device bytes of a seam pass over ``n_seam`` of a mesh's faces: the seam split off and decimated beside the
+    mesh, then joined back: the mesh (its callers hold it), the joined copy and the compacted result (measured on
+    the CPU: up to 1.46x the first term alone, small seams)."""
+    mesh = (n_faces + n_verts) * 12
+    return max(mesh + (n_seam + n_faces) * 12 + n_seam * DECIMATE_BYTES_PER_FACE, 3 * mesh)
+
+
+def seams_fit_beside(n_verts: int, n_faces: int, budget: int | None) -> bool:
+    """Whether a mesh this size leaves room within ``budget`` for a device seam pass (of at least one small seam)."""
+    return budget is None or _seam_need(n_verts, n_faces, 0) <= budget
+
+
 def seam_pass_device(
     pos: Any,
     faces: Any,
@@ -266,10 +289,7 @@ def seam_pass_device(
         flag = wp.empty(n_faces, dtype=wp.int32)
         wp.launch(kt.seam_flags, dim=n_faces, inputs=[pos, faces, borders, float(width_mm), flag])
         slot, n_seam = exclusive_scan(flag)
-        mesh = (n_faces + n_verts) * 12
-        # the seam split off and decimated beside the mesh; then joined back: the mesh (its callers hold it), the
-        # joined copy and the compacted result (measured on the CPU: up to 1.46x the first term alone, small seams)
-        need = max(mesh + (n_seam + n_faces) * 12 + n_seam * DECIMATE_BYTES_PER_FACE, 3 * mesh)
+        need = _seam_need(n_verts, n_faces, n_seam)
         if n_seam == 0 or (budget is not None and need > budget):
             return None, {"seam_faces": n_seam, "faces": n_faces, "need_bytes": need, "budget_bytes": budget}
         in_seam = wp.zeros(n_verts, dtype=wp.int32)

@@ -84,7 +84,7 @@ def test_undecimated_model_over_budget_is_a_clear_error():
     """A noisy volume's undecimated surface streams through its slabs but is too large to finish in the budget."""
     from engine.params import IsoParams
 
-    noise = Volume(np.random.default_rng(0).integers(0, 100, (16, 128, 128)).astype(np.uint8), (1.0, 1.0, 1.0))
+    noise = Volume(np.random.default_rng(0).integers(0, 100, (32, 128, 128)).astype(np.uint8), (1.0, 1.0, 1.0))
     params = ReconParams(iso=IsoParams(iso=49.5), body=None, islands=None, decimate=None, smooth=None)
     with pytest.raises(BudgetError, match=r"model .* faces.* give at least") as err:
         reconstruct(noise, params, device="cpu", max_device_bytes=60 * MIB)
@@ -160,16 +160,18 @@ def test_groups_spilled_to_the_host_join_the_same(phantom, unbounded, monkeypatc
     assert target <= got.report["mesh"]["n_faces"] <= target * 1.02
 
 
-@pytest.mark.parametrize("where", ["device", "host"])
+@pytest.mark.parametrize("where", ["device", "spilled", "host"])
 def test_seam_pass_across_group_borders(phantom, unbounded, monkeypatch, where):
     """When the decimated groups will not fit one last pass, they go to the ratio on their own and only the faces
-    near their borders are decimated again (the seams): on the device where the groups are, or on the host where
-    they had to go."""
+    near their borders are decimated again (the seams): on the device where the groups are, on the device again
+    where they had to go to the host but fit beside a seam pass, or on the host where they do not."""
     import engine.stages.stream as stream
     import engine.stages.tiled as tiled
 
-    if where == "host":
+    if where in ("spilled", "host"):
         monkeypatch.setattr(stream, "SPILL_SHARE", 1e-4)
+    if where == "host":  # as if the joined groups left no room for a seam pass beside them
+        monkeypatch.setattr(tiled, "seams_fit_beside", lambda n_verts, n_faces, budget: False)
     else:  # as if the joined groups' decimation needed more than the budget
         monkeypatch.setattr(tiled, "DECIMATE_BYTES_PER_FACE", 1000)
     init = stream.GroupDecimator.__init__
@@ -182,9 +184,11 @@ def test_seam_pass_across_group_borders(phantom, unbounded, monkeypatch, where):
     got = reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=17 * MIB)
     assert got.report["memory"]["stream"]["group_mode"] == "seams"
     seams = got.report["decimate"]["seams"]
-    seam_faces = seams["seam_faces_in"] if where == "device" else seams["tiles"][0]["faces_in"]
+    on = "host" if where == "host" else "device"
+    seam_faces = seams["seam_faces_in"] if on == "device" else seams["tiles"][0]["faces_in"]
     assert seam_faces < 0.5 * seams["faces_in"]  # only the faces near the borders
-    assert seams.get("on", "host") == where
+    assert seams.get("on", "host") == on
+    assert ("uploaded" in got.report["decimate"]) == (where == "spilled")
     assert topology(got.report) == topology(unbounded.report)
     target = got.report["decimate"]["target_faces"]
     assert target <= got.report["mesh"]["n_faces"] <= target * 1.02
@@ -251,7 +255,7 @@ def test_model_over_the_budget_finishes_on_the_host(host_takes_over):
     failing, the same model as without a budget."""
     from engine.params import IsoParams
 
-    noise = Volume(np.random.default_rng(0).integers(0, 100, (16, 128, 128)).astype(np.uint8), (1.0, 1.0, 1.0))
+    noise = Volume(np.random.default_rng(0).integers(0, 100, (32, 128, 128)).astype(np.uint8), (1.0, 1.0, 1.0))
     params = ReconParams(iso=IsoParams(iso=49.5), body=None, islands=None, decimate=None, smooth=None)
     got = reconstruct(noise, params, device="cpu", max_device_bytes=60 * MIB)
     assert got.report["finish"]["device"] == "cpu" and "over the budget" in got.report["finish"]["reason"]
@@ -271,9 +275,9 @@ def test_model_over_the_layout_budget_is_laid_out_on_the_host(unbounded, tmp_pat
     from engine.params import ExportParams
 
     params = dataclasses.replace(ReconParams(), export=ExportParams(phone_max_triangles=5000, ar_max_triangles=2000))
-    from engine.memory import LAYOUT_BYTES_PER_FACE
+    from engine.memory import layout_bytes
 
-    budget = LAYOUT_BYTES_PER_FACE * len(unbounded.mesh.faces) - 1  # just under the layout; the copy goes in tiles
+    budget = layout_bytes(len(unbounded.mesh.faces)) - 1  # just under the layout; the copy goes in tiles
     write_outputs(unbounded, tmp_path / "host", params, device="cpu", max_device_bytes=budget)
     write_outputs(unbounded, tmp_path / "free", params, device="cpu")
     report = json.loads((tmp_path / "host" / "report.json").read_text())

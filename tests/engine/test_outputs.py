@@ -42,8 +42,11 @@ def blob() -> Mesh:
     return Mesh(v, f, vertex_normals(v, f, "cpu"))
 
 
-@pytest.mark.parametrize("mirrored", [False, True])
-def test_files_match_the_host_exporters(blob, tmp_path, mirrored):
+@pytest.mark.parametrize("mirrored, chunk", [(False, None), (True, None), (True, 97)])
+def test_files_match_the_host_exporters(blob, tmp_path, mirrored, chunk, monkeypatch):
+    """The laid-out files equal the host exporters' (also with the STL's facets laid out a few faces at a time)."""
+    if chunk is not None:
+        monkeypatch.setattr("engine.outputs.LAYOUT_CHUNK_FACES", chunk)
     frame = _oblique_frame(mirrored)
     recon = Reconstruction(blob, {"frame": frame.to_dict()})
     paths = write_outputs(recon, tmp_path, device="cpu")
@@ -82,8 +85,12 @@ def test_device_and_host_meshes_give_the_same_files(tmp_path):
         assert on_device[name].read_bytes() == on_host[name].read_bytes(), name
 
 
-def test_zero_area_faces_are_counted_on_the_device(blob):
+@pytest.mark.parametrize("chunk", [None, 97])
+def test_zero_area_faces_are_counted_on_the_device(blob, chunk, monkeypatch):
     import warp as wp
+
+    if chunk is not None:
+        monkeypatch.setattr("engine.outputs.LAYOUT_CHUNK_FACES", chunk)
 
     v = blob.vertices.copy()
     f = np.vstack([blob.faces, [[0, 1, 1]], [[2, 3, 4]]]).astype(np.int32)
