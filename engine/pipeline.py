@@ -323,7 +323,8 @@ def _decimate_tiled(st: _State, params: ReconParams, report: dict[str, Any]) -> 
     assert params.decimate is not None and sr is not None and sr.grouped
     n_in = sr.mc33_faces
     target = target_faces(n_in, params.decimate.reduction, params.decimate.max_triangles)
-    host, pieces, sr.host, sr.pieces = sr.host, sr.pieces, None, None
+    host, sr.host = sr.host, None
+    pieces, sr.pieces = (None if sr.pieces is None else list(sr.pieces)), None  # finish_groups takes them over
     seam_mm = SEAM_VOXELS * max(st.volume.spacing_zyx_mm)
     st.pos, st.faces, info = finish_groups(host, pieces, sr.origin, target, st.budget, sr.borders, seam_mm)
     out = len(st.faces)

@@ -84,12 +84,15 @@ def _make_copy(
         return ViewingCopy(pos, faces, {"faces": len(faces), "decimated": False}, pieces, closed)
     from engine.stages.cluster import Clustering, piece_census
     from engine.stages.islands import remove_islands_device
+    from engine.stages.tiled import fits
 
     passes = dropped = 0
     keep: int | None = None
     summary: dict[str, Any] = {"topology_preserved": True}
-    if device is not None and pos.device != device:  # e.g. a print model laid out on the host, past the budget
-        pos, faces, summary["taken_to"] = _take_to(pos, faces, max_triangles, room, device)
+    if (device is not None and pos.device != device) or not fits(len(faces), room):
+        # a print model laid out on the host, past the budget, or one whose copies' speck removal and censuses would
+        # not fit beside it: taken to the device, first decimated in tiles to what fits the room
+        pos, faces, summary["taken_to"] = _take_to(pos, faces, max_triangles, room, device or pos.device)
 
     def drop(n: int) -> None:
         nonlocal pos, faces, dropped, pieces

@@ -106,7 +106,7 @@ def final_pass(
 
 def finish_groups(
     host: HostMesh | None,
-    pieces: tuple[Any, Any, Any] | None,
+    pieces: list[Any] | None,
     origin: np.ndarray,
     target: int,
     budget: int | None,
@@ -115,7 +115,8 @@ def finish_groups(
 ) -> tuple[Any, Any, dict[str, Any]]:
     """Finish a decimation begun in groups of slabs (``engine.stages.stream``): one last pass on the device where
     they are and fit; otherwise across the ``borders`` (a seam pass on the faces within ``seam_mm`` of them),
-    then tiled rounds if still needed."""
+    then tiled rounds if still needed. ``pieces``: ``[pos, faces, quad]`` on the device, emptied (the finish owns
+    the mesh from here, so that no earlier version of it outlives its replacement)."""
     import warp as wp
 
     t0 = time.perf_counter()
@@ -127,15 +128,18 @@ def finish_groups(
 
         carry = len(host.quad) == len(host.pos) and fits(len(host.faces), budget)
         quad = wp.array(host.quad, dtype=quadric) if carry else None
-        pieces = (wp.array(host.pos, dtype=wp.vec3), wp.array(host.faces, dtype=wp.vec3i), quad)
+        pieces = [wp.array(host.pos, dtype=wp.vec3), wp.array(host.faces, dtype=wp.vec3i), quad]
         info["uploaded"] = {"faces": len(host.faces), "why": "the spilled groups fit the device seam pass"}
         host = None
     if pieces is not None:
         pos, faces, quad = pieces
+        pieces.clear()  # the caller's list: from here these names alone hold the mesh, so it is freed when replaced
         if fits(len(faces), budget):
             return final_pass(pos, faces, quad, origin, target, budget, info, t0)
         if borders:
-            (pos, faces), seams = seam_passes_device(pos, faces, borders, seam_mm, target, budget)
+            mesh = [pos, faces]
+            del pos, faces
+            (pos, faces), seams = seam_passes_device(mesh, borders, seam_mm, target, budget)
             info["borders"], info["seams"] = len(borders), seams
             if seams["complete"]:
                 info.update(output_faces=len(faces), seconds=time.perf_counter() - t0)
@@ -212,14 +216,17 @@ def _shared_vertices(faces: np.ndarray, order: np.ndarray, bounds: np.ndarray, n
 
 
 def seam_passes_device(
-    pos: Any, faces: Any, borders_z: list[float], width_mm: float, target: int, budget: int | None
+    mesh: list[Any], borders_z: list[float], width_mm: float, target: int, budget: int | None
 ) -> tuple[tuple[Any, Any], dict[str, Any]]:
-    """``seam_pass`` on a device mesh, within ``budget``: all the seams at once where they fit beside the mesh, else
-    in batches of neighbouring borders (halved until each fits), every seam giving up the same share of its faces.
+    """``seam_pass`` on a device mesh (``mesh``: ``[pos, faces]``, emptied: each batch's input is freed once
+    replaced), within ``budget``: all the seams at once where they fit beside the mesh, else in batches of
+    neighbouring borders (halved until each fits), every seam giving up the same share of its faces.
     ``((pos, faces), info)``; ``info["complete"]`` is False where even one border's seam would not fit (the mesh
     then holds the batches done so far, ``info["skipped"]`` says why and ``info["remaining"]`` lists the borders
     not done)."""
     t0 = time.perf_counter()
+    pos, faces = mesh
+    mesh.clear()
     n_faces = len(faces)
     done, why = seam_pass_device(pos, faces, borders_z, width_mm, target, budget)
     if done is not None:
