@@ -19,6 +19,9 @@ DECIMATE_BYTES_PER_FACE = 300  # the mesh, its copy, stars, classes, quadrics, p
 # islands, smoothing, normals and the model's checks: the mesh, its stars (18 B), smoothing's moved copy and flags
 # or the compacted copy of islands (measured on the H100 and the CPU: at most 46 B per face, docs/benchmarks.md)
 FINISH_BYTES_PER_FACE = 52
+# speck removal on a mesh already on the device: its pieces' labels and measures, a copy of its faces and their
+# compaction (measured on the H100: 33 B per face beyond the mesh)
+ISLANDS_BYTES_PER_FACE = 40
 STATS_CHUNK_FACES = 1 << 22  # the model's checks measure its faces this many at a time (20 B each)
 # write_outputs: the mesh and its normals (24 B), the faces rewound (12 B), the patient, viewing and glTF copies of
 # positions and normals (30 B); the STL facets (48 B a face) go to the host LAYOUT_CHUNK_FACES at a time

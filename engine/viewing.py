@@ -8,7 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from engine.memory import DECIMATE_BYTES_PER_FACE
+from engine.memory import DECIMATE_BYTES_PER_FACE, ISLANDS_BYTES_PER_FACE, MESH_BYTES_PER_FACE
 
 SPECK_FACES = 4  # a closed piece keeps at least a tetrahedron under the topology guard
 FACES_PER_PIECE = 200  # when pieces must go, a viewing copy keeps about this many faces per piece
@@ -54,14 +54,22 @@ def _decimate(pos: Any, faces: Any, max_triangles: int, room: int | None, device
     return pos, faces, DecimationStats(output_faces=len(faces), passes=0, stopped="tiled (memory budget)")
 
 
+def _prepares_within(n_faces: int, room: int | None, moving: bool) -> bool:
+    """Whether a mesh's speck removal and piece census (``engine.stages.islands``) fit ``room`` on the device, with
+    the mesh itself where it has to be moved there: then its specks go before any decimation (a scan of thousands
+    of pieces keeps few of them in a phone copy), which runs tiled where it would not fit."""
+    per_face = ISLANDS_BYTES_PER_FACE + (MESH_BYTES_PER_FACE if moving else 0)
+    return room is None or n_faces * per_face <= room
+
+
 def _take_to(pos: Any, faces: Any, max_triangles: int, room: int | None, device: Any) -> tuple[Any, Any, dict]:
     """A mesh taken to ``device`` for its viewing copies (their speck removal, censuses, decimation and clustering
-    run there, not on Warp's one CPU thread): as it is where it fits ``room``, else first decimated in tiles on the
-    device (``engine.stages.tiled``, every guard kept, no piece dropped) to what fits."""
+    run there, not on Warp's one CPU thread): as it is where its speck removal fits ``room``, else first decimated
+    in tiles on the device (``engine.stages.tiled``, every guard kept, no piece dropped) to what fits."""
     from engine.stages.devmesh import on_device
-    from engine.stages.tiled import decimate_within, fits
+    from engine.stages.tiled import decimate_within
 
-    if fits(len(faces), room):
+    if _prepares_within(len(faces), room, pos.device != device):
         return (*on_device(device, pos, faces), {"device": str(device), "faces": len(faces)})
     fitting = max((room or 0) // DECIMATE_BYTES_PER_FACE, max_triangles)
     n_in = len(faces)
@@ -84,14 +92,12 @@ def _make_copy(
         return ViewingCopy(pos, faces, {"faces": len(faces), "decimated": False}, pieces, closed)
     from engine.stages.cluster import Clustering, piece_census
     from engine.stages.islands import remove_islands_device
-    from engine.stages.tiled import fits
 
     passes = dropped = 0
     keep: int | None = None
     summary: dict[str, Any] = {"topology_preserved": True}
-    if (device is not None and pos.device != device) or not fits(len(faces), room):
-        # a print model laid out on the host, past the budget, or one whose copies' speck removal and censuses would
-        # not fit beside it: taken to the device, first decimated in tiles to what fits the room
+    moving = device is not None and pos.device != device  # e.g. a print model laid out on the host, past the budget
+    if moving or not _prepares_within(len(faces), room, moving):
         pos, faces, summary["taken_to"] = _take_to(pos, faces, max_triangles, room, device or pos.device)
 
     def drop(n: int) -> None:
