@@ -13,6 +13,9 @@ from engine.memory import DECIMATE_BYTES_PER_FACE, ISLANDS_BYTES_PER_FACE, MESH_
 SPECK_FACES = 4  # a closed piece keeps at least a tetrahedron under the topology guard
 FACES_PER_PIECE = 200  # when pieces must go, a viewing copy keeps about this many faces per piece
 HOPELESS = 2  # a copy whose topology needs this many times its budget is clustered at once
+# clustering a copy: the mesh, its clustering's quadrics and cells, and two copies made from them (measured on the
+# H100: 106 B per face of its input, the 17.6 M-face phantom stacked three times)
+CLUSTER_BYTES_PER_FACE = 120
 VIEW_MAX_PASSES = 100  # decimation passes per round of a viewing copy (the print model has no such limit)
 STALL_PASSES = 10  # a round's last passes that tell whether another round could meet the budget
 
@@ -139,6 +142,12 @@ def _make_copy(
         passes += stats.passes
     clustering = None
     if len(faces) > max_triangles:  # pieces of high genus: this viewing copy may close tunnels to meet the budget
+        if room is not None and len(faces) * CLUSTER_BYTES_PER_FACE > room:  # first decimated to what fits
+            from engine.stages.tiled import decimate_within
+
+            n_in, fitting = len(faces), max(room // CLUSTER_BYTES_PER_FACE, max_triangles)
+            pos, faces, _ = decimate_within(pos, faces, fitting, room, pos.device, max_passes=VIEW_MAX_PASSES)
+            summary["tiled_for_clustering"] = {"faces_in": n_in, "faces": len(faces)}
         clustering = Clustering(pos, faces)
         pos, faces, summary["clustered"] = clustering.copy(max_triangles)
         summary["topology_preserved"] = False

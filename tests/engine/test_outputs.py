@@ -117,14 +117,17 @@ def plate() -> tuple[np.ndarray, np.ndarray]:
     return marching_cubes_33(np.minimum(slab, -holes), 0.0, spacing=(0.5, 0.5, 0.5), device="cpu", closed=True)
 
 
-def _copies(v: np.ndarray, f: np.ndarray, budgets: list[int], closed: bool = True) -> list[tuple]:
+def _copies(
+    v: np.ndarray, f: np.ndarray, budgets: list[int], closed: bool = True, room: int | None = None
+) -> list[tuple]:
     import warp as wp
 
     from engine.stages.devmesh import mesh_stats_device
     from engine.viewing import viewing_copies
 
     with wp.ScopedDevice("cpu"):
-        copies = viewing_copies(wp.array(v, dtype=wp.vec3), wp.array(f, dtype=wp.vec3i), budgets, 1, closed)
+        mesh = wp.array(v, dtype=wp.vec3), wp.array(f, dtype=wp.vec3i)
+        copies = viewing_copies(*mesh, budgets, 1, closed, room)
         return [(p.numpy(), t.numpy(), info, mesh_stats_device(p, t)) for p, t, info in copies]
 
 
@@ -144,6 +147,20 @@ def test_ar_copy_of_a_clustered_phone_copy_is_clustered_from_the_same_mesh(plate
     assert ar_stats["degenerate_faces"] == 0 and len(np.unique(np.sort(af, axis=1), axis=0)) == len(af)
     lo, hi = v.min(axis=0), v.max(axis=0)
     assert (av >= lo - 1e-4).all() and (av <= hi + 1e-4).all()
+
+
+def test_a_mesh_too_large_to_cluster_in_the_room_is_decimated_to_what_fits_first(plate):
+    """Clustering needs ``CLUSTER_BYTES_PER_FACE`` of its input: in half that room, the plate is first decimated
+    (every guard kept) to what fits, then clustered within budget."""
+    from engine.viewing import CLUSTER_BYTES_PER_FACE
+
+    v, f = plate
+    room = CLUSTER_BYTES_PER_FACE * len(f) // 2
+    ((_, pf, phone, _),) = _copies(v, f, [1200], room=room)
+    tiled = phone["tiled_for_clustering"]
+    # toward room // CLUSTER_BYTES_PER_FACE (half the faces), within the tiles' tolerance
+    assert tiled["faces_in"] == len(f) and tiled["faces"] <= 0.6 * len(f)
+    assert phone["clustered"]["input_faces"] == tiled["faces"] and 0 < len(pf) <= 1200
 
 
 def test_a_budget_above_the_topology_floor_is_decimated_first(plate):
