@@ -43,13 +43,9 @@ class HostCopies:
 
         if self.buf is None:
             return arr.numpy()
-        nbytes = arr.size * wp.types.type_size_in_bytes(arr.dtype)
-        if self.used + nbytes > self.buf.capacity:
-            raise ValueError("host copies past the size they were planned for")
-        dest = wp.array(ptr=self.buf.ptr + self.used, dtype=arr.dtype, shape=arr.shape, device="cpu")
-        self.used += -(-nbytes // ALIGN) * ALIGN
+        dest, view = self.empty(arr.shape, arr.dtype)
         wp.copy(dest, arr)
-        return dest.numpy()
+        return view
 
     def empty(self, shape: tuple[int, ...], dtype: Any) -> tuple[Any, np.ndarray]:
         """A host array to fill piece by piece (``wp.copy`` into its row slices): ``(warp CPU array, numpy view)``,

@@ -70,15 +70,25 @@ def _take_to(pos: Any, faces: Any, max_triangles: int, room: int | None, device:
     run there, not on Warp's one CPU thread): as it is where its speck removal fits ``room``, else first decimated
     in tiles on the device (``engine.stages.tiled``, every guard kept, no piece dropped) to what fits."""
     from engine.stages.devmesh import on_device
-    from engine.stages.tiled import decimate_within
 
     if _prepares_within(len(faces), room, pos.device != device):
         return (*on_device(device, pos, faces), {"device": str(device), "faces": len(faces)})
-    fitting = max((room or 0) // DECIMATE_BYTES_PER_FACE, max_triangles)
     n_in = len(faces)
+    pos, faces, tiled = _decimated_to_fit(pos, faces, DECIMATE_BYTES_PER_FACE, max_triangles, room, device)
+    return pos, faces, {"device": str(device), "faces": len(faces), "tiled_from_faces": n_in, "tiled": tiled}
+
+
+def _decimated_to_fit(
+    pos: Any, faces: Any, per_face: int, max_triangles: int, room: int, device: Any
+) -> tuple[Any, Any, bool]:
+    """A mesh decimated on ``device`` (tiled where that does not fit ``room``: ``engine.stages.tiled``, every guard
+    kept, no piece dropped) toward the faces of which work needing ``per_face`` bytes each fits ``room``, but not
+    below ``max_triangles``; ``(pos, faces, tiled)``."""
+    from engine.stages.tiled import decimate_within
+
+    fitting = max(room // per_face, max_triangles)
     pos, faces, info = decimate_within(pos, faces, fitting, room, device, max_passes=VIEW_MAX_PASSES)
-    note = {"device": str(device), "faces": len(faces), "tiled_from_faces": n_in, "tiled": bool(info.get("tiled"))}
-    return pos, faces, note
+    return pos, faces, bool(info.get("tiled"))
 
 
 def _make_copy(
@@ -143,10 +153,8 @@ def _make_copy(
     clustering = None
     if len(faces) > max_triangles:  # pieces of high genus: this viewing copy may close tunnels to meet the budget
         if room is not None and len(faces) * CLUSTER_BYTES_PER_FACE > room:  # first decimated to what fits
-            from engine.stages.tiled import decimate_within
-
-            n_in, fitting = len(faces), max(room // CLUSTER_BYTES_PER_FACE, max_triangles)
-            pos, faces, _ = decimate_within(pos, faces, fitting, room, pos.device, max_passes=VIEW_MAX_PASSES)
+            n_in = len(faces)
+            pos, faces, _ = _decimated_to_fit(pos, faces, CLUSTER_BYTES_PER_FACE, max_triangles, room, pos.device)
             summary["tiled_for_clustering"] = {"faces_in": n_in, "faces": len(faces)}
         clustering = Clustering(pos, faces)
         pos, faces, summary["clustered"] = clustering.copy(max_triangles)

@@ -102,9 +102,9 @@ class SlabPlan:
     """How ``_run_slabs`` sizes its slabs: ``budget`` bytes for a slab's working set, of which a z plane of the
     source costs ``plane_bytes`` (the slab getter's own working set per plane, e.g. the streamed Gaussian's);
     ``max_faces`` caps a slab's output (a slab over it is redone smaller) and ``target_faces`` is what slabs are
-    sized for (no more than the densest layers seen so far would give; fewer, larger slabs cost less than many thin
-    ones); ``strict`` raises ``BudgetError`` where one block layer does not fit (otherwise one layer is used
-    anyway, as MC33 alone always did)."""
+    sized for (at the last slab's faces per layer; fewer, larger slabs cost less than many thin ones); ``strict``
+    raises ``BudgetError`` where one block layer does not fit (otherwise one layer is used anyway, as MC33 alone
+    always did)."""
 
     budget: int
     plane_bytes: int
