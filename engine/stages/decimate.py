@@ -99,14 +99,19 @@ def target_faces(n_faces: int, reduction: float | None, max_triangles: int | Non
     return int(max_triangles)
 
 
-def _quantile(hist: np.ndarray, m: int) -> tuple[int, int]:
-    """The cost bin holding the ``m``-th cheapest entry of a histogram, and the share of that bin (of 2^32) that
-    brings the count to about ``m``."""
-    cum = np.cumsum(hist, dtype=np.int64)
-    kbin = min(int(np.searchsorted(cum, m)), len(hist) - 1)
-    below = int(cum[kbin - 1]) if kbin else 0
+def _quantile(hist: np.ndarray, m: int) -> tuple[int, int, int]:
+    """The cost bin holding the ``m``-th cheapest entry of a histogram, the share of that bin (of 2^32) that brings
+    the count to about ``m``, and the count up to and with that bin. (Cumulative sums over rows of 256 bins, then
+    within the row found: a whole-histogram cumsum cost 0.26 ms a pass on the H100 host.)"""
+    rows = hist.reshape(-1, 256)
+    cum_rows = np.cumsum(rows.sum(axis=1, dtype=np.int64))
+    r = min(int(np.searchsorted(cum_rows, m)), len(rows) - 1)
+    cum = np.cumsum(rows[r], dtype=np.int64) + (int(cum_rows[r - 1]) if r else 0)
+    k = min(int(np.searchsorted(cum, m)), 255)
+    below = int(cum[k - 1]) if k else (int(cum_rows[r - 1]) if r else 0)
+    kbin = r * 256 + k
     frac_bits = min(max(m - below, 0) * (1 << 32) // max(int(hist[kbin]), 1), 1 << 32)
-    return kbin, frac_bits
+    return kbin, frac_bits, int(cum[k])
 
 
 def _winner_histogram(hist: Any, n: int, listed: tuple[Any, Any], cand: Any, key: Any) -> np.ndarray:
@@ -278,11 +283,11 @@ def decimate_carrying(
                 stats.stopped = "no edge may collapse (guards)"
                 break
             m = max(1, min(int(candidate_fraction * n_valid), OVERSHOOT * needed * boost))
-            kbin, frac_bits = _quantile(h, m)
+            kbin, frac_bits, most = _quantile(h, m)  # most: at least the candidates listed (the kernels below
+            # run over this many)
             n_listed.zero_()
             wp.launch(kd.select_candidates, dim=slots, inputs=[key, kbin, wp.int64(frac_bits), cand, listing, n_listed])
             listed = (listing, n_listed)
-            most = int(h[: kbin + 1].sum())  # at least the candidates listed: the kernels below run over this many
             wp.launch(
                 kd.check_candidates,
                 dim=most,
@@ -304,19 +309,23 @@ def decimate_carrying(
             clock.tick("guards")
             claim = wp.full(len(faces), kd.CLAIM_FREE, dtype=wp.int64)
             counter.zero_()
-            for r in range(claim_rounds):
-                wp.launch(kd.claim_stars, dim=most, inputs=[*listed, cand, key, faces, *inc.inputs, claim])
-                wp.launch(kd.settle_claims, dim=most, inputs=[*listed, cand, key, faces, *inc.inputs, claim, counter])
-                wp.launch(kd.take_stars, dim=most, inputs=[*listed, cand, faces, *inc.inputs, claim])
-                if r < claim_rounds - 1:  # (the claims are made afresh next pass)
-                    wp.launch(kd.release_claims, dim=len(claim), inputs=[claim])
+            star = [*listed, cand, key, faces, *inc.inputs, claim]
+            rounds = [  # recorded once, launched every round (packing the arguments cost more than the launch)
+                wp.launch(kd.claim_stars, dim=most, inputs=star, record_cmd=True),
+                wp.launch(kd.settle_claims, dim=most, inputs=[*star, counter], record_cmd=True),
+                wp.launch(kd.take_stars, dim=most, inputs=[*listed, cand, faces, *inc.inputs, claim], record_cmd=True),
+                wp.launch(kd.release_claims, dim=len(claim), inputs=[claim], record_cmd=True),
+            ]
+            for r in range(claim_rounds):  # (the last round's claims are made afresh next pass: not released)
+                for cmd in rounds if r < claim_rounds - 1 else rounds[:3]:
+                    cmd.launch()
             won = int(counter.numpy()[0])  # sync point
             for salt in range(TRIMS):  # keep no more than the collapses still needed, cheapest first
                 if won <= needed:
                     break
                 if salt == 0:
                     h_won = _winner_histogram(hist, most, listed, cand, key)
-                kbin, frac_bits = _quantile(h_won, needed)
+                kbin, frac_bits, _ = _quantile(h_won, needed)
                 wp.launch(kd.trim_winners, dim=most, inputs=[*listed, cand, key, kbin, wp.int64(frac_bits), salt])
                 h_won = _winner_histogram(hist, most, listed, cand, key)
                 won = int(h_won.sum())

@@ -45,12 +45,27 @@ def test_parse_bytes():
         parse_bytes(-1)
 
 
-def test_streamed_volume_stages_are_exact(phantom):
-    """Without decimation the mesh never leaves the device: slabs of the Gaussian and MC33 give the same mesh."""
+@pytest.mark.parametrize("ring", [False, True], ids=["direct", "plane-feed"])
+def test_streamed_volume_stages_are_exact(phantom, monkeypatch, ring):
+    """Without decimation the mesh never leaves the device: slabs of the Gaussian and MC33 give the same mesh,
+    uploaded directly or through the plane feed's ring (as on a CUDA device; here a ring shorter than a slab)."""
+    import functools
+
+    from engine import staging
+
     params = dataclasses.replace(ReconParams(), decimate=None)
     ref = reconstruct(phantom, params, device="cpu")
+    if ring:
+        monkeypatch.setattr(staging, "plane_feed", functools.partial(staging.plane_feed, force=True))
+        monkeypatch.setattr(staging, "FEED_MIN_BYTES", 5 * phantom.data[0].nbytes)
+        monkeypatch.setattr(staging, "RING_SLABS", 0)
+        asked = []
+        upload = staging.PlaneFeed.upload
+        monkeypatch.setattr(staging.PlaneFeed, "upload", lambda f, lo, hi: asked.append(hi - lo) or upload(f, lo, hi))
     got = reconstruct(phantom, params, device="cpu", max_device_bytes=40 * MIB)
     assert got.report["memory"]["stream"]["slabs"] > 1
+    if ring:
+        assert len(asked) >= got.report["memory"]["stream"]["slabs"] and max(asked) >= 5  # some longer than it
     np.testing.assert_array_equal(got.mesh.faces, ref.mesh.faces)
     np.testing.assert_array_equal(got.mesh.vertices, ref.mesh.vertices)
 

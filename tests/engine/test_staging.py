@@ -33,6 +33,15 @@ def test_copies_into_one_buffer_keep_every_value():
         to_host(arrays[0])
 
 
+def test_pinned_buffers_hold_what_is_asked_in_8_byte_elements():
+    """(an array of bytes would stop at 2 GiB: Warp's dimensions are 32-bit; a 4 GiB buffer is allowed)"""
+    from engine.staging import pinned_bytes
+
+    for n in (1, 8, 1001):
+        buf = pinned_bytes(n, pinned=False)
+        assert buf.capacity >= n and buf.capacity - n < 8 and buf.dtype == wp.int64
+
+
 def test_without_cuda_the_copies_are_plain_arrays():
     with host_copies("cpu", 1 << 20) as to_host:
         assert not to_host.pinned
@@ -56,3 +65,67 @@ def test_cuda_copies_go_through_one_reused_pinned_buffer():
             with host_copies("cuda:0", nbytes) as other:  # held: a second job at the same time copies plainly
                 assert not other.pinned
     assert ptrs[0] == ptrs[1], "the pinned buffer is allocated once and reused"
+
+
+# --------------------------------------------------------------------------------- plane feed (host to device)
+def _requests(nz: int, rng: np.random.Generator) -> list[tuple[int, int]]:
+    """A slab pass's requests: forward in z, each next slab starting just before the last one ended, some slabs
+    redone smaller from the same start, some longer than the ring."""
+    out, z = [], 0
+    while z < nz - 1:
+        hi = min(z + int(rng.integers(1, 40)), nz - 1)
+        if rng.random() < 0.3:
+            out.append((z, hi))  # too big: redone smaller
+            hi = z + max((hi - z) // 2, 1)
+        out.append((z, hi))
+        z = max(hi - int(rng.integers(0, 3)), z + 1)
+    return out
+
+
+@pytest.mark.parametrize("ring_planes", [2, 7, 64])
+def test_plane_feed_uploads_the_planes_asked_for(monkeypatch, device, ring_planes):
+    """Whatever the ring's size against the slabs (2 planes, shorter and longer than them), every request gets
+    exactly the volume's planes, including one behind the released planes (copied directly)."""
+    from engine import staging
+
+    rng = np.random.default_rng(ring_planes)
+    vol = rng.integers(0, 4000, (150, 9, 11), dtype=np.uint16)
+    monkeypatch.setattr(staging, "FEED_MIN_BYTES", ring_planes * vol[0].nbytes)
+    monkeypatch.setattr(staging, "FEED_CHUNK_BYTES", 3 * vol[0].nbytes)
+    with staging.plane_feed(vol, device, force=True) as upload:
+        assert isinstance(getattr(upload, "__self__", None), staging.PlaneFeed)
+        for zlo, zhi in [*_requests(len(vol), rng), (0, 5)]:
+            got = upload(zlo, zhi)
+            assert got.device == wp.get_device(device) and got.shape == (zhi - zlo + 1, 9, 11)
+            np.testing.assert_array_equal(got.numpy(), vol[zlo : zhi + 1])
+        feed = upload.__self__
+    assert not feed.thread.is_alive()
+
+
+def test_plane_feed_is_held_by_one_job_at_a_time():
+    from engine import staging
+
+    vol = np.arange(4 * 5 * 6, dtype=np.float32).reshape(4, 5, 6)
+    with staging.plane_feed(vol, "cpu", force=True) as first, staging.plane_feed(vol, "cpu", force=True) as second:
+        assert hasattr(first, "__self__") and not hasattr(second, "__self__")  # the second copies directly
+        np.testing.assert_array_equal(second(1, 2).numpy(), vol[1:3])
+    with staging.plane_feed(vol, "cpu") as plain:  # not CUDA: no ring
+        assert not hasattr(plain, "__self__")
+        np.testing.assert_array_equal(plain(0, 3).numpy(), vol)
+
+
+def test_plane_feed_reports_a_failed_read(monkeypatch):
+    """A volume whose planes cannot be read (e.g. a memmap whose disk went away) fails the request with the reason
+    and the thread ends."""
+    from engine import staging
+
+    class Broken(np.ndarray):
+        def __getitem__(self, key):
+            if isinstance(key, slice):  # the planes the thread reads
+                raise OSError("disk gone")
+            return super().__getitem__(key)
+
+    vol = np.zeros((8, 4, 4), np.uint16).view(Broken)
+    monkeypatch.setattr(staging.np, "ascontiguousarray", lambda a: a)
+    with pytest.raises(RuntimeError, match="disk gone"), staging.plane_feed(vol, "cpu", force=True) as upload:
+        upload(0, 3)
