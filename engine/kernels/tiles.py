@@ -72,6 +72,30 @@ def seam_flags(
 
 
 @wp.kernel
+def range_flags(
+    pos: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    axis: int,
+    lo: float,
+    hi: float,
+    flag: wp.array(dtype=wp.int32),
+):
+    """1 for a face whose first vertex's coordinate ``axis`` lies in [lo, hi), else 0 (a tile along that axis)."""
+    f = wp.tid()
+    c = pos[faces[f][0]][axis]
+    flag[f] = wp.where(c >= lo and c < hi, 1, 0)
+
+
+@wp.kernel
+def face_sample(
+    pos: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.vec3i), stride: int, out: wp.array(dtype=wp.vec3)
+):
+    """The first vertex of every ``stride``-th face (where to cut the tiles)."""
+    i = wp.tid()
+    out[i] = pos[faces[i * stride][0]]
+
+
+@wp.kernel
 def mark_used(
     faces: wp.array(dtype=wp.vec3i), flag: wp.array(dtype=wp.int32), want: int, used: wp.array(dtype=wp.int32)
 ):

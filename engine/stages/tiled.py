@@ -1,8 +1,10 @@
 """Stage: decimation of a mesh too large for the device memory budget, tile by tile with pinned tile borders.
 
 ``decimate_within`` decimates a device mesh in one piece where its decimation fits the budget, as
-``decimate_device`` does. Otherwise the mesh goes to the host (``HostMesh``) and ``finish_host`` decimates it in
-rounds: each round cuts it into z tiles of about equal face counts that fit the budget, pins the vertices a tile
+``decimate_device`` does. Otherwise, where tiles fit beside the whole mesh on the device, ``tiled_rounds_device``
+decimates it in rounds there: each tile (cut along the mesh's longest side) is split off, decimated with the
+vertices it shares pinned, and joined back, all on the device. Else the mesh goes to the host (``HostMesh``) and
+``finish_host`` decimates it in rounds: each round cuts it into z tiles of about equal face counts that fit the budget, pins the vertices a tile
 shares with another, decimates each tile on the device with the quadrics carried from earlier rounds, and joins
 the pieces again. The next round's cuts fall half a tile further, so the last round's borders are decimated
 inside a tile. As soon as the whole mesh fits, one last pass on the device takes it to the target.
@@ -14,6 +16,7 @@ topology of the input (watertight, 2-manifold, components, Euler characteristic)
 
 from __future__ import annotations
 
+import itertools
 import time
 from typing import Any
 
@@ -25,6 +28,8 @@ from engine.stages.stream import PIECE_TOLERANCE, HostMesh
 MAX_ROUNDS = 8
 SEAM_MAX_PASSES = 60  # the seams' goal may be out of the guards' reach: passes past this win little
 MIN_PROGRESS = 0.01  # a round that removes less than this share of the faces ends the rounds
+MAX_TILES = 64  # device tiled rounds need tiles of at least this share of the mesh beside it (else: host rounds)
+SAMPLE_FACES = 1 << 20  # the device rounds' z cuts are quantiles of about this many faces' z
 
 
 def fits(n_faces: int, budget: int | None) -> bool:
@@ -50,6 +55,13 @@ def decimate_within(
     if fits(len(faces), budget):
         p, f, st = decimate_device(*on_device(dev, pos, faces), target, **kwargs)
         return p, f, {"tiled": False, **st.to_dict()}
+    if pos.device == dev and budget is not None:  # tiled rounds without leaving the device, where tiles fit beside it
+        mesh = [pos, faces]
+        del pos, faces
+        done, why = tiled_rounds_device(mesh, target, budget, **kwargs)
+        if done is not None:
+            return (*done, why)
+        pos, faces = mesh
     host = to_host(pos, faces)
     del pos, faces
     return finish_host(host, target, budget, dev, **kwargs)
@@ -284,6 +296,30 @@ def seam_pass_device(
     (or to ``keep`` of the seam's faces). ``((pos, faces), info)``, or ``(None, why)`` where it does not fit."""
     import warp as wp
 
+    from engine.kernels import tiles as kt
+
+    n_faces = len(faces)
+
+    def flags(flag: Any) -> None:
+        borders = wp.array(np.asarray(borders_z, np.float32), dtype=wp.float32)
+        wp.launch(kt.seam_flags, dim=n_faces, inputs=[pos, faces, borders, float(width_mm), flag])
+
+    def goal(n_seam: int) -> int:
+        return max(n_seam - (n_faces - target) if keep is None else round(keep * n_seam), 1)
+
+    return _flagged_pass_device(pos, faces, flags, goal, budget, max_passes=SEAM_MAX_PASSES)
+
+
+def _flagged_pass_device(
+    pos: Any, faces: Any, flags: Any, goal_of: Any, budget: int | None, **options: Any
+) -> tuple[tuple[Any, Any] | None, dict[str, Any]]:
+    """Decimate the faces that ``flags(flag)`` flags (1 in an int32 per face: a seam or a z tile) on the device
+    beside the rest of the mesh, where that fits ``budget``: split off, pinned where they meet the rest, decimated
+    to ``goal_of(flagged faces)`` (quadrics from the current faces; ``options`` for ``decimate_carrying``) and
+    joined back. ``((pos, faces), info)``, or
+    ``(None, why)`` where it does not fit. The caller's ``pos`` and ``faces`` may be freed once it returns."""
+    import warp as wp
+
     from engine.kernels import decimate as kd
     from engine.kernels import tiles as kt
     from engine.stages.decimate import decimate_carrying
@@ -292,9 +328,8 @@ def seam_pass_device(
     t0 = time.perf_counter()
     n_faces, n_verts = len(faces), len(pos)
     with wp.ScopedDevice(pos.device):
-        borders = wp.array(np.asarray(borders_z, np.float32), dtype=wp.float32)
         flag = wp.empty(n_faces, dtype=wp.int32)
-        wp.launch(kt.seam_flags, dim=n_faces, inputs=[pos, faces, borders, float(width_mm), flag])
+        flags(flag)
         slot, n_seam = exclusive_scan(flag)
         need = _seam_need(n_verts, n_faces, n_seam)
         if n_seam == 0 or (budget is not None and need > budget):
@@ -313,8 +348,7 @@ def seam_pass_device(
         lock = wp.empty(n_local, dtype=wp.int32)
         wp.launch(kt.gather_seam, dim=n_verts, inputs=[pos, in_seam, in_rest, vslot, vids, local_pos, lock])
         del in_seam, in_rest, vslot
-        goal = max(n_seam - (n_faces - target) if keep is None else round(keep * n_seam), 1)
-        res = decimate_carrying(local_pos, seam, goal, locked=lock, max_passes=SEAM_MAX_PASSES)
+        res = decimate_carrying(local_pos, seam, goal_of(n_seam), locked=lock, **options)
         del local_pos, seam
         n_out = len(res.pos)
         new = wp.empty(n_out, dtype=wp.int32)
@@ -334,9 +368,89 @@ def seam_pass_device(
         wp.copy(joined, res.faces, dest_offset=len(rest), count=len(res.faces))
         del rest, pos, faces
         out_pos, out_faces = compact_vertices(joined_pos, joined)  # drops the seam's replaced vertices
-    info = {"faces_in": n_faces, "seam_faces_in": n_seam, "seam_faces_out": len(res.faces), "pinned": None}
+    pinned = res.stats.vertex_classes.get("locked")
+    info = {"faces_in": n_faces, "seam_faces_in": n_seam, "seam_faces_out": len(res.faces), "pinned": pinned}
     info.update(faces_out=len(out_faces), passes=res.stats.passes, seconds=time.perf_counter() - t0, on="device")
     return (out_pos, out_faces), info
+
+
+def _tile_room(n_verts: int, n_faces: int, budget: int) -> int:
+    """The most faces a z tile of a device mesh may have for its pass beside the mesh (``_seam_need``), 0 if none."""
+    mesh = (n_faces + n_verts) * 12
+    if 3 * mesh > budget:
+        return 0
+    return max((budget - mesh - n_faces * 12) // (12 + DECIMATE_BYTES_PER_FACE), 0)
+
+
+def tiled_rounds_device(
+    mesh: list[Any], target: int, budget: int, **options: Any
+) -> tuple[tuple[Any, Any] | None, dict[str, Any]]:
+    """``finish_host``'s tiled rounds without leaving the device: each round cuts the mesh (``mesh``: ``[pos,
+    faces]``, emptied) along its longest side into tiles whose pass fits ``budget`` beside it
+    (``_flagged_pass_device``; a tile found too large is halved), decimates each toward its share of ``target``
+    with its borders pinned, and the next round's cuts fall half a tile further; then, once the mesh fits, one pass
+    takes it to ``target``. The tiles start from the quadrics of their current faces (the host rounds carry them).
+    ``(None, why)`` with the mesh left in ``mesh`` where not even a small tile fits beside it."""
+    import warp as wp
+
+    from engine.kernels import tiles as kt
+    from engine.stages.decimate import decimate_device
+
+    t0 = time.perf_counter()
+    pos, faces = mesh
+    rounds: list[dict[str, Any]] = []
+    shift = 0.5
+    while not fits(len(faces), budget) and len(faces) > target * (1 + PIECE_TOLERANCE) and len(rounds) < MAX_ROUNDS:
+        n_faces = len(faces)
+        cap = _tile_room(len(pos), n_faces, budget)
+        if cap < max(n_faces // MAX_TILES, 1):
+            mesh[:] = [pos, faces]
+            return None, {"tile_faces_room": cap, "faces": n_faces, "budget_bytes": budget}
+        n_tiles = max(2, -(-n_faces // max(cap * 9 // 10, 1)))
+        stride = max(n_faces // SAMPLE_FACES, 1)
+        with wp.ScopedDevice(pos.device):
+            pts = wp.empty(n_faces // stride, dtype=wp.vec3)
+            wp.launch(kt.face_sample, dim=len(pts), inputs=[pos, faces, stride, pts])
+            pts_np = pts.numpy()
+        axis = int(np.argmax(np.ptp(pts_np, axis=0)))  # the tiles cut the longest side (a plate: not across it)
+        sample = np.sort(pts_np[:, axis])
+        qs = (np.arange(1, n_tiles + 1) - shift) / n_tiles if shift else np.arange(1, n_tiles) / n_tiles
+        cuts = [-np.inf, *np.quantile(sample, qs[qs < 1]), np.inf]
+        queue = list(itertools.pairwise(cuts))
+        info: dict[str, Any] = {"faces_in": n_faces, "axis": "zyx"[axis], "tiles": [], "on": "device"}
+        while queue:
+            z0, z1 = queue.pop(0)
+            zr = (float(z0), float(z1))
+
+            def flags(flag: Any, p: Any = pos, f: Any = faces, zr: tuple[float, float] = zr, ax: int = axis) -> None:
+                wp.launch(kt.range_flags, dim=len(f), inputs=[p, f, ax, *zr, flag])
+
+            def goal(n_tile: int, n: int = n_faces) -> int:
+                return max(round(n_tile * target / n), 1)
+
+            done, why = _flagged_pass_device(pos, faces, flags, goal, budget, stop_tolerance=PIECE_TOLERANCE, **options)
+            if done is None:
+                inside = sample[(sample >= z0) & (sample < z1)]
+                if why["seam_faces"] == 0 or len(inside) < 2 or not inside[0] < np.median(inside) < inside[-1]:
+                    continue  # nothing there, or a tile that cannot be cut further: left as it is this round
+                mid = float(np.median(inside))
+                queue[:0] = [(z0, mid), (mid, z1)]
+                continue
+            (pos, faces) = done
+            tile = {"faces_in": why["seam_faces_in"], "faces_out": why["seam_faces_out"], "pinned": why["pinned"]}
+            info["tiles"].append(tile)
+        info.update(faces_out=len(faces), seconds=time.perf_counter() - t0)
+        rounds.append(info)
+        shift = 0.5 - shift
+        if len(faces) > n_faces * (1 - MIN_PROGRESS):
+            break
+    out: dict[str, Any] = {"tiled": True, "on": "device", "rounds": rounds}
+    if len(faces) > target and fits(len(faces), budget):
+        pos, faces, st = decimate_device(pos, faces, target, **options)
+        out["final_pass"] = st.to_dict()
+    mesh.clear()
+    out["seconds"] = time.perf_counter() - t0
+    return (pos, faces), out
 
 
 def decimate_tiles(

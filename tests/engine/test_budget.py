@@ -108,13 +108,20 @@ def test_undecimated_model_over_budget_is_a_clear_error():
     assert got.report["memory"]["peak_bytes"] <= err.value.needed
 
 
-def test_tiled_rounds_pin_shared_vertices_and_keep_topology():
-    """A device mesh decimated in z tiles (budget far under its decimation): same topology, near the target."""
+@pytest.mark.parametrize("rounds", ["device", "host"])
+def test_tiled_rounds_pin_shared_vertices_and_keep_topology(monkeypatch, rounds):
+    """A device mesh decimated in z tiles (budget far under its decimation): same topology, near the target; in
+    rounds on the device (each tile split off, decimated and joined there), or on the host where tiles would be too
+    small to fit beside the mesh."""
     import warp as wp
 
+    from engine.stages import tiled
     from engine.stages.devmesh import mesh_stats_device
     from engine.stages.isosurface import marching_cubes_33
     from engine.stages.tiled import decimate_within
+
+    if rounds == "host":
+        monkeypatch.setattr(tiled, "MAX_TILES", 1)  # tiles must hold the whole mesh beside it: they cannot
 
     vol = bone_phantom((48, 96, 96)).astype(np.float32)
     v, f = marching_cubes_33(vol, 1024.0 + 300.0, closed=True, device="cpu")
@@ -124,8 +131,8 @@ def test_tiled_rounds_pin_shared_vertices_and_keep_topology():
         target = len(f) // 5
         p2, f2, info = decimate_within(pos, faces, target, len(f) * 300 // 4, wp.get_device("cpu"))
         after = mesh_stats_device(p2, f2)
-    assert info["tiled"] and len(info["rounds"]) >= 1
-    assert all(t["pinned"] > 0 for t in info["rounds"][0]["tiles"])
+    assert info["tiled"] and len(info["rounds"]) >= 1 and info.get("on", "host") == rounds
+    assert len(info["rounds"][0]["tiles"]) >= 2 and all(t["pinned"] > 0 for t in info["rounds"][0]["tiles"])
     assert [before[k] for k in ("watertight", "components", "euler")] == [
         after[k] for k in ("watertight", "components", "euler")
     ]
