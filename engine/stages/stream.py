@@ -302,76 +302,58 @@ def stream_surface(
         BudgetError: one slab (one block layer and its halo) or, without decimation, the mesh needs more.
         ValueError: as ``engine.stages.isosurface`` (NaN in the data).
     """
+    from engine.errors import BudgetError
+    from engine.stages.slabs import SlabPlan, _run_slabs, join_parts
     from engine.staging import plane_feed
 
-    share = STREAM_SLAB_SHARE if decimate else SLAB_SHARE  # (of the budget, for a slab: as in _stream_slabs)
+    share = STREAM_SLAB_SHARE if decimate else SLAB_SHARE  # of the budget, for a slab
     slab_bytes = (int(budget * share) // plane_bytes(volume, gaussian) + 3) * volume[0].nbytes  # the most uploaded
     with plane_feed(volume, dev, slab_bytes) as upload:
-        out = _stream_slabs(volume, level, spacing, closed, gaussian, budget, ratio, decimate, dev, stats, upload)
+        get_slab, per_plane, halo = slab_getter(volume, gaussian, upload)
+        # a group is decimated between slabs, when the slab's working set is freed: it may use the whole budget but
+        # for what stays on the device meanwhile (the halo planes of the streamed Gaussian, the shared-plane ids)
+        resident = halo * per_plane + 16 * (volume.shape[1] + 1) * (volume.shape[2] + 1)
+        spill = int(budget * SPILL_SHARE)
+        if decimate:  # a slab runs beside the groups decimated so far (up to ``spill``) and the pending slabs
+            room = budget - resident
+            cap = (room - spill) // DECIMATE_BYTES_PER_FACE  # a slab's faces must fit a group however many are held
+            target: int | None = max(cap // GROUP_SLABS, 1)
+        else:  # undecimated, the mesh stays whole beside the slab (checked below)
+            room = 1 << 62
+            cap, target = int(budget * (1 - share)) // MESH_BYTES_PER_FACE, None
+        plan = SlabPlan(int(budget * share), per_plane, halo, max_faces=max(cap, 1), target_faces=target, strict=True)
+        origin = 0.5 * (np.array(volume.shape, np.float64) - 1) * np.asarray(spacing, np.float64)
+        # the groups stop short of the target (GROUP_SLACK), leaving the last collapses to a pass across borders
+        group_ratio = ratio if ratio is not None else 0.5
+        groups = GroupDecimator(group_ratio, GROUP_SLACK, room, spill, origin, volume.shape[0], dev)
+        out = StreamResult(origin=origin)
+        t0 = time.perf_counter()
+        is_float = gaussian is not None or volume.dtype == np.float32
+        slabs = _run_slabs(get_slab, volume.shape, plan, is_float, level, spacing, closed, dev, stats)
+        for part in _slabs_within(slabs, share):
+            out.mc33_faces += part.nt
+            out.mc33_vertices += part.nv
+            if not decimate and out.mc33_faces > cap:
+                needed = int(out.mc33_faces * MESH_BYTES_PER_FACE / (1 - share))
+                raise BudgetError(
+                    f"the undecimated model does not fit the device memory budget of {mib(budget)} "
+                    f"(more than {out.mc33_faces:,} faces); decimate it or give at least {mib(needed)}",
+                    needed=needed,
+                )
+            groups.add(part)
+        out.info = {"slabs": stats.slabs, "slab_retries": stats.retries, "group_cap_faces": cap}
+        if not groups.groups:  # it all fitted: the undecimated mesh stays on the device
+            if groups.pending and stats.level_in_range:
+                out.device = join_parts(groups.pending)
+            out.info["groups"] = 0
+        else:
+            out.host, out.pieces = groups.result()
+            out.info |= {"groups": len(groups.groups), "group_rounds": groups.groups}
+            out.info |= {"group_seconds": groups.seconds, "group_timings": groups.timings}
+            out.info["group_mode"] = groups.mode
+            out.borders = groups.borders
+        out.info["seconds"] = time.perf_counter() - t0
         feed = getattr(upload, "__self__", None)
         if feed is not None:  # the uploads through the pinned ring (engine.staging.PlaneFeed)
             out.info["feed"] = dict(feed.stats)
-    return out
-
-
-def _stream_slabs(
-    volume: np.ndarray,
-    level: float,
-    spacing: tuple[float, float, float],
-    closed: bool,
-    gaussian: GaussianParams | None,
-    budget: int,
-    ratio: float | None,
-    decimate: bool,
-    dev: Any,
-    stats: Any,
-    upload: Any,
-) -> StreamResult:
-    from engine.errors import BudgetError
-    from engine.stages.slabs import SlabPlan, _run_slabs, join_parts
-
-    get_slab, plane_bytes, halo = slab_getter(volume, gaussian, upload)
-    # a group is decimated between slabs, when the slab's working set is freed: it may use the whole budget but for
-    # what stays on the device meanwhile (the halo planes of the streamed Gaussian, the shared-plane vertex ids)
-    resident = halo * plane_bytes + 16 * (volume.shape[1] + 1) * (volume.shape[2] + 1)
-    spill = int(budget * SPILL_SHARE)
-    if decimate:  # a slab runs beside the groups decimated so far (up to ``spill``) and the slabs not yet decimated
-        share, room = STREAM_SLAB_SHARE, budget - resident
-        cap = (room - spill) // DECIMATE_BYTES_PER_FACE  # a slab's faces must fit a group however many are held
-        target: int | None = max(cap // GROUP_SLABS, 1)
-    else:  # undecimated, the mesh stays whole beside the slab (checked below)
-        share, room = SLAB_SHARE, 1 << 62
-        cap, target = int(budget * (1 - share)) // MESH_BYTES_PER_FACE, None
-    plan = SlabPlan(int(budget * share), plane_bytes, halo, max_faces=max(cap, 1), target_faces=target, strict=True)
-    origin = 0.5 * (np.array(volume.shape, np.float64) - 1) * np.asarray(spacing, np.float64)
-    # the groups stop short of the target (GROUP_SLACK), leaving the last collapses to a pass across their borders
-    group_ratio = ratio if ratio is not None else 0.5
-    groups = GroupDecimator(group_ratio, GROUP_SLACK, room, spill, origin, volume.shape[0], dev)
-    out = StreamResult(origin=origin)
-    t0 = time.perf_counter()
-    is_float = gaussian is not None or volume.dtype == np.float32
-    slabs = _run_slabs(get_slab, volume.shape, plan, is_float, level, spacing, closed, dev, stats)
-    for part in _slabs_within(slabs, share):
-        out.mc33_faces += part.nt
-        out.mc33_vertices += part.nv
-        if not decimate and out.mc33_faces > cap:
-            needed = int(out.mc33_faces * MESH_BYTES_PER_FACE / (1 - share))
-            raise BudgetError(
-                f"the undecimated model does not fit the device memory budget of {mib(budget)} "
-                f"(more than {out.mc33_faces:,} faces); decimate it or give at least {mib(needed)}",
-                needed=needed,
-            )
-        groups.add(part)
-    out.info = {"slabs": stats.slabs, "slab_retries": stats.retries, "group_cap_faces": cap}
-    if not groups.groups:  # it all fitted: the undecimated mesh stays on the device
-        if groups.pending and stats.level_in_range:
-            out.device = join_parts(groups.pending)
-        out.info["groups"] = 0
-    else:
-        out.host, out.pieces = groups.result()
-        out.info |= {"groups": len(groups.groups), "group_rounds": groups.groups, "group_seconds": groups.seconds}
-        out.info["group_timings"] = groups.timings
-        out.info["group_mode"] = groups.mode
-        out.borders = groups.borders
-    out.info["seconds"] = time.perf_counter() - t0
     return out

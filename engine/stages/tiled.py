@@ -4,10 +4,11 @@
 ``decimate_device`` does. Otherwise, where tiles fit beside the whole mesh on the device, ``tiled_rounds_device``
 decimates it in rounds there: each tile (cut along the mesh's longest side) is split off, decimated with the
 vertices it shares pinned, and joined back, all on the device. Else the mesh goes to the host (``HostMesh``) and
-``finish_host`` decimates it in rounds: each round cuts it into z tiles of about equal face counts that fit the budget, pins the vertices a tile
-shares with another, decimates each tile on the device with the quadrics carried from earlier rounds, and joins
-the pieces again. The next round's cuts fall half a tile further, so the last round's borders are decimated
-inside a tile. As soon as the whole mesh fits, one last pass on the device takes it to the target.
+``finish_host`` decimates it in rounds: each round cuts it into z tiles of about equal face counts that fit the
+budget, pins the vertices a tile shares with another, decimates each tile on the device with the quadrics carried
+from earlier rounds, and joins the pieces again. The next round's cuts fall half a tile further, so the last
+round's borders are decimated inside a tile. As soon as the whole mesh fits, one last pass on the device takes it
+to the target.
 
 Pinned vertices are never moved, removed or extended, and a collapse that only touches a tile's free vertices
 sees their whole stars: the link condition and every other guard hold for the joined mesh, so it keeps the
