@@ -80,9 +80,19 @@ class HostCopies:
 
 
 class _Pinned:
+    """A process-wide host buffer, held by one job at a time (``lock``), kept for the next and grown on demand."""
+
     def __init__(self) -> None:
         self.buf: Any = None
         self.lock = threading.Lock()
+
+    def at_least(self, nbytes: int, size: int, pinned: bool = True) -> Any:
+        """The buffer, reallocated (``size`` bytes, the old one freed first) where it holds fewer than ``nbytes`` or
+        is not ``pinned`` as asked."""
+        if self.buf is None or self.buf.capacity < nbytes or self.buf.pinned != pinned:
+            self.buf = None
+            self.buf = pinned_bytes(size, pinned=pinned)
+        return self.buf
 
 
 _PINNED = _Pinned()
@@ -99,11 +109,8 @@ def host_copies(device: Any, nbytes: int) -> Iterator[HostCopies]:
         yield HostCopies(None, dev)
         return
     try:
-        if _PINNED.buf is None or _PINNED.buf.capacity < nbytes:
-            _PINNED.buf = None  # the old one goes first
-            size = min(max(nbytes, 64 << 20) * 5 // 4, max(pinned_max(), nbytes))
-            _PINNED.buf = pinned_bytes(size)
-        yield HostCopies(_PINNED.buf, dev)
+        size = min(max(nbytes, 64 << 20) * 5 // 4, max(pinned_max(), nbytes))
+        yield HostCopies(_PINNED.at_least(nbytes, size), dev)
     finally:
         _PINNED.lock.release()
 
@@ -114,6 +121,25 @@ RING_SLABS = 2  # or this many of the largest slabs (the next slab is read while
 FEED_MAX_BYTES = 1 << 30  # up to this (locking 1 GiB took 0.6 s on the H100 host, once per process)
 FEED_CHUNK_BYTES = 32 << 20  # the ring is filled this much at a time,
 READERS = 4  # by this many threads (one copied 5 GB/s on the H100 host: slower than the pageable upload)
+
+
+def upload_planes(volume: np.ndarray, zlo: int, zhi: int, device: Any) -> Any:
+    """Planes ``zlo..zhi`` of a host volume as a new array on ``device``, copied directly (pageable)."""
+    import warp as wp
+
+    return wp.array(np.ascontiguousarray(volume[zlo : zhi + 1]), device=device)
+
+
+class DirectFeed:
+    """``PlaneFeed``'s interface without the ring: every request copied directly (``upload_planes``)."""
+
+    stats = None
+
+    def __init__(self, volume: np.ndarray, device: Any) -> None:
+        self.volume, self.device = volume, device
+
+    def upload(self, zlo: int, zhi: int) -> Any:
+        return upload_planes(self.volume, zlo, zhi, self.device)
 
 
 class PlaneFeed:
@@ -194,20 +220,17 @@ class PlaneFeed:
         """Planes ``zlo..zhi`` as a new array on the device (``wp.array(volume[zlo:zhi + 1])``)."""
         import warp as wp
 
-        ny, nx = self.volume.shape[1:]
-        out = wp.empty((zhi - zlo + 1, ny, nx), dtype=self.wp_dtype, device=self.device)
         self.stats["requests"] += 1
         with self.cond:
-            if zlo < self.low:
-                behind = True
-                self.stats["direct"] += 1
-            else:
-                behind = False
+            behind = zlo < self.low
+            if not behind:
                 self.low = zlo
                 self.cond.notify_all()
         if behind:
-            wp.copy(out, wp.array(np.ascontiguousarray(self.volume[zlo : zhi + 1]), device="cpu"))
-            return out
+            self.stats["direct"] += 1
+            return upload_planes(self.volume, zlo, zhi, self.device)
+        ny, nx = self.volume.shape[1:]
+        out = wp.empty((zhi - zlo + 1, ny, nx), dtype=self.wp_dtype, device=self.device)
         stream = wp.get_stream(self.device) if self.device.is_cuda else None
         z = zlo
         while z <= zhi:
@@ -248,38 +271,32 @@ _FEED = _Pinned()
 
 @contextmanager
 def plane_feed(volume: np.ndarray, device: Any, slab_bytes: int = 0, *, force: bool = False) -> Iterator[Any]:
-    """``upload(zlo, zhi)``: planes zlo..zhi of ``volume`` as a new array on ``device``. For a CUDA device (with
-    ``force``, any device: for tests) through a ``PlaneFeed`` on the process's pinned ring, sized for
+    """A feed whose ``upload(zlo, zhi)`` gives planes zlo..zhi of ``volume`` as a new array on ``device``. For a CUDA
+    device (with ``force``, any device: for tests) a ``PlaneFeed`` on the process's pinned ring, sized for
     ``RING_SLABS`` slabs of up to ``slab_bytes`` (at least ``FEED_MIN_BYTES``, at most ``FEED_MAX_BYTES`` and
     ``BONEMESH_PINNED_MAX``) and grown when a larger one is needed; where the ring is held by another job, would
-    hold fewer than two planes or cannot be locked, copied directly."""
+    hold fewer than two planes or cannot be locked, a ``DirectFeed``."""
     import warp as wp
 
     dev = wp.get_device(device)
     volume = np.ascontiguousarray(volume)
-
-    def direct(zlo: int, zhi: int) -> Any:
-        return wp.array(np.ascontiguousarray(volume[zlo : zhi + 1]), device=dev)
-
     plane_bytes = volume[0].nbytes if volume.size else 0
     ring_bytes = min(max(FEED_MIN_BYTES, RING_SLABS * slab_bytes), FEED_MAX_BYTES, pinned_max(), volume.nbytes)
     usable = (dev.is_cuda or force) and volume.size and 2 * plane_bytes <= ring_bytes
     if not usable or not _FEED.lock.acquire(blocking=False):
-        yield direct
+        yield DirectFeed(volume, dev)
         return
     feed = None
     try:
-        if _FEED.buf is None or _FEED.buf.pinned != dev.is_cuda or _FEED.buf.capacity < ring_bytes:
-            _FEED.buf = None  # the old one goes first
-            try:
-                _FEED.buf = pinned_bytes(ring_bytes, pinned=dev.is_cuda)
-            except (RuntimeError, MemoryError):  # the host would not lock that much memory: copy directly
-                _FEED.buf = None
-        if _FEED.buf is None:
-            yield direct
+        try:
+            ring = _FEED.at_least(ring_bytes, ring_bytes, pinned=dev.is_cuda)
+        except (RuntimeError, MemoryError):  # the host would not lock that much memory: copy directly
+            ring = None
+        if ring is None:
+            yield DirectFeed(volume, dev)
             return
-        feed = PlaneFeed(volume, dev, _FEED.buf, ring_bytes)
-        yield feed.upload
+        feed = PlaneFeed(volume, dev, ring, ring_bytes)
+        yield feed
     finally:
         if feed is not None:
             feed.close()

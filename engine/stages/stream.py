@@ -308,8 +308,8 @@ def stream_surface(
 
     share = STREAM_SLAB_SHARE if decimate else SLAB_SHARE  # of the budget, for a slab
     slab_bytes = (int(budget * share) // plane_bytes(volume, gaussian) + 3) * volume[0].nbytes  # the most uploaded
-    with plane_feed(volume, dev, slab_bytes) as upload:
-        get_slab, per_plane, halo = slab_getter(volume, gaussian, upload)
+    with plane_feed(volume, dev, slab_bytes) as feed:
+        get_slab, per_plane, halo = slab_getter(volume, gaussian, feed.upload)
         # a group is decimated between slabs, when the slab's working set is freed: it may use the whole budget but
         # for what stays on the device meanwhile (the halo planes of the streamed Gaussian, the shared-plane ids)
         resident = halo * per_plane + 16 * (volume.shape[1] + 1) * (volume.shape[2] + 1)
@@ -353,7 +353,6 @@ def stream_surface(
             out.info["group_mode"] = groups.mode
             out.borders = groups.borders
         out.info["seconds"] = time.perf_counter() - t0
-        feed = getattr(upload, "__self__", None)
-        if feed is not None:  # the uploads through the pinned ring (engine.staging.PlaneFeed)
+        if feed.stats is not None:  # the uploads through the pinned ring (engine.staging.PlaneFeed)
             out.info["feed"] = dict(feed.stats)
     return out

@@ -92,13 +92,12 @@ def test_plane_feed_uploads_the_planes_asked_for(monkeypatch, device, ring_plane
     vol = rng.integers(0, 4000, (150, 9, 11), dtype=np.uint16)
     monkeypatch.setattr(staging, "FEED_MIN_BYTES", ring_planes * vol[0].nbytes)
     monkeypatch.setattr(staging, "FEED_CHUNK_BYTES", 3 * vol[0].nbytes)
-    with staging.plane_feed(vol, device, force=True) as upload:
-        assert isinstance(getattr(upload, "__self__", None), staging.PlaneFeed)
+    with staging.plane_feed(vol, device, force=True) as feed:
+        assert isinstance(feed, staging.PlaneFeed)
         for zlo, zhi in [*_requests(len(vol), rng), (0, 5)]:
-            got = upload(zlo, zhi)
+            got = feed.upload(zlo, zhi)
             assert got.device == wp.get_device(device) and got.shape == (zhi - zlo + 1, 9, 11)
             np.testing.assert_array_equal(got.numpy(), vol[zlo : zhi + 1])
-        feed = upload.__self__
     assert not feed.thread.is_alive()
 
 
@@ -107,11 +106,11 @@ def test_plane_feed_is_held_by_one_job_at_a_time():
 
     vol = np.arange(4 * 5 * 6, dtype=np.float32).reshape(4, 5, 6)
     with staging.plane_feed(vol, "cpu", force=True) as first, staging.plane_feed(vol, "cpu", force=True) as second:
-        assert hasattr(first, "__self__") and not hasattr(second, "__self__")  # the second copies directly
-        np.testing.assert_array_equal(second(1, 2).numpy(), vol[1:3])
+        assert isinstance(first, staging.PlaneFeed) and isinstance(second, staging.DirectFeed)  # the second: direct
+        np.testing.assert_array_equal(second.upload(1, 2).numpy(), vol[1:3])
     with staging.plane_feed(vol, "cpu") as plain:  # not CUDA: no ring
-        assert not hasattr(plain, "__self__")
-        np.testing.assert_array_equal(plain(0, 3).numpy(), vol)
+        assert isinstance(plain, staging.DirectFeed)
+        np.testing.assert_array_equal(plain.upload(0, 3).numpy(), vol)
 
 
 def test_plane_feed_reports_a_failed_read(monkeypatch):
@@ -127,5 +126,5 @@ def test_plane_feed_reports_a_failed_read(monkeypatch):
 
     vol = np.zeros((8, 4, 4), np.uint16).view(Broken)
     monkeypatch.setattr(staging.np, "ascontiguousarray", lambda a: a)
-    with pytest.raises(RuntimeError, match="disk gone"), staging.plane_feed(vol, "cpu", force=True) as upload:
-        upload(0, 3)
+    with pytest.raises(RuntimeError, match="disk gone"), staging.plane_feed(vol, "cpu", force=True) as feed:
+        feed.upload(0, 3)
