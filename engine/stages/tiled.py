@@ -30,7 +30,7 @@ MAX_ROUNDS = 8
 SEAM_MAX_PASSES = 60  # the seams' goal may be out of the guards' reach: passes past this win little
 MIN_PROGRESS = 0.01  # a round that removes less than this share of the faces ends the rounds
 MAX_TILES = 64  # device tiled rounds need tiles of at least this share of the mesh beside it (else: host rounds)
-SAMPLE_FACES = 1 << 20  # the device rounds' z cuts are quantiles of about this many faces' z
+SAMPLE_FACES = 1 << 20  # the device rounds cut at quantiles of about this many faces
 
 
 def fits(n_faces: int, budget: int | None) -> bool:
@@ -80,12 +80,7 @@ def finish_host(
     t0 = time.perf_counter()
     rounds: list[dict[str, Any]] = []
     shift = 0.5
-    # rounds until the mesh fits for the last pass, or is within the tiles' tolerance of the target
-    while (
-        not fits(len(mesh.faces), budget)
-        and len(mesh.faces) > target * (1 + PIECE_TOLERANCE)
-        and len(rounds) < MAX_ROUNDS
-    ):
+    while _another_round(len(mesh.faces), target, budget, rounds):
         before = len(mesh.faces)
         mesh, info = tiled_round(mesh, target, budget, dev, shift, **kwargs)
         rounds.append(info)
@@ -270,12 +265,22 @@ def seam_passes_device(
     return (pos, faces), info
 
 
+SEAM_BYTES_PER_FACE = 12 + DECIMATE_BYTES_PER_FACE  # a seam's (or tile's) face: split off, then decimated
+
+
+def _seam_base(n_verts: int, n_faces: int) -> tuple[int, int]:
+    """What a seam pass over a mesh needs besides ``SEAM_BYTES_PER_FACE`` per seam face, and the least it needs:
+    the mesh (its callers hold it) and its joined copy; at least the mesh three times over (the joined copy and
+    the compacted result; measured on the CPU: up to 1.46x the first term alone, small seams)."""
+    mesh = (n_faces + n_verts) * 12
+    return mesh + n_faces * 12, 3 * mesh
+
+
 def _seam_need(n_verts: int, n_faces: int, n_seam: int) -> int:
     """Device bytes of a seam pass over ``n_seam`` of a mesh's faces: the seam split off and decimated beside the
-    mesh, then joined back: the mesh (its callers hold it), the joined copy and the compacted result (measured on
-    the CPU: up to 1.46x the first term alone, small seams)."""
-    mesh = (n_faces + n_verts) * 12
-    return max(mesh + (n_seam + n_faces) * 12 + n_seam * DECIMATE_BYTES_PER_FACE, 3 * mesh)
+    mesh, then joined back (``_seam_base``)."""
+    base, least = _seam_base(n_verts, n_faces)
+    return max(base + n_seam * SEAM_BYTES_PER_FACE, least)
 
 
 def seams_fit_beside(n_verts: int, n_faces: int, budget: int | None) -> bool:
@@ -376,11 +381,16 @@ def _flagged_pass_device(
 
 
 def _tile_room(n_verts: int, n_faces: int, budget: int) -> int:
-    """The most faces a z tile of a device mesh may have for its pass beside the mesh (``_seam_need``), 0 if none."""
-    mesh = (n_faces + n_verts) * 12
-    if 3 * mesh > budget:
-        return 0
-    return max((budget - mesh - n_faces * 12) // (12 + DECIMATE_BYTES_PER_FACE), 0)
+    """The most faces a tile of a device mesh may have for its pass beside the mesh (``_seam_need`` within
+    ``budget``), 0 if none."""
+    base, least = _seam_base(n_verts, n_faces)
+    return 0 if least > budget else max((budget - base) // SEAM_BYTES_PER_FACE, 0)
+
+
+def _another_round(n_faces: int, target: int, budget: int | None, rounds: list[Any]) -> bool:
+    """Whether tiled rounds go on: the mesh does not fit for the last pass yet, is not within the tiles' tolerance
+    of ``target``, and the rounds are not used up."""
+    return not fits(n_faces, budget) and n_faces > target * (1 + PIECE_TOLERANCE) and len(rounds) < MAX_ROUNDS
 
 
 def tiled_rounds_device(
@@ -401,7 +411,7 @@ def tiled_rounds_device(
     pos, faces = mesh
     rounds: list[dict[str, Any]] = []
     shift = 0.5
-    while not fits(len(faces), budget) and len(faces) > target * (1 + PIECE_TOLERANCE) and len(rounds) < MAX_ROUNDS:
+    while _another_round(len(faces), target, budget, rounds):
         n_faces = len(faces)
         cap = _tile_room(len(pos), n_faces, budget)
         if cap < max(n_faces // MAX_TILES, 1):
