@@ -2,7 +2,9 @@
 
 EngineError
 ├── InputError            the caller's input cannot be processed (bad file, bad parameters); exit code 2
-│   └── EmptySurfaceError the iso level does not cross the data: there is no surface to build
+│   ├── EmptySurfaceError the iso level does not cross the data: there is no surface to build
+│   ├── IncompleteSeriesError  the series is not whole (missing slice, clashing duplicates, too few images)
+│   └── BudgetError       the device memory budget is too small for this scan
 └── StageError            a pipeline stage failed for a reason that is not the input's fault (names the stage)
 """
 
@@ -36,3 +38,8 @@ class BudgetError(InputError):
     def __init__(self, message: str, needed: int) -> None:
         super().__init__(message)
         self.needed = int(needed)
+
+
+class IncompleteSeriesError(InputError):
+    """The series is not whole (a slice missing, two different images at one position, too few images): refused
+    before anything is reconstructed, since a model built across the hole would look right and be wrong."""

@@ -26,6 +26,8 @@ class Volume:
             +x the patient's left, +y posterior, +z superior), i.e. for DICOM with ImagePositionPatient and
             ImageOrientationPatient; False for image stacks, whose orientation comes from
             ``engine.params.OrientParams`` (see ``engine.orient``).
+        instances: for DICOM, the images the volume was built from, in slice order: (SOP Class UID, SOP Instance
+            UID, frame number or None); what an Encapsulated STL references. Not in the report.
     """
 
     data: npt.NDArray[Any]
@@ -35,6 +37,7 @@ class Volume:
     units: str = "raw"
     source: dict[str, Any] = field(default_factory=dict)
     patient_frame: bool = False
+    instances: tuple[tuple[str, str, int | None], ...] = ()
 
 
 @dataclass

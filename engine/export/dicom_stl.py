@@ -81,6 +81,7 @@ def to_encapsulated_stl(
     series_description: str = "bonemesh bone model (STL, mm)",
     device_serial_number: str = "bonemesh",
     source_instances: Sequence[tuple[str, str]] = (),
+    source_series_uid: str | None = None,
 ) -> bytes:
     """Encode a print model as an Encapsulated STL DICOM file (Part 10, Explicit VR Little Endian).
 
@@ -96,7 +97,8 @@ def to_encapsulated_stl(
         series_number: the new series' number.
         series_description: the new series' description.
         device_serial_number: Device Serial Number (type 1 in Enhanced General Equipment).
-        source_instances: (SOP Class UID, SOP Instance UID) of the images the model was built from.
+        source_instances: (SOP Class UID, SOP Instance UID) of the images the model was built from (each once).
+        source_series_uid: their series (default: the ``source`` header's Series Instance UID).
 
     Returns:
         The DICOM file's bytes.
@@ -153,7 +155,7 @@ def to_encapsulated_stl(
         ds.SourceInstanceSequence = DicomSequence(refs)
         # Common Instance Reference: the same images, under their series (all in this study)
         series = Dataset()
-        series.SeriesInstanceUID = source.SeriesInstanceUID
+        series.SeriesInstanceUID = source_series_uid or source.SeriesInstanceUID
         series.ReferencedInstanceSequence = DicomSequence([_ref(c, i) for c, i in source_instances])
         ds.ReferencedSeriesSequence = DicomSequence([series])
     body = stl if len(stl) % 2 == 0 else stl + b"\x00"  # OB values have even length; the length tag keeps the truth

@@ -17,6 +17,7 @@ import numpy.typing as npt
 from engine.errors import InputError
 from engine.io.archive import InputLimits, Member, Members, open_members
 from engine.io.codecs import decode_png_fast
+from engine.io.completeness import Completeness, check_count, check_numbering
 from engine.io.parallel import decode_threads, ordered_map
 from engine.params import check_spacing_zyx_mm
 from engine.types import Volume
@@ -84,10 +85,20 @@ def load_stack(
     Raises:
         InputError: no images, mixed shapes/dtypes, too many voxels, or no voxel size.
     """
+    names = sorted((m.name for m in members.members if image_kind(m.head)), key=natural_key)
+    completeness = check_numbering(names, label) if len(names) > 1 else None  # before decoding: fail fast
     data, fmt, geo = _read_slices(members, label, limits, on_progress, decode_threads(threads))
+    check_count(data.shape[0], label)
+    if completeness is None:  # one file: a volume (.npy, multi-page TIFF)
+        completeness = Completeness(images=data.shape[0], layout="one volume file")
     spacing, how = _resolve_spacing(spacing_zyx_mm, geo, label)
-    n_files = len([m for m in members.members if image_kind(m.head)])
-    source: dict[str, Any] = {"format": fmt, "container": members.kind, "files": n_files, "spacing_from": how}
+    source: dict[str, Any] = {
+        "format": fmt,
+        "container": members.kind,
+        "files": len(names),
+        "spacing_from": how,
+        "completeness": completeness.report(),
+    }
     return Volume(data=data, spacing_zyx_mm=spacing, units="raw", source=source)
 
 

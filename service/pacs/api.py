@@ -37,6 +37,24 @@ def job_view(db: Database, job: Job) -> dict[str, Any]:
     return records_of(db).view(job)
 
 
+MODEL_DCM = "model.dcm"
+
+
+def redeliver(svc: Any, job: Job) -> None:
+    """Queue a finished PACS job's model for sending again (``POST /v1/jobs/{id}/deliver``; idempotent).
+
+    Raises:
+        Problem: 409 when the job has not succeeded, has no PACS destination, or has no model to send.
+    """
+    if job.state != "succeeded":
+        raise Problem(409, f"job {job.id} is {job.state}: only a succeeded job's model can be delivered")
+    if svc.storage.output_path(job.id, MODEL_DCM) is None:
+        raise Problem(409, f"job {job.id} has no {MODEL_DCM} to deliver (it came from an upload, or its source had "
+                      "no Frame of Reference)")
+    if not records_of(svc.db).redeliver(job.id):
+        raise Problem(409, f"job {job.id} has no PACS destination to deliver to")
+
+
 async def create_source_job(request: Request, svc: Any, who: str) -> Job:
     """Validate the JSON body, record the job and send its message (``svc``: the app's Services)."""
     body = b""

@@ -103,6 +103,18 @@ def cancel_job(job_id: str, who: OwnerDep, svc: ServicesDep, base: BaseUrlDep) -
     return svc.job_out(_job(svc, job_id, who), base)
 
 
+@router.post(
+    "/jobs/{job_id}/deliver",
+    status_code=202,
+    response_model=JobOut,
+    summary="send a finished PACS job's model to its destination again (the same UIDs: the PACS keeps one copy)",
+    responses={**KEYED, **errors(404, 409, d409="the job has not succeeded, or has no model or destination")},
+)
+def deliver_job(job_id: str, who: OwnerDep, svc: ServicesDep, base: BaseUrlDep) -> JobOut:
+    pacs_api.redeliver(svc, _job(svc, job_id, who))
+    return svc.job_out(_job(svc, job_id, who), base)
+
+
 @router.delete(
     "/jobs/{job_id}",
     status_code=204,

@@ -169,7 +169,7 @@ def test_dicom_threads_equal_serial(tmp_path: Path, syntax: str | None, extra: d
 
 
 def test_dicom_uneven_tilted_series_threads_equal_serial(tmp_path: Path) -> None:
-    files = series(_field, positions_mm=[0.0, 1.0, 2.5, 3.0, 4.0, 6.0], drift=(0.0, 0.3, 0.0))
+    files = series(_field, positions_mm=[0.0, 1.0, 2.5, 3.0, 4.0, 5.5], drift=(0.0, 0.3, 0.0))
     path = _zip(tmp_path / "t.zip", files)
     serial = load_volume(path, threads=1)
     assert serial.source["resampled"] is True

@@ -107,7 +107,7 @@ def test_rgb_becomes_luminance_with_one_warning(tmp_path: Path) -> None:
 
 def test_missing_spacing_says_how_to_give_it(tmp_path: Path) -> None:
     with pytest.raises(InputError, match=r"spacing_zyx_mm=\(z, y, x\) \(CLI: --voxel-size X,Y,Z or --spacing Z,Y,X\)"):
-        load_volume(_write(tmp_path / "s.zip", _slices(_vol(2), ".png"), "zip"))
+        load_volume(_write(tmp_path / "s.zip", _slices(_vol(3), ".png"), "zip"))
     for absurd in ((1, 0, 1), (1e300, 1, 1), (1, 1e-300, 1), (1, 1, float("nan"))):
         with pytest.raises(InputError, match=r"Expected a voxel size between 0.0001 and 100 mm"):
             load_volume(tmp_path / "s.zip", spacing_zyx_mm=absurd)
@@ -143,9 +143,10 @@ def test_planar_rgb_tiff(tmp_path: Path) -> None:
     rgb = np.zeros((3, 6, 5), np.uint8)  # separate colour planes
     rgb[0], rgb[1], rgb[2] = 100, 200, 50
     tifffile.imwrite(tmp_path / "p.tif", rgb, photometric="rgb", planarconfig="separate")
+    files = {f"p{k}.tif": (tmp_path / "p.tif").read_bytes() for k in range(3)}
     with pytest.warns(StackWarning, match="luminance"):
-        out = load_volume(tmp_path / "p.tif", spacing_zyx_mm=SP)
-    assert out.data.shape == (1, 6, 5) and int(out.data[0, 0, 0]) == 153  # 0.299*100 + 0.587*200 + 0.114*50
+        out = load_volume(_write(tmp_path / "p.zip", files, "zip"), spacing_zyx_mm=SP)
+    assert out.data.shape == (3, 6, 5) and int(out.data[0, 0, 0]) == 153  # 0.299*100 + 0.587*200 + 0.114*50
 
 
 def test_multipage_tiff_and_npy(tmp_path: Path) -> None:
@@ -205,14 +206,14 @@ def test_path_traversal_names_are_refused_and_never_written(tmp_path: Path) -> N
 def test_tar_symlinks_are_ignored(tmp_path: Path) -> None:
     path = tmp_path / "l.tar"
     with tarfile.open(path, "w") as tf:
-        for n, b in _slices(_vol(2), ".png").items():
+        for n, b in _slices(_vol(3), ".png").items():
             info = tarfile.TarInfo(n)
             info.size = len(b)
             tf.addfile(info, io.BytesIO(b))
         link = tarfile.TarInfo("img9.png")
         link.type, link.linkname = tarfile.SYMTYPE, "/etc/passwd"
         tf.addfile(link)
-    assert load_volume(path, spacing_zyx_mm=SP).data.shape[0] == 2
+    assert load_volume(path, spacing_zyx_mm=SP).data.shape[0] == 3
 
 
 def test_member_count_and_voxel_limits(tmp_path: Path) -> None:
