@@ -3,7 +3,9 @@
 Slices are ordered by ImagePositionPatient projected on the normal of ImageOrientationPatient. Uneven gaps and
 gantry tilt are resampled onto a regular, orthogonal grid whose axes are the image row/column directions and the
 slice normal (``Volume.direction``): tilted slices are shifted in-plane (shear correction), then interpolated
-linearly along the normal at the median gap.
+linearly along the normal at the median gap. Multi-frame images (Enhanced CT, Legacy Converted Enhanced CT) are
+read frame by frame from their functional groups (``engine.io.dicom_frames``): a slice per frame, through the same
+checks. Before any of that, the series must be whole (``engine.io.completeness``).
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ import numpy as np
 
 from engine.errors import InputError
 from engine.io.archive import InputLimits, Member, Members
+from engine.io.completeness import check_count, check_numbering, check_positions, drop_identical, same_position_groups
+from engine.io.dicom_frames import FrameError, frame_count, frame_member, frames, is_multiframe
 from engine.io.dicom_pixels import quiet, read_dataset, series_pixels
 from engine.io.parallel import ordered_map
 from engine.io.procs import DecodePool, start_pool
@@ -55,6 +59,9 @@ class _Slice:
     thickness: float | None
     header: dict[str, Any]
     nonfinite: tuple[str, ...] = ()  # geometry tags present but holding NaN or an infinity
+    frame: int | None = None  # a multi-frame image's frame (from 0): ``member`` names the frame, ``file`` is the file
+    file: Member | None = None
+    unusable: str = ""  # why the image cannot be loaded (raised only when its series is the one loaded)
 
 
 def _floats(value: Any, n: int) -> np.ndarray | None:
@@ -83,8 +90,8 @@ def _scan(
     threads: int = 1,
     procs: DecodePool | None = None,
 ) -> tuple[list[_Slice], int]:
-    """Headers of every DICOM image member (read and parsed on ``threads`` threads, or in ``procs``' processes);
-    also the count of DICOM files without pixel data."""
+    """Headers of every DICOM image member, a slice per frame of a multi-frame image (read and parsed on ``threads``
+    threads, or in ``procs``' processes); also the count of DICOM files without pixel data."""
     slices: list[_Slice] = []
     non_image = 0
     n = len(members.members)
@@ -99,19 +106,28 @@ def _scan(
                 on_progress((k + 1) / n)
             if found == "non-image":
                 non_image += 1
-            elif isinstance(found, _Slice):
-                slices.append(found if procs is None else replace(found, member=members.members[k]))
+            elif isinstance(found, list):
+                slices.extend(found if procs is None else [_attach(s, members.members[k]) for s in found])
     return slices, non_image
 
 
-def _header_at(item: tuple[Where, bytes]) -> _Slice | str | None:
-    """In a decode process: :func:`_header` of a member read through its :class:`Where`; the slice comes back
-    with a member that only names it (the caller puts its own back)."""
+def _header_at(item: tuple[Where, bytes]) -> list[_Slice] | str | None:
+    """In a decode process: :func:`_header` of a member read through its :class:`Where`; the slices come back
+    with a member that only names them (the caller puts its own back: :func:`_attach`)."""
     where, head = item
     if not looks_like_dicom(head):
         return None
     found = _header(Member.at(where, head))
-    return replace(found, member=Member(where.name, where.size, head)) if isinstance(found, _Slice) else found
+    if not isinstance(found, list):
+        return found
+    return [replace(s, member=Member(s.member.name, where.size, head), file=None) for s in found]
+
+
+def _attach(found: _Slice, m: Member) -> _Slice:
+    """A slice scanned in a decode process, with this process's member ``m`` back (under its frame's name)."""
+    if found.frame is None:
+        return replace(found, member=m)
+    return replace(found, member=frame_member(m, found.frame), file=m)
 
 
 @contextlib.contextmanager
@@ -126,8 +142,9 @@ def _decode_pool(members: Members, threads: int, processes: bool | None) -> Iter
         yield procs
 
 
-def _header(m: Member) -> _Slice | str | None:
-    """One member's header as a :class:`_Slice`; "non-image" for DICOM without pixels; None for other files."""
+def _header(m: Member) -> list[_Slice] | str | None:
+    """One member's header as a :class:`_Slice`, or one per frame of a multi-frame image (``_frames``);
+    "non-image" for DICOM without pixels; None for other files."""
     if not looks_like_dicom(m.head):
         return None
     ds = read_dataset(m, pixels=True)
@@ -142,7 +159,6 @@ def _header(m: Member) -> _Slice | str | None:
     thick = ds.get("SpacingBetweenSlices") or ds.get("SliceThickness")
     header = {
         "modality": str(ds.get("Modality", "")),
-        "series_description": str(ds.get("SeriesDescription", "")),
         "manufacturer": str(ds.get("Manufacturer", "")),
         "transfer_syntax": ds.file_meta.TransferSyntaxUID.name,
         "transfer_syntax_uid": str(ds.file_meta.TransferSyntaxUID),
@@ -150,8 +166,10 @@ def _header(m: Member) -> _Slice | str | None:
         "slope": float(ds.get("RescaleSlope", 1) or 1),
         "intercept": float(ds.get("RescaleIntercept", 0) or 0),
         "series_number": str(ds.get("SeriesNumber", "") or ""),
+        "sop_class_uid": str(ds.get("SOPClassUID", "") or ""),
+        "sop_instance_uid": str(ds.get("SOPInstanceUID", "") or ""),
     }
-    return _Slice(
+    one = _Slice(
         member=m,
         uid=str(ds.get("SeriesInstanceUID", _NO_UID)),
         rows=int(ds.Rows),
@@ -160,12 +178,39 @@ def _header(m: Member) -> _Slice | str | None:
         iop=iop,
         pixel_spacing=(float(ps[0]), float(ps[1])) if ps is not None and np.all(ps > 0) else None,
         instance=int(inst) if inst not in (None, "") else None,
-        frames=int(ds.get("NumberOfFrames", 1) or 1),
+        frames=frame_count(ds),
         samples=int(ds.get("SamplesPerPixel", 1) or 1),
         thickness=float(thick) if thick not in (None, "") and float(thick) > 0 else None,
         header=header,
         nonfinite=_nonfinite(ds),
     )
+    return _frames(one, ds) if is_multiframe(ds) else [one]
+
+
+def _frames(one: _Slice, ds: Any) -> list[_Slice]:
+    """A multi-frame image as a slice per frame, with the geometry and rescale of its functional groups
+    (``engine.io.dicom_frames``); one unusable slice, saying why, when its frames cannot be placed."""
+    m = one.member
+    try:
+        found = frames(ds, m.name)
+    except FrameError as exc:
+        return [replace(one, unusable=str(exc))]
+    return [
+        replace(
+            one,
+            member=frame_member(m, f.index),
+            file=m,
+            frame=f.index,
+            ipp=f.ipp,
+            iop=f.iop,
+            pixel_spacing=f.pixel_spacing,
+            thickness=f.thickness,
+            instance=None,  # one InstanceNumber for all the frames: their order comes from their positions
+            nonfinite=f.nonfinite,
+            header={**one.header, "slope": f.slope, "intercept": f.intercept, "gantry_tilt_deg": f.gantry_tilt_deg},
+        )
+        for f in found
+    ]
 
 
 def has_dicom_images(members: Members) -> bool:
@@ -211,14 +256,10 @@ def load_dicom(
 
 
 def _describe(group: list[_Slice]) -> dict[str, Any]:
-    """A series as the report names it (no UIDs: they may encode dates and device serials)."""
+    """A series as the report names it: UID, number, modality and image count; never its free-text description
+    (it may hold names or clinical details)."""
     h = group[0].header
-    return {
-        "number": h["series_number"],
-        "modality": h["modality"],
-        "description": h["series_description"],
-        "images": len(group),
-    }
+    return {"uid": group[0].uid, "number": h["series_number"], "modality": h["modality"], "images": len(group)}
 
 
 def _pick_series(slices: list[_Slice], series_uid: str | None, label: str) -> tuple[list[_Slice], dict[str, Any]]:
@@ -265,11 +306,8 @@ def _build(
                 f"{label}: {s.member.name} holds NaN or an infinity in {', '.join(s.nonfinite)}, so where its pixels "
                 "lie is unknown; refusing the series (re-export it from the scanner or PACS)"
             )
-        if s.frames != 1:
-            raise InputError(
-                f"{s.member.name} is a multi-frame DICOM ({s.frames} frames); expected single-frame images "
-                "(export the series as one image per file)"
-            )
+        if s.unusable:
+            raise InputError(f"{label}: {s.unusable}")
         if s.samples != 1:
             raise InputError(f"{s.member.name} is a colour DICOM ({s.samples} samples/pixel); expected grayscale CT/MR")
         if (s.rows, s.cols) != (first.rows, first.cols):
@@ -277,6 +315,7 @@ def _build(
                 f"expected every image of the series to be {first.cols}x{first.rows} like {first.member.name}, "
                 f"got {s.cols}x{s.rows} in {s.member.name}"
             )
+    series, duplicates = _drop_duplicates(series, label, threads, procs)
     geo = _geometry(series, label, call)
     order = geo["order"]
     series = [series[i] for i in order]
@@ -284,13 +323,17 @@ def _build(
     data, units, fill = series_pixels(series, threads, procs)
     source: dict[str, Any] = {
         "format": "dicom",
-        "files": len(series),
+        "files": len({(s.file or s.member).name for s in series}),
+        "images": len(series),
         "other_files_skipped": skipped,
-        "series_description": first.header["series_description"],
         "modality": first.header["modality"],
         "manufacturer": first.header["manufacturer"],
         "transfer_syntax": first.header["transfer_syntax"],
+        "series_uid": first.uid,
     }
+    completeness = geo["completeness"]
+    completeness.duplicates_dropped = duplicates
+    source["completeness"] = completeness.report()
     d, a, b = geo["d"], geo["a"], geo["b"]
     gaps = np.diff(d)
     source["original_gaps_mm"] = [round(float(g), 4) for g in gaps]
@@ -304,6 +347,9 @@ def _build(
         origin = geo["p0"] + ox * sx * geo["row"] + oy * sy * geo["col"]
         source["resampled"] = True
         source["gantry_tilt_deg"] = round(geo["tilt_deg"], 3)
+        if geo["tilt_deg"] > 0:
+            source["completeness"]["layout"] += " with gantry tilt"
+        source["completeness"]["resampled"] = True
     spacing = (float(sz), float(sy), float(sx))
     try:
         check_spacing_zyx_mm(spacing)
@@ -323,12 +369,62 @@ def _build(
         units=units,
         source=source,
         patient_frame=bool(geo.get("oriented", False)),
+        instances=tuple(_instance_of(s) for s in series),
     )
+
+
+def _instance_of(s: _Slice) -> tuple[str, str, int | None]:
+    """(SOP Class UID, SOP Instance UID, frame number or None) of the image a slice came from."""
+    frame = getattr(s, "frame", None)
+    return s.header["sop_class_uid"], s.header["sop_instance_uid"], None if frame is None else int(frame) + 1
+
+
+def _drop_duplicates(
+    series: list[_Slice], label: str, threads: int, procs: DecodePool | None
+) -> tuple[list[_Slice], int]:
+    """The series without repeated images: the same SOP instance received twice, or two images at one position
+    whose pixels are identical; the count dropped.
+
+    Raises:
+        IncompleteSeriesError: two images at one position with different pixels.
+    """
+    seen: set[tuple[str, Any]] = set()
+    unique = []
+    for s in series:
+        key = (s.header["sop_instance_uid"], getattr(s, "frame", None))
+        if not key[0] or key not in seen:
+            unique.append(s)
+            seen.add(key)
+    if not all(s.ipp is not None and s.iop is not None for s in unique) or len(unique) < 2:
+        return unique, len(series) - len(unique)
+    iop0 = unique[0].iop
+    normal = np.cross(iop0[:3], iop0[3:])  # type: ignore[index]
+    normal /= max(float(np.linalg.norm(normal)), 1e-12)
+    order = list(np.argsort(np.array([s.ipp @ normal for s in unique]), kind="stable"))  # type: ignore[operator]
+    ordered = [unique[i] for i in order]
+    d = np.array([s.ipp @ normal for s in ordered])  # type: ignore[operator]
+    groups = same_position_groups(d)
+    if groups:
+        members = sorted({k for g in groups for k in g})
+        data, _, _ = series_pixels([ordered[k] for k in members], threads, None)  # the pool holds one array
+        where = {k: j for j, k in enumerate(members)}
+        names = [s.member.name for s in ordered]
+        keep = drop_identical(data, [[where[k] for k in g] for g in groups], [names[k] for k in members], label)
+        kept = {members[j] for j in keep}
+        ordered = [s for k, s in enumerate(ordered) if k not in set(members) or k in kept]
+    return ordered, len(series) - len(ordered)
+
+
+def _thickness(series: list[_Slice]) -> float | None:
+    """The series' slice thickness (median over the images that carry it), or None."""
+    values = [s.thickness for s in series if s.thickness]
+    return float(np.median(values)) if values else None
 
 
 def _geometry(series: list[_Slice], label: str, call: tuple[float, float, float] | None) -> dict[str, Any]:
     """Slice order, positions along the normal (d) and in-plane offsets (a along rows, b along columns) in mm."""
     n_sl = len(series)
+    check_count(n_sl, label)
     geo: dict[str, Any] = {"from_file": True, "tilt_deg": 0.0}
     spacings = {s.pixel_spacing for s in series}
     if None in spacings or len(spacings) != 1:
@@ -382,11 +478,12 @@ def _geometry(series: list[_Slice], label: str, call: tuple[float, float, float]
             f"{label}: two images lie at the same slice position ({names[k]} and {names[k + 1]}): the series mixes "
             "repeated acquisitions; keep one of them"
         )
-    if n_sl == 1:
-        z = series[0].thickness or (call[0] if call else None)
-        if z is None:
-            raise InputError(f"{label}: a single DICOM image carries no slice thickness; {SPACING_HINT}")
-        gaps = np.array([z])
+    if geo.get("oriented"):
+        geo["completeness"] = check_positions(d, names, label, _thickness(series))
+    else:  # no positions: the instance numbers stand for them
+        instances = [f"instance {series[i].instance}" for i in order]
+        geo["completeness"] = check_numbering(instances, label)
+        geo["completeness"].layout = "ordered by instance number (no positions)"
     sy, sx = geo["yx"]
     med = float(np.median(gaps))
     even = float(gaps.max() - gaps.min()) <= max(0.01 * med, 0.01)

@@ -20,6 +20,7 @@ import numpy as np
 
 from engine.errors import InputError
 from engine.io.archive import Member
+from engine.io.dicom_frames import frame_label
 from engine.io.parallel import ordered_map
 from engine.io.readers import Where
 
@@ -30,12 +31,15 @@ _Stats = tuple[tuple[int, ...], np.dtype[Any], float, float]  # a decoded slice'
 
 
 class SliceLike(Protocol):
-    """What decoding needs of a scanned slice (``engine.io.dicom._Slice``)."""
+    """What decoding needs of a scanned slice (``engine.io.dicom._Slice``): a frame of a multi-frame image has
+    ``frame`` (from 0) and its ``file``; ``member`` names the frame."""
 
     member: Member
     rows: int
     cols: int
     header: dict[str, Any]
+    frame: int | None
+    file: Member | None
 
 
 @contextlib.contextmanager
@@ -81,6 +85,40 @@ def decode_pixels(member: Member, transfer_syntax: str) -> np.ndarray:
         raise InputError(f"cannot decode the pixels of {member.name} ({transfer_syntax}): {exc}") from None
 
 
+def decode_frame(ds: Any, index: int, label: str, transfer_syntax: str) -> np.ndarray:
+    """Frame ``index`` (from 0) of a parsed multi-frame data set, alone (call inside :func:`quiet`).
+
+    Raises:
+        InputError: the frame cannot be decoded (``label`` names it).
+    """
+    from pydicom.pixels import pixel_array
+
+    try:
+        return pixel_array(ds, index=index)
+    except Exception as exc:
+        raise InputError(f"cannot decode the pixels of {label} ({transfer_syntax}): {exc}") from None
+
+
+def iter_frames(ds: Any, name: str, transfer_syntax: str) -> Iterator[tuple[int, np.ndarray]]:
+    """(index, pixels) of every frame of a parsed multi-frame data set, in the file's order, each decoded once: an
+    encapsulated (compressed) one is walked through once, not searched for each frame (call inside :func:`quiet`).
+
+    Raises:
+        InputError: a frame cannot be decoded (the message names it), or the data set is None (unreadable).
+    """
+    from pydicom.pixels import as_pixel_options, get_decoder
+
+    index = 0  # the frame being decoded, for the message
+    try:
+        decoder = get_decoder(ds.file_meta.TransferSyntaxUID)
+        for arr, _ in decoder.iter_array(ds, validate=True, **as_pixel_options(ds)):
+            yield index, arr
+            index += 1
+    except Exception as exc:
+        where = frame_label(name, index) if ds is not None else name
+        raise InputError(f"cannot decode the pixels of {where} ({transfer_syntax}): {exc}") from None
+
+
 def _store(raw: np.ndarray, k: int, arr: np.ndarray) -> _Stats:
     """Put a decoded slice into plane ``k`` when it fits; what the caller checks and the rescale needs."""
     if arr.shape == raw.shape[1:] and arr.dtype == raw.dtype:
@@ -88,13 +126,53 @@ def _store(raw: np.ndarray, k: int, arr: np.ndarray) -> _Stats:
     return arr.shape, arr.dtype, float(arr.min()), float(arr.max())
 
 
-def decode_into_shared(job: tuple[int, Where, bytes, str, tuple[int, ...], str]) -> _Stats:
-    """In a decode process: decode one slice into plane ``k`` of the pool's shared volume."""
+_Planes = tuple[tuple[int, int | None], ...]  # (plane k, frame index or None for a single-frame file) of one file
+
+
+def _decode_file(
+    raw: np.ndarray, member: Member, syntax: str, planes: _Planes, ds: Any | None = None
+) -> list[tuple[int, _Stats]]:
+    """Decode one file's slices into their planes of ``raw``: a single-frame file's one, or the frames of a
+    multi-frame file (``ds``: the file already parsed), each decoded once, in the file's order.
+
+    Raises:
+        InputError: a slice cannot be decoded, or the pixel data end before a frame wanted.
+    """
+    if len(planes) == 1 and planes[0][1] is None:
+        k = planes[0][0]
+        return [(k, _store(raw, k, decode_pixels(member, syntax)))]
+    wanted = {frame: k for k, frame in planes}
+    done = []
+    if ds is None:
+        ds = read_dataset(member, pixels=True)
+    for index, arr in iter_frames(ds, member.name, syntax):
+        if index in wanted:
+            k = wanted.pop(index)
+            done.append((k, _store(raw, k, arr)))
+        if not wanted:
+            break
+    if wanted:
+        first = frame_label(member.name, min(f for f in wanted if f is not None))
+        raise InputError(f"cannot decode the pixels of {first} ({syntax}): the pixel data end before it")
+    return done
+
+
+def decode_file_into_shared(job: tuple[_Planes, Where, bytes, str, tuple[int, ...], str]) -> list[tuple[int, _Stats]]:
+    """In a decode process: decode one file's slices into their planes of the pool's shared volume."""
     from engine.io.procs import worker_array
 
-    k, where, head, syntax, shape, dtype = job
-    member = Member.at(where, head)
-    return _store(worker_array(shape, dtype), k, decode_pixels(member, syntax))
+    planes, where, head, syntax, shape, dtype = job
+    return _decode_file(worker_array(shape, dtype), Member.at(where, head), syntax, planes)
+
+
+def _by_file(series: Sequence[SliceLike]) -> list[tuple[Member, str, _Planes]]:
+    """The slices by the file they are read from (the frames of a multi-frame file together), in the order of each
+    file's first slice: (file, transfer syntax, planes)."""
+    files: dict[int, tuple[Member, str, list[tuple[int, int | None]]]] = {}
+    for k, s in enumerate(series):
+        member = s.member if s.file is None else s.file
+        files.setdefault(id(member), (member, s.header["transfer_syntax"], []))[2].append((k, s.frame))
+    return [(member, syntax, tuple(planes)) for member, syntax, planes in files.values()]
 
 
 def series_pixels(
@@ -102,9 +180,11 @@ def series_pixels(
 ) -> tuple[np.ndarray, str, float]:
     """Decode the pixel data into one (z, y, x) array, rescaled to HU (CT) where the headers say so.
 
-    Slices after the first are decoded on ``threads`` threads (or in the processes of ``procs``, into its shared
-    volume) straight into their planes; a failure is raised for the first failing slice in slice order, as a serial
-    loop would. The rescale runs in place, slice by slice.
+    The first slice is decoded alone (it gives the array's dtype); then each file (a single-frame image, or all the
+    wanted frames of a multi-frame one, decoded once) on ``threads`` threads, or in the processes of ``procs``,
+    into its shared volume, straight into the planes. A failure is raised for the first failing file in the order
+    of the files' first slices (for single-frame images: the first failing slice in slice order), as a serial loop
+    would. The rescale (each slice's own slope and intercept) runs in place, slice by slice.
 
     Returns:
         The array (uint8/uint16/int16 where exact, else float32), its units ("HU" for CT, else "raw") and the
@@ -116,27 +196,39 @@ def series_pixels(
     slopes = np.array([s.header["slope"] for s in series])
     inters = np.array([s.header["intercept"] for s in series])
     is_ct = series[0].header["modality"].upper() == "CT"
+    files = _by_file(series)
     with quiet():
-        first = decode_pixels(series[0].member, series[0].header["transfer_syntax"])
+        head, parsed = series[0], None
+        if head.frame is None:
+            first = decode_pixels(head.member, head.header["transfer_syntax"])
+        else:  # one frame decoded alone; the file's other frames are decoded with it, once
+            parsed = read_dataset(files[0][0], pixels=True)
+            first = decode_frame(parsed, head.frame, head.member.name, head.header["transfer_syntax"])
         shape = (len(series), series[0].rows, series[0].cols)
         raw = np.empty(shape, dtype=first.dtype) if procs is None else procs.shared_array(shape, first.dtype)
-
-        def decode_into(k: int) -> _Stats:
-            return _store(raw, k, decode_pixels(series[k].member, series[k].header["transfer_syntax"]))
-
-        if procs is None:
-            rest = ordered_map(decode_into, range(1, len(series)), threads)
-        else:
-            jobs = [_job(k, s, shape, first.dtype) for k, s in enumerate(series) if k]
-            rest = ordered_map(decode_into_shared, jobs, procs.workers, procs.pool, procs.chunk(len(jobs)))
         first_stats = _store(raw, 0, first)
         del first
+        todo = [(m, syntax, tuple(p for p in planes if p[0] != 0)) for m, syntax, planes in files]
+        todo = [job for job in todo if job[2]]
+        if procs is None:
+            cached = {id(files[0][0]): parsed}  # the first file is not parsed twice on threads
+            del parsed
+
+            def decode_into(job: tuple[Member, str, _Planes]) -> list[tuple[int, _Stats]]:
+                return _decode_file(raw, *job, ds=cached.pop(id(job[0]), None))
+
+            rest = ordered_map(decode_into, todo, threads)
+        else:
+            del parsed
+            jobs = [_job(planes, m, syntax, shape, raw.dtype) for m, syntax, planes in todo]
+            rest = ordered_map(decode_file_into_shared, jobs, procs.workers, procs.pool, procs.chunk(len(jobs)))
         lo, hi = math.inf, -math.inf
         with contextlib.closing(rest):  # no pool thread outlives the call, also when the loop raises
-            for k, (shape, dtype, amin, amax) in enumerate(itertools.chain([first_stats], rest)):
-                if shape != raw.shape[1:] or dtype != raw.dtype:
+            stats = itertools.chain([(0, first_stats)], itertools.chain.from_iterable(rest))
+            for k, (got, dtype, amin, amax) in stats:
+                if got != raw.shape[1:] or dtype != raw.dtype:
                     raise InputError(
-                        f"expected {raw.shape[1:]} {raw.dtype} pixels in {series[k].member.name}, got {shape} {dtype}"
+                        f"expected {raw.shape[1:]} {raw.dtype} pixels in {series[k].member.name}, got {got} {dtype}"
                     )
                 lo = min(lo, amin * slopes[k] + inters[k], amax * slopes[k] + inters[k])
                 hi = max(hi, amin * slopes[k] + inters[k], amax * slopes[k] + inters[k])
@@ -164,11 +256,11 @@ def series_pixels(
 
 
 def _job(
-    k: int, s: SliceLike, shape: tuple[int, ...], dtype: np.dtype[Any]
-) -> tuple[int, Where, bytes, str, tuple[int, ...], str]:
-    if s.member.where is None:
-        raise RuntimeError(f"{s.member.name} cannot be read from another process")
-    return k, s.member.where, s.member.head, s.header["transfer_syntax"], shape, dtype.str
+    planes: _Planes, member: Member, syntax: str, shape: tuple[int, ...], dtype: np.dtype[Any]
+) -> tuple[_Planes, Where, bytes, str, tuple[int, ...], str]:
+    if member.where is None:
+        raise RuntimeError(f"{member.name} cannot be read from another process")
+    return planes, member.where, member.head, syntax, shape, dtype.str
 
 
 def narrow_raw(raw: np.ndarray) -> np.ndarray:

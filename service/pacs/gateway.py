@@ -125,7 +125,7 @@ class Gateway:
             owner=self.owner,
             state="queued",
             params=rule.job_params().record(),
-            upload_name=f"DICOM C-STORE from {sender} ({len(files)} images)",
+            upload_name=f"DICOM C-STORE from {sender} ({summary.images} images)",
             upload_bytes=size,
         )
         source = {
@@ -133,7 +133,7 @@ class Gateway:
             "calling_ae": sender,
             "study_uid": series.study_uid,
             "series_uid": series.series_uid,
-            "images": len(files),
+            "images": summary.images,  # frames of multi-frame images counted
         }
         dest = self.pacs.destination.model_dump() if self.pacs.destination else None
         try:

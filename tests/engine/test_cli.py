@@ -79,7 +79,7 @@ def test_npy_input(tmp_path):
         (["ball.npy", "--spacing", "1,1,1"], "--iso"),
         (["ball.npy", "--iso", "1"], "--spacing"),
         (["ball.npy", "--iso", "1e9", "--spacing", "1,1,1"], "no surface"),
-        (["flat.npy", "--iso", "1", "--spacing", "1,1,1"], "at least 2"),
+        (["flat.npy", "--iso", "1", "--spacing", "1,1,1"], "at least 3 slices"),
     ],
 )
 def test_bad_input_exits_2_without_output(tmp_path, args, reason):

@@ -210,3 +210,10 @@ def test_free_text_stays_out_of_the_report_and_the_viewer_files(tmp_path: Path) 
         blob = path.read_bytes()
         for text in (*PHI.values(), *words):
             assert text.encode() not in blob, (name, text)
+
+
+@pytest.mark.parametrize("processes", [False, True], ids=["threads", "processes"])
+def test_identical_images_at_one_position_kept_once_in_every_decode_path(tmp_path: Path, processes: bool) -> None:
+    files = series(_ramp, positions_mm=[0, 1, 2, 2, 3, 4])  # IM3 and IM4: the same pixels, two SOP instances
+    vol = load_volume(_zip(tmp_path / "dup.zip", files), threads=2, processes=processes)
+    assert vol.data.shape[0] == 5 and vol.source["completeness"]["duplicates_dropped"] == 1

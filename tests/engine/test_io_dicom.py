@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from pydicom.uid import JPEG2000Lossless, RLELossless
 
-from engine.errors import InputError
+from engine.errors import IncompleteSeriesError, InputError
 from engine.io import load_volume
 from tests.conftest import shared_file
 from tests.engine.dicom_factory import PATIENT, ct_slice, dicomdir_like, series
@@ -82,7 +82,7 @@ def test_folder_and_float_rescale(tmp_path: Path) -> None:
 
 
 def test_non_ct_keeps_raw_units_and_dtype(tmp_path: Path) -> None:
-    files = series(lambda p: 0 * p[..., 0], positions_mm=[0, 1], modality="MR", intercept=0.0)
+    files = series(lambda p: 0 * p[..., 0], positions_mm=[0, 1, 2], modality="MR", intercept=0.0)
     vol = load_volume(_zip(tmp_path / "mr.zip", files))
     assert vol.units == "raw" and vol.data.dtype == np.uint16 and int(vol.data.max()) == 1024
 
@@ -166,10 +166,16 @@ def _uid(files: dict[str, bytes]) -> str:
     return str(pydicom.dcmread(io.BytesIO(next(iter(files.values())))).SeriesInstanceUID)
 
 
-def test_duplicate_positions_are_refused(tmp_path: Path) -> None:
-    files = series(_ramp, positions_mm=[0, 1, 1, 2])
-    with pytest.raises(InputError, match="same slice position"):
-        load_volume(_zip(tmp_path / "dup.zip", files))
+def test_duplicate_positions_identical_kept_once_different_refused(tmp_path: Path) -> None:
+    files = series(_ramp, positions_mm=[0, 1, 1, 2, 3])  # IM2 and IM3: the same image at 1 mm, sent twice
+    vol = load_volume(_zip(tmp_path / "dup.zip", files))
+    assert vol.data.shape[0] == 4 and vol.source["resampled"] is False
+    assert vol.source["completeness"]["duplicates_dropped"] == 1
+    assert len(vol.instances) == 4 and len({i[1] for i in vol.instances}) == 4
+    other = series(lambda p: _ramp(p) + 100.0, positions_mm=[1], series_uid=_uid(files), name="X")
+    clash = {**series(_ramp, positions_mm=[0, 1, 2, 3], series_uid=_uid(files)), **other}
+    with pytest.raises(IncompleteSeriesError, match=r"(IM2 and \S*X1|X1 and \S*IM2) lie at the same slice position but hold different"):
+        load_volume(_zip(tmp_path / "clash.zip", clash))
 
 
 def test_conflicting_spacing_is_refused(tmp_path: Path) -> None:
@@ -252,4 +258,8 @@ def test_no_positions_falls_back_to_instance_number(tmp_path: Path) -> None:
     assert list(vol.data[:, 0, 0]) == [0, 10, 20, 30]
     single = tmp_path / "one.dcm"
     single.write_bytes(files["IM3"])
-    assert load_volume(single).data.shape == (1, 24, 20)
+    with pytest.raises(IncompleteSeriesError, match=r"one\.dcm: the series has 1 image\(s\); a volume needs at least 3"):
+        load_volume(single)
+    del files["IM2"]  # instance numbers 1, 3, 4: one missing
+    with pytest.raises(IncompleteSeriesError, match=r"numbered in steps of 1, but 1 are missing: instance 2"):
+        load_volume(_zip(tmp_path / "hole.zip", files))

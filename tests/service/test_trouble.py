@@ -4,12 +4,15 @@ SIGKILL mid-job, and Redis restarted with jobs queued."""
 
 from __future__ import annotations
 
+import io
 import json
 import time
+import zipfile
 from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 import pytest
 
 from tests.service.checks import assert_problem, assert_succeeded, check_outputs
@@ -79,6 +82,30 @@ def test_bad_archive_refused_at_upload(kind: str, stack: ServiceStack, client_a:
 
 
 # -- uploads whose trouble shows only when loading: a failed job with a reason, never a stuck one ----------------
+def holed_png_zip() -> bytes:
+    """A numbered PNG stack with slice 5 of 12 left out."""
+    whole = zipfile.ZipFile(io.BytesIO(slice_zip(sphere_volume((12, 32, 32)))))
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        for info in whole.infolist():
+            if not info.filename.endswith("_0005.png"):
+                zf.writestr(info, whole.read(info))
+    return buf.getvalue()
+
+
+def holed_dicom_zip() -> bytes:
+    """A CT series of 10 images 1 mm apart with the sixth left out."""
+    from tests.engine.dicom_factory import series
+
+    files = series(lambda p: 1000.0 * (np.linalg.norm(p, axis=-1) < 4) - 1000.0, positions_mm=list(range(10)))
+    del files["IM6"]
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        for name, data in files.items():
+            zf.writestr(f"{name}.dcm", data)
+    return buf.getvalue()
+
+
 FAILING_JOBS = {
     # name: (archive, params, words of which the message must hold one)
     "mixed-sizes": (mixed_sizes_zip, {"iso": 500, "spacing": [1, 1, 1]}, ("size", "shape", "every slice")),
@@ -90,7 +117,10 @@ FAILING_JOBS = {
         {"iso": 500, "spacing": [1, 1, 1]},
         ("slice", "dimension"),
     ),
+    "missing-slice-png": (holed_png_zip, {"iso": 500, "spacing": [1, 1, 1]}, ("1 are missing: slices/slice_0005.png",)),
+    "missing-slice-dicom": (holed_dicom_zip, {"preset": "bone"}, ("1 slice(s) missing between im5.dcm and im7.dcm",)),
 }
+FAILING_CODES = {"missing-slice-png": "incomplete_series", "missing-slice-dicom": "incomplete_series"}
 SEEN_AT_UPLOAD_OK = ("mixed-sizes", "corrupt-png", "one-png", "no-spacing")
 
 
@@ -108,6 +138,7 @@ def test_load_problem_fails_the_job_with_a_reason(kind: str, stack: ServiceStack
     error = job["error"]
     assert error and error["code"] and error["code"] != "internal_error", error
     assert any(w in error["message"].lower() for w in words), error
+    assert error["code"] == FAILING_CODES.get(kind, error["code"]), error
     assert job["outputs"] in (None, []), job
     assert job["finished_at"] is not None, job
 
