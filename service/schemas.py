@@ -17,7 +17,9 @@ class JobError(BaseModel):
 
     code: str = Field(
         description="machine-readable reason: bad_input, no_spacing, no_surface, print_check, storage_full, "
-        "too_large, time_limit, worker_lost, source_unavailable (DICOMweb series not retrievable), internal_error"
+        "too_large, time_limit, worker_lost, source_unavailable (DICOMweb series not retrievable), "
+        "source_incomplete (the DICOMweb server returned fewer instances than it lists), incomplete_series (a slice "
+        "missing, two different images at one position, or too few images: nothing reconstructed), internal_error"
     )
     message: str = Field(description="what went wrong, in words")
 

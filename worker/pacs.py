@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from engine.errors import EngineError
+from engine.types import Volume
 from service.db import Database
 from service.logsafe import safe_logger
 from service.pacs.records import PacsRecords
@@ -28,17 +29,36 @@ class SourceUnavailable(EngineError):
     """The job's DICOMweb source could not be fetched (server down, refused, or the series is empty)."""
 
 
+class SourceIncomplete(SourceUnavailable):
+    """The DICOMweb server returned fewer instances of the series than it lists (after every retry): nothing is
+    reconstructed from the rest, so nothing is delivered.
+
+    Attributes:
+        server: the server's name in the settings.
+        expected, retrieved: the counts; ``missing``: the SOP Instance UIDs still missing.
+    """
+
+    def __init__(self, server: str, expected: int, retrieved: int, missing: tuple[str, ...]) -> None:
+        super().__init__(
+            f"the DICOMweb server {server!r} returned {retrieved} of {expected} instances of the series "
+            f"(missing: {len(missing)})"
+        )
+        self.server, self.expected, self.retrieved, self.missing = server, expected, retrieved, missing
+
+
 def fetch_source(db: Database, job_id: str, upload: Path) -> None:
-    """Fetch a DICOMweb job's series into ``upload`` (a folder) unless it is already there.
+    """Fetch a DICOMweb job's series into ``upload`` (a folder) unless it is already there: every instance the
+    server lists, or nothing (the instances are fetched into a hidden folder renamed ``upload`` once complete).
 
     Raises:
-        SourceUnavailable: the server is not configured, unreachable, refuses, or returns no instance.
+        SourceIncomplete: an instance the server lists could not be retrieved.
+        SourceUnavailable: the server is not configured, unreachable, refuses, or lists no instance.
     """
     rec = PacsRecords(db).get(job_id)
     if rec is None or rec.source.get("kind") != "dicomweb" or upload.exists():
         return
     from service.pacs.config import get_pacs_settings
-    from service.pacs.dicomweb import fetch_series
+    from service.pacs.dicomweb import DicomwebError, SeriesIncomplete, fetch_series
 
     name = rec.source["server"]
     server = get_pacs_settings().dicomweb_servers.get(name)
@@ -46,32 +66,60 @@ def fetch_source(db: Database, job_id: str, upload: Path) -> None:
         raise SourceUnavailable(f"DICOMweb server {name!r} is not configured on this worker")
     tmp = upload.parent / f".fetch-{uuid.uuid4().hex}"
     try:
-        count = fetch_series(server, rec.source["study_uid"], rec.source["series_uid"], tmp)
-        if count == 0:
-            raise SourceUnavailable(f"DICOMweb server {name!r} returned no instance of the series")
+        got = fetch_series(server, rec.source["study_uid"], rec.source["series_uid"], tmp)
         tmp.rename(upload)
-    except SourceUnavailable:
-        raise
-    except Exception as exc:
-        raise SourceUnavailable(f"could not retrieve the series from DICOMweb server {name!r}: {exc}") from exc
+    except SeriesIncomplete as exc:
+        r = exc.result
+        log.warning(
+            "job %s: %d of %d instances retrieved with WADO-RS from %s (%d missing, %d one by one); job failed",
+            job_id, r.retrieved, r.expected, name, len(r.missing), r.one_by_one,
+        )  # fmt: skip
+        raise SourceIncomplete(name, r.expected, r.retrieved, r.missing) from None
+    except DicomwebError as exc:
+        raise SourceUnavailable(f"could not retrieve the series from DICOMweb server {name!r}: {exc}") from None
+    except Exception as exc:  # the cause stays: a full disk is told as such (_explain)
+        raise SourceUnavailable(
+            f"could not retrieve the series from DICOMweb server {name!r} ({type(exc).__name__})"
+        ) from exc
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    log.info("job %s: %d instances retrieved with WADO-RS from %s", job_id, count, name)
+    log.info(
+        "job %s: %d of %d instances retrieved with WADO-RS from %s (%d one by one, %d repeated, %d unlisted; "
+        "transfer syntaxes %s)",
+        job_id, got.retrieved, got.expected, name, got.one_by_one, got.duplicates, got.unlisted,
+        ", ".join(f"{uid} x{n}" for uid, n in sorted(got.transfer_syntaxes.items())),
+    )  # fmt: skip
 
 
-def write_dicom_model(db: Database, job_id: str, upload: Path, staged: Path) -> dict[str, Path]:
+class UncheckedSource(EngineError):
+    """The volume's source was not checked complete, so no model is made for the PACS."""
+
+
+def write_dicom_model(db: Database, job_id: str, upload: Path, staged: Path, volume: Volume) -> dict[str, Path]:
     """Write ``model.dcm`` (Encapsulated STL of ``staged/model.stl``) for a PACS job; {} for other jobs.
 
-    Nothing is written when the source lacks a Frame of Reference UID (the delivery then says why).
+    The object references the source series and exactly the images ``volume`` was built from
+    (``Volume.instances``: the series after the completeness checks, duplicates dropped). Nothing is written when
+    the source lacks a Frame of Reference UID (the delivery then says why).
+
+    Raises:
+        UncheckedSource: the volume's source was not checked complete; such a model never goes to a PACS.
     """
     rec = PacsRecords(db).get(job_id)
     stl_path = staged / "model.stl"
     if rec is None or not stl_path.is_file():
         return {}
+    completeness = volume.source.get("completeness") or {}
+    if not (completeness.get("checked") and completeness.get("complete")) or not volume.instances:
+        raise UncheckedSource(
+            "the source series was not checked complete (or names no DICOM images), so no model is made for the "
+            "PACS; send the whole series"
+        )
     from engine.export.dicom_stl import to_encapsulated_stl
     from engine.export.stl import from_stl
 
-    source, instances = _source_header(upload, rec.source.get("series_uid"))
+    used = list(dict.fromkeys((cls, uid) for cls, uid, _frame in volume.instances))  # a multi-frame image once
+    source = _source_header(upload, volume.source.get("series_uid"), used[0][1])
     if source is None or "FrameOfReferenceUID" not in source:
         log.warning("job %s: the source series has no Frame of Reference UID; no model.dcm", job_id)
         return {}
@@ -84,20 +132,21 @@ def write_dicom_model(db: Database, job_id: str, upload: Path, staged: Path) -> 
         sop_instance_uid=rec.result_sop_uid,
         software_version=_version(),
         created=dt.datetime.now(dt.UTC),
-        source_instances=instances,
+        source_instances=used,
+        source_series_uid=volume.source.get("series_uid"),
     )
     path = staged / MODEL_DCM
     path.write_bytes(data)
     return {MODEL_DCM: path}
 
 
-def _source_header(upload: Path, series_uid: str | None) -> tuple[Any, list[tuple[str, str]]]:
-    """One image header of the source series and the (SOP class, SOP instance) of each of its images."""
+def _source_header(upload: Path, series_uid: str | None, sop_uid: str) -> Any:
+    """The header of the source image ``sop_uid`` (of series ``series_uid``), else of any image of the series;
+    None when there is none."""
     import pydicom
 
-    first = None
-    instances = []
-    files = sorted(p for p in upload.rglob("*") if p.is_file()) if upload.is_dir() else []
+    fallback = None
+    files = sorted(p for p in upload.rglob("*") if p.is_file()) if upload.is_dir() else [upload]
     for path in files:
         try:
             ds = pydicom.dcmread(path, stop_before_pixels=True)
@@ -105,10 +154,10 @@ def _source_header(upload: Path, series_uid: str | None) -> tuple[Any, list[tupl
             continue
         if series_uid and ds.get("SeriesInstanceUID") != series_uid:
             continue
-        if first is None:
-            first = ds
-        instances.append((str(ds.SOPClassUID), str(ds.SOPInstanceUID)))
-    return first, instances
+        if ds.get("SOPInstanceUID") == sop_uid:
+            return ds
+        fallback = fallback if fallback is not None else ds
+    return fallback
 
 
 def _version() -> str:
@@ -118,4 +167,4 @@ def _version() -> str:
         return "unknown"
 
 
-__all__ = ["MODEL_DCM", "SourceUnavailable", "fetch_source", "write_dicom_model"]
+__all__ = ["MODEL_DCM", "SourceIncomplete", "SourceUnavailable", "UncheckedSource", "fetch_source", "write_dicom_model"]

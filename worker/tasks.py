@@ -22,7 +22,7 @@ from service.settings import Settings, get_settings
 from service.storage import OUTPUTS, is_storage_full, storage_from_settings
 from service.uploads import relabel
 from worker.app import app
-from worker.pacs import SourceUnavailable, fetch_source, write_dicom_model
+from worker.pacs import SourceIncomplete, SourceUnavailable, UncheckedSource, fetch_source, write_dicom_model
 
 log = safe_logger("bonemesh.worker")  # job ids and engine messages only: never the upload's name
 # job progress (percent) at each point: loading 0-5, pipeline 5-90, writing the files 90-100
@@ -163,7 +163,7 @@ def _run(
     recon = reconstruct(volume, params, device=device, on_progress=on_progress, max_device_bytes=budget)
     holder.progress("writing", PIPELINE_END)
     paths = write_outputs(recon, staged, params, device=device, max_device_bytes=budget)
-    paths.update(write_dicom_model(db, job.id, upload, staged))  # PACS jobs: Encapsulated STL (worker.pacs)
+    paths.update(write_dicom_model(db, job.id, upload, staged, volume))  # PACS jobs: Encapsulated STL (worker.pacs)
     report = recon.report
     triangles = {
         "model.stl": report["mesh"]["n_faces"],
@@ -202,7 +202,7 @@ def engine_params_of(job: Any) -> tuple[dict[str, Any], list[float] | None]:
 
 def _explain(exc: Exception, filename: str) -> tuple[str, str]:
     """An error code and a message a clinician can act on."""
-    from engine.errors import InputError
+    from engine.errors import IncompleteSeriesError, InputError
     from engine.export.printcheck import PrintCheckError
     from engine.pipeline import EmptySurfaceError, StageError
 
@@ -211,12 +211,20 @@ def _explain(exc: Exception, filename: str) -> tuple[str, str]:
             "the worker could not write the models: its data volume is full; nothing was published. Try again "
             "later, or ask the operator to free space"
         )
+    if isinstance(exc, SourceIncomplete):
+        shown = ", ".join(exc.missing[:3]) + (", ..." if len(exc.missing) > 3 else "")
+        return "source_incomplete", (
+            f"{exc}; nothing was reconstructed or delivered. Missing SOP Instance UIDs: {shown}. Check the series "
+            "on the server (or that it can send them as stored: transfer-syntax=*), then submit the job again"
+        )
     if isinstance(exc, SourceUnavailable):
         return "source_unavailable", str(exc)
     if isinstance(exc, PrintCheckError):
         return "print_check", f"the print model failed its check and was not published: {exc}"
     if isinstance(exc, EmptySurfaceError):
         return "no_surface", relabel(str(exc), filename)
+    if isinstance(exc, IncompleteSeriesError | UncheckedSource):
+        return "incomplete_series", relabel(str(exc), filename)
     if isinstance(exc, InputError):
         message = relabel(str(exc), filename)
         if "does not carry its voxel size" in message or "not the slice spacing" in message:

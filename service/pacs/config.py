@@ -58,6 +58,14 @@ class DicomwebServer(BaseModel):
     password: SecretStr | None = None
     token: SecretStr | None = None
     timeout_seconds: float = Field(default=60.0, gt=0)
+    attempts: int = Field(
+        default=3,
+        ge=1,
+        le=10,
+        description="tries of a request that failed for a transient reason (no connection, a time-out, HTTP 429 "
+        "or 5xx, an answer cut short)",
+    )
+    backoff_seconds: float = Field(default=0.5, ge=0, le=60, description="wait before the second try, doubling after")
 
 
 class AllowEntry(BaseModel):
