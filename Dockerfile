@@ -34,7 +34,8 @@ COPY service ./service
 COPY worker ./worker
 COPY docker/worker-entry.sh /usr/local/bin/bonemesh-worker-entry
 COPY --from=assets /assets/node_modules ./node_modules
-RUN pip install ".[pacs]" \
+# pacs: the PACS gateway; postgres: psycopg, for BONEMESH_DATABASE_URL=postgresql+psycopg://...
+RUN pip install ".[pacs,postgres]" \
     && useradd --system --uid 10001 --home-dir /data bonemesh \
     && mkdir -p /data /var/cache/warp /run/bonemesh-gpus \
     && chown bonemesh /data /var/cache/warp /run/bonemesh-gpus

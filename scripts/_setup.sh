@@ -14,6 +14,7 @@ command -v chromium >/dev/null && command -v chromedriver >/dev/null || need="$n
 command -v npm >/dev/null || need="$need nodejs npm"
 case "${BONEMESH_EXTRAS:-}" in *test*)  # the PACS tests run a real Orthanc; dciodvfy checks the Encapsulated STL
   { command -v Orthanc >/dev/null || [ -x /usr/sbin/Orthanc ]; } || need="$need orthanc orthanc-dicomweb"
+  ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || need="$need postgresql"  # the database tests' server
   command -v dciodvfy >/dev/null || need="$need dicom3tools" ;;
 esac
 if [ -n "$need" ] && command -v apt-get >/dev/null; then

@@ -1,8 +1,11 @@
-"""Job records (SQLAlchemy; SQLite by default, any SQLAlchemy URL such as PostgreSQL works): the truth about
-every job. The broker only carries wake-up calls; a job whose message is lost is re-enqueued from here.
+"""Job records (SQLAlchemy; SQLite by default, or PostgreSQL; both tested): the truth about every job. The broker
+only carries wake-up calls; a job whose message is lost is re-enqueued from here.
 
 A worker *claims* a job with one conditional UPDATE (queued, or running with a stale heartbeat), so a duplicate
 message never runs a job twice at once, and writes progress, heartbeat and the result only while its claim holds.
+
+Opening the database brings its schema to this release's (``service.schema``: versioned upgrade steps). Sizes and
+counts are 64-bit (``BigInteger``): uploads reach 4 GiB, past PostgreSQL's 32-bit ``INTEGER``.
 """
 
 from __future__ import annotations
@@ -17,22 +20,22 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
+    BigInteger,
     DateTime,
     Float,
-    Integer,
     String,
     Text,
     create_engine,
     delete,
     event,
     func,
-    inspect,
     select,
-    text,
     update,
 )
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
+
+from service import schema
 
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 ACTIVE = ("queued", "running")
@@ -65,11 +68,11 @@ class Job(Base):
     progress: Mapped[float] = mapped_column(Float, default=0.0)
     params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     upload_name: Mapped[str] = mapped_column(String(255), default="")
-    upload_bytes: Mapped[int] = mapped_column(Integer, default=0)
+    upload_bytes: Mapped[int] = mapped_column(BigInteger, default=0)
     error_code: Mapped[str | None] = mapped_column(String(32), default=None)
     error_message: Mapped[str | None] = mapped_column(Text, default=None)
     outputs: Mapped[list[dict[str, Any]] | None] = mapped_column(JSON, default=None)
-    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    attempts: Mapped[int] = mapped_column(BigInteger, default=0)
     worker: Mapped[str | None] = mapped_column(String(128), default=None)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow, index=True)
     enqueued_at: Mapped[dt.datetime | None] = mapped_column(DateTime, default=None)
@@ -97,8 +100,15 @@ class Database:
         if url.startswith("sqlite"):
             event.listen(self.engine, "connect", _sqlite_pragmas)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
-        create_tables(Base.metadata, self.engine)
-        _schema_step(lambda: _add_missing_columns(self.engine))
+        try:
+            _schema_step(lambda: schema.upgrade(self.engine, Base.metadata))
+        except BaseException:
+            self.engine.dispose()
+            raise
+
+    def close(self) -> None:
+        """Close the pool's connections (a process that opens the database again gets new ones)."""
+        self.engine.dispose()
 
     @contextmanager
     def session(self) -> Iterator[Session]:
@@ -301,16 +311,6 @@ def _schema_step(step: Any, tries: int = 5) -> None:
         except (OperationalError, ProgrammingError) as exc:
             if attempt == tries - 1 or not any(s in str(exc).lower() for s in ("already exists", "duplicate")):
                 raise
-
-
-def _add_missing_columns(engine: Engine) -> None:
-    """Add the columns a newer release declares to an older ``jobs`` table (all nullable; no data is moved)."""
-    present = {c["name"] for c in inspect(engine).get_columns(Job.__tablename__)}
-    missing = [c for c in Job.__table__.columns if c.name not in present]
-    with engine.begin() as conn:
-        for column in missing:
-            kind = column.type.compile(engine.dialect)
-            conn.execute(text(f"ALTER TABLE {Job.__tablename__} ADD COLUMN {column.name} {kind}"))
 
 
 WAL_TRIES = 100  # x 0.05 s: how long a new connection waits for another process to finish switching to WAL

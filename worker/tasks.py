@@ -6,6 +6,7 @@ the job claimed or finished and does nothing; a rerun after a killed worker rebu
 from __future__ import annotations
 
 import datetime as dt
+import functools
 import os
 import shutil
 import socket
@@ -64,11 +65,17 @@ class _Holder:
             raise Cancelled(self.job_id)
 
 
+@functools.cache
+def database(url: str) -> Database:
+    """One :class:`Database` (one connection pool, schema checked once) per URL for the worker process."""
+    return Database(url)
+
+
 @app.task(name="bonemesh.reconstruct", bind=True)
 def reconstruct_job(self: Any, job_id: str) -> str:
     """Run one job (see the module docstring); returns what happened, for the worker's log."""
     settings = get_settings()
-    db = Database(settings.db_url)
+    db = database(settings.db_url)
     storage = storage_from_settings(settings.data_dir)
     worker = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
     stale_before = utcnow() - dt.timedelta(seconds=settings.stale_seconds)

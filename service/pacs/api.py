@@ -89,7 +89,7 @@ async def create_source_job(request: Request, svc: Any, who: str) -> Job:
             owner=who,
             state="queued",
             params=spec.params.record(),
-            upload_name=f"DICOMweb series from {source.server}",
+            upload_name=f"DICOMweb series from {source.server}"[:255],
             upload_bytes=0,
         )
         dest = {"kind": "dicomweb", "server": source.server} if spec.deliver else None

@@ -13,7 +13,7 @@ from __future__ import annotations
 import datetime as dt
 from typing import Any
 
-from sqlalchemy import JSON, DateTime, Integer, String, Text, select, update
+from sqlalchemy import JSON, BigInteger, DateTime, String, Text, select, update
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from service.db import Database, Job, create_tables, utcnow
@@ -38,7 +38,7 @@ class PacsJob(_Base):
     result_series_uid: Mapped[str] = mapped_column(String(64))
     result_sop_uid: Mapped[str] = mapped_column(String(64))
     delivery_state: Mapped[str] = mapped_column(String(16), index=True, default="waiting")
-    delivery_attempts: Mapped[int] = mapped_column(Integer, default=0)
+    delivery_attempts: Mapped[int] = mapped_column(BigInteger, default=0)
     delivery_error: Mapped[str | None] = mapped_column(Text, default=None)
     next_attempt_at: Mapped[dt.datetime | None] = mapped_column(DateTime, default=None)
     claimed_at: Mapped[dt.datetime | None] = mapped_column(DateTime, default=None)
@@ -97,7 +97,7 @@ class PacsRecords:
                     | ((PacsJob.delivery_state == "retrying") & (PacsJob.next_attempt_at <= now))
                     | ((PacsJob.delivery_state == "sending") & (PacsJob.claimed_at < now - SENDING_STALE)),
                 )
-                .order_by(PacsJob.next_attempt_at)
+                .order_by(PacsJob.next_attempt_at.asc().nulls_first())  # waiting ones first, as on SQLite
                 .limit(limit)
             ).all()
             return list(rows)
@@ -138,6 +138,28 @@ class PacsRecords:
                     next_attempt_at=next_at,
                 )
             )
+
+    def redeliver(self, job_id: str) -> bool:
+        """Send a finished job's model again (``POST /v1/jobs/{id}/deliver``): a delivered, given-up or retrying
+        delivery goes back to ``waiting`` with a fresh count of attempts; one waiting or being sent is left as it
+        is (the request is idempotent). The model keeps its UIDs, so the PACS stores the same instance again.
+        False when the job has no destination."""
+        with self.db.session() as s:
+            res = s.execute(
+                update(PacsJob)
+                .where(PacsJob.job_id == job_id, PacsJob.delivery_state.in_(("delivered", "failed", "retrying")))
+                .values(
+                    delivery_state="waiting",
+                    delivery_attempts=0,
+                    delivery_error=None,
+                    next_attempt_at=None,
+                    claimed_at=None,
+                )
+            )
+            if res.rowcount == 1:
+                return True
+            rec = s.get(PacsJob, job_id)
+            return rec is not None and rec.delivery_state != "none"
 
     def view(self, job: Job) -> dict[str, Any]:
         """The job resource's ``source`` and ``delivery`` entries ({} for an uploaded job)."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import os
 import tarfile
 import zipfile
 from collections.abc import Callable, Iterator
@@ -27,6 +28,7 @@ if TYPE_CHECKING:
 
 from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
 from tests.conftest import SHARED_DATA
+from tests.service.postgres import PostgresServer, PostgresUnavailable
 from tests.service.procs import (
     API_KEYS,
     ProcessError,
@@ -219,6 +221,36 @@ def headsq_job(stack: ServiceStack, client_a: httpx.Client) -> dict[str, Any]:
     job = wait_for_job(client_a, resp.json()["id"], stack=stack, timeout=300)
     assert job["state"] == "succeeded", json.dumps(job)
     return job
+
+
+# -- databases --------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="session")
+def postgres_server() -> Iterator[PostgresServer]:
+    """A real PostgreSQL for the session (Debian's package, installed when missing); skipped where it cannot be
+    installed, except in CI, which must run these tests."""
+    try:
+        server = PostgresServer()
+    except PostgresUnavailable as exc:
+        if os.environ.get("CI"):
+            pytest.fail(f"{exc}: CI runs the database tests on PostgreSQL too", pytrace=False)
+        pytest.skip(str(exc))
+    except ProcessError as exc:
+        pytest.fail(str(exc), pytrace=False)
+    yield server
+    server.close()
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def db_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    """The URL of a new, empty database: a SQLite file, or a database of its own on the session's PostgreSQL
+    (dropped after the test). Close every ``Database`` opened on it (``Database.close``)."""
+    if request.param == "sqlite":
+        yield f"sqlite:///{tmp_path / 'jobs.db'}"
+        return
+    server: PostgresServer = request.getfixturevalue("postgres_server")
+    url = server.create_database()
+    yield url
+    server.drop_database(url)
 
 
 # -- archives ---------------------------------------------------------------------------------------------------

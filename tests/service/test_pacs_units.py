@@ -3,6 +3,7 @@ stable age, re-sent series), the storage SCP's statuses, the delivery outbox's b
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import io
 import json
@@ -137,31 +138,31 @@ def test_scp_statuses(tmp_path: Path) -> None:
 
 # pynetdicom leaves the socket of a refused connection to the garbage collector
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
-def test_delivery_backs_off_and_gives_up_visibly(tmp_path: Path) -> None:
-    db = Database(f"sqlite:///{tmp_path / 'db.sqlite'}")
-    records = PacsRecords(db)
-    storage = LocalStorage(tmp_path / "data")
-    job = Job(id=Database.new_id(), owner="o", state="succeeded", params={}, upload_name="x")
-    dest = {"kind": "dicom", "ae_title": "NOBODY", "host": "127.0.0.1", "port": free_port()}
-    records.create_job(job, {"kind": "dimse"}, dest)
-    staged = storage.staging_dir(job.id)
-    (staged / "model.dcm").write_bytes(
-        ct_slice(np.zeros((2, 2), np.uint16), ipp=(0, 0, 0), series_uid="1.5", instance=1)
-    )
-    storage.publish(job.id, staged)
-    pacs = PacsSettings(delivery_backoff_seconds=10, delivery_max_backoff_seconds=25, delivery_max_attempts=3)
-    dispatcher = Dispatcher(pacs, records, storage)
-    assert [dispatcher.backoff(n) for n in (1, 2, 3, 4)] == [10, 20, 25, 25]
-    now = utcnow()
-    assert dispatcher.run_once(now) == 0
-    view = records.view(job)["delivery"]
-    assert view["state"] == "retrying" and view["attempts"] == 1 and "NOBODY@127.0.0.1" in view["error"]
-    assert dispatcher.run_once(now) == 0 and records.get(job.id).delivery_attempts == 1  # not due yet
-    for k in (1, 2):
-        dispatcher.run_once(now + dt.timedelta(seconds=100 * k))
-    rec = records.get(job.id)
-    assert rec is not None and rec.delivery_state == "failed" and rec.delivery_attempts == 3
-    assert result_uids(job.id) == (rec.result_series_uid, rec.result_sop_uid)
+def test_delivery_backs_off_and_gives_up_visibly(tmp_path: Path, db_url: str) -> None:
+    with contextlib.closing(Database(db_url)) as db:
+        records = PacsRecords(db)
+        storage = LocalStorage(tmp_path / "data")
+        job = Job(id=Database.new_id(), owner="o", state="succeeded", params={}, upload_name="x")
+        dest = {"kind": "dicom", "ae_title": "NOBODY", "host": "127.0.0.1", "port": free_port()}
+        records.create_job(job, {"kind": "dimse"}, dest)
+        staged = storage.staging_dir(job.id)
+        (staged / "model.dcm").write_bytes(
+            ct_slice(np.zeros((2, 2), np.uint16), ipp=(0, 0, 0), series_uid="1.5", instance=1)
+        )
+        storage.publish(job.id, staged)
+        pacs = PacsSettings(delivery_backoff_seconds=10, delivery_max_backoff_seconds=25, delivery_max_attempts=3)
+        dispatcher = Dispatcher(pacs, records, storage)
+        assert [dispatcher.backoff(n) for n in (1, 2, 3, 4)] == [10, 20, 25, 25]
+        now = utcnow()
+        assert dispatcher.run_once(now) == 0
+        view = records.view(job)["delivery"]
+        assert view["state"] == "retrying" and view["attempts"] == 1 and "NOBODY@127.0.0.1" in view["error"]
+        assert dispatcher.run_once(now) == 0 and records.get(job.id).delivery_attempts == 1  # not due yet
+        for k in (1, 2):
+            dispatcher.run_once(now + dt.timedelta(seconds=100 * k))
+        rec = records.get(job.id)
+        assert rec is not None and rec.delivery_state == "failed" and rec.delivery_attempts == 3
+        assert result_uids(job.id) == (rec.result_series_uid, rec.result_sop_uid)
 
 
 @pytest.mark.parametrize("syntax", ["1.2.840.10008.1.2.5", "1.2.840.10008.1.2.4.90"])  # RLE, JPEG 2000 lossless

@@ -3,6 +3,7 @@ that need no broker (Redis is not running here: an accepted job stays queued for
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import io
 import json
@@ -64,27 +65,27 @@ def test_job_params_validate_and_become_engine_params() -> None:
             JobParams.model_validate(bad)
 
 
-def test_a_job_is_claimed_once_and_reclaimed_only_when_its_worker_is_silent(tmp_path: Path) -> None:
-    db = Database(f"sqlite:///{tmp_path / 'jobs.db'}")
-    job = db.create(owner_of("key"), {}, "scan.zip")
-    now = utcnow()
-    first = db.claim(job.id, "w1", stale_before=now - dt.timedelta(seconds=60))
-    assert first is not None and first.state == "running" and first.attempts == 1
-    assert db.claim(job.id, "w2", stale_before=now - dt.timedelta(seconds=60)) is None  # w1 is alive
-    assert db.beat(job.id, "w1", stage="decimate", progress=50.0)
-    # w1 goes silent: once its heartbeat is older than the staleness limit, another worker may take over
-    second = db.claim(job.id, "w2", stale_before=utcnow() + dt.timedelta(seconds=1))
-    assert second is not None and second.attempts == 2 and second.worker == "w2"
-    assert not db.beat(job.id, "w1")  # the old holder learns it lost the job...
-    assert not db.finish(job.id, "w1", "succeeded")  # ...and cannot record a result
-    assert db.finish(job.id, "w2", "succeeded", outputs=[])
-    assert db.claim(job.id, "w3", stale_before=utcnow() + dt.timedelta(seconds=1)) is None  # finished: never again
-    other = db.create(owner_of("key"), {}, "b.zip")
-    assert db.cancel(other.id) and not db.cancel(other.id)
-    assert db.claim(other.id, "w1", stale_before=utcnow()) is None
-    assert db.get(other.id, owner_of("someone else")) is None
-    rows, total = db.list(owner_of("key"), limit=1, offset=0)
-    assert total == 2 and [r.id for r in rows] == [other.id]
+def test_a_job_is_claimed_once_and_reclaimed_only_when_its_worker_is_silent(db_url: str) -> None:
+    with contextlib.closing(Database(db_url)) as db:
+        job = db.create(owner_of("key"), {}, "scan.zip")
+        now = utcnow()
+        first = db.claim(job.id, "w1", stale_before=now - dt.timedelta(seconds=60))
+        assert first is not None and first.state == "running" and first.attempts == 1
+        assert db.claim(job.id, "w2", stale_before=now - dt.timedelta(seconds=60)) is None  # w1 is alive
+        assert db.beat(job.id, "w1", stage="decimate", progress=50.0)
+        # w1 goes silent: once its heartbeat is older than the staleness limit, another worker may take over
+        second = db.claim(job.id, "w2", stale_before=utcnow() + dt.timedelta(seconds=1))
+        assert second is not None and second.attempts == 2 and second.worker == "w2"
+        assert not db.beat(job.id, "w1")  # the old holder learns it lost the job...
+        assert not db.finish(job.id, "w1", "succeeded")  # ...and cannot record a result
+        assert db.finish(job.id, "w2", "succeeded", outputs=[])
+        assert db.claim(job.id, "w3", stale_before=utcnow() + dt.timedelta(seconds=1)) is None  # finished: never again
+        other = db.create(owner_of("key"), {}, "b.zip")
+        assert db.cancel(other.id) and not db.cancel(other.id)
+        assert db.claim(other.id, "w1", stale_before=utcnow()) is None
+        assert db.get(other.id, owner_of("someone else")) is None
+        rows, total = db.list(owner_of("key"), limit=1, offset=0)
+        assert total == 2 and [r.id for r in rows] == [other.id]
 
 
 def test_storage_never_shows_a_partial_file(tmp_path: Path) -> None:
