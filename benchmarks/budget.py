@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.phantom import bone_phantom
-from engine.memory import parse_bytes
+from engine.budget import parse_bytes
 from engine.params import IsoParams, ReconParams
 from engine.types import Volume
 

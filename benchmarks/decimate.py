@@ -5,11 +5,11 @@
                                   --out result.json
 
 Each input goes through the paper's front end (3x3x3 Gaussian, MC33 closed at the bone level) on the device; the
-MC33 mesh is then decimated (a) by ``engine.stages.decimate.decimate_device`` on the device where it already is
+MC33 mesh is then decimated (a) by ``engine.decimation.passes.decimate_device`` on the device where it already is
 (warm-up on the first input, then the median of ``repeat`` runs; peak device memory from the CUDA mempool), and
 (b) by MeshLab's quadric collapse (``method="meshlab"``: CPU processes, as the pipeline used to). Both results are
 checked (watertight, manifold, components and Euler characteristic against the MC33 mesh, folds) and measured
-against the undecimated surface (mean / p95 / Hausdorff distance, both ways, ``engine.metrics``), with triangle
+against the undecimated surface (mean / p95 / Hausdorff distance, both ways, ``engine.paper.metrics``), with triangle
 shape (smallest angles). Ratios Warp/MeshLab come from the same run.
 """
 
@@ -38,9 +38,9 @@ SCANS = {
 def _mc33(data: np.ndarray, spacing: tuple[float, float, float], level: float, dev: Any) -> tuple[Any, Any]:
     import warp as wp
 
+    from engine.isosurface import extract_isosurface
     from engine.params import GaussianParams
-    from engine.stages.gaussian import smooth_volume
-    from engine.stages.isosurface import extract_isosurface
+    from engine.volume.gaussian import smooth_volume
 
     field = smooth_volume(wp.array(np.ascontiguousarray(data), device=dev), GaussianParams())
     v, f = extract_isosurface(field, level, spacing=spacing, closed=True)
@@ -49,8 +49,8 @@ def _mc33(data: np.ndarray, spacing: tuple[float, float, float], level: float, d
 
 
 def _check(v: np.ndarray, f: np.ndarray, ref: dict[str, Any] | None) -> dict[str, Any]:
-    from engine.metrics import min_angles_deg
-    from engine.stages.meshcheck import folds, mesh_stats
+    from engine.paper.metrics import min_angles_deg
+    from engine.surface.meshcheck import folds, mesh_stats
 
     s = mesh_stats(v, f)
     ang = min_angles_deg(v, f)
@@ -74,7 +74,7 @@ def _check(v: np.ndarray, f: np.ndarray, ref: dict[str, Any] | None) -> dict[str
 
 def _similarity(v: np.ndarray, f: np.ndarray, scan: tuple[np.ndarray, tuple[float, float, float], float], n: int):
     """The paper's RMSE % and SSIM % (and Dice) of the mesh's sections against the scan's slices at the level."""
-    from engine.metrics import slice_similarity
+    from engine.paper.metrics import slice_similarity
 
     data, spacing, level = scan
     out = slice_similarity(v, f, data, level, spacing, max_slices=n)
@@ -85,8 +85,8 @@ def _one(name: str, pos: Any, faces: Any, reductions: list[float], args: argpars
     import warp as wp
 
     from benchmarks.mc33 import _DeviceMemory
-    from engine.metrics import DistanceReference
-    from engine.stages.decimate import decimate_device, decimate_mesh
+    from engine.decimation import decimate_device, decimate_mesh
+    from engine.paper.metrics import DistanceReference
 
     v_in, f_in = pos.numpy(), faces.numpy().astype(np.int32)
     print(f"{name}: MC33 {len(f_in):,} faces", flush=True)
@@ -163,10 +163,10 @@ def main(argv: list[str] | None = None) -> int:
 
     import warp as wp
 
+    from engine.decimation.passes import decimate_device
     from engine.device import resolve_device
     from engine.io.stack import load_slice_zip
     from engine.pipeline import _versions
-    from engine.stages.decimate import decimate_device
 
     dev = resolve_device(args.device)
     reductions = [float(x) for x in args.reductions.split(",")]

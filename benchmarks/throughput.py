@@ -72,7 +72,7 @@ def _ready(proc: Proc, warm: bool) -> bool:
 def _warms_up(stack: ServiceStack, device: str) -> bool:
     """Whether a worker of ``stack`` on ``device`` warms up at start (``worker.app.warms_up``: its
     ``BONEMESH_WARMUP``, on by default on a GPU)."""
-    from service.settings import Settings
+    from core.settings import Settings
     from worker.app import warms_up
 
     return warms_up(Settings(device=device, warmup=stack.env.get("BONEMESH_WARMUP", "auto")))

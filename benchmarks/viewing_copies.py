@@ -8,8 +8,8 @@ compiled first on its central slices). For each pair of budgets (default: the pr
 reduced phantom, budgets scaled down with the mesh show the full phantom's behaviour): the print model laid out as
 ``write_outputs`` does, then ``viewing_copies`` timed N times (median; passes, faces and routes do not depend on
 the device), the copies' topology (device mesh statistics) and, with ``--quality``, their surface distance to the
-print model (``engine.metrics.DistanceReference``); then ``write_outputs`` with those budgets, N times (median, with
-its parts: ``layout_kernels`` and ``layout_copies`` split the layout). On a checkout without ``viewing_copies``
+print model (``engine.paper.metrics.DistanceReference``); then ``write_outputs`` with those budgets, N times (median,
+with its parts: ``layout_kernels`` and ``layout_copies`` split the layout). On a checkout without ``viewing_copies``
 (before issue 9's viewing-copy routes) the copies are made as ``write_outputs`` made them there.
 """
 
@@ -47,7 +47,7 @@ def _budget_run(recon: Any, lay: Any, device: str, budgets: list[int], repeat: i
     import warp as wp
 
     from engine.outputs import write_outputs
-    from engine.stages.devmesh import mesh_stats_device
+    from engine.surface.devmesh import mesh_stats_device
 
     stats = recon.report["mesh"]
     closed = bool(stats["watertight"]) and bool(stats["manifold"])
@@ -115,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
         lay = lay_out(*recon.device_mesh, Frame.from_dict(recon.report.get("frame")))
     quality = None
     if args.quality:
-        from engine.metrics import DistanceReference
+        from engine.paper.metrics import DistanceReference
 
         quality = DistanceReference(lay.view_pos.numpy(), lay.faces.numpy(), device=device)
     results = {}

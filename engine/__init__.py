@@ -1,15 +1,32 @@
 """bonemesh engine: arrays in, meshes out.
 
-Public API (loaded lazily, so ``import engine.params`` never imports Warp): ``reconstruct``, ``write_outputs``,
-``Reconstruction``, ``ReconParams``, ``Volume``, ``Mesh``, ``load_volume``, ``marching_cubes_33``.
+Public API (loaded lazily through ``engine._lazy``, so ``import engine.params`` never imports Warp): ``reconstruct``,
+``write_outputs``, ``Reconstruction``, ``ReconParams``, ``Budget``, ``Volume``, ``Mesh``, ``load_volume``,
+``marching_cubes_33``.
+
+The floor plan: the contracts on the ground floor (``params``, ``types``, ``errors``, ``budget``, ``device``); one
+package per stage of the paper, each with its kernels in a ``kernels`` folder (``volume``, ``isosurface``,
+``decimation``, ``surface``); ``export`` (Mesh -> bytes) and ``io`` (files -> Volume); ``pipeline`` and its
+``plans``, ``outputs``; and the paper's sweep and metrics in ``paper``.
 """
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from typing import TYPE_CHECKING
+
+from engine._lazy import attach
+
+if TYPE_CHECKING:
+    from engine.budget import Budget
+    from engine.io import load_volume
+    from engine.isosurface import marching_cubes_33
+    from engine.outputs import write_outputs
+    from engine.params import ReconParams
+    from engine.pipeline import Reconstruction, reconstruct
+    from engine.types import Mesh, Volume
 
 __all__ = [
+    "Budget",
     "Mesh",
     "ReconParams",
     "Reconstruction",
@@ -19,20 +36,17 @@ __all__ = [
     "reconstruct",
     "write_outputs",
 ]
-
-_WHERE = {
-    "reconstruct": "engine.pipeline",
-    "write_outputs": "engine.outputs",
-    "Reconstruction": "engine.pipeline",
-    "ReconParams": "engine.params",
-    "Volume": "engine.types",
-    "Mesh": "engine.types",
-    "load_volume": "engine.io",
-    "marching_cubes_33": "engine.isosurface",
-}
-
-
-def __getattr__(name: str) -> Any:
-    if name in _WHERE:
-        return getattr(importlib.import_module(_WHERE[name]), name)
-    raise AttributeError(f"module 'engine' has no attribute {name!r}")
+__getattr__, __dir__ = attach(
+    __name__,
+    {
+        "Budget": "engine.budget",
+        "Mesh": "engine.types",
+        "ReconParams": "engine.params",
+        "Reconstruction": "engine.pipeline",
+        "Volume": "engine.types",
+        "load_volume": "engine.io",
+        "marching_cubes_33": "engine.isosurface",
+        "reconstruct": "engine.pipeline",
+        "write_outputs": "engine.outputs",
+    },
+)

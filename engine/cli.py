@@ -5,7 +5,7 @@
     bonemesh reconstruct --demo -o OUTDIR
     bonemesh isosurface INPUT -o OUT.stl --iso LEVEL [--voxel-size X,Y,Z | --spacing Z,Y,X] [--device ...] [--open]
     bonemesh isosurface --demo -o OUT.stl
-    bonemesh sweep ...   (engine.cli_sweep)
+    bonemesh sweep ...   (engine.paper.cli_sweep)
 
 INPUT is anything ``engine.io.load_volume`` reads: a DICOM series (zip or folder), an archive or folder of
 slice images, a multi-page TIFF or a ``.npy`` (z, y, x) volume. Arguments are parsed in ``engine.cli_args`` (their
@@ -44,7 +44,7 @@ LOAD_SHARE = 0.1  # the bar's share for loading the input (the pipeline weights 
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``bonemesh`` parser with the engine's subcommands."""
-    from engine.cli_sweep import add_parser as add_sweep_parser
+    from engine.paper.cli_sweep import add_parser as add_sweep_parser
 
     parser = argparse.ArgumentParser(prog="bonemesh", description="Bone surface models from CT slice stacks.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -227,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "reconstruct":
             return _reconstruct(args)
         if args.command == "sweep":
-            from engine.cli_sweep import run as run_sweep
+            from engine.paper.cli_sweep import run as run_sweep
 
             return run_sweep(args)
     except InputError as exc:

@@ -11,7 +11,7 @@ import dataclasses
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from engine.errors import InputError
 from engine.params import (
@@ -27,6 +27,9 @@ from engine.params import (
     SmoothParams,
 )
 from engine.types import Volume
+
+if TYPE_CHECKING:
+    from engine.budget import Budget
 
 Spacing = tuple[float, float, float]
 
@@ -104,11 +107,12 @@ def add_input_args(parser: argparse.ArgumentParser, what: str) -> None:
     )  # fmt: skip
 
 
-def _budget(text: str) -> int | None:
-    from engine.memory import parse_bytes
+def _budget(text: str) -> Budget:
+    """``--max-device-bytes``, parsed once here: the ``Budget`` that ``reconstruct`` and ``write_outputs`` share."""
+    from engine.budget import Budget
 
     try:
-        return parse_bytes(text)
+        return Budget.of(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
 

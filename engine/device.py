@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import os
 import re
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 if TYPE_CHECKING:  # pragma: no cover
     import warp as wp
 
+DeviceSpec: TypeAlias = "str | wp.Device"  # "auto", "cpu", "cuda", "cuda:N", or a Warp device
 _SPEC = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
 _initialized = False
 
@@ -38,7 +39,7 @@ def init_runtime(kernel_cache_dir: str | None = None) -> None:
     _initialized = True
 
 
-def resolve_device(spec: Any = "auto") -> wp.context.Device:
+def resolve_device(spec: Any = "auto") -> wp.Device:
     """Return the Warp device for ``spec``.
 
     Args:
@@ -50,7 +51,7 @@ def resolve_device(spec: Any = "auto") -> wp.context.Device:
     if not isinstance(spec, str):
         import warp as wp
 
-        if isinstance(spec, wp.context.Device):
+        if isinstance(spec, wp.Device):  # Warp's public name (``warp.context`` is gone from Warp 1.19's namespace)
             return spec
     if not isinstance(spec, str) or not _SPEC.match(spec):
         raise ValueError(f"Expected device 'auto', 'cpu', 'cuda' or 'cuda:N', got {spec!r}")

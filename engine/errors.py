@@ -1,14 +1,33 @@
-"""Engine exceptions.
+"""The engine's exceptions: one tree, every class defined here (httpx's documented tree).
 
 EngineError
-├── InputError            the caller's input cannot be processed (bad file, bad parameters); exit code 2
-│   ├── EmptySurfaceError the iso level does not cross the data: there is no surface to build
+├── InputError              the caller's input cannot be processed (bad file, bad parameters); CLI exit code 2
+│   ├── EmptySurfaceError   the iso level does not cross the data: there is no surface to build
+│   ├── NoBoneInBodyError   everything at or above the bone level lies outside the body outline (a couch, a holder)
 │   ├── IncompleteSeriesError  the series is not whole (missing slice, clashing duplicates, too few images)
-│   └── BudgetError       the device memory budget is too small for this scan
-└── StageError            a pipeline stage failed for a reason that is not the input's fault (names the stage)
+│   ├── NotAScanError       not a scan container: neither archive nor volume file, an unreadable archive, one image
+│   ├── NoSpacingError      the images do not say how large a voxel is: the caller must give the voxel size
+│   └── BudgetError         the device memory budget is too small for this scan (``needed``: one that works)
+├── PrintCheckError         the print model is not printable (not watertight, not manifold, ...): nothing written
+└── StageError              a pipeline stage failed for a reason that is not the input's fault (``stage`` names it)
+
+``InputError`` is also a ``ValueError``, so the parameter checks of ``engine.params`` (plain ``ValueError``) and the
+engine's own refusals can be caught together. Callers branch on these types, never on the message text. Importing
+this module never loads Warp or numpy.
 """
 
 from __future__ import annotations
+
+__all__ = [
+    "BudgetError",
+    "EmptySurfaceError",
+    "EngineError",
+    "IncompleteSeriesError",
+    "InputError",
+    "NoBoneInBodyError",
+    "PrintCheckError",
+    "StageError",
+]
 
 
 class EngineError(Exception):
@@ -23,12 +42,14 @@ class EmptySurfaceError(InputError):
     """The iso level does not cross the data: there is no surface to build."""
 
 
-class StageError(EngineError):
-    """A pipeline stage failed for a reason that is not the input's fault."""
+class NoBoneInBodyError(InputError):
+    """Everything at or above the bone level lies outside the body outline (a couch, a holder): no bone model
+    (``engine.volume.bodymask``)."""
 
-    def __init__(self, stage: str, cause: BaseException) -> None:
-        super().__init__(f"stage '{stage}' failed: {type(cause).__name__}: {cause}")
-        self.stage = stage
+
+class IncompleteSeriesError(InputError):
+    """The series is not whole (a slice missing, two different images at one position, too few images): refused
+    before anything is reconstructed, since a model built across the hole would look right and be wrong."""
 
 
 class BudgetError(InputError):
@@ -40,6 +61,27 @@ class BudgetError(InputError):
         self.needed = int(needed)
 
 
-class IncompleteSeriesError(InputError):
-    """The series is not whole (a slice missing, two different images at one position, too few images): refused
-    before anything is reconstructed, since a model built across the hole would look right and be wrong."""
+class PrintCheckError(EngineError):
+    """The print model is not printable (not watertight, not manifold, ...); the message lists every failure
+    (``engine.export.printcheck``)."""
+
+
+class StageError(EngineError):
+    """A pipeline stage failed for a reason that is not the input's fault; ``stage`` names it (MONAI)."""
+
+    def __init__(self, stage: str, cause: BaseException) -> None:
+        super().__init__(f"stage '{stage}' failed: {type(cause).__name__}: {cause}")
+        self.stage = stage
+
+
+class NotAScanError(InputError):
+    """The input is not a scan container bonemesh reads: neither an archive nor a volume file, a zip or tar archive
+    that cannot be read, or a single 2-D image (``engine.io``; the API answers 415 Unsupported Media Type)."""
+
+
+class NoSpacingError(InputError):
+    """The images do not say how large a voxel is (an image stack without resolution tags, or with the pixel size but
+    not the slice spacing): the caller must give the voxel size (``spacing_zyx_mm``; ``engine.io.stack``)."""
+
+
+__all__ += ["NoSpacingError", "NotAScanError"]

@@ -3,12 +3,12 @@
 ``preview.png``: ``engine.export.viewers``) and ``report.json``.
 
 The finished mesh is laid out for its files on the device where the pipeline left it (``lay_out``: the patient
-frame, the STL's facet records and the glTF buffers, ``engine.kernels.export``); only those buffers come back.
-A thread then streams the print model's two files to disk while the device makes the phone and AR copies
-(``engine.viewing``: guarded decimation where the topology can be kept within the budget, else clustering, the AR
-copy then clustered from the same mesh as the phone copy) and the host encodes them. Every file goes into a
-temporary folder inside the output folder and is moved into place only when all are complete: a failure leaves no
-partial model.
+frame, the STL's facet records and the glTF buffers, ``engine.export.kernels.layout``); only those buffers come
+back. A thread then streams the print model's two files to disk while the device makes the phone and AR copies
+(``engine.decimation.viewing``: guarded decimation where the topology can be kept within the budget, else
+clustering, the AR copy then clustered from the same mesh as the phone copy) and the host encodes them. Every file
+goes into a temporary folder inside the output folder and is moved into place only when all are complete: a
+failure leaves no partial model.
 """
 
 from __future__ import annotations
@@ -25,17 +25,17 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from engine.memory import LAYOUT_CHUNK_FACES
+from engine.budget import LAYOUT_CHUNK_FACES, Budget, BudgetSpec
+from engine.decimation.viewing import viewing_copies
 from engine.params import ReconParams
 from engine.types import Mesh
-from engine.viewing import viewing_copies
 
 if TYPE_CHECKING:
+    from engine.device import DeviceSpec
     from engine.pipeline import Reconstruction
     from engine.staging import HostCopies
 
 STL_HEADER = "bonemesh model, patient LPS frame, mm"
-HELD_BYTES_PER_FACE = 60  # the model and its patient/viewing copies, held while the viewing copies are made
 
 
 @dataclass
@@ -67,16 +67,24 @@ def layout_host_bytes(n_vertices: int, n_faces: int) -> int:
     return n_faces * 60 + n_vertices * 24 + 4 * ALIGN
 
 
-def lay_out(pos: Any, faces: Any, normals: Any, frame: Any, to_host: HostCopies | None = None) -> Layout:
+def lay_out(
+    pos: Any,
+    faces: Any,
+    normals: Any,
+    frame: Any,
+    to_host: HostCopies | None = None,
+    chunk_faces: int = LAYOUT_CHUNK_FACES,
+) -> Layout:
     """Map a device mesh (grid (z, y, x) mm, unit normals) into the patient frame (``engine.orient.Frame``) and lay
     out its file buffers; the host arrays come back in one sync (through ``to_host``: pinned memory where it
-    holds some, ``engine.staging``)."""
+    holds some, ``engine.staging``); the STL's facets go to the host ``chunk_faces`` at a time
+    (``Costs.layout_chunk_faces``)."""
     import warp as wp
 
     from engine.export.glb import MM_TO_M
-    from engine.kernels import export as kx
-    from engine.stages.devmesh import bounds
+    from engine.export.kernels import layout as kx
     from engine.staging import HostCopies
+    from engine.surface.devmesh import bounds
 
     t0 = time.perf_counter()
     n = len(pos)
@@ -107,7 +115,7 @@ def lay_out(pos: Any, faces: Any, normals: Any, frame: Any, to_host: HostCopies 
     # the STL's facet records (48 B a face) go to the host a chunk at a time, never whole on the device
     nf = len(faces)
     facets, host_facets = to_host.empty((nf, 12), wp.float32)
-    chunk = wp.empty((max(min(nf, LAYOUT_CHUNK_FACES), 1), 12), dtype=wp.float32)
+    chunk = wp.empty((max(min(nf, chunk_faces), 1), 12), dtype=wp.float32)
     zero_area = wp.zeros(1, dtype=wp.int32)
     for first in range(0, nf, len(chunk)):
         k = min(len(chunk), nf - first)
@@ -135,7 +143,7 @@ def lay_out(pos: Any, faces: Any, normals: Any, frame: Any, to_host: HostCopies 
 
 
 def _host_mesh(pos: Any, faces: Any, normals: Any = None) -> Mesh:
-    from engine.stages.normals import normals_device
+    from engine.surface.normals import normals_device
 
     if normals is None:
         normals = normals_device(pos, faces)
@@ -152,16 +160,16 @@ def _device_mesh(recon: Reconstruction, dev: Any) -> tuple[Any, Any, Any]:
     import warp as wp
 
     from engine.export.glb import check_mesh
-    from engine.stages.devmesh import on_device
-    from engine.stages.normals import normals_device
+    from engine.surface.devmesh import on_device
+    from engine.surface.normals import normals_device
 
     held = recon.device_mesh
     if held is not None:
-        return on_device(dev, *held)  # type: ignore[return-value]
+        return on_device(dev, *held)
     mesh = recon.mesh
     check_mesh(mesh.vertices, mesh.faces, mesh.normals)  # InputError: empty, malformed, out-of-range indices
-    pos = wp.array(np.ascontiguousarray(mesh.vertices, np.float32), dtype=wp.vec3)
-    faces = wp.array(np.ascontiguousarray(mesh.faces, np.int32), dtype=wp.vec3i)
+    pos: Any = wp.array(np.ascontiguousarray(mesh.vertices, np.float32), dtype=wp.vec3)
+    faces: Any = wp.array(np.ascontiguousarray(mesh.faces, np.int32), dtype=wp.vec3i)
     if mesh.normals is None:
         return pos, faces, normals_device(pos, faces)
     return pos, faces, wp.array(np.ascontiguousarray(mesh.normals, np.float32), dtype=wp.vec3)
@@ -187,11 +195,12 @@ def write_outputs(
     outdir: str | Path,
     params: ReconParams | None = None,
     *,
-    device: str = "auto",
-    max_device_bytes: int | str | None = None,
+    device: DeviceSpec = "auto",
+    max_device_bytes: BudgetSpec = None,
 ) -> dict[str, Path]:
     """Write model.stl, model.glb, phone.glb (Draco), ar.glb, phone_meshopt.glb, model.usdz, preview.png and
-    report.json into ``outdir`` (within ``max_device_bytes`` of device memory, as ``reconstruct``).
+    report.json into ``outdir`` (within ``max_device_bytes`` of device memory: bytes, text such as ``"2GiB"`` or an
+    ``engine.budget.Budget``, as ``reconstruct``).
 
     Raises:
         PrintCheckError: the print model is not printable (nothing is written).
@@ -201,10 +210,9 @@ def write_outputs(
 
     from engine.device import resolve_device
     from engine.export.printcheck import PRINT_STL, check_print_model, stl_name
-    from engine.memory import parse_bytes
     from engine.orient import Frame
-    from engine.stages.devmesh import mesh_stats_device
     from engine.staging import host_copies
+    from engine.surface.devmesh import mesh_stats_device
 
     params = params or ReconParams()
     dev = resolve_device(device)
@@ -215,13 +223,13 @@ def write_outputs(
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     try:
-        budget = parse_bytes(max_device_bytes)
+        budget = Budget.of(max_device_bytes)
         where, on_host = _layout_device(recon, dev, budget, report)  # the host, past the budget
         with wp.ScopedDevice(where):
             pos, faces, normals = _device_mesh(recon, where)
             frame = report.get("frame")
             with host_copies(where, layout_host_bytes(len(pos), len(faces))) as to_host:
-                lay = lay_out(pos, faces, normals, Frame.from_dict(frame), to_host)
+                lay = lay_out(pos, faces, normals, Frame.from_dict(frame), to_host, budget.costs.layout_chunk_faces)
                 # the STL in patient LPS mm, the glTF files in patient axes centred on the model (engine.orient)
                 report["frame"] = {
                     **(frame or Frame.from_dict(None).to_dict()),
@@ -235,8 +243,8 @@ def write_outputs(
                 seconds.update({f"layout_{k}": v for k, v in lay.seconds.items()})
                 with ThreadPoolExecutor(1, thread_name_prefix="bonemesh-write") as pool:
                     writing = pool.submit(_write_print_files, tmp, stl, lay)
-                    held = 0 if on_host else HELD_BYTES_PER_FACE * len(lay.faces)
-                    room = None if budget is None else budget - held  # beside the model, where it is on the device
+                    held = 0 if on_host else budget.costs.held * len(lay.faces)
+                    room = budget.beside(held)  # beside the model, where it is on the device
                     small, infos = _viewing_files(lay, stats, params, room, tmp, seconds, dev)
                     t1 = time.perf_counter()
                     sizes = writing.result()
@@ -260,7 +268,7 @@ def _viewing_files(
     lay: Layout,
     stats: dict[str, Any],
     params: ReconParams,
-    room: int | None,
+    room: Budget,
     tmp: Path,
     seconds: dict[str, Any],
     dev: Any,
@@ -300,14 +308,12 @@ def _encode_small(phone: Mesh, ar: Mesh) -> tuple[dict[str, bytes], dict[str, fl
     return files, seconds
 
 
-def _layout_device(recon: Reconstruction, dev: Any, budget: int | None, report: dict[str, Any]) -> tuple[Any, bool]:
-    """Where the model is laid out for its files, and whether that is the host (``engine.memory.place``: past the
-    budget of a GPU; ``report["layout"]`` says where and why)."""
-    from engine.memory import layout_bytes, place
-
+def _layout_device(recon: Reconstruction, dev: Any, budget: Budget, report: dict[str, Any]) -> tuple[Any, bool]:
+    """Where the model is laid out for its files, and whether that is the host (``Budget.place``: past the budget
+    of a GPU; ``report["layout"]`` says where and why)."""
     n_faces = len(recon.device_mesh[1]) if recon.device_mesh is not None else len(recon.mesh.faces)
     what = f"laying out the model ({n_faces:,} faces) for its files"
-    where, note = place(dev, layout_bytes(n_faces), budget, what)
+    where, note = budget.place(dev, budget.costs.layout_bytes(n_faces), what)
     report["layout"] = note or {"device": str(where)}
     return where, note is not None
 

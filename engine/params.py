@@ -38,6 +38,54 @@ def _finite(value: float | None, name: str, *, lo: float = -FLOAT32_MAX, hi: flo
     _check(ok and lo <= value <= hi, f"{name} must be a finite number in [{lo:g}, {hi:g}], got {value!r}")
 
 
+def _integer(value: int | None, name: str, lo: int, hi: int = INT32_MAX) -> None:
+    """None, or an integer (not a bool, not a float) within [lo, hi]: the counts the stages loop over or size arrays
+    by, where a float or a bool would fail deep inside a stage rather than here."""
+    if value is None:
+        return
+    ok = isinstance(value, numbers.Integral) and not isinstance(value, bool)
+    _check(ok and lo <= value <= hi, f"{name} must be an integer in [{lo}, {hi}], got {value!r}")
+
+
+# ------------------------------------------------------------------------------------------ decimation targets
+MIN_TRIANGLES = 4  # a decimated closed piece keeps at least a tetrahedron: DecimateParams.max_triangles' floor
+
+
+def is_reduction(value: object) -> bool:
+    """The one rule for a reduction factor (the fraction of faces a decimation keeps): a real number in (0, 1], not
+    a bool, not NaN. ``DecimateParams``, ``target_faces`` (the numpy entry point) and the paper's sweep use it."""
+    if not isinstance(value, numbers.Real) or isinstance(value, bool):
+        return False
+    number = float(value)  # (a numpy float compares the same)
+    return math.isfinite(number) and 0 < number <= 1
+
+
+def check_reduction(value: object) -> float:
+    """``value`` as a reduction factor (``is_reduction``).
+
+    Raises:
+        ValueError: not a real number in (0, 1].
+    """
+    _check(is_reduction(value), f"reduction must be in (0, 1], got {value}")
+    return float(value)  # type: ignore[arg-type]
+
+
+def target_faces(n_faces: int, reduction: float | None, max_triangles: int | None, *, least: int = 1) -> int:
+    """The face count a decimation of ``n_faces`` asks for: ``reduction`` of them (at least one) or
+    ``max_triangles`` (an integer >= ``least``); exactly one of the two is given.
+
+    Raises:
+        ValueError: neither or both given, or a value outside its rule.
+    """
+    if (reduction is None) == (max_triangles is None):
+        raise ValueError("Give exactly one of reduction (fraction of faces kept) or max_triangles")
+    if reduction is not None:
+        check_reduction(reduction)
+        return max(round(reduction * n_faces), 1)
+    _integer(max_triangles, "max_triangles", least)
+    return int(max_triangles)  # type: ignore[arg-type]
+
+
 def check_spacing_zyx_mm(spacing: object) -> tuple[float, float, float]:
     """A voxel size (z, y, x) in mm as three floats within [SPACING_MM_MIN, SPACING_MM_MAX].
 
@@ -81,10 +129,7 @@ class PreprocessParams:
         _finite(self.threshold, "threshold")
         _finite(self.canny_sigma, "canny_sigma", hi=1e4)
         _check(self.canny_sigma is None or self.canny_sigma > 0, f"canny_sigma must be > 0, got {self.canny_sigma}")
-        _check(
-            self.area_opening_px is None or self.area_opening_px >= 1,
-            f"area_opening_px must be >= 1, got {self.area_opening_px}",
-        )
+        _integer(self.area_opening_px, "area_opening_px", 1)
         if self.crop_zyx_mm is not None:
             _check(
                 len(self.crop_zyx_mm) == 3 and all(len(r) == 2 and r[0] < r[1] for r in self.crop_zyx_mm),
@@ -164,10 +209,7 @@ class IslandParams:
             self.min_volume_mm3 is None or self.min_volume_mm3 >= 0,
             f"min_volume_mm3 must be >= 0, got {self.min_volume_mm3}",
         )
-        _check(
-            self.keep_largest is None or 1 <= self.keep_largest <= INT32_MAX,
-            f"keep_largest must be in [1, {INT32_MAX}], got {self.keep_largest}",
-        )
+        _integer(self.keep_largest, "keep_largest", 1)
         _check(
             self.min_volume_voxels is None or (math.isfinite(self.min_volume_voxels) and self.min_volume_voxels >= 0),
             f"min_volume_voxels must be a finite number >= 0, got {self.min_volume_voxels}",
@@ -176,18 +218,32 @@ class IslandParams:
 
 @dataclass(frozen=True)
 class DecimateParams:
-    """Quadric-error decimation. Args: reduction: fraction of faces kept (0 < R <= 1); max_triangles: a cap."""
+    """Quadric-error decimation to a target face count: exactly one of the two fields is set.
+
+    Args:
+        reduction: fraction of the faces kept (0 < R <= 1, ``is_reduction``); the default, 0.2, is the paper's.
+        max_triangles: or the face count to reach (an integer >= ``MIN_TRIANGLES``); give it with
+            ``reduction=None``.
+    """
 
     reduction: float | None = 0.2
     max_triangles: int | None = None
 
     def __post_init__(self) -> None:
-        _check(self.reduction is None or 0 < self.reduction <= 1, f"reduction must be in (0, 1], got {self.reduction}")
         _check(
-            self.max_triangles is None or 4 <= self.max_triangles <= INT32_MAX,
-            f"max_triangles must be in [4, {INT32_MAX}], got {self.max_triangles}",
+            self.reduction is None or self.max_triangles is None,
+            f"give either reduction or max_triangles, not both (got reduction={self.reduction}, max_triangles="
+            f"{self.max_triangles}; reduction defaults to {DecimateParams.reduction}: with max_triangles pass "
+            "reduction=None)",
         )
         _check(self.reduction is not None or self.max_triangles is not None, "give reduction or max_triangles")
+        if self.reduction is not None:
+            check_reduction(self.reduction)
+        _integer(self.max_triangles, "max_triangles", MIN_TRIANGLES)
+
+    def target_faces(self, n_faces: int) -> int:
+        """The face count asked for of a mesh of ``n_faces`` (``engine.params.target_faces``)."""
+        return target_faces(n_faces, self.reduction, self.max_triangles, least=MIN_TRIANGLES)
 
 
 @dataclass(frozen=True)
@@ -198,7 +254,7 @@ class SmoothParams:
     angle_deg: float = 0.5
 
     def __post_init__(self) -> None:
-        _check(1 <= self.iterations <= 10_000, f"iterations must be in [1, 10000], got {self.iterations}")
+        _integer(self.iterations, "iterations", 1, 10_000)
         _check(0 < self.angle_deg < 90, f"angle_deg must be in (0, 90), got {self.angle_deg}")
 
 
@@ -211,8 +267,7 @@ class ExportParams:
 
     def __post_init__(self) -> None:
         for name in ("phone_max_triangles", "ar_max_triangles"):
-            value = getattr(self, name)
-            _check(100 <= value <= INT32_MAX, f"{name} must be in [100, {INT32_MAX}], got {value}")
+            _integer(getattr(self, name), name, 100)
 
 
 @dataclass(frozen=True)

@@ -4,9 +4,9 @@ OpenGL; on the CPU where there is no GPU).
 An orthographic z-buffer rasteriser: the mesh, in the glTF frame (+Y up, +Z toward the viewer: the patient's
 front), is turned a little for a three-quarter view and fitted into the image with a margin. One thread per
 front-facing triangle tests every pixel centre in its bounding box with edge functions and takes the atomic min of
-a packed (depth, triangle) key per pixel (``engine.kernels.export.rasterize_nearest``): the nearest triangle wins,
-ties go to the lower index, so the image is the same on every run and device. Each seen pixel is then shaded on
-the host from its triangle. Shading is Lambert with the vertex normals interpolated, one
+a packed (depth, triangle) key per pixel (``engine.export.kernels.layout.rasterize_nearest``): the nearest triangle
+wins, ties go to the lower index, so the image is the same on every run and device. Each seen pixel is then shaded
+on the host from its triangle. Shading is Lambert with the vertex normals interpolated, one
 light from the upper left front and some ambient light; the background is transparent. Rendered at twice the size
 and averaged down (anti-aliasing).
 """
@@ -60,7 +60,7 @@ def render(
     """
     import warp as wp
 
-    from engine.kernels.export import rasterize_nearest
+    from engine.export.kernels.layout import rasterize_nearest
 
     rot = _view(yaw_deg, pitch_deg)
     pos = np.asarray(positions, dtype=np.float64) @ rot.T

@@ -1,7 +1,7 @@
 """The check a print model must pass before it is written: watertight, 2-manifold (edges and vertices),
 consistently oriented, enclosing a positive volume, without degenerate faces (repeated vertex or zero area).
 
-The mesh diagnostics are :func:`engine.stages.meshcheck.mesh_stats` (the report's ``mesh`` block, reused when
+The mesh diagnostics are :func:`engine.surface.meshcheck.mesh_stats` (the report's ``mesh`` block, reused when
 given); this module only judges them. An open surface (``IsoParams.closed=False``) is not a print model: it is
 written under another name (:data:`OPEN_STL`) and not checked.
 """
@@ -13,16 +13,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from engine.errors import EngineError
+from engine.errors import PrintCheckError  # also imported from here by worker.tasks
 from engine.params import ReconParams
+
+__all__ = ["OPEN_STL", "PRINT_STL", "PrintCheckError", "check_print_model", "stl_name", "zero_area_faces"]
 
 PRINT_STL = "model.stl"
 OPEN_STL = "surface_open.stl"
 _CHUNK = 1 << 21
-
-
-class PrintCheckError(EngineError):
-    """The print model is not printable (not watertight, not manifold, ...); the message lists every failure."""
 
 
 def stl_name(params: ReconParams) -> str:
@@ -32,7 +30,7 @@ def stl_name(params: ReconParams) -> str:
 
 def zero_area_faces(vertices: npt.NDArray[Any], faces: npt.NDArray[Any]) -> int:
     """Faces whose three corners are collinear or coincide (exactly zero area in float64), counted in chunks."""
-    from engine.stages.meshcheck import face_normals
+    from engine.surface import face_normals
 
     count = 0
     for lo in range(0, len(faces), _CHUNK):
@@ -59,7 +57,7 @@ def check_print_model(
     Raises:
         PrintCheckError: naming every check that failed, with its counts.
     """
-    from engine.stages.meshcheck import mesh_stats
+    from engine.surface import mesh_stats
 
     st = stats if stats is not None else mesh_stats(vertices, faces)
     if zero_area is None:

@@ -40,7 +40,7 @@ def stl_head(n_faces: int, header: str) -> bytes:
 
 def write_stl(out: BinaryIO, facets: npt.NDArray[np.float32], header: str = "bonemesh") -> int:
     """Write a binary STL to an open file from its facets' 12 floats each (unit normal, then the three corners, in
-    (x, y, z) order, mm: ``engine.kernels.export.stl_facets``), a chunk at a time; returns the bytes written."""
+    (x, y, z) order, mm: ``engine.export.kernels.layout.stl_facets``), a chunk at a time; returns the bytes written."""
     facets = np.ascontiguousarray(facets, dtype="<f4").reshape(-1, 12)
     out.write(stl_head(len(facets), header))
     buf = np.zeros((min(len(facets), _CHUNK), _FACET.itemsize), np.uint8)  # attribute bytes stay zero

@@ -1,16 +1,16 @@
-"""Bone of the body only (engine.stages.bodymask), speck removal by default, and the real scans' holders/couch."""
+"""Bone of the body only (engine.volume.bodymask), speck removal by default, and the real scans' holders/couch."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from engine.errors import InputError
+from engine.errors import InputError, NoBoneInBodyError
 from engine.io import load_volume
 from engine.params import BodyMaskParams, IsoParams, ReconParams
 from engine.pipeline import reconstruct
-from engine.stages.bodymask import NoBoneInBodyError, isolate_bone
 from engine.types import Volume
+from engine.volume.bodymask import isolate_bone
 from tests.conftest import shared_file
 
 SP = (1.0, 1.0, 1.0)

@@ -1,4 +1,6 @@
-"""The device memory budget (``max_device_bytes``): streamed volume stages, slab-group and tiled decimation."""
+"""The device memory budget (``max_device_bytes``, ``engine.budget.Budget``): streamed volume stages, slab-group and
+tiled decimation. Paths the budget would not take on this machine are taken by passing budgets that ask for them
+(other costs, or a strategy field set), never by patching the modules."""
 
 from __future__ import annotations
 
@@ -7,9 +9,9 @@ import dataclasses
 import numpy as np
 import pytest
 
+from engine.budget import Budget, Costs, parse_bytes
 from engine.data.phantom import bone_phantom
 from engine.errors import BudgetError
-from engine.memory import parse_bytes
 from engine.params import ReconParams
 from engine.pipeline import reconstruct
 from engine.types import Volume
@@ -45,27 +47,36 @@ def test_parse_bytes():
         parse_bytes(-1)
 
 
+def test_a_budget_is_parsed_once_and_passed_on_as_it_is():
+    budget = Budget.of("17MiB")
+    assert budget.bytes == 17 * MIB and budget.limited
+    assert Budget.of(budget) is budget
+    assert Budget.of(None) == Budget() and not Budget().limited and Budget().fits(1 << 62)
+    assert budget.beside(MIB).bytes == 16 * MIB and Budget().beside(MIB) == Budget()
+    assert budget.fits_decimation(17 * MIB // Costs().decimate) and not budget.fits_decimation(17 * MIB)
+    assert Budget(100, costs=Costs(finish=2)).costs.finish_bytes(10) == 10 * 2 + 10 * 20
+    assert Budget(100).place("any device", 100, "the work") == ("any device", None)
+    with pytest.raises(ValueError, match="group_mode"):
+        Budget(group_mode="halves")
+    with pytest.raises(ValueError, match="spill_share"):
+        Budget(spill_share=0)
+
+
 @pytest.mark.parametrize("ring", [False, True], ids=["direct", "plane-feed"])
-def test_streamed_volume_stages_are_exact(phantom, monkeypatch, ring):
+def test_streamed_volume_stages_are_exact(phantom, ring):
     """Without decimation the mesh never leaves the device: slabs of the Gaussian and MC33 give the same mesh,
     uploaded directly or through the plane feed's ring (as on a CUDA device; here a ring shorter than a slab)."""
-    import functools
-
-    from engine import staging
-
     params = dataclasses.replace(ReconParams(), decimate=None)
     ref = reconstruct(phantom, params, device="cpu")
+    budget = Budget(40 * MIB, feed_ring_bytes=5 * phantom.data[0].nbytes if ring else None)
+    got = reconstruct(phantom, params, device="cpu", max_device_bytes=budget)
+    stream = got.report["memory"]["stream"]
+    assert stream["slabs"] > 1
     if ring:
-        monkeypatch.setattr(staging, "plane_feed", functools.partial(staging.plane_feed, force=True))
-        monkeypatch.setattr(staging, "FEED_MIN_BYTES", 5 * phantom.data[0].nbytes)
-        monkeypatch.setattr(staging, "RING_SLABS", 0)
-        asked = []
-        upload = staging.PlaneFeed.upload
-        monkeypatch.setattr(staging.PlaneFeed, "upload", lambda f, lo, hi: asked.append(hi - lo) or upload(f, lo, hi))
-    got = reconstruct(phantom, params, device="cpu", max_device_bytes=40 * MIB)
-    assert got.report["memory"]["stream"]["slabs"] > 1
-    if ring:
-        assert len(asked) >= got.report["memory"]["stream"]["slabs"] and max(asked) >= 5  # some longer than it
+        assert stream["feed"]["requests"] >= stream["slabs"]
+        assert stream["feed"]["longest_request_planes"] > 5  # some longer than the ring
+    else:
+        assert "feed" not in stream
     np.testing.assert_array_equal(got.mesh.faces, ref.mesh.faces)
     np.testing.assert_array_equal(got.mesh.vertices, ref.mesh.vertices)
 
@@ -109,19 +120,15 @@ def test_undecimated_model_over_budget_is_a_clear_error():
 
 
 @pytest.mark.parametrize("rounds", ["device", "host"])
-def test_tiled_rounds_pin_shared_vertices_and_keep_topology(monkeypatch, rounds):
+def test_tiled_rounds_pin_shared_vertices_and_keep_topology(rounds):
     """A device mesh decimated in z tiles (budget far under its decimation): same topology, near the target; in
     rounds on the device (each tile split off, decimated and joined there), or on the host where tiles would be too
     small to fit beside the mesh."""
     import warp as wp
 
-    from engine.stages import tiled
-    from engine.stages.devmesh import mesh_stats_device
-    from engine.stages.isosurface import marching_cubes_33
-    from engine.stages.tiled import decimate_within
-
-    if rounds == "host":
-        monkeypatch.setattr(tiled, "MAX_TILES", 1)  # tiles must hold the whole mesh beside it: they cannot
+    from engine.decimation import decimate_within
+    from engine.isosurface import marching_cubes_33
+    from engine.surface import mesh_stats_device
 
     vol = bone_phantom((48, 96, 96)).astype(np.float32)
     v, f = marching_cubes_33(vol, 1024.0 + 300.0, closed=True, device="cpu")
@@ -129,7 +136,9 @@ def test_tiled_rounds_pin_shared_vertices_and_keep_topology(monkeypatch, rounds)
         pos, faces = wp.array(v, dtype=wp.vec3), wp.array(f, dtype=wp.vec3i)
         before = mesh_stats_device(pos, faces)
         target = len(f) // 5
-        p2, f2, info = decimate_within(pos, faces, target, len(f) * 300 // 4, wp.get_device("cpu"))
+        # host rounds: tiles would have to hold the whole mesh beside it (they cannot)
+        budget = Budget(len(f) * 300 // 4, max_tiles=1 if rounds == "host" else Budget.max_tiles)
+        p2, f2, info = decimate_within(pos, faces, target, budget, wp.get_device("cpu"))
         after = mesh_stats_device(p2, f2)
     assert info["tiled"] and len(info["rounds"]) >= 1 and info.get("on", "host") == rounds
     assert len(info["rounds"][0]["tiles"]) >= 2 and all(t["pinned"] > 0 for t in info["rounds"][0]["tiles"])
@@ -143,8 +152,8 @@ def test_tiled_rounds_pin_shared_vertices_and_keep_topology(monkeypatch, rounds)
 def test_pinned_vertices_stay_put():
     import warp as wp
 
-    from engine.stages.decimate import decimate_carrying
-    from engine.stages.isosurface import marching_cubes_33
+    from engine.decimation.passes import decimate_carrying
+    from engine.isosurface import marching_cubes_33
 
     vol = bone_phantom((32, 64, 64)).astype(np.float32)
     v, f = marching_cubes_33(vol, 1324.0, closed=True, device="cpu")
@@ -170,12 +179,9 @@ def test_cuda_budget_is_measured_from_the_memory_pool(phantom, unbounded):
     assert topology(got.report) == topology(unbounded.report)
 
 
-def test_groups_spilled_to_the_host_join_the_same(phantom, unbounded, monkeypatch):
+def test_groups_spilled_to_the_host_join_the_same(phantom, unbounded):
     """Decimated groups held beyond the spill share go to the host: the tiles there join into the same topology."""
-    import engine.stages.stream as stream
-
-    monkeypatch.setattr(stream, "SPILL_SHARE", 1e-4)
-    got = reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=17 * MIB)
+    got = reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=Budget(17 * MIB, spill_share=1e-4))
     assert got.report["memory"]["stream"]["group_timings"]["spill"] > 0
     assert topology(got.report) == topology(unbounded.report)
     target = got.report["decimate"]["target_faces"]
@@ -183,27 +189,18 @@ def test_groups_spilled_to_the_host_join_the_same(phantom, unbounded, monkeypatc
 
 
 @pytest.mark.parametrize("where", ["device", "spilled", "host"])
-def test_seam_pass_across_group_borders(phantom, unbounded, monkeypatch, where):
+def test_seam_pass_across_group_borders(phantom, unbounded, where):
     """When the decimated groups will not fit one last pass, they go to the ratio on their own and only the faces
     near their borders are decimated again (the seams): on the device where the groups are, on the device again
     where they had to go to the host but fit beside a seam pass, or on the host where they do not."""
-    import engine.stages.stream as stream
-    import engine.stages.tiled as tiled
-
+    budget = Budget(17 * MIB, group_mode="seams")  # as if the groups' extrapolated size would not fit one last pass
     if where in ("spilled", "host"):
-        monkeypatch.setattr(stream, "SPILL_SHARE", 1e-4)
+        budget = dataclasses.replace(budget, spill_share=1e-4)
     if where == "host":  # as if the joined groups left no room for a seam pass beside them
-        monkeypatch.setattr(tiled, "seams_fit_beside", lambda n_verts, n_faces, budget: False)
+        budget = dataclasses.replace(budget, seams_beside=False)
     else:  # as if the joined groups' decimation needed more than the budget
-        monkeypatch.setattr(tiled, "DECIMATE_BYTES_PER_FACE", 1000)
-    init = stream.GroupDecimator.__init__
-
-    def seams_mode(self, *args, **kwargs):  # as if the groups' extrapolated size would not fit one last pass
-        init(self, *args, **kwargs)
-        self.mode = "seams"
-
-    monkeypatch.setattr(stream.GroupDecimator, "__init__", seams_mode)
-    got = reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=17 * MIB)
+        budget = dataclasses.replace(budget, last_pass=False)
+    got = reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=budget)
     assert got.report["memory"]["stream"]["group_mode"] == "seams"
     seams = got.report["decimate"]["seams"]
     on = "host" if where == "host" else "device"
@@ -235,25 +232,17 @@ def test_write_outputs_within_a_budget_tiles_the_viewing_copies(unbounded, tmp_p
     assert not (tmp_path / "small" / "model.stl").exists()
 
 
-def test_device_seams_in_batches_when_all_at_once_would_not_fit(phantom, unbounded, monkeypatch, device):
+def test_device_seams_in_batches_when_all_at_once_would_not_fit(phantom, unbounded, device):
     """Seams that would not fit beside the mesh all at once are decimated a few borders at a time (here: one
     border per batch), still on the device, each giving up its share of the faces."""
-    import engine.stages.stream as stream
-    import engine.stages.tiled as tiled
-
-    monkeypatch.setattr(tiled, "DECIMATE_BYTES_PER_FACE", 1000)
-    init, one_pass = stream.GroupDecimator.__init__, tiled.seam_pass_device
-
-    def seams_mode(self, *args, **kwargs):  # and smaller groups, so there are several borders
-        init(self, *args, **kwargs)
-        self.mode, self.mesh_room = "seams", self.mesh_room * 2 // 3
-
-    def one_border_at_a_time(pos, faces, borders, width, target, budget, keep=None):
-        return one_pass(pos, faces, borders, width, target, budget if len(borders) == 1 else 1, keep=keep)
-
-    monkeypatch.setattr(stream.GroupDecimator, "__init__", seams_mode)
-    monkeypatch.setattr(tiled, "seam_pass_device", one_border_at_a_time)
-    got = reconstruct(phantom, ReconParams(), device=device, max_device_bytes=17 * MIB)
+    budget = Budget(
+        17 * MIB,
+        group_room_share=2 / 3,  # smaller groups, so that there are several borders
+        group_mode="seams",
+        last_pass=False,  # as if the joined groups' decimation needed more than the budget
+        seam_batch_borders=1,  # as if two borders' seams did not fit beside the mesh together
+    )
+    got = reconstruct(phantom, ReconParams(), device=device, max_device_bytes=budget)
     dec = got.report["decimate"]
     assert dec["borders"] >= 2
     assert dec["seams"]["complete"] and dec["seams"]["on"] == "device"
@@ -263,23 +252,20 @@ def test_device_seams_in_batches_when_all_at_once_would_not_fit(phantom, unbound
     assert target <= got.report["mesh"]["n_faces"] <= target * 1.02
 
 
-@pytest.fixture
-def host_takes_over(monkeypatch):
+def on_the_host(n_bytes: int) -> Budget:
     """As on a GPU: stages that cannot fit the budget go to Warp's CPU device (here the device is the CPU too, so
     what is checked is the hand-over, not the memory saved)."""
-    import warp as wp
-
-    monkeypatch.setattr("engine.memory.host_fallback", lambda device: wp.get_device("cpu"))
+    return Budget(n_bytes, host_fallback=True)
 
 
-def test_model_over_the_budget_finishes_on_the_host(host_takes_over):
+def test_model_over_the_budget_finishes_on_the_host():
     """The undecimated noise surface above: over the budget to finish, it is finished on the host instead of
     failing, the same model as without a budget."""
     from engine.params import IsoParams
 
     noise = Volume(np.random.default_rng(0).integers(0, 100, (32, 128, 128)).astype(np.uint8), (1.0, 1.0, 1.0))
     params = ReconParams(iso=IsoParams(iso=49.5), body=None, islands=None, decimate=None, smooth=None)
-    got = reconstruct(noise, params, device="cpu", max_device_bytes=60 * MIB)
+    got = reconstruct(noise, params, device="cpu", max_device_bytes=on_the_host(60 * MIB))
     assert got.report["finish"]["device"] == "cpu" and "over the budget" in got.report["finish"]["reason"]
     free = reconstruct(noise, params, device="cpu")
     assert "finish" not in free.report
@@ -288,7 +274,7 @@ def test_model_over_the_budget_finishes_on_the_host(host_takes_over):
     np.testing.assert_array_equal(got.mesh.vertices, free.mesh.vertices)
 
 
-def test_model_over_the_layout_budget_is_laid_out_on_the_host(unbounded, tmp_path, host_takes_over):
+def test_model_over_the_layout_budget_is_laid_out_on_the_host(unbounded, tmp_path):
     """Too large to lay out within the budget: laid out on the host, its viewing copies decimated on the device
     within the whole budget; the files are those of the unbounded run."""
     import json
@@ -297,10 +283,8 @@ def test_model_over_the_layout_budget_is_laid_out_on_the_host(unbounded, tmp_pat
     from engine.params import ExportParams
 
     params = dataclasses.replace(ReconParams(), export=ExportParams(phone_max_triangles=5000, ar_max_triangles=2000))
-    from engine.memory import layout_bytes
-
-    budget = layout_bytes(len(unbounded.mesh.faces)) - 1  # just under the layout; the copy goes in tiles
-    write_outputs(unbounded, tmp_path / "host", params, device="cpu", max_device_bytes=budget)
+    budget = Costs().layout_bytes(len(unbounded.mesh.faces)) - 1  # just under the layout; the copy goes in tiles
+    write_outputs(unbounded, tmp_path / "host", params, device="cpu", max_device_bytes=on_the_host(budget))
     write_outputs(unbounded, tmp_path / "free", params, device="cpu")
     report = json.loads((tmp_path / "host" / "report.json").read_text())
     assert report["layout"]["device"] == "cpu" and "over the budget" in report["layout"]["reason"]
@@ -315,19 +299,19 @@ def test_a_mesh_too_large_for_the_room_is_tiled_down_before_its_viewing_copies(u
     """``viewing._take_to``: a print model whose speck removal does not fit the room is first decimated in tiles to
     what fits (every guard kept, no piece dropped), so its copies are made on the device; one whose speck removal
     fits is taken as it is (its decimation, after the specks go, is tiled if it must be)."""
-    from engine.memory import ISLANDS_BYTES_PER_FACE
-    from engine.stages.devmesh import mesh_stats_device
-    from engine.viewing import _take_to
+    from engine.decimation.viewing import _take_to
+    from engine.surface import mesh_stats_device
 
     pos, faces = unbounded.device_mesh[:2]
     dev = pos.device
-    for room in (None, ISLANDS_BYTES_PER_FACE * len(faces)):  # the second far under a one-piece decimation
-        same = _take_to(pos, faces, 1000, room, dev)
+    islands = Costs().islands
+    for room in (None, islands * len(faces)):  # the second far under a one-piece decimation
+        same = _take_to(pos, faces, 1000, Budget(room), dev)
         assert same[0] is pos and same[1] is faces and same[2]["faces"] == len(faces)
-    room = ISLANDS_BYTES_PER_FACE * len(faces) // 2  # half of what its speck removal needs
-    tpos, tfaces, note = _take_to(pos, faces, 1000, room, dev)
+    room = islands * len(faces) // 2  # half of what its speck removal needs
+    tpos, tfaces, note = _take_to(pos, faces, 1000, Budget(room), dev)
     assert note["tiled_from_faces"] == len(faces) and note["faces"] == len(tfaces)
-    # toward room // DECIMATE_BYTES_PER_FACE faces (1/15 of them), as far as the guards allow on this speckled mesh
+    # toward room // Costs.decimate faces (1/15 of them), as far as the guards allow on this speckled mesh
     assert len(tfaces) <= len(faces) // 3
     assert tfaces.device == dev
     stats = mesh_stats_device(tpos, tfaces)
@@ -340,14 +324,13 @@ def test_viewing_copies_of_a_host_mesh_are_made_on_the_gpu(unbounded, device):
         pytest.skip("needs a CUDA device: the host and the job's device are one here")
     import warp as wp
 
-    from engine.memory import ISLANDS_BYTES_PER_FACE, MESH_BYTES_PER_FACE
-    from engine.viewing import viewing_copies
+    from engine.decimation import viewing_copies
 
     pos, faces = unbounded.device_mesh[:2]
     host = wp.get_device("cpu")
     hpos, hfaces = wp.clone(pos, device=host), wp.clone(faces, device=host)
     gpu = wp.get_device(device)
-    room = (ISLANDS_BYTES_PER_FACE + MESH_BYTES_PER_FACE) * len(faces) // 2  # too small to take it up as it is
+    room = (Costs().islands + Costs().mesh) * len(faces) // 2  # too small to take it up as it is
     phone, ar = viewing_copies(hpos, hfaces, [5000, 2000], None, True, room, gpu)
     assert phone[2]["taken_to"]["device"] == str(gpu) and phone[2]["taken_to"]["tiled_from_faces"] == len(faces)
     assert phone[1].device == gpu and ar[1].device == gpu

@@ -22,7 +22,7 @@ def plate() -> tuple[np.ndarray, np.ndarray]:
 def _run(v: np.ndarray, f: np.ndarray, budget: int, device: str) -> tuple[np.ndarray, np.ndarray, dict]:
     import warp as wp
 
-    from engine.stages.cluster import cluster_device
+    from engine.decimation.cluster import cluster_device
 
     with wp.ScopedDevice(device):
         p, t, info = cluster_device(wp.array(v, dtype=wp.vec3), wp.array(f, dtype=wp.vec3i), budget)
@@ -43,7 +43,7 @@ def test_budget_met_closely_with_valid_faces(plate, budget, device) -> None:
 
 def test_shape_kept(plate, device) -> None:
     """Every clustered vertex lies near the original surface (within a cell)."""
-    from engine.metrics import SurfaceQuery
+    from engine.paper.metrics import SurfaceQuery
 
     v, f = plate
     cv, _, info = _run(v, f, 3000, device)
@@ -63,7 +63,7 @@ def test_one_preparation_serves_several_budgets(plate, device) -> None:
     """The AR copy reuses the phone copy's clustering: both within budget and close to it, few new trials."""
     import warp as wp
 
-    from engine.stages.cluster import SEARCH_STEPS, Clustering
+    from engine.decimation.cluster import SEARCH_STEPS, Clustering
 
     v, f = plate
     with wp.ScopedDevice(device):
@@ -88,8 +88,8 @@ def test_piece_census(plate, device) -> None:
     a closed piece is 8 - 2 X (the plate: 64 tunnels, 4 + 4 * 64 faces)."""
     import warp as wp
 
-    from engine.stages.cluster import piece_census
-    from engine.stages.meshcheck import component_labels
+    from engine.decimation.cluster import piece_census
+    from engine.surface.meshcheck import component_labels
 
     v, f = plate
     ball_v, ball_f = marching_cubes_33(

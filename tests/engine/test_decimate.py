@@ -11,11 +11,11 @@ import math
 import numpy as np
 import pytest
 
+from engine.decimation import decimate_mesh
+from engine.decimation.probe import price_edges
 from engine.io.stack import load_slice_zip
 from engine.isosurface import marching_cubes_33
-from engine.stages.decimate import decimate_mesh
-from engine.stages.decimate_probe import price_edges
-from engine.stages.meshcheck import mesh_stats
+from engine.surface.meshcheck import mesh_stats
 from tests.conftest import shared_file
 from tests.engine.meshutil import assert_closed_manifold, signed_volume, topology
 
@@ -70,7 +70,7 @@ def test_targets_a_few_collapses_away_are_met_exactly(radius, device) -> None:
     can keep none (then the cheapest winner collapses) or too many (then another share is taken)."""
     import warp as wp
 
-    from engine.stages.decimate import decimate_device
+    from engine.decimation.passes import decimate_device
 
     z, y, x = np.mgrid[:24, :24, :24].astype(np.float32)
     field = radius - np.sqrt((z - 11.3) ** 2 + (y - 11.6) ** 2 + (x - 11.5) ** 2)

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from engine.decimation import decimate_mesh
 from engine.isosurface import marching_cubes_33
-from engine.stages.decimate import decimate_mesh
 from tests.engine.meshutil import assert_closed_manifold, signed_volume, topology
 
 
@@ -32,7 +32,7 @@ def test_parallel_slabs_stitch_into_a_closed_mesh() -> None:
 
 
 def _two_slabs() -> tuple[np.ndarray, np.ndarray, list]:
-    from engine.stages.decimate_meshlab import Slab
+    from engine.decimation.meshlab import Slab
 
     z, y, x = np.indices((40, 40, 40), dtype=np.float32)
     v, f = marching_cubes_33(16 - np.sqrt((z - 20) ** 2 + (y - 20) ** 2 + (x - 20) ** 2), 0.0, device="cpu")
@@ -47,7 +47,7 @@ def _two_slabs() -> tuple[np.ndarray, np.ndarray, list]:
 
 def test_a_slab_that_breaks_its_border_is_kept_whole() -> None:
     """If a slab came back with its cut border changed, stitching would leave a hole: that slab stays as it was."""
-    from engine.stages.decimate_meshlab import _collapse, _stitch_slabs
+    from engine.decimation.meshlab import _collapse, _stitch_slabs
 
     v, f, slabs = _two_slabs()
     good = [_collapse(s.points, s.faces, len(s.faces) // 4) for s in slabs]
@@ -68,7 +68,7 @@ def test_a_slab_that_breaks_its_border_is_kept_whole() -> None:
 
 def test_stitching_joins_border_vertices_only() -> None:
     """Two vertices inside one slab at the same place stay two vertices: only cut-border vertices are joined."""
-    from engine.stages.decimate_meshlab import _collapse, _stitch_slabs
+    from engine.decimation.meshlab import _collapse, _stitch_slabs
 
     slabs = _two_slabs()[2]
     good = [_collapse(s.points, s.faces, len(s.faces) // 4) for s in slabs]

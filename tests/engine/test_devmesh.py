@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from engine.isosurface import marching_cubes_33
-from engine.stages.meshcheck import component_labels, mesh_stats
+from engine.surface.meshcheck import component_labels, mesh_stats
 
 
 def _ball(r: float, centre: tuple[float, float, float], shape=(24, 24, 48)) -> np.ndarray:
@@ -40,7 +40,7 @@ def _meshes() -> dict[str, tuple[np.ndarray, np.ndarray]]:
 def test_mesh_stats_device_matches_host(name: str, device: str) -> None:
     import warp as wp
 
-    from engine.stages.devmesh import mesh_stats_device
+    from engine.surface.devmesh import mesh_stats_device
 
     v, f = _meshes()[name]
     host = mesh_stats(v, f)
@@ -58,7 +58,7 @@ def test_mesh_stats_device_matches_host(name: str, device: str) -> None:
 def test_component_labels_device(device: str) -> None:
     import warp as wp
 
-    from engine.stages.devmesh import component_labels_device
+    from engine.surface.devmesh import component_labels_device
 
     v, f = _meshes()["bow tie"]
     n, host = component_labels(f, len(v))
@@ -73,7 +73,7 @@ def test_component_labels_device(device: str) -> None:
 def test_remove_islands_device_matches_host(min_volume, keep, device: str) -> None:
     import warp as wp
 
-    from engine.stages.islands import remove_islands, remove_islands_device
+    from engine.surface.islands import remove_islands, remove_islands_device
 
     field = np.maximum.reduce([_ball(6, (11, 11, 11)), _ball(1.2, (11, 11, 35)), _ball(2.5, (5, 18, 40))])
     v, f = marching_cubes_33(field, 0.0, spacing=(0.5, 0.7, 0.9), device="cpu", closed=True)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from engine.isosurface import marching_cubes_33
-from engine.stages.islands import remove_islands
-from engine.stages.meshcheck import mesh_stats
+from engine.surface.islands import remove_islands
+from engine.surface.meshcheck import mesh_stats
 from tests.engine.meshutil import assert_closed_manifold
 
 RADII = (3.0, 6.0, 10.0)  # voxels, spacing 1 mm

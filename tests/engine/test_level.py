@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from engine.level import hu1024_hint, otsu_level
+from engine.level import choose_level, hu1024_hint, otsu_level
 from engine.params import ReconParams
-from engine.pipeline import choose_level, reconstruct
+from engine.pipeline import reconstruct
 from engine.types import Volume
 
 

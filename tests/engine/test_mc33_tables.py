@@ -6,13 +6,13 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.kernels import _make_mc33_tables as gen
-from engine.kernels import mc33_tables as tables
+from engine.isosurface import _make_mc33_tables as gen
+from engine.isosurface import mc33_tables as tables
 
 
 def test_committed_tables_match_the_generator():
     committed = Path(tables.__file__).read_text()
-    assert committed == gen.render_module(), "run: python -m engine.kernels._make_mc33_tables"
+    assert committed == gen.render_module(), "run: python -m engine.isosurface._make_mc33_tables"
 
 
 def test_every_key_is_covered_and_supported():

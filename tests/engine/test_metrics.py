@@ -1,4 +1,4 @@
-"""engine.metrics on known answers: identical shapes, concentric spheres, shifted slices, boxes on the grid."""
+"""engine.paper.metrics on known answers: identical shapes, concentric spheres, shifted slices, boxes on the grid."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from engine.isosurface import marching_cubes_33
-from engine.metrics import (
+from engine.paper.metrics import (
     even_slices,
     mesh_quality,
     min_angles_deg,
@@ -106,7 +106,7 @@ def _point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
 
 
 def test_warp_query_matches_a_brute_force_reference(device):
-    from engine.metrics import SurfaceQuery
+    from engine.paper.metrics import SurfaceQuery
 
     mesh = trimesh.creation.icosphere(subdivisions=2, radius=3.0)
     mesh.vertices[:, 0] *= 1.7  # an ellipsoid, so that distances vary

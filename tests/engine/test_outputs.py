@@ -12,7 +12,7 @@ from engine.isosurface import marching_cubes_33
 from engine.orient import Frame, export_meshes
 from engine.outputs import STL_HEADER, lay_out, write_outputs
 from engine.pipeline import Reconstruction
-from engine.stages.normals import vertex_normals
+from engine.surface.normals import vertex_normals
 from engine.types import Mesh
 
 
@@ -43,13 +43,14 @@ def blob() -> Mesh:
 
 
 @pytest.mark.parametrize("mirrored, chunk", [(False, None), (True, None), (True, 97)])
-def test_files_match_the_host_exporters(blob, tmp_path, mirrored, chunk, monkeypatch):
+def test_files_match_the_host_exporters(blob, tmp_path, mirrored, chunk):
     """The laid-out files equal the host exporters' (also with the STL's facets laid out a few faces at a time)."""
-    if chunk is not None:
-        monkeypatch.setattr("engine.outputs.LAYOUT_CHUNK_FACES", chunk)
+    from engine.budget import Budget, Costs
+
+    budget = Budget() if chunk is None else Budget(costs=Costs(layout_chunk_faces=chunk))  # no limit, other chunks
     frame = _oblique_frame(mirrored)
     recon = Reconstruction(blob, {"frame": frame.to_dict()})
-    paths = write_outputs(recon, tmp_path, device="cpu")
+    paths = write_outputs(recon, tmp_path, device="cpu", max_device_bytes=budget)
     patient, view, info = export_meshes(blob, frame.to_dict())
     assert recon.report["frame"]["gltf_centre_lps_mm"] == info["gltf_centre_lps_mm"]
     want = _stl_floats(to_stl(patient.vertices, patient.faces, header=STL_HEADER))
@@ -86,11 +87,10 @@ def test_device_and_host_meshes_give_the_same_files(tmp_path):
 
 
 @pytest.mark.parametrize("chunk", [None, 97])
-def test_zero_area_faces_are_counted_on_the_device(blob, chunk, monkeypatch):
+def test_zero_area_faces_are_counted_on_the_device(blob, chunk):
     import warp as wp
 
-    if chunk is not None:
-        monkeypatch.setattr("engine.outputs.LAYOUT_CHUNK_FACES", chunk)
+    from engine.budget import LAYOUT_CHUNK_FACES
 
     v = blob.vertices.copy()
     f = np.vstack([blob.faces, [[0, 1, 1]], [[2, 3, 4]]]).astype(np.int32)
@@ -101,6 +101,7 @@ def test_zero_area_faces_are_counted_on_the_device(blob, chunk, monkeypatch):
             wp.array(f, dtype=wp.vec3i),
             wp.array(blob.normals, dtype=wp.vec3),
             Frame.from_dict(None),
+            chunk_faces=LAYOUT_CHUNK_FACES if chunk is None else chunk,
         )
     assert lay.zero_area == zero_area_faces(v, f) >= 1
 
@@ -122,8 +123,8 @@ def _copies(
 ) -> list[tuple]:
     import warp as wp
 
-    from engine.stages.devmesh import mesh_stats_device
-    from engine.viewing import viewing_copies
+    from engine.decimation.viewing import viewing_copies
+    from engine.surface.devmesh import mesh_stats_device
 
     with wp.ScopedDevice("cpu"):
         mesh = wp.array(v, dtype=wp.vec3), wp.array(f, dtype=wp.vec3i)
@@ -135,7 +136,7 @@ def test_ar_copy_of_a_clustered_phone_copy_is_clustered_from_the_same_mesh(plate
     """The plate's largest (only) piece needs 1300 faces under the topology guard: a 1200-face phone copy is
     clustered without a decimation pass, and the AR copy is clustered from the same mesh (not decimated from the
     clustered copy): both within budget, reported as not topology-preserving, with valid faces."""
-    from engine.stages.meshcheck import mesh_stats
+    from engine.surface.meshcheck import mesh_stats
 
     v, f = plate
     assert mesh_stats(v, f)["euler"] == 2 - 2 * 324
@@ -150,15 +151,15 @@ def test_ar_copy_of_a_clustered_phone_copy_is_clustered_from_the_same_mesh(plate
 
 
 def test_a_mesh_too_large_to_cluster_in_the_room_is_decimated_to_what_fits_first(plate):
-    """Clustering needs ``CLUSTER_BYTES_PER_FACE`` of its input: in half that room, the plate is first decimated
+    """Clustering needs ``Costs.cluster`` bytes per face of its input: in half that room, the plate is first decimated
     (every guard kept) to what fits, then clustered within budget."""
-    from engine.viewing import CLUSTER_BYTES_PER_FACE
+    from engine.budget import Costs
 
     v, f = plate
-    room = CLUSTER_BYTES_PER_FACE * len(f) // 2
+    room = Costs().cluster * len(f) // 2
     ((_, pf, phone, _),) = _copies(v, f, [1200], room=room)
     tiled = phone["tiled_for_clustering"]
-    # toward room // CLUSTER_BYTES_PER_FACE (half the faces), within the tiles' tolerance
+    # toward room // Costs.cluster (half the faces), within the tiles' tolerance
     assert tiled["faces_in"] == len(f) and tiled["faces"] <= 0.6 * len(f)
     assert phone["clustered"]["input_faces"] == tiled["faces"] and 0 < len(pf) <= 1200
 
@@ -167,7 +168,7 @@ def test_a_budget_above_the_topology_floor_is_decimated_first(plate):
     """At a budget the plate's genus allows in principle (>= 1300), the guarded decimation runs first (one round: a
     single piece has nothing to drop) and clustering only follows where it stalls above the budget; the AR copy
     then needs no decimation pass."""
-    from engine.viewing import VIEW_MAX_PASSES
+    from engine.decimation.viewing import VIEW_MAX_PASSES
 
     v, f = plate
     (_, pf, phone, _), (_, af, ar, _) = _copies(v, f, [1500, 700])
@@ -179,7 +180,7 @@ def test_a_budget_above_the_topology_floor_is_decimated_first(plate):
 def test_ar_copy_keeps_the_topology_where_the_budget_allows(blob):
     """A closed copy within reach of its budget stays watertight and 2-manifold, with the print model's pieces and
     Euler characteristic, in both copies (the AR copy continues from the phone copy, as a closed copy)."""
-    from engine.stages.meshcheck import mesh_stats
+    from engine.surface.meshcheck import mesh_stats
 
     v, f = blob.vertices, blob.faces
     before = mesh_stats(v, f)
@@ -194,7 +195,7 @@ def test_stalled_rounds():
     """Another round is worth it only while the last passes, kept up for a round, would close the gap."""
     from types import SimpleNamespace
 
-    from engine.viewing import STALL_PASSES, VIEW_MAX_PASSES, _stalled
+    from engine.decimation.viewing import STALL_PASSES, VIEW_MAX_PASSES, _stalled
 
     guards = SimpleNamespace(passes=12, collapses=[500] * 12)
     assert _stalled(guards, 10)  # stopped before its pass limit: the guards refuse every edge

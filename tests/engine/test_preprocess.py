@@ -7,8 +7,8 @@ import pytest
 
 from engine.params import IsoParams, PreprocessParams, ReconParams
 from engine.pipeline import reconstruct
-from engine.stages.preprocess import crop_volume, preprocess_volume
 from engine.types import Volume
+from engine.volume.preprocess import crop_volume, preprocess_volume
 
 
 def slab_with_speck() -> np.ndarray:

@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from engine.export.printcheck import OPEN_STL, PRINT_STL, PrintCheckError, check_print_model
+from engine.errors import PrintCheckError
+from engine.export.printcheck import OPEN_STL, PRINT_STL, check_print_model
 from engine.outputs import write_outputs
 from engine.params import IsoParams, ReconParams
 from engine.pipeline import Reconstruction
-from engine.stages.meshcheck import mesh_stats
+from engine.surface.meshcheck import mesh_stats
 from engine.types import Mesh
 
 Arrays = tuple[np.ndarray, np.ndarray]

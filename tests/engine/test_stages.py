@@ -10,10 +10,10 @@ from scipy import ndimage
 
 from engine.errors import InputError
 from engine.isosurface import marching_cubes_33
+from engine.level import choose_level
 from engine.params import DecimateParams, IsoParams, PreprocessParams, ReconParams, SmoothParams
-from engine.pipeline import choose_level
-from engine.stages.preprocess import crop_volume, preprocess_volume
 from engine.types import Volume
+from engine.volume.preprocess import crop_volume, preprocess_volume
 from tests.engine.meshutil import assert_closed_manifold, signed_volume, topology
 
 
@@ -69,7 +69,7 @@ def test_gaussian_matches_scipy(device, dtype):
     import warp as wp
 
     from engine.params import GaussianParams
-    from engine.stages.gaussian import smooth_volume
+    from engine.volume.gaussian import smooth_volume
 
     vol = np.random.default_rng(1).integers(0, 3000, size=(9, 10, 11)).astype(dtype)
     got = smooth_volume(wp.array(vol, device=device), GaussianParams(0.5)).numpy()
@@ -79,7 +79,7 @@ def test_gaussian_matches_scipy(device, dtype):
 
 # ------------------------------------------------------------------------------------------- smoothing
 def test_smoothing_keeps_volume_watertightness_and_orientation(wp_device):
-    from engine.stages.smooth import smooth_mesh
+    from engine.surface.smooth import smooth_mesh
 
     verts, faces = ball_mesh(noise=0.05)
     before = signed_volume(verts, faces)
@@ -93,7 +93,7 @@ def test_smoothing_keeps_volume_watertightness_and_orientation(wp_device):
 
 def test_smoothing_respects_the_angle(wp_device):
     """No face normal turns by the threshold or more in one iteration; a larger angle moves more vertices."""
-    from engine.stages.smooth import smooth_mesh
+    from engine.surface.smooth import smooth_mesh
 
     verts, faces = ball_mesh(noise=0.05)
 
@@ -112,7 +112,7 @@ def test_smoothing_respects_the_angle(wp_device):
 
 
 def test_smoothing_keeps_open_boundaries(wp_device):
-    from engine.stages.smooth import smooth_mesh, unique_edges
+    from engine.surface.smooth import smooth_mesh, unique_edges
 
     z, y, x = np.indices((12, 14, 16), dtype=np.float32)
     vol = 6.3 - x + 0.3 * np.sin(y) + 0.2 * np.cos(z)
@@ -125,7 +125,7 @@ def test_smoothing_keeps_open_boundaries(wp_device):
 
 
 def test_vertex_normals_point_outward(wp_device):
-    from engine.stages.normals import vertex_normals
+    from engine.surface.normals import vertex_normals
 
     verts, faces = ball_mesh()
     n = vertex_normals(verts, faces, wp_device)

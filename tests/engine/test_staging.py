@@ -1,4 +1,5 @@
-"""Host copies of device arrays through the process's pinned buffer (``engine.staging``)."""
+"""Host copies of device arrays through the process's pinned buffer (``engine.staging``), and the plane feed that
+uploads a streamed volume through a pinned ring (``engine.isosurface.feed``)."""
 
 from __future__ import annotations
 
@@ -86,14 +87,13 @@ def _requests(nz: int, rng: np.random.Generator) -> list[tuple[int, int]]:
 def test_plane_feed_uploads_the_planes_asked_for(monkeypatch, device, ring_planes):
     """Whatever the ring's size against the slabs (2 planes, shorter and longer than them), every request gets
     exactly the volume's planes, including one behind the released planes (copied directly)."""
-    from engine import staging
+    from engine.isosurface import feed as feeds
 
     rng = np.random.default_rng(ring_planes)
     vol = rng.integers(0, 4000, (150, 9, 11), dtype=np.uint16)
-    monkeypatch.setattr(staging, "FEED_MIN_BYTES", ring_planes * vol[0].nbytes)
-    monkeypatch.setattr(staging, "FEED_CHUNK_BYTES", 3 * vol[0].nbytes)
-    with staging.plane_feed(vol, device, force=True) as feed:
-        assert isinstance(feed, staging.PlaneFeed)
+    monkeypatch.setattr(feeds, "FEED_CHUNK_BYTES", 3 * vol[0].nbytes)
+    with feeds.plane_feed(vol, device, ring_bytes=ring_planes * vol[0].nbytes) as feed:
+        assert isinstance(feed, feeds.PlaneFeed)
         for zlo, zhi in [*_requests(len(vol), rng), (0, 5)]:
             got = feed.upload(zlo, zhi)
             assert got.device == wp.get_device(device) and got.shape == (zhi - zlo + 1, 9, 11)
@@ -102,21 +102,21 @@ def test_plane_feed_uploads_the_planes_asked_for(monkeypatch, device, ring_plane
 
 
 def test_plane_feed_is_held_by_one_job_at_a_time():
-    from engine import staging
+    from engine.isosurface import feed as feeds
 
     vol = np.arange(4 * 5 * 6, dtype=np.float32).reshape(4, 5, 6)
-    with staging.plane_feed(vol, "cpu", force=True) as first, staging.plane_feed(vol, "cpu", force=True) as second:
-        assert isinstance(first, staging.PlaneFeed) and isinstance(second, staging.DirectFeed)  # the second: direct
+    with feeds.plane_feed(vol, "cpu", force=True) as first, feeds.plane_feed(vol, "cpu", force=True) as second:
+        assert isinstance(first, feeds.PlaneFeed) and isinstance(second, feeds.DirectFeed)  # the second: direct
         np.testing.assert_array_equal(second.upload(1, 2).numpy(), vol[1:3])
-    with staging.plane_feed(vol, "cpu") as plain:  # not CUDA: no ring
-        assert isinstance(plain, staging.DirectFeed)
+    with feeds.plane_feed(vol, "cpu") as plain:  # not CUDA: no ring
+        assert isinstance(plain, feeds.DirectFeed)
         np.testing.assert_array_equal(plain.upload(0, 3).numpy(), vol)
 
 
 def test_plane_feed_reports_a_failed_read(monkeypatch):
     """A volume whose planes cannot be read (e.g. a memmap whose disk went away) fails the request with the reason
     and the thread ends."""
-    from engine import staging
+    from engine.isosurface import feed as feeds
 
     class Broken(np.ndarray):
         def __getitem__(self, key):
@@ -125,6 +125,6 @@ def test_plane_feed_reports_a_failed_read(monkeypatch):
             return super().__getitem__(key)
 
     vol = np.zeros((8, 4, 4), np.uint16).view(Broken)
-    monkeypatch.setattr(staging.np, "ascontiguousarray", lambda a: a)
-    with pytest.raises(RuntimeError, match="disk gone"), staging.plane_feed(vol, "cpu", force=True) as feed:
+    monkeypatch.setattr(feeds.np, "ascontiguousarray", lambda a: a)
+    with pytest.raises(RuntimeError, match="disk gone"), feeds.plane_feed(vol, "cpu", force=True) as feed:
         feed.upload(0, 3)

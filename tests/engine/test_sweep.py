@@ -11,8 +11,8 @@ import pytest
 from engine.cli import main
 from engine.export import to_glb
 from engine.export.glb import read_glb
-from engine.sweep import SweepConfig, run_sweep
-from engine.sweep_report import enhancement_score, scores
+from engine.paper.sweep import SweepConfig, run_sweep
+from engine.paper.sweep_report import enhancement_score, scores
 from engine.types import Volume
 
 

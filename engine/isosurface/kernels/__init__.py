@@ -1,0 +1,1 @@
+"""Warp kernels of Marching Cubes 33 (``mc33``). No host logic lives here."""

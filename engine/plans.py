@@ -1,0 +1,317 @@
+"""The two plans of ``engine.pipeline.reconstruct``, chosen once from the memory budget (``engine.budget``): each an
+ordered tuple of named stages over a small typed state (``State``).
+
+* ``WHOLE_VOLUME`` (no budget): the volume goes up once, the Gaussian and MC33 run on the whole field, the mesh is
+  decimated in one piece;
+* ``STREAMED`` (a budget): the volume stays on the host and streams through the Gaussian and MC33 in z slabs
+  (``engine.isosurface.stream``), a mesh whose decimation does not fit is decimated in groups of slabs and
+  finished across their borders (``engine.decimation.groups``), and the finishing stages go to the host where the
+  model does not fit (``Budget.place``).
+
+Both plans have the same stage names (``STAGES``), so the report and the progress read the same. Each stage is
+``stage(state, params, report, progress)``; everything after preprocess runs on the device where the data already
+is.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from engine.budget import Budget
+from engine.errors import EmptySurfaceError, InputError
+from engine.level import choose_level, hu_offset
+from engine.params import ReconParams
+from engine.types import Volume
+
+SEAM_VOXELS = 6  # a budgeted decimation's last pass across the slab groups' borders reaches this far from them
+Progress = Callable[[float], None]
+
+
+@dataclass
+class State:
+    """What the stages hand on: the volume, then the device field, then the device mesh (and its stars)."""
+
+    volume: Volume
+    budget: Budget = field(default_factory=Budget)  # every stage keeps to it (the streamed plan)
+    field: Any = None
+    level: float = 0.0
+    pos: Any = None  # wp.array(dtype=wp.vec3), (z, y, x) mm
+    faces: Any = None  # wp.array(dtype=wp.vec3i)
+    incidence: Any = None  # devmesh.Incidence of the current mesh, when built
+    normals: Any = None
+    stream: Any = None  # engine.isosurface.stream.StreamResult of the streamed plan
+
+    def incidence_built(self) -> Any:
+        """The current mesh's stars (``engine.surface.devmesh.Incidence``), built once."""
+        from engine.surface.devmesh import Incidence
+
+        if self.incidence is None:
+            self.incidence = Incidence(len(self.pos)).build(self.faces, len(self.faces))
+        return self.incidence
+
+
+Stage = Callable[[State, ReconParams, dict[str, Any], Progress], None]
+
+
+def _preprocess(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    from engine.orient import patient_frame
+    from engine.volume.preprocess import preprocess_volume
+
+    if params.preprocess is not None:
+        st.volume = preprocess_volume(st.volume, params.preprocess)
+    report["counts"]["voxels"] = int(st.volume.data.size)
+    report["frame"] = patient_frame(st.volume, params.orient).to_dict()  # engine.orient: STL/glTF frames
+    if params.body is not None:  # bone of the body only (HU data): engine.volume.bodymask
+        from engine.volume.bodymask import isolate_bone
+
+        level = choose_level(st.volume, params)[0]
+        st.volume, report["body_mask"] = isolate_bone(st.volume, level, params.body, hu_offset(st.volume, params))
+
+
+def _upload(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    """The volume to the device, once (the whole-volume plan)."""
+    import warp as wp
+
+    st.field = wp.array(np.ascontiguousarray(_device_dtype(st.volume.data)))
+    _choose_level(st, params, report)
+
+
+def _stage_on_host(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    """The volume stays on the host, contiguous, to stream in slabs (the streamed plan: engine.isosurface.stream)."""
+    st.volume = dataclasses.replace(st.volume, data=np.ascontiguousarray(_device_dtype(st.volume.data)))
+    _choose_level(st, params, report)
+
+
+def _device_dtype(data: np.ndarray) -> np.ndarray:
+    """The samples in a type the device stages read (uint8, uint16, int16 or float32), else as float32."""
+    if data.dtype not in (np.uint8, np.uint16, np.int16, np.float32):
+        data = data.astype(np.float32)
+    return data
+
+
+def _choose_level(st: State, params: ReconParams, report: dict[str, Any]) -> None:
+    st.level, how = choose_level(st.volume, params)
+    report["iso_level"] = {"value": st.level, "units": st.volume.units, "chosen_by": how}
+
+
+def _gaussian(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    from engine.volume.gaussian import smooth_volume
+
+    if params.gaussian is not None:
+        st.field = smooth_volume(st.field, params.gaussian)
+
+
+def _gaussian_in_slabs(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    """Nothing here: the streamed plan smooths slab by slab inside its isosurface stage."""
+
+
+def _isosurface(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    from engine.isosurface.mc33 import extract_isosurface
+    from engine.isosurface.stats import IsosurfaceStats
+
+    stats = IsosurfaceStats()
+    with _data_errors():  # its ValueErrors are about the data (NaN, checked on the device in the extraction's pass)
+        v, f = extract_isosurface(
+            st.field, st.level, spacing=st.volume.spacing_zyx_mm, closed=params.iso.closed, stats=stats
+        )
+    st.field = None
+    _take_surface(st, v, f, stats, report)
+
+
+def _isosurface_streamed(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    from engine.isosurface.stats import IsosurfaceStats
+
+    stats = IsosurfaceStats()
+    with _data_errors():
+        v, f = _stream(st, params, stats)
+    if st.stream.grouped:  # decimated in groups already
+        report["counts"]["isosurface"] = {"vertices": st.stream.mc33_vertices, "faces": st.stream.mc33_faces}
+        report["isosurface"] = {"slabs": stats.slabs, "active_blocks": stats.active_blocks, "blocks": stats.blocks}
+        return
+    _take_surface(st, v, f, stats, report)
+
+
+@contextmanager
+def _data_errors() -> Iterator[None]:
+    """The isosurface's ``ValueError`` (about the data: NaN) as an ``InputError``; an ``InputError`` as it is."""
+    try:
+        yield
+    except InputError:
+        raise
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
+def _take_surface(st: State, v: Any, f: Any, stats: Any, report: dict[str, Any]) -> None:
+    """The isosurface becomes the state's mesh; an empty one is ``EmptySurfaceError``."""
+    if len(f) == 0:
+        lo, hi = float(st.volume.data.min()), float(st.volume.data.max())
+        raise EmptySurfaceError(
+            f"no surface at level {st.level:g} {st.volume.units}: the scan's values run from "
+            f"{lo:g} to {hi:g}; choose a level inside that range"
+        )
+    st.pos, st.faces = v, f
+    report["counts"]["isosurface"] = {"vertices": len(v), "faces": len(f)}
+    report["isosurface"] = {"slabs": stats.slabs, "active_blocks": stats.active_blocks, "blocks": stats.blocks}
+
+
+def _stream(st: State, params: ReconParams, stats: Any) -> tuple[Any, Any]:
+    """The Gaussian and MC33 within the budget (``engine.isosurface.stream``): the device mesh, or (when groups of
+    slabs had to be decimated on the way) empty arrays and the groups in ``st.stream``."""
+    import warp as wp
+
+    from engine.isosurface.stream import stream_surface
+
+    dec = params.decimate
+    st.stream = stream_surface(
+        st.volume.data,
+        st.level,
+        st.volume.spacing_zyx_mm,
+        closed=params.iso.closed,
+        gaussian=params.gaussian,
+        budget=st.budget,
+        ratio=None if dec is None else dec.reduction,
+        decimate=dec is not None,
+        dev=wp.get_device(),
+        stats=stats,
+    )
+    if st.stream.device is not None:
+        device_mesh: tuple[Any, Any] = st.stream.device
+        return device_mesh
+    return wp.empty(0, dtype=wp.vec3), wp.empty(0, dtype=wp.vec3i)
+
+
+def _decimate(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    if params.decimate is None:
+        return
+    from engine.decimation.passes import TOLERANCE, decimate_device
+
+    n_in = len(st.faces)
+    target = params.decimate.target_faces(n_in)
+    if target >= n_in:
+        report["decimate"] = {"input_faces": n_in, "target_faces": target, "output_faces": n_in, "passes": 0}
+        return
+
+    def on_pass(faces_now: int) -> None:
+        progress((n_in - faces_now) / max(n_in - target, 1))
+
+    st.pos, st.faces, stats = decimate_device(st.pos, st.faces, target, on_pass=on_pass)
+    info = stats.to_dict()
+    info["achieved_ratio"] = stats.output_faces / n_in
+    info["limited_by_guards"] = stats.output_faces > target * (1 + TOLERANCE)
+    info["method"] = "warp quadric edge collapse (link condition, border kept, normal turn guard)"
+    report["decimate"] = info
+    report["counts"]["decimate"] = {"vertices": len(st.pos), "faces": stats.output_faces}
+
+
+def _decimate_streamed(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    if st.stream.grouped:
+        _decimate_groups(st, params, report)
+    else:
+        _decimate(st, params, report, progress)
+
+
+def _decimate_groups(st: State, params: ReconParams, report: dict[str, Any]) -> None:
+    """Finish a decimation begun in groups of slabs: tiled rounds across their borders, then a last pass."""
+    from engine.decimation.groups import finish_groups
+    from engine.decimation.passes import TOLERANCE
+
+    sr = st.stream
+    assert params.decimate is not None and sr is not None and sr.grouped
+    n_in = sr.mc33_faces
+    target = params.decimate.target_faces(n_in)
+    host, sr.host = sr.host, None
+    pieces, sr.pieces = (None if sr.pieces is None else list(sr.pieces)), None  # finish_groups takes them over
+    seam_mm = SEAM_VOXELS * max(st.volume.spacing_zyx_mm)
+    st.pos, st.faces, info = finish_groups(host, pieces, sr.origin, target, st.budget, sr.borders, seam_mm)
+    out = len(st.faces)
+    info |= {"input_faces": n_in, "target_faces": target, "achieved_ratio": out / n_in}
+    info["limited_by_guards"] = out > target * (1 + TOLERANCE)
+    info["method"] = "warp quadric edge collapse in slab groups and z tiles with pinned borders (memory budget)"
+    report["decimate"] = info
+    report["counts"]["decimate"] = {"vertices": len(st.pos), "faces": out}
+
+
+def _fit_or_host(st: State, report: dict[str, Any]) -> None:
+    """The finishing stages hold the whole final mesh: within a budget it cannot fit, they run on the host
+    (``Budget.place``: Warp's CPU device, outside the budget; reported as ``report["finish"]``), or, where
+    the device is the host, the job stops early with the budget that would work."""
+    from engine.surface.devmesh import on_device
+
+    what = f"finishing the model ({len(st.faces):,} faces: islands, smoothing, normals, outputs)"
+    need = st.budget.costs.finish_bytes(len(st.faces))
+    where, note = st.budget.place(st.faces.device, need, what, " or decimate further")
+    if note is not None:
+        st.pos, st.faces = on_device(where, st.pos, st.faces)
+        st.incidence = None
+        report["finish"] = note
+
+
+def _islands(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    if params.islands is None:
+        return
+    from engine.surface.islands import remove_islands_device
+
+    min_volume = params.islands.min_volume_for(st.volume.spacing_zyx_mm)
+    st.pos, st.faces, info = remove_islands_device(
+        st.pos, st.faces, min_volume_mm3=min_volume, keep_largest=params.islands.keep_largest, consume=True
+    )
+    if len(st.faces) == 0:
+        raise EmptySurfaceError("island removal left nothing: lower --min-island-mm3 or keep more pieces")
+    report["islands"] = {**info, "min_volume_mm3": min_volume}
+    report["counts"]["islands"] = {"vertices": len(st.pos), "faces": len(st.faces)}
+
+
+def _islands_within(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    """Islands within the budget: the finishing stages first go to the host where the model does not fit."""
+    _fit_or_host(st, report)
+    _islands(st, params, report, progress)
+
+
+def _smooth(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    if params.smooth is None:
+        return
+    from engine.surface.smooth import smooth_device
+
+    st.pos, report["smooth"] = smooth_device(st.pos, st.faces, params.smooth, st.incidence_built())
+
+
+def _normals(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+    from engine.surface.normals import normals_device
+
+    st.normals = normals_device(st.pos, st.faces, st.incidence_built())
+
+
+WHOLE_VOLUME: tuple[tuple[str, Stage], ...] = (
+    ("preprocess", _preprocess),
+    ("upload", _upload),
+    ("gaussian", _gaussian),
+    ("isosurface", _isosurface),
+    ("decimate", _decimate),
+    ("islands", _islands),
+    ("smooth", _smooth),
+    ("normals", _normals),
+)
+STREAMED: tuple[tuple[str, Stage], ...] = (
+    ("preprocess", _preprocess),
+    ("upload", _stage_on_host),
+    ("gaussian", _gaussian_in_slabs),
+    ("isosurface", _isosurface_streamed),
+    ("decimate", _decimate_streamed),
+    ("islands", _islands_within),
+    ("smooth", _smooth),
+    ("normals", _normals),
+)
+STAGES = tuple(name for name, _ in WHOLE_VOLUME)
+assert STAGES == tuple(name for name, _ in STREAMED)
+
+
+def plan_for(budget: Budget) -> tuple[tuple[str, Stage], ...]:
+    """The plan a budget asks for: ``STREAMED`` within a budget, else ``WHOLE_VOLUME``."""
+    return STREAMED if budget.limited else WHOLE_VOLUME

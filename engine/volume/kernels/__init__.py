@@ -1,0 +1,1 @@
+"""Warp kernels on volumes (``gaussian``). No host logic lives here."""
