@@ -30,6 +30,7 @@ WORKDIR /app
 # dependencies first (a layer that survives source edits), then the source
 COPY pyproject.toml README.md ./
 COPY engine ./engine
+COPY core ./core
 COPY service ./service
 COPY worker ./worker
 COPY docker/worker-entry.sh /usr/local/bin/bonemesh-worker-entry

@@ -21,12 +21,12 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 from fastapi_offline import FastAPIOffline
 
+from core.settings import Settings, get_settings
 from service import problems
 from service.background import Background
 from service.routes import files, health, jobs, page
 from service.schemas import add_job_params
 from service.services import Services
-from service.settings import Settings, get_settings
 
 DESCRIPTION = (
     "Bone surface models from CT and micro-CT scans: upload a slice archive or DICOM series, get a watertight STL "

@@ -8,8 +8,8 @@ import datetime as dt
 import threading
 from collections.abc import Callable
 
-from service.db import utcnow
-from service.logsafe import safe_logger
+from core.db import utcnow
+from core.logsafe import safe_logger
 from service.services import Services
 from service.webhooks import deliver_due
 

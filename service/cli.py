@@ -1,17 +1,17 @@
-"""The ``bonemesh`` command: ``serve`` (the API) and ``worker`` (a Celery worker) here; every other command
-(``reconstruct``, ``isosurface``, ``sweep``) is the engine's (:mod:`engine.cli`).
+"""The ``bonemesh`` command: ``serve`` (the API) here, ``worker`` (a Celery worker) in :mod:`worker.cli`, ``pacs``
+in :mod:`service.pacs.gateway`; every other command (``reconstruct``, ``isosurface``, ``sweep``) is the engine's
+(:mod:`engine.cli`). Each is imported only when its command runs, so ``bonemesh serve`` never imports the worker.
 
     bonemesh serve [--host 127.0.0.1] [--port 8000] [--workers 1]
-    bonemesh worker [--loglevel INFO] [--device auto|cpu|cuda:N]
+    bonemesh worker [--loglevel INFO] [--device auto|cpu|cuda:N]   (worker.cli)
     bonemesh pacs [--host H] [--port P] [--ae-title AE]   (service.pacs.gateway)
 
-Both read their settings from ``BONEMESH_*`` environment variables (:mod:`service.settings`).
+Each reads its settings from ``BONEMESH_*`` environment variables (:mod:`core.settings`).
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 
 
@@ -43,55 +43,16 @@ def _serve(argv: list[str]) -> int:
     return 0
 
 
-def _worker(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(
-        prog="bonemesh worker", description="Start a Celery worker: one job at a time (run one per GPU)."
-    )
-    parser.add_argument("--loglevel", default="INFO")
-    parser.add_argument("--device", help="auto, cpu or cuda:N (default BONEMESH_DEVICE, else auto)")
-    parser.add_argument("--hostname", help="Celery node name (default bonemesh@<host>-<pid>)")
-    parser.add_argument(
-        "--max-device-bytes", help="device memory budget per job, e.g. 8GiB (default BONEMESH_MAX_DEVICE_BYTES)"
-    )
-    args = parser.parse_args(argv)
-    if args.device:
-        os.environ["BONEMESH_DEVICE"] = args.device
-    if args.max_device_bytes:
-        from engine.memory import parse_bytes
-
-        try:
-            parse_bytes(args.max_device_bytes)
-        except ValueError as exc:
-            parser.error(str(exc))
-        os.environ["BONEMESH_MAX_DEVICE_BYTES"] = args.max_device_bytes
-    from service.settings import get_settings
-
-    settings = get_settings()
-    from worker.app import app
-
-    node = args.hostname or f"bonemesh@%h-{os.getpid()}"
-    app.worker_main(
-        [
-            "worker",
-            "--pool=prefork",
-            "--concurrency=1",
-            "--prefetch-multiplier=1",
-            f"--queues={settings.queue}",
-            f"--loglevel={args.loglevel}",
-            f"--hostname={node}",
-            "--without-gossip",
-            "--without-mingle",
-        ]
-    )
-    return 0
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "serve":
         return _serve(argv[1:])
     if argv and argv[0] == "worker":
-        return _worker(argv[1:])
+        # the one edge from the API package to the worker: a console-script dispatch, looked up only when
+        # `bonemesh worker` runs (tests/test_import_contracts.py allows exactly this one)
+        from worker.cli import main as worker_main
+
+        return worker_main(argv[1:])
     if argv and argv[0] == "pacs":
         from service.pacs.gateway import main as pacs_main
 

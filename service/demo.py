@@ -29,7 +29,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from service.settings import DEV_API_KEY
+from core.settings import DEV_API_KEY
 
 
 def _free_port() -> int:

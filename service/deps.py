@@ -8,10 +8,10 @@ from typing import Annotated
 
 from fastapi import Depends, Header, Request
 
-from service.db import owner_of
+from core.db import owner_of
+from core.settings import Settings
 from service.problems import Problem
 from service.services import Services
-from service.settings import Settings
 
 
 def get_settings_of_app(request: Request) -> Settings:

@@ -10,12 +10,12 @@ from typing import Any
 from fastapi import Request
 from pydantic import ValidationError
 
-from service.db import Database, Job
-from service.logsafe import safe_logger
-from service.params import JobParams
+from core.db import Database, Job
+from core.logsafe import safe_logger
+from core.params import JobParams
+from core.storage import UploadTooLarge, is_storage_full
 from service.problems import Problem
 from service.services import Services
-from service.storage import UploadTooLarge, is_storage_full
 from service.upload_check import inspect_upload
 from service.uploads import UploadError, read_multipart
 from service.webhooks import CallbackRefused, check_callback_url

@@ -13,8 +13,8 @@ DEFAULT = Path(__file__).resolve().parents[1] / "openapi" / "openapi.json"
 
 def render() -> str:
     """The app's OpenAPI document as stable, indented JSON."""
+    from core.settings import Settings
     from service.app import create_app
-    from service.settings import Settings
 
     app = create_app(Settings(api_keys=["openapi-export"], secret_key="openapi-export"))
     return json.dumps(app.openapi(), indent=2, sort_keys=True) + "\n"

@@ -19,7 +19,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.logsafe import escape_control, safe_logger
+from core.logsafe import escape_control, safe_logger
 
 log = safe_logger("bonemesh.api")
 PROBLEM = "application/problem+json"

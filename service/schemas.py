@@ -8,8 +8,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
+from core.params import JobParams
 from service.pacs.models import Delivery, SourceJobCreate
-from service.params import JobParams
 
 
 class JobError(BaseModel):

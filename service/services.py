@@ -8,14 +8,14 @@ from typing import Any
 
 import anyio
 
+from core.db import Database, Job
+from core.logsafe import safe_logger
+from core.queue import Queue
+from core.settings import Settings
+from core.storage import Storage, storage_from_settings
 from service import tokens
-from service.db import Database, Job
-from service.logsafe import safe_logger
 from service.pacs import api as pacs_api
-from service.queue import Queue
 from service.schemas import JobError, JobOut, OutputFile, WebhookAttempt, WebhookOut
-from service.settings import Settings
-from service.storage import Storage, storage_from_settings
 
 log = safe_logger("bonemesh.api")
 UPLOAD_THREADS = 4  # threads for the blocking parts of all uploads together

@@ -7,10 +7,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from service.params import JobParams
-from service.uploads import UploadError, relabel
+from core.logsafe import relabel
+from core.params import JobParams
+from service.uploads import UploadError
 
-UNREADABLE = ("neither an archive", "not a readable", "single 2-D image")
 # image formats that never carry a voxel size (TIFF tags and DICOM headers may)
 NO_SPACING_KINDS = frozenset({"png", "jpeg", "bmp", "npy"})
 
@@ -22,17 +22,17 @@ def inspect_upload(path: Path, filename: str | None, params: JobParams) -> str:
         UploadError: 415 for what is not a scan container, 422 for an unsafe, oversized or unusable one, or for
             a PNG/JPEG/BMP/.npy stack without ``spacing`` in the params.
     """
-    from engine.errors import InputError
+    from engine.errors import InputError, NotAScanError
     from engine.io import inspect_input
     from engine.io.archive import open_members
     from engine.io.stack import image_kind
 
     try:
         summary = inspect_input(path)
+    except NotAScanError as exc:  # not a container bonemesh reads (by type: engine.errors)
+        raise UploadError(415, relabel(str(exc), filename)) from None
     except InputError as exc:
-        detail = relabel(str(exc), filename)
-        status = 415 if any(s in detail for s in UNREADABLE) else 422
-        raise UploadError(status, detail) from None
+        raise UploadError(422, relabel(str(exc), filename)) from None
     if summary.dicom == 0 and params.spacing is None:
         with open_members(path, heads_only=True) as members:
             kinds = {image_kind(m.head) for m in members.members} - {None}

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 from python_multipart.multipart import MultipartParseError, MultipartParser, MultipartState, parse_options_header
 
-from service.logsafe import escape_control
+from core.logsafe import escape_control
 
 MAX_FIELD_BYTES = 64 << 10
 MAX_HEADER_BYTES = 16 << 10
@@ -166,9 +166,3 @@ async def read_multipart(content_type: str, body: AsyncIterator[bytes], sink: Si
     if not out.got_file:
         raise UploadError(422, "the 'file' part is missing: attach the scan archive as 'file'")
     return out
-
-
-def relabel(message: str, filename: str | None) -> str:
-    """An engine message about the stored upload (named ``upload``) in terms of the client's file name (escaped)."""
-    name = escape_control(filename) if filename else "the upload"
-    return message.replace("upload", name, 1) if message.startswith("upload") else message

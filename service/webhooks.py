@@ -24,8 +24,8 @@ import urllib.request
 from typing import Any
 from urllib.parse import urlsplit
 
-from service.db import Job, utcnow
-from service.logsafe import safe_logger
+from core.db import Job, utcnow
+from core.logsafe import safe_logger
 
 log = safe_logger("bonemesh.api")
 SECRET_PREFIX = "whsec_"

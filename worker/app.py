@@ -13,9 +13,9 @@ import multiprocessing.process
 from celery import Celery
 from celery.signals import worker_process_init
 
-from service.logsafe import safe_logger
-from service.queue import celery_config
-from service.settings import Settings, get_settings
+from core.logsafe import safe_logger
+from core.queue import celery_config
+from core.settings import Settings, get_settings
 
 log = safe_logger("bonemesh.worker")
 WARMUP_TIMEOUT_S = 300  # how long the pool waits for a child's start (its warm-up included)

@@ -15,11 +15,11 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+from core.db import Database
+from core.logsafe import safe_logger
+from core.pacs.records import PacsRecords
 from engine.errors import EngineError
 from engine.types import Volume
-from service.db import Database
-from service.logsafe import safe_logger
-from service.pacs.records import PacsRecords
 
 log = safe_logger("bonemesh.worker")
 MODEL_DCM = "model.dcm"
@@ -57,8 +57,8 @@ def fetch_source(db: Database, job_id: str, upload: Path) -> None:
     rec = PacsRecords(db).get(job_id)
     if rec is None or rec.source.get("kind") != "dicomweb" or upload.exists():
         return
-    from service.pacs.config import get_pacs_settings
-    from service.pacs.dicomweb import DicomwebError, SeriesIncomplete, fetch_series
+    from core.pacs.config import get_pacs_settings
+    from core.pacs.dicomweb import DicomwebError, SeriesIncomplete, fetch_series
 
     name = rec.source["server"]
     server = get_pacs_settings().dicomweb_servers.get(name)

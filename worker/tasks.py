@@ -17,11 +17,10 @@ from typing import Any
 
 from celery.exceptions import SoftTimeLimitExceeded
 
-from service.db import Database, utcnow
-from service.logsafe import escape_control, safe_logger
-from service.settings import Settings, get_settings
-from service.storage import OUTPUTS, is_storage_full, storage_from_settings
-from service.uploads import relabel
+from core.db import Database, utcnow
+from core.logsafe import escape_control, relabel, safe_logger
+from core.settings import Settings, get_settings
+from core.storage import OUTPUTS, is_storage_full, storage_from_settings
 from worker.app import app
 from worker.pacs import SourceIncomplete, SourceUnavailable, UncheckedSource, fetch_source, write_dicom_model
 
@@ -202,14 +201,14 @@ def engine_params_of(job: Any) -> tuple[dict[str, Any], list[float] | None]:
     """
     if job.engine_params:
         return job.engine_params["recon"], job.engine_params.get("spacing_zyx_mm")
-    from service.params import JobParams  # an older record: the client's form only
+    from core.params import JobParams  # an older record: the client's form only
 
     return JobParams.model_validate(job.params).engine_params(), job.params.get("spacing")
 
 
 def _explain(exc: Exception, filename: str) -> tuple[str, str]:
     """An error code and a message a clinician can act on."""
-    from engine.errors import IncompleteSeriesError, InputError
+    from engine.errors import IncompleteSeriesError, InputError, NoSpacingError
     from engine.export.printcheck import PrintCheckError
     from engine.pipeline import EmptySurfaceError, StageError
 
@@ -232,14 +231,13 @@ def _explain(exc: Exception, filename: str) -> tuple[str, str]:
         return "no_surface", relabel(str(exc), filename)
     if isinstance(exc, IncompleteSeriesError | UncheckedSource):
         return "incomplete_series", relabel(str(exc), filename)
+    if isinstance(exc, NoSpacingError):
+        return "no_spacing", (
+            f'{filename}: the image slices do not say how large a voxel is; send "spacing": [z, y, x] in '
+            "millimetres in the job's params"
+        )
     if isinstance(exc, InputError):
-        message = relabel(str(exc), filename)
-        if "does not carry its voxel size" in message or "not the slice spacing" in message:
-            return "no_spacing", (
-                f'{filename}: the image slices do not say how large a voxel is; send "spacing": [z, y, x] in '
-                "millimetres in the job's params"
-            )
-        return "bad_input", message
+        return "bad_input", relabel(str(exc), filename)
     if isinstance(exc, MemoryError):
         return "too_large", "the scan needs more memory than this worker has; crop or downsample it"
     if isinstance(exc, StageError):

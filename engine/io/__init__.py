@@ -11,7 +11,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from engine.errors import InputError
+from engine.errors import InputError, NotAScanError
 from engine.io.archive import InputLimits, open_members
 from engine.io.dicom import has_dicom_images, load_dicom
 from engine.io.parallel import decode_threads
@@ -57,12 +57,12 @@ def inspect_input(path: str | Path, limits: InputLimits | None = None) -> InputS
         summary = InputSummary(members.kind, len(members.members), images, dicom)
         flat = summary.kind == "file" and image_kind(members.members[0].head) in ("png", "jpeg", "bmp")
     if summary.kind == "file" and not (images or dicom):
-        raise InputError(
+        raise NotAScanError(
             f"{label} is neither an archive (zip, tar, tar.gz) nor a volume file (.npy, TIFF, DICOM) that "
             "bonemesh reads"
         )
     if flat:
-        raise InputError(f"{label} is a single 2-D image, not a scan: send all the slices in one zip or tar archive")
+        raise NotAScanError(f"{label} is a single 2-D image, not a scan: send all the slices in one zip or tar archive")
     if not (images or dicom):
         raise InputError(
             f"{label} holds {summary.files} file(s) but no image slices (PNG, TIFF, JPEG, BMP, .npy) and no DICOM files"

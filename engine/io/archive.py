@@ -26,7 +26,7 @@ from functools import partial
 from pathlib import Path
 from typing import IO
 
-from engine.errors import InputError
+from engine.errors import InputError, NotAScanError
 from engine.io.readers import PlainTar, Where, ZipHandles, read_where
 
 _CHUNK = 1 << 20
@@ -262,7 +262,7 @@ def _read_zip(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
         raise
     except (zipfile.BadZipFile, zipfile.LargeZipFile, NotImplementedError, RuntimeError, OSError, EOFError) as exc:
         Members("zip", members, _archive=zf).close()
-        raise InputError(f"{path.name} is not a readable zip archive: {exc}") from None
+        raise NotAScanError(f"{path.name} is not a readable zip archive: {exc}") from None
     if heads_only:
         zf.close()
         return Members("zip", members, ignored)
@@ -313,7 +313,7 @@ def _read_tar(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
         raise
     except (tarfile.TarError, OSError, EOFError, ValueError) as exc:
         Members(kind, members, _archive=plain).close()
-        raise InputError(f"{path.name} is not a readable {kind} archive: {exc}") from None
+        raise NotAScanError(f"{path.name} is not a readable {kind} archive: {exc}") from None
     return Members(kind, members, ignored, _archive=plain)
 
 
@@ -367,7 +367,7 @@ def open_members(path: str | Path, limits: InputLimits | None = None, *, heads_o
         return _read_zip(path, limits, heads_only)
     name = path.name.lower()
     if name.endswith(".zip"):
-        raise InputError(f"{path.name} ends in .zip but is not a readable zip archive (corrupt or truncated?)")
+        raise NotAScanError(f"{path.name} ends in .zip but is not a readable zip archive (corrupt or truncated?)")
     if _is_tar(path):
         return _read_tar(path, limits, heads_only)
     if name.endswith((".tar", ".tgz", ".tar.gz", ".tar.bz2", ".tar.xz")):

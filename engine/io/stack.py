@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from engine.errors import InputError
+from engine.errors import InputError, NoSpacingError
 from engine.io.archive import InputLimits, Member, Members, open_members
 from engine.io.codecs import decode_png_fast
 from engine.io.completeness import Completeness, check_count, check_numbering
@@ -299,12 +299,12 @@ def _resolve_spacing(
             raise InputError(f"{label}: the TIFF tags give an implausible voxel size: {exc}; {SPACING_HINT}") from None
     if "yx" in geo:
         y, x = geo["yx"]
-        raise InputError(
+        raise NoSpacingError(
             f"{label}: the TIFF tags give the pixel size (y {y:g} mm, x {x:g} mm) but not the slice spacing; "
             f"give it as spacing_zyx_mm=(z, {y:g}, {x:g}) (CLI: --spacing Z,{y:g},{x:g}), in mm"
         )
     note = f" ({geo['note']})" if "note" in geo else ""
-    raise InputError(f"{label}: an image stack does not carry its voxel size{note}; {SPACING_HINT}")
+    raise NoSpacingError(f"{label}: an image stack does not carry its voxel size{note}; {SPACING_HINT}")
 
 
 def check_spacing(spacing: object) -> tuple[float, float, float] | None:

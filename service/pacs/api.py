@@ -12,10 +12,10 @@ import anyio
 from fastapi import Request
 from pydantic import ValidationError
 
-from service.db import Database, Job
-from service.pacs.config import get_pacs_settings
+from core.db import Database, Job
+from core.pacs.config import get_pacs_settings
+from core.pacs.records import PacsRecords
 from service.pacs.models import SourceJobCreate
-from service.pacs.records import PacsRecords
 from service.problems import Problem
 
 MAX_BODY = 64 << 10

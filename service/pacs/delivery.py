@@ -15,11 +15,11 @@ import datetime as dt
 from pathlib import Path
 from typing import Any
 
-from service.db import utcnow
-from service.logsafe import escape_control, safe_logger
-from service.pacs.config import DicomNode, DicomwebTarget, PacsSettings
-from service.pacs.records import PacsJob, PacsRecords
-from service.storage import Storage
+from core.db import utcnow
+from core.logsafe import escape_control, safe_logger
+from core.pacs.config import DicomNode, DicomwebTarget, PacsSettings
+from core.pacs.records import PacsJob, PacsRecords
+from core.storage import Storage
 
 log = safe_logger("bonemesh.pacs")
 MODEL_DCM = "model.dcm"
@@ -114,7 +114,7 @@ class Dispatcher:
         if kind == "dicom":
             send_c_store(DicomNode.model_validate(dest), self.pacs.ae_title, path)
         elif kind == "dicomweb":
-            from service.pacs.dicomweb import store_file
+            from core.pacs.dicomweb import store_file
 
             target = DicomwebTarget.model_validate(dest)
             server = self.pacs.dicomweb_servers.get(target.server)

@@ -3,10 +3,10 @@ in one process.
 
     bonemesh pacs [--host H] [--port P] [--ae-title AE] [--deliver-only]
 
-A stable series is routed (:mod:`service.pacs.routing`); a taken one is moved whole into the job's upload folder
+A stable series is routed (:mod:`core.pacs.routing`); a taken one is moved whole into the job's upload folder
 (``jobs/<id>/upload/``) and recorded in the same job table, with the same queue message, as an uploaded scan: the
-worker cannot tell them apart. Settings: :mod:`service.pacs.config` (``BONEMESH_PACS_*``) and
-:mod:`service.settings` (``BONEMESH_*``: database, data folder, broker).
+worker cannot tell them apart. Settings: :mod:`core.pacs.config` (``BONEMESH_PACS_*``) and
+:mod:`core.settings` (``BONEMESH_*``: database, data folder, broker).
 """
 
 from __future__ import annotations
@@ -18,17 +18,17 @@ import signal
 import threading
 from typing import Any
 
-from service.db import Database, Job, owner_of
-from service.logsafe import safe_logger
-from service.pacs.config import PacsSettings, get_pacs_settings
+from core.db import Database, Job, owner_of
+from core.logsafe import safe_logger
+from core.pacs.config import PacsSettings, get_pacs_settings
+from core.pacs.records import PacsRecords
+from core.pacs.routing import SeriesSummary, choose_rule
+from core.queue import Queue
+from core.settings import Settings, get_settings
+from core.storage import storage_from_settings
 from service.pacs.delivery import Dispatcher
 from service.pacs.inbox import SENDER, ClaimedSeries, Inbox
-from service.pacs.records import PacsRecords
-from service.pacs.routing import SeriesSummary, choose_rule
 from service.pacs.scp import StorageSCP
-from service.queue import Queue
-from service.settings import Settings, get_settings
-from service.storage import storage_from_settings
 
 log = safe_logger("bonemesh.pacs")
 

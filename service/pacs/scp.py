@@ -13,8 +13,8 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from service.logsafe import safe_logger
-from service.pacs.config import PacsSettings
+from core.logsafe import safe_logger
+from core.pacs.config import PacsSettings
 from service.pacs.inbox import Inbox
 
 log = safe_logger("bonemesh.pacs")

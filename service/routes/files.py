@@ -11,12 +11,12 @@ from typing import Annotated
 from fastapi import APIRouter, Header
 from fastapi.responses import FileResponse, Response
 
+from core.storage import OUTPUTS
 from service import tokens
 from service.deps import ServicesDep
 from service.problems import Problem
 from service.problems import problems as errors
 from service.schemas import DOWNLOAD_CONTENT
-from service.storage import OUTPUTS
 
 router = APIRouter(prefix="/v1", tags=["files"])
 RESPONSES = {

@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, Response
 
-from service.db import Job
+from core.db import Job
 from service.deps import BaseUrlDep, OwnerDep, ServicesDep
 from service.intake import FULL, receive
 from service.pacs import api as pacs_api

@@ -15,9 +15,9 @@ from pathlib import Path
 from fastapi import APIRouter
 from fastapi.responses import FileResponse, HTMLResponse, Response
 
+from core.settings import Settings
 from service.deps import SettingsDep
 from service.problems import Problem
-from service.settings import Settings
 
 router = APIRouter(include_in_schema=False)
 STATIC = Path(__file__).resolve().parents[1] / "static"

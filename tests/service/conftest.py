@@ -409,8 +409,8 @@ def app_client(data_dir: Path, max_upload_bytes: int = 8 << 20) -> Iterator[Test
     accepted job stays queued."""
     from fastapi.testclient import TestClient
 
+    from core.settings import Settings
     from service.app import create_app
-    from service.settings import Settings
 
     settings = Settings(
         data_dir=data_dir,

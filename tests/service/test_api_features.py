@@ -18,7 +18,7 @@ import httpx
 import pytest
 from fastapi.testclient import TestClient
 
-from service.settings import Settings
+from core.settings import Settings
 from service.webhooks import CallbackRefused, check_callback_url, next_delay, sign
 from tests.service.checks import assert_succeeded
 from tests.service.conftest import HEADSQ

@@ -19,14 +19,14 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy.exc import OperationalError
 
+from core.logsafe import EscapingFilter, escape_control
+from core.params import JobParams
+from core.storage import LocalStorage, is_storage_full
 from engine.data import HEADSQ_ZIP
 from engine.errors import InputError
 from engine.io import inspect_input
 from engine.io.archive import open_members
 from engine.params import ReconParams
-from service.logsafe import EscapingFilter, escape_control
-from service.params import JobParams
-from service.storage import LocalStorage, is_storage_full
 from tests.service.checks import assert_problem
 from tests.service.conftest import bomb_of_small_members, png_bytes, slice_zip, sphere_volume
 

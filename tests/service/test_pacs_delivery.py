@@ -13,12 +13,12 @@ import numpy as np
 import pydicom
 import pytest
 
+from core.db import Database, Job, owner_of, utcnow
+from core.pacs.records import PacsRecords
+from core.storage import LocalStorage
 from engine.errors import IncompleteSeriesError
 from engine.export.dicom_stl import ENCAPSULATED_STL_STORAGE
 from engine.io import load_volume
-from service.db import Database, Job, owner_of, utcnow
-from service.pacs.records import PacsRecords
-from service.storage import LocalStorage
 from tests.engine.dicom_factory import series
 from tests.service.conftest import app_client
 

@@ -30,9 +30,9 @@ from pydicom.uid import (
     generate_uid,
 )
 
-from service.pacs.config import DicomwebServer
-from service.pacs.dicomweb import DicomwebError, fetch_series, list_instances
-from service.pacs.multipart import MultipartError, split_multipart
+from core.pacs.config import DicomwebServer
+from core.pacs.dicomweb import DicomwebError, fetch_series, list_instances
+from core.pacs.multipart import MultipartError, split_multipart
 from tests.engine.dicom_factory import PATIENT
 from tests.service.dicomweb_gate import DicomwebGate
 from tests.service.pacs_env import (

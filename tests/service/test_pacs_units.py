@@ -16,13 +16,13 @@ import pydicom
 import pytest
 from pydantic import ValidationError
 
-from service.db import Database, Job, utcnow
-from service.pacs.config import PacsSettings
+from core.db import Database, Job, utcnow
+from core.pacs.config import PacsSettings
+from core.pacs.records import PacsRecords, result_uids
+from core.pacs.routing import DEFAULT_RULES, Rule, SeriesSummary, choose_rule
+from core.storage import LocalStorage
 from service.pacs.delivery import Dispatcher
 from service.pacs.inbox import Inbox
-from service.pacs.records import PacsRecords, result_uids
-from service.pacs.routing import DEFAULT_RULES, Rule, SeriesSummary, choose_rule
-from service.storage import LocalStorage
 from tests.engine.dicom_factory import ct_slice
 from tests.service.procs import free_port
 

@@ -12,9 +12,9 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
+from core.params import JobParams
 from engine.data import HEADSQ_ZIP
 from engine.params import BodyMaskParams, IslandParams, OrientParams, PreprocessParams, ReconParams
-from service.params import JobParams
 from tests.service.checks import assert_problem
 from worker.tasks import engine_params_of
 

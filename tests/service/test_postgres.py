@@ -14,9 +14,9 @@ from typing import Any
 import pytest
 from sqlalchemy import BigInteger, Column, Integer, MetaData, Table, create_engine, inspect, update
 
-from service import schema
-from service.db import Database, Job, owner_of, utcnow
-from service.pacs.records import PacsJob, PacsRecords
+from core import schema
+from core.db import Database, Job, owner_of, utcnow
+from core.pacs.records import PacsJob, PacsRecords
 from tests.service.checks import assert_succeeded
 from tests.service.conftest import HEADSQ, StackFactory
 from tests.service.postgres import PostgresServer
@@ -24,7 +24,7 @@ from tests.service.procs import submit, wait_for_job
 
 OVER_4_GIB = 5 * 2**30  # past 32 bits signed (PostgreSQL's INTEGER) and unsigned
 BIGINT_COLUMNS = (("jobs", "upload_bytes"), ("jobs", "attempts"), ("pacs_jobs", "delivery_attempts"))
-# the job table's columns added after its first release (step 1 of service.schema adds them)
+# the job table's columns added after its first release (step 1 of core.schema adds them)
 LATER_JOB_COLUMNS = (
     "engine_params",
     "callback_url",

@@ -35,7 +35,7 @@ def test_two_api_processes_and_a_warm_worker(make_stack: StackFactory) -> None:
 
 
 def test_warm_up_is_on_for_gpus_unless_set() -> None:
-    from service.settings import Settings
+    from core.settings import Settings
     from worker.app import warms_up
 
     assert warms_up(Settings(device="cuda:1"))

@@ -14,14 +14,14 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
+from core.db import Database, owner_of, utcnow
+from core.params import JobParams
+from core.storage import LocalStorage, UploadTooLarge
 from engine.data import HEADSQ_ZIP
 from engine.errors import InputError
 from engine.io import inspect_input
 from engine.params import ReconParams
 from service import tokens
-from service.db import Database, owner_of, utcnow
-from service.params import JobParams
-from service.storage import LocalStorage, UploadTooLarge
 from tests.service.conftest import app_client
 
 
@@ -208,7 +208,7 @@ def test_a_new_database_switched_to_wal_by_another_process_is_waited_for(tmp_pat
     import sqlite3
     import threading
 
-    from service.db import _sqlite_pragmas
+    from core.db import _sqlite_pragmas
 
     path = tmp_path / "jobs.db"
     other = sqlite3.connect(path, isolation_level=None, check_same_thread=False)

@@ -52,8 +52,8 @@ def test_worker_loads_with_the_decode_settings(monkeypatch: pytest.MonkeyPatch, 
 
     import engine.io
     import worker.tasks as tasks
+    from core.settings import Settings
     from engine.io import codecs
-    from service.settings import Settings
 
     class Stop(Exception):
         pass

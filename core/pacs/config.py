@@ -13,7 +13,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from service.pacs.routing import DEFAULT_RULES, Rule
+from core.pacs.routing import DEFAULT_RULES, Rule
 
 _AE = re.compile(r"^[\x20-\x5b\x5d-\x7e]{1,16}$")  # AE title: 16 printable characters, no backslash
 

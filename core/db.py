@@ -4,7 +4,7 @@ only carries wake-up calls; a job whose message is lost is re-enqueued from here
 A worker *claims* a job with one conditional UPDATE (queued, or running with a stale heartbeat), so a duplicate
 message never runs a job twice at once, and writes progress, heartbeat and the result only while its claim holds.
 
-Opening the database brings its schema to this release's (``service.schema``: versioned upgrade steps). Sizes and
+Opening the database brings its schema to this release's (``core.schema``: versioned upgrade steps). Sizes and
 counts are 64-bit (``BigInteger``): uploads reach 4 GiB, past PostgreSQL's 32-bit ``INTEGER``.
 """
 
@@ -35,7 +35,7 @@ from sqlalchemy import (
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
-from service import schema
+from core import schema
 
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 ACTIVE = ("queued", "running")

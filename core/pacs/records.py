@@ -16,7 +16,7 @@ from typing import Any
 from sqlalchemy import JSON, BigInteger, DateTime, String, Text, select, update
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
-from service.db import Database, Job, create_tables, utcnow
+from core.db import Database, Job, create_tables, utcnow
 
 SENDING_STALE = dt.timedelta(minutes=5)  # a claim older than this was lost with its dispatcher
 UID_ROOT = "2.25."  # UUID-derived UIDs (PS3.5 B.2): no registered root needed

@@ -4,6 +4,9 @@ Most parameters are flat; the engine's optional steps are objects: ``orient`` (h
 ``preprocess`` (the paper's slice preprocessing, off unless given), and ``body`` and ``islands`` (bone inside the
 body outline, speck removal: on unless sent as ``null``). Left out, every step keeps the engine's default
 (``engine.params.ReconParams()``).
+
+Part of the job's contract, so shared: the API validates a request with it and stores both forms, a PACS routing
+rule carries one (``core.pacs.routing``), and the worker converts a job recorded by an older release with it.
 """
 
 from __future__ import annotations

@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
-from service.pacs.config import DicomwebServer
-from service.pacs.multipart import MultipartError, response_parts
+from core.pacs.config import DicomwebServer
+from core.pacs.multipart import MultipartError, response_parts
 
 EXTRA = "bonemesh[pacs]"
 QIDO_PAGE = 500  # instances asked for per QIDO-RS request (a server may answer fewer: the next page is asked for)

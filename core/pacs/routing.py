@@ -19,7 +19,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from service.params import JobParams
+from core.params import JobParams
 
 # Image Type values and series descriptions of images that are not a volume to model
 NOT_A_VOLUME_TYPES = frozenset({"LOCALIZER", "SCOUT", "SCREEN SAVE", "DOSE_INFO"})

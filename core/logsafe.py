@@ -3,8 +3,9 @@ an archive member's name must never start a line of its own in a log, where it c
 
 ``escape_control`` writes every control, line-separator and bidirectional-override character as a visible escape
 (``\\x0a``, ``\\u2028``); ``EscapingFilter`` applies it to a logger's records, message and traceback alike (the
-traceback's own line breaks stay, the exception messages in it are escaped). Upload names are also PHI-prone (DICOM
-exports are often named after the patient): the API and the worker log job ids, never upload names.
+traceback's own line breaks stay, the exception messages in it are escaped); ``relabel`` writes an engine message
+about the stored upload in terms of the client's file name, escaped. Upload names are also PHI-prone (DICOM exports
+are often named after the patient): the API and the worker log job ids, never upload names.
 """
 
 from __future__ import annotations
@@ -25,6 +26,12 @@ def _escape_char(match: re.Match[str]) -> str:
 def escape_control(text: str) -> str:
     """``text`` with every control character written as a visible escape (one line, nothing hidden)."""
     return _CONTROL.sub(_escape_char, text)
+
+
+def relabel(message: str, filename: str | None) -> str:
+    """An engine message about the stored upload (named ``upload``) in terms of the client's file name (escaped)."""
+    name = escape_control(filename) if filename else "the upload"
+    return message.replace("upload", name, 1) if message.startswith("upload") else message
 
 
 def safe_traceback(exc: BaseException) -> str:

@@ -1,6 +1,6 @@
 """The database's schema version, and the steps that bring an older database up to it.
 
-Every API, worker and PACS process calls :func:`upgrade` when it opens the database (``service.db.Database``):
+Every API, worker and PACS process calls :func:`upgrade` when it opens the database (``core.db.Database``):
 
 * a new database gets this release's tables and is stamped with :data:`VERSION`;
 * a database made before versioning (release 0.1, tables made by ``create_all``) counts as version 0;

@@ -1,5 +1,6 @@
-"""The broker side of the API: send a job's wake-up message by task name (the API never imports the worker), and
-see which jobs still have a message in Redis (waiting, or delivered but not yet acknowledged)."""
+"""The broker: the Celery settings the API's client and the worker share (``celery_config``), and the API's side
+of it (``Queue``): send a job's wake-up message by task name (the API never imports the worker), and see which jobs
+still have a message in Redis (waiting, or delivered but not yet acknowledged)."""
 
 from __future__ import annotations
 
