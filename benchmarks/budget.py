@@ -124,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "device": str(dev),
         "device_name": getattr(dev, "name", str(dev)),
-        "device_total_bytes": getattr(dev, "total_memory", None),
+        "device_total_bytes": dev.total_memory if dev.is_cuda else None,  # Warp asks psutil for a CPU's (or warns)
         "warp": wp.__version__,
         "phantom_shape": list(shape),
         "phantom_seconds": gen_seconds,

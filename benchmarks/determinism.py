@@ -39,8 +39,8 @@ def _inputs(phantom: tuple[int, int, int]) -> dict[str, tuple[Any, Any]]:
     }
 
 
-def fingerprint(volume: Any, params: Any, device: str, budget: str | None) -> dict[str, Any]:
-    """SHA-256 of the mesh (vertices, faces) and of ``model.stl``, with counts and the time taken."""
+def fingerprint(volume: Any, params: Any, device: str, budget: str | None, files: bool = True) -> dict[str, Any]:
+    """SHA-256 of the mesh (vertices, faces) and, with ``files``, of ``model.stl``; counts and the time taken."""
     from engine.outputs import write_outputs
     from engine.pipeline import reconstruct
 
@@ -50,9 +50,11 @@ def fingerprint(volume: Any, params: Any, device: str, budget: str | None) -> di
     mesh = recon.mesh
     verts = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
     faces = np.ascontiguousarray(mesh.faces, dtype=np.int32)
-    with tempfile.TemporaryDirectory() as tmp:
-        paths = write_outputs(recon, Path(tmp), params, device=device, max_device_bytes=budget)
-        stl = hashlib.sha256(paths["model.stl"].read_bytes()).hexdigest()
+    stl = None
+    if files:  # the exporters' dependencies (Draco, glTF, USD) may be absent where only the engine is installed
+        with tempfile.TemporaryDirectory() as tmp:
+            paths = write_outputs(recon, Path(tmp), params, device=device, max_device_bytes=budget)
+            stl = hashlib.sha256(paths["model.stl"].read_bytes()).hexdigest()
     return {
         "budget": budget,
         "vertices": int(len(verts)),
@@ -68,13 +70,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--phantom", default="48,96,96", help="phantom shape Z,Y,X")
     parser.add_argument("--budgets", default="none,64MiB", help="comma-separated: none or a size (e.g. 256MiB)")
+    parser.add_argument("--no-files", dest="files", action="store_false", help="hash the mesh only")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     phantom = tuple(int(v) for v in args.phantom.split(","))
     budgets = [None if b == "none" else b for b in args.budgets.split(",")]
     results: dict[str, Any] = {}
     for name, (volume, params) in _inputs(phantom).items():  # type: ignore[arg-type]
-        results[name] = [fingerprint(volume, params, args.device, b) for b in budgets]
+        results[name] = [fingerprint(volume, params, args.device, b, args.files) for b in budgets]
         for row in results[name]:
             print(name, row, flush=True)
     write_json(args.out, {"device": args.device, "phantom": list(phantom), "results": results})

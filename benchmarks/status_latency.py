@@ -1,7 +1,7 @@
 """Status reads while uploads stream: latency of ``GET /v1/jobs/{id}`` under concurrent uploads (issue 15, item 10).
 
     python -m benchmarks.status_latency [--uploads 50] [--shape 96,256,256] [--pollers 2] [--workers 0]
-                                        [--repeat 1] --out result.json
+                                        [--repeat 1] [--redis-server PATH] [--workdir DIR] --out result.json
 
 It starts a redis-server, ``bonemesh serve`` (and ``--workers`` CPU workers, none by default: the API alone is
 measured) with a fresh data folder (the helpers of ``tests/service/procs.py``), submits one job to poll, then
@@ -21,7 +21,6 @@ import statistics
 import sys
 import tempfile
 import time
-import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,7 @@ from typing import Any
 import httpx
 import numpy as np
 
+from benchmarks.report import stop_on_sigterm
 from tests.service.procs import RedisServer, ServiceStack
 
 
@@ -37,15 +37,10 @@ def _percentile(values: list[float], q: float) -> float:
 
 
 def write_archive(shape: tuple[int, int, int], path: Path) -> int:
-    """The bone phantom as a zip of PNG slices (stored); returns its size."""
-    from benchmarks.phantom import bone_phantom
-    from benchmarks.service import _png
+    """The bone phantom as a zip of 16-bit PNG slices (stored, ``benchmarks.phantom_zip``); returns its size."""
+    from benchmarks.phantom_zip import write_phantom_zip
 
-    volume = bone_phantom(shape)
-    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as zf:
-        for z, plane in enumerate(volume):
-            zf.writestr(f"phantom/phantom_{z:04d}.png", _png(plane))
-    return path.stat().st_size
+    return int(write_phantom_zip(shape, path)["archive_bytes"])
 
 
 def _poll(base_url: str, job_id: str, start: Any, stop: Any, out: Any) -> None:
@@ -118,20 +113,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=0)
     parser.add_argument("--repeat", type=int, default=1)
     parser.add_argument("--label", default="", help="free text stored with the result (e.g. the commit)")
+    parser.add_argument("--redis-server", default=None, help="redis-server executable (default: PATH or apt-get)")
+    parser.add_argument("--workdir", type=Path, default=None, help="archive, data and logs (default: a temp dir)")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     shape = tuple(int(v) for v in args.shape.split(","))
     assert len(shape) == 3
     with tempfile.TemporaryDirectory(prefix="bonemesh-status-") as tmp:
-        root = Path(tmp)
+        root = args.workdir or Path(tmp)
+        root.mkdir(parents=True, exist_ok=True)
         archive = root / "phantom.zip"
         size = write_archive(shape, archive)  # type: ignore[arg-type]
         from benchmarks.phantom import BONE_LEVEL
 
         params = {"iso": BONE_LEVEL, "spacing": [0.5, 0.5, 0.5]}
         rounds = []
+        stop_on_sigterm()  # `timeout`: the with-blocks below stop every process
         with (
-            RedisServer(root / "redis") as redis,
+            RedisServer(root / "redis", args.redis_server) as redis,
             ServiceStack(root / "stack", redis.url, max_upload_bytes=1 << 30) as stack,
         ):
             stack.start_server()

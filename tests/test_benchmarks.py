@@ -1,0 +1,248 @@
+"""Every benchmark of ``benchmarks/`` runs end to end at its smallest size on the CPU, so none rots between the GPU
+sessions that run them at full size.
+
+Each test runs the benchmark's ``main`` with the arguments of its smallest meaningful run (tiny phantoms, one
+repetition, the data folder pointed at an empty one so the real scans are skipped) and writes its JSON into pytest's
+temporary folder; it then checks the JSON's top-level keys and that every measured input got finite numbers and no
+recorded error. Speed is never asserted: timings are only checked to be numbers. The engine benchmarks run in this
+process (that is how they work); those that start processes of their own (ingest's fresh loader processes; service,
+throughput and status_latency: a real redis-server, ``bonemesh serve`` and workers) run as ``python -m
+benchmarks.X``, as they are run by hand, and get SIGTERM on a timeout so that they stop what they started.
+``benchmarks/upload.py`` is smoke-run by ``tests/service/test_upload_benchmark.py``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.service.procs import REPO, ProcessError, find_redis_server
+
+PHANTOM = "16,32,32"  # the smallest bone phantom with a surface of every kind the benchmarks measure
+NAME = "phantom_16x32x32"
+
+
+def finite(value: Any) -> bool:
+    """A real number (not a bool, not NaN or infinite)."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def has_keys(report: dict[str, Any], *keys: str) -> None:
+    missing = [k for k in keys if k not in report]
+    assert not missing, f"missing top-level keys {missing}; the JSON has {sorted(report)}"
+
+
+def load(path: Path) -> dict[str, Any]:
+    assert path.is_file(), f"the benchmark wrote no {path.name}"
+    report: dict[str, Any] = json.loads(path.read_text())
+    return report
+
+
+def run_module(module: str, args: list[str], tmp_path: Path, timeout: float = 120) -> None:
+    """``python -m benchmarks.<module> args`` from the checkout; fails with its output's tail on a non-zero exit.
+    On a timeout it gets SIGTERM first (the benchmarks stop their redis-server, API and workers on it)."""
+    log = tmp_path / f"{module}.log"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p)}
+    argv = [sys.executable, "-m", f"benchmarks.{module}", *args]
+    with open(log, "wb") as fh:
+        proc = subprocess.Popen(argv, stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env, cwd=REPO)
+        try:
+            rc = proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            pytest.fail(f"{' '.join(argv)} ran past {timeout:.0f} s:\n{log.read_text(errors='replace')[-6000:]}")
+    assert rc == 0, f"{' '.join(argv)} exited with {rc}:\n{log.read_text(errors='replace')[-6000:]}"
+
+
+@pytest.fixture(scope="module")
+def redis_executable() -> str:
+    """The redis-server the service benchmarks start (as the service tests' ``redis_server`` fixture finds it)."""
+    try:
+        return find_redis_server()
+    except ProcessError as exc:
+        pytest.fail(str(exc), pytrace=False)
+
+
+@pytest.fixture
+def no_data(tmp_path: Path) -> Path:
+    """An empty data folder: the benchmarks skip the real scans (../shared/data) and run on the phantom alone."""
+    folder = tmp_path / "no-data"
+    folder.mkdir()
+    return folder
+
+
+# -- the engine, in this process -----------------------------------------------------------------------------------
+def test_mc33(tmp_path: Path) -> None:
+    from benchmarks.mc33 import main
+
+    out = tmp_path / "mc33.json"
+    assert main(["--device", "cpu", "--shape", PHANTOM, "--repeat", "1", "--out", str(out)]) == 0
+    report = load(out)
+    has_keys(report, "benchmark", "device", "shape", "voxels", "level", "results", "ratios", "versions")
+    for name in ("ours", "skimage", "warp_mc", "ours_resident", "warp_mc_resident"):
+        r = report["results"][name]
+        assert r["available"], f"{name}: {r.get('error')}"
+        assert finite(r["seconds"]) and finite(r["voxels_per_s"]) and r["triangles"] > 0, name
+    assert finite(report["ratios"]["ours_over_skimage_voxels_per_s"])
+
+
+def test_decimate(tmp_path: Path, no_data: Path) -> None:
+    from benchmarks.decimate import main
+
+    out = tmp_path / "decimate.json"
+    args = ["--device", "cpu", "--data", str(no_data), "--phantom", PHANTOM, "--reductions", "0.5", "--repeat", "1"]
+    assert main([*args, "--points", "2000", "--slices", "4", "--out", str(out)]) == 0
+    report = load(out)
+    has_keys(report, "benchmark", "device", "versions", "inputs")
+    assert list(report["inputs"]) == [NAME]
+    entry = report["inputs"][NAME]
+    assert entry["mc33"]["faces"] > 0 and finite(entry["mc33"]["similarity"]["dice"])
+    (row,) = entry["rows"]
+    for method in ("warp", "meshlab"):  # MeshLab takes a fraction of a second on this mesh
+        assert finite(row[method]["seconds"]) and row[method]["faces"] > 0, method
+        assert finite(row[method]["distance"]["mean_mm"]), method
+    assert all(finite(v) for v in row["ratios"].values())
+
+
+def test_budget(tmp_path: Path) -> None:
+    from benchmarks.budget import main
+
+    out = tmp_path / "budget.json"
+    # 2 MiB streams the phantom in slabs and tiles the decimation of the phantom stacked twice
+    args = ["--device", "cpu", "--phantom", PHANTOM, "--stack", "1,2", "--budgets", "none,2MiB", "--repeat", "1"]
+    assert main([*args, "--write", "--out", str(out)]) == 0
+    report = load(out)
+    has_keys(report, "benchmark", "device", "phantom_shape", "params", "volumes")
+    assert sorted(report["volumes"]) == [NAME, "phantom_32x32x32"]
+    for name, volume in report["volumes"].items():
+        assert sorted(volume["runs"]) == ["2MiB", "none"], name
+        for label, run in volume["runs"].items():
+            assert "error" not in run and "error" not in run["write_outputs"], (name, label, run)
+            assert finite(run["seconds"]) and run["faces"] > 0, (name, label)
+        assert finite(volume["runs"]["2MiB"]["time_ratio_vs_unbounded"]), name
+        assert "stream" in volume["runs"]["2MiB"], f"{name}: the 2 MiB budget did not stream"
+
+
+def test_determinism(tmp_path: Path) -> None:
+    from benchmarks.determinism import main
+
+    out = tmp_path / "determinism.json"
+    assert main(["--device", "cpu", "--phantom", PHANTOM, "--budgets", "none,8MiB", "--out", str(out)]) == 0
+    report = load(out)
+    has_keys(report, "device", "phantom", "results")
+    assert sorted(report["results"]) == ["headsq", NAME]
+    for name, rows in report["results"].items():
+        assert [r["budget"] for r in rows] == [None, "8MiB"], name
+        for row in rows:
+            assert row["faces"] > 0 and finite(row["reconstruct_seconds"]), name
+            assert len(row["mesh_sha256"]) == 64 and len(row["model_stl_sha256"]) == 64, name
+
+
+def test_pipeline(tmp_path: Path, no_data: Path) -> None:
+    from benchmarks.pipeline import main
+
+    out = tmp_path / "pipeline.json"
+    args = ["--device", "cpu", "--data", str(no_data), "--phantom", PHANTOM, "--repeat", "1"]
+    assert main([*args, "--out", str(out)]) == 0
+    report = load(out)
+    has_keys(report, "benchmark", "device", "timing", "config", "parameters", "results")
+    assert list(report["results"]) == [NAME]
+    r = report["results"][NAME]
+    assert finite(r["reconstruct_seconds"]) and finite(r["write_outputs_seconds"])
+    assert all(finite(v) for v in r["stage_seconds"].values()) and r["mesh"]["n_faces"] > 0
+
+
+def test_viewing_copies(tmp_path: Path) -> None:
+    from benchmarks.viewing_copies import main
+
+    out = tmp_path / "viewing_copies.json"
+    # budgets under the phantom's ~900 faces, so both copies are decimated
+    args = ["--device", "cpu", "--phantom", PHANTOM, "--budgets", "400,200", "--repeat", "1", "--quality"]
+    assert main([*args, "--out", str(out)]) == 0
+    report = load(out)
+    has_keys(report, "benchmark", "device", "phantom", "timing", "reconstruct_seconds", "mesh", "results")
+    r = report["results"]["400,200"]
+    assert finite(r["viewing_copies_seconds"]) and finite(r["write_outputs_seconds"])
+    for name in ("phone", "ar"):
+        assert r[name]["summary"]["decimated"] and r[name]["topology"]["n_faces"] > 0, name
+        assert finite(r[name]["distance_to_print_model"]["mean_mm"]), name
+
+
+# -- benchmarks that start processes of their own: python -m benchmarks.X --------------------------------------
+def test_ingest(tmp_path: Path) -> None:
+    out = tmp_path / "ingest.json"
+    # two threads (and, for DICOM, two decode processes) whatever this machine's CPUs
+    args = ["--shape", PHANTOM, "--repeat", "1", "--threads", "2", "--workdir", str(tmp_path / "work")]
+    run_module("ingest", [*args, "--out", str(out)], tmp_path)
+    report = load(out)
+    has_keys(report, "benchmark", "machine", "host", "shape", "timing", "results")
+    assert sorted(report["results"]) == ["dicom", "png"]
+    for fmt, r in report["results"].items():
+        assert r["same_volume"], fmt
+        assert finite(r["serial_seconds"]) and finite(r["threaded_seconds"]) and finite(r["speedup"]), fmt
+    assert finite(report["results"]["png"]["threaded_pillow_seconds"])
+    assert finite(report["results"]["dicom"]["processes_seconds"])
+    assert report["results"]["dicom"]["runs"]["processes"][0]["decode_processes_ran"] > 0
+
+
+def test_status_latency(tmp_path: Path, redis_executable: str) -> None:
+    out = tmp_path / "status_latency.json"
+    args = ["--uploads", "4", "--shape", "8,32,32", "--pollers", "1", "--redis-server", redis_executable]
+    run_module("status_latency", [*args, "--workdir", str(tmp_path / "work"), "--out", str(out)], tmp_path)
+    report = load(out)
+    has_keys(report, "benchmark", "uploads", "archive_bytes", "shape_zyx", "pollers", "workers", "machine", "rounds")
+    (r,) = report["rounds"]
+    assert r["upload_statuses"] == [202] and r["status_errors"] == []
+    assert r["status_reads"] > 0 and finite(r["status_ms"]["p50"]) and finite(r["uploads_wall_s"])
+
+
+def test_service(tmp_path: Path, no_data: Path, redis_executable: str) -> None:
+    out = tmp_path / "service.json"
+    args = ["--device", "cpu", "--data", str(no_data), "--phantom", PHANTOM, "--repeat", "1", "--baseline"]
+    args += ["--redis-server", redis_executable, "--timeout", "120", "--workdir", str(tmp_path / "work")]
+    run_module("service", [*args, "--out", str(out)], tmp_path)
+    report = load(out)
+    has_keys(report, "benchmark", "device", "host", "timing", "preparation", "results", "warmup", "baseline")
+    assert "error" not in report["warmup"] and "error" not in report["baseline"]["warmup"]
+    assert list(report["results"]) == [NAME]
+    r = report["results"][NAME]
+    for summary in (r, r["baseline"]):
+        assert summary.get("failed_runs") == [], summary
+        assert finite(summary["upload_to_links_seconds"]) and summary["median_run"]["mesh_faces"] > 0
+    assert finite(r["baseline_over_new"])
+
+
+def test_throughput(tmp_path: Path, redis_executable: str) -> None:
+    from engine.device import init_runtime
+
+    init_runtime(os.environ.get("WARP_CACHE_PATH"))
+    import warp as wp
+
+    # the kernel cache the suite's workers fill (Warp keeps it in a folder named after its version): a fresh one
+    # would cost a CPU compilation of every kernel in the warm-up
+    cache = Path(str(wp.config.kernel_cache_dir))
+    cache = cache.parent if cache.name == wp.config.version else cache
+    out = tmp_path / "throughput.json"
+    args = ["--devices", "cpu,cpu", "--jobs", "2", "--phantom", PHANTOM, "--uploaders", "2", "--api-workers", "1"]
+    args += ["--redis-server", redis_executable, "--warp-cache", str(cache), "--workdir", str(tmp_path / "work")]
+    run_module("throughput", [*args, "--out", str(out)], tmp_path)
+    report = load(out)
+    has_keys(report, "benchmark", "machine", "host", "input", "timing", "warmup", "one_worker", "all_workers")
+    for key, workers in (("one_worker", 1), ("all_workers", 2)):
+        phase = report[key]
+        assert phase["workers"] == workers and phase["jobs"] == 2, key
+        assert finite(phase["seconds"]) and finite(phase["jobs_per_minute"]), key
+    assert finite(report["speedup"])
