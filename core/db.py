@@ -40,6 +40,7 @@ from core import schema
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 ACTIVE = ("queued", "running")
 TERMINAL = ("succeeded", "failed", "cancelled")
+ORIENTING = "orienting"  # the stage of a succeeded job whose outputs are being re-oriented (worker.tasks.orient_job)
 
 
 def utcnow() -> dt.datetime:
@@ -211,6 +212,21 @@ class Database:
             )
             return res.rowcount == 1
 
+    def start_orient(self, job_id: str, stale_before: dt.datetime) -> bool:
+        """Mark a succeeded job as being re-oriented (``stage="orienting"``; it stays succeeded, its files
+        downloadable). False when it has not succeeded, or a re-orientation younger than ``stale_before`` runs."""
+        with self.session() as s:
+            res = s.execute(
+                update(Job)
+                .where(
+                    Job.id == job_id,
+                    Job.state == "succeeded",
+                    (Job.stage.is_(None)) | (Job.stage != ORIENTING) | (Job.heartbeat_at < stale_before),
+                )
+                .values(stage=ORIENTING, heartbeat_at=utcnow(), error_code=None, error_message=None)
+            )
+            return res.rowcount == 1
+
     # --- worker side --------------------------------------------------------------------------------------------
     def claim(self, job_id: str, worker: str, stale_before: dt.datetime) -> Job | None:
         """Take a job for ``worker``: it must be queued, or running with a heartbeat older than ``stale_before``.
@@ -249,6 +265,17 @@ class Database:
         with self.session() as s:
             res = s.execute(
                 update(Job).where(Job.id == job_id, Job.worker == worker, Job.state == "running").values(**values)
+            )
+            return res.rowcount == 1
+
+    def finish_orient(self, job_id: str, **values: Any) -> bool:
+        """End a re-orientation (``stage="done"``, with the new outputs and params, or an error): only while the
+        job is still succeeded and re-orienting."""
+        with self.session() as s:
+            res = s.execute(
+                update(Job)
+                .where(Job.id == job_id, Job.state == "succeeded", Job.stage == ORIENTING)
+                .values(stage="done", **values)
             )
             return res.rowcount == 1
 

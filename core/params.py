@@ -31,6 +31,7 @@ from engine.params import (
     ReconParams,
     SmoothParams,
     check_spacing_zyx_mm,
+    spacing_order_warning,
 )
 
 # the engine's defaults, so that a job that leaves an option out gets what the CLI and the library get
@@ -101,8 +102,10 @@ class IslandJobParams(_Group):
 class JobParams(BaseModel):
     """Reconstruction parameters of a job (all optional; defaults are the paper's best combination).
 
-    The iso level: ``iso`` in the scan's units, or a HU ``preset`` (DICOM is in HU; image stacks that store
-    HU + an offset need ``hu_offset``, e.g. 1024), or none: 300 HU for DICOM, Otsu's level for image stacks.
+    The iso level: ``iso`` in the scan's units, or a HU ``preset`` (DICOM is in HU; for image stacks that store
+    HU + an offset the offset is detected, or given as ``hu_offset``, e.g. 1024), or none: 300 HU for DICOM and for
+    stacks detected as HU + an offset, Otsu's level for other image stacks (``engine.level``). ``spacing`` is
+    [z, y, x] mm; one whose order looks swapped is accepted and warned about in report.json's ``warnings``.
     """
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
@@ -164,6 +167,18 @@ class JobParams(BaseModel):
         if self.islands is None and self.min_island_mm3 is not None:
             raise ValueError('give min_island_mm3 or "islands": null (keep pieces of any size), not both')
         return self
+
+    def warnings(self) -> list[dict[str, Any]]:
+        """What a person should check in these parameters, in the API's words: a ``spacing`` whose order looks
+        swapped (``engine.params.spacing_order_warning``), with the likely [z, y, x]. The job's report carries the
+        same warning (the engine checks the spacing it was given); each is ``{"code", "message", ...}``."""
+        order = spacing_order_warning(self.spacing) if self.spacing is not None else None
+        if order is None:
+            return []
+        likely = order["likely_zyx_mm"]
+        fix = f'; if so, send "spacing": [{", ".join(f"{v:g}" for v in likely)}]' if likely else ""
+        given = ", ".join(f"{v:g}" for v in self.spacing or ())
+        return [{**order, "message": f'"spacing" [{given}]: {order["message"]}{fix} (the API\'s order is [z, y, x])'}]
 
     def record(self) -> dict[str, Any]:
         """The job record's form (JSON-able): what was given or defaulted, without unset options, but with the

@@ -5,10 +5,12 @@ still have a message in Redis (waiting, or delivered but not yet acknowledged)."
 from __future__ import annotations
 
 import json
+import uuid
 from functools import cached_property
 from typing import Any
 
 TASK_NAME = "bonemesh.reconstruct"
+ORIENT_TASK_NAME = "bonemesh.orient"  # re-publish a finished job's outputs in another stack orientation
 
 
 def celery_config(redis_url: str, queue: str) -> dict[str, Any]:
@@ -48,6 +50,12 @@ class Queue:
     def enqueue(self, job_id: str) -> None:
         """Send the job's message (the task id is the job id; a duplicate message is harmless)."""
         self._celery.send_task(TASK_NAME, args=[job_id], task_id=job_id, queue=self.queue)
+
+    def enqueue_orient(self, job_id: str, orient: dict[str, Any]) -> None:
+        """Send a finished job's re-orientation (``worker.tasks.orient_job``); its task id is not the job id, so the
+        reconciler never takes it for the job's reconstruction."""
+        task_id = f"orient-{job_id}-{uuid.uuid4().hex[:8]}"
+        self._celery.send_task(ORIENT_TASK_NAME, args=[job_id, orient], task_id=task_id, queue=self.queue)
 
     def ping(self) -> None:
         self._redis.ping()

@@ -2,7 +2,9 @@
 implement it later); ``LocalStorage`` keeps ``jobs/<id>/upload`` and ``jobs/<id>/outputs/`` under one root.
 
 Nothing is ever visible half-written: uploads stream into a temporary name and are renamed when complete; a
-job's outputs are staged in a temporary folder and moved into place in one rename.
+job's outputs are staged in a temporary folder and moved into place in one rename. The outputs a job may have are
+the files of the registry ``engine.export.files.FILES`` (their kinds and media types are there too); only those
+names are served.
 """
 
 from __future__ import annotations
@@ -16,21 +18,9 @@ import uuid
 from abc import ABC, abstractmethod
 from pathlib import Path
 
-# a job's output files: kind and media type
-OUTPUTS = {
-    "model.stl": ("print", "model/stl"),
-    "surface_open.stl": ("surface", "model/stl"),
-    "model.glb": ("model", "model/gltf-binary"),
-    "phone.glb": ("phone", "model/gltf-binary"),
-    "ar.glb": ("ar", "model/gltf-binary"),
-    "phone_meshopt.glb": ("phone_meshopt", "model/gltf-binary"),
-    "model.usdz": ("ar_ios", "model/vnd.usdz+zip"),
-    "preview.png": ("preview", "image/png"),
-    "report.json": ("report", "application/json"),
-    "model.dcm": ("dicom", "application/dicom"),  # PACS jobs: the print model as Encapsulated STL
-}
+from engine.export.files import FILES
+
 _ID = re.compile(r"^[0-9a-f]{32}$")
-_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 
 
 _FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
@@ -103,7 +93,7 @@ class Storage(ABC):
 
     @abstractmethod
     def output_path(self, job_id: str, name: str) -> Path | None:
-        """A published output file, or None."""
+        """A published output file, or None (also for a name that is no output file: ``FILES``)."""
 
     @abstractmethod
     def delete_job(self, job_id: str) -> None:
@@ -159,7 +149,7 @@ class LocalStorage(Storage):
         shutil.rmtree(old, ignore_errors=True)
 
     def output_path(self, job_id: str, name: str) -> Path | None:
-        if not _NAME.match(name):
+        if name not in FILES:  # the registry's names only: never a path of the caller's making
             return None
         path = self._job(job_id) / "outputs" / name
         return path if path.is_file() else None

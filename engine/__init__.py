@@ -6,8 +6,9 @@ Public API (loaded lazily through ``engine._lazy``, so ``import engine.params`` 
 
 The floor plan: the contracts on the ground floor (``params``, ``types``, ``errors``, ``budget``, ``device``); one
 package per stage of the paper, each with its kernels in a ``kernels`` folder (``volume``, ``isosurface``,
-``decimation``, ``surface``); ``export`` (Mesh -> bytes) and ``io`` (files -> Volume); ``pipeline`` and its
-``plans``, ``outputs``; and the paper's sweep and metrics in ``paper``.
+``decimation``, ``surface``); ``export`` (Mesh -> bytes, and ``export.files``: the registry of output files) and
+``io`` (files -> Volume); ``pipeline`` and its ``plans``, ``outputs``, and ``report`` (the report's declared type);
+and the paper's sweep and metrics in ``paper``.
 """
 
 from __future__ import annotations

@@ -28,6 +28,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:  # pragma: no cover
     import warp as wp
 
+    from engine.report import Placement
+
 __all__ = ["STATS_CHUNK_FACES", "Budget", "BudgetSpec", "Costs", "mib", "parse_bytes"]
 
 STATS_CHUNK_FACES = 1 << 22  # the model's checks measure its faces this many at a time (20 B each)
@@ -209,7 +211,7 @@ class Budget:
             return wp.get_device("cpu")
         return None
 
-    def place(self, device: wp.Device, need: int, what: str, remedy: str = "") -> tuple[Any, dict[str, str] | None]:
+    def place(self, device: wp.Device, need: int, what: str, remedy: str = "") -> tuple[Any, Placement | None]:
         """Where work that needs ``need`` bytes of device memory runs: ``(device, None)`` within the budget; past it
         ``(host, note)``, the host of ``host_for`` with a note for the report (``device``, ``reason``).
 

@@ -1,28 +1,36 @@
 """The ``bonemesh`` command line (the engine's commands; ``service.cli`` adds ``serve`` and ``worker``).
 
-    bonemesh reconstruct INPUT -o OUTDIR [--voxel-size X,Y,Z | --spacing Z,Y,X] [--iso V | --preset bone ...]
+    bonemesh reconstruct INPUT -o OUTDIR [--voxel-size Z,Y,X] [--iso V | --preset bone ...]
                          [--first-slice superior|inferior] [--flip-lr] [--flip-ap] [--reduction R] ...
     bonemesh reconstruct --demo -o OUTDIR
-    bonemesh isosurface INPUT -o OUT.stl --iso LEVEL [--voxel-size X,Y,Z | --spacing Z,Y,X] [--device ...] [--open]
+    bonemesh isosurface INPUT -o OUT.stl --iso LEVEL [--voxel-size Z,Y,X] [--device ...] [--open]
     bonemesh isosurface --demo -o OUT.stl
     bonemesh sweep ...   (engine.paper.cli_sweep)
+    bonemesh orient OUTDIR [--first-slice superior|inferior] [--flip-lr] [--flip-ap]   (engine.cli_orient)
 
 INPUT is anything ``engine.io.load_volume`` reads: a DICOM series (zip or folder), an archive or folder of
-slice images, a multi-page TIFF or a ``.npy`` (z, y, x) volume. Arguments are parsed in ``engine.cli_args`` (their
-defaults come from ``engine.params``). Exit codes: 0 done, 2 bad input (one-line reason on stderr, no output
-file), 1 internal error.
+slice images, a multi-page TIFF or a ``.npy`` (z, y, x) volume. ``--voxel-size`` is z, y, x in mm (the API's
+and the page's order; ``--spacing`` is the same option) or named axes (``z=1.5,y=0.5,x=0.5``); a size that looks
+swapped is warned about. Arguments are parsed in ``engine.cli_args`` (their defaults come from ``engine.params``).
+
+Exit codes: 0 done, 2 bad input or arguments (the reason in one line on stderr, argument errors with a pointer to
+``--help``; no output), 1 internal error, 130 interrupted (Ctrl-C: one line, no output folder left behind). The
+progress bar is drawn only when stderr is a terminal; otherwise a few progress lines are written.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import os
+import shutil
 import sys
 import tempfile
 import time
+import typing
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 from engine.cli_args import (
     add_input_args,
@@ -34,19 +42,44 @@ from engine.cli_args import (
     output_file,
     output_folder,
     recon_params,
+    voxel_size_option,
+    voxel_size_warning,
 )
 from engine.errors import InputError
 from engine.progress import Progress
+from engine.report import Report
 from engine.types import Volume
 
 LOAD_SHARE = 0.1  # the bar's share for loading the input (the pipeline weights its own stages)
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report a command stopped by Ctrl-C
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, with an argument error in two lines (the error, and where the usage is) instead of the usage
+    block; the subcommands' parsers are of this class too."""
+
+    argv: typing.Sequence[str] = ()
+
+    def parse_known_args(self, args: typing.Any = None, namespace: typing.Any = None) -> typing.Any:
+        self.argv = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(args, namespace)
+
+    def error(self, message: str) -> typing.NoReturn:
+        prog = self.prog
+        commands = next((a.choices for a in self._actions if isinstance(a, argparse._SubParsersAction)), None)
+        command = next((arg for arg in self.argv if commands and arg in commands), None)
+        if command is not None:  # unrecognised arguments of a subcommand come to the top parser: name its help
+            prog = f"{prog} {command}"
+        sys.stderr.write(f"{self.prog}: error: {message}\ntry '{prog} --help'\n")
+        sys.exit(2)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``bonemesh`` parser with the engine's subcommands."""
+    from engine.cli_orient import add_parser as add_orient_parser
     from engine.paper.cli_sweep import add_parser as add_sweep_parser
 
-    parser = argparse.ArgumentParser(prog="bonemesh", description="Bone surface models from CT slice stacks.")
+    parser = _Parser(prog="bonemesh", description="Bone surface models from CT slice stacks.")
     sub = parser.add_subparsers(dest="command", required=True)
     iso = sub.add_parser("isosurface", help="extract a Marching Cubes 33 surface and write a binary STL (mm)")
     add_input_args(iso, "output .stl path")
@@ -61,22 +94,32 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--demo", action="store_true", help="use the bundled VTK headsq CT head")
     rec.add_argument("--quiet", action="store_true", help="no progress bar")
     add_sweep_parser(sub)
+    add_orient_parser(sub)
     return parser
 
 
 class _Bar:
-    """One progress bar on stderr for the whole run; errors printed after it start on a new line."""
+    """The run's progress on stderr: one bar redrawn in place when stderr is a terminal; else (a log, a pipe) a
+    line at the start and at each quarter, at most five. Errors printed after it start on a new line."""
 
     open_line = False  # a bar line is on stderr without its newline
+    LINES_AT = (0.0, 0.25, 0.5, 0.75, 1.0)  # where a log gets a line
 
-    def __init__(self, quiet: bool) -> None:
+    def __init__(self, quiet: bool, tty: bool | None = None) -> None:
         self.quiet = quiet
+        self.tty = sys.stderr.isatty() if tty is None else tty
         self.t0 = time.perf_counter()
         self.last: tuple[str, int] | None = None
+        self.lines = 0  # LINES_AT passed (not a terminal)
 
     def __call__(self, stage: str, fraction: float) -> None:
+        if self.quiet:
+            return
+        if not self.tty:
+            self._line(stage, fraction)
+            return
         key = (stage, round(fraction * 1000))
-        if self.quiet or key == self.last:
+        if key == self.last:
             return
         self.last = key
         width = 30
@@ -88,6 +131,14 @@ class _Bar:
         _Bar.open_line = fraction < 1.0
         if not _Bar.open_line:
             sys.stderr.write("\n")
+        sys.stderr.flush()
+
+    def _line(self, stage: str, fraction: float) -> None:
+        passed = sum(1 for at in self.LINES_AT if fraction >= at)
+        if passed <= self.lines:
+            return
+        self.lines = passed
+        sys.stderr.write(f"bonemesh: {fraction * 100:5.1f}%  {stage} ({time.perf_counter() - self.t0:.1f} s)\n")
         sys.stderr.flush()
 
     @classmethod
@@ -106,6 +157,7 @@ def _isosurface(args: argparse.Namespace) -> int:
     from engine.types import Mesh
 
     out = output_file(args.output, ".stl")
+    _warn_voxel_size(args)
     volume, _ = load_input(args)
     level = args.iso
     if args.demo and level is None:
@@ -142,13 +194,13 @@ def _isosurface(args: argparse.Namespace) -> int:
 
 
 def _reconstruct(args: argparse.Namespace) -> int:
-    from engine.level import hu1024_hint
     from engine.outputs import write_outputs
     from engine.pipeline import reconstruct
     from engine.progress import span
 
     params = recon_params(args)
     out = output_folder(args.output)
+    _warn_voxel_size(args)
     bar = _Bar(args.quiet)
     volume, demo_level = load_input(args, on_progress=span(bar, "loading", 0.0, LOAD_SHARE))
     if args.demo:
@@ -158,16 +210,34 @@ def _reconstruct(args: argparse.Namespace) -> int:
         params = dataclasses.replace(params, orient=OrientParams(first_slice=HEADSQ_FIRST_SLICE))
         if args.iso is None and args.preset is None:
             params = dataclasses.replace(params, iso=dataclasses.replace(params.iso, iso=demo_level))
-    elif params.iso.iso is None and params.iso.preset is None:
-        hint = hu1024_hint(volume)
-        if hint:
-            _Bar.end_line()
-            print(f"bonemesh: note: {hint}", file=sys.stderr)  # noqa: T201 - said before the long run
     budget = args.max_device_bytes
     recon = reconstruct(volume, params, device=args.device, on_progress=_after_loading(bar), max_device_bytes=budget)
-    paths = write_outputs(recon, out, params, device=args.device, max_device_bytes=budget)
+    with _removed_unless_finished(out):
+        paths = write_outputs(recon, out, params, device=args.device, max_device_bytes=budget)
     _summary(volume, recon.report, paths)
     return 0
+
+
+def _warn_voxel_size(args: argparse.Namespace) -> None:
+    """Say on stderr, before the run, that a given voxel size looks swapped (the summary and the report say it
+    again)."""
+    message = None if getattr(args, "demo", False) else voxel_size_warning(args.spacing)
+    if message:
+        print(f"bonemesh: warning: {message}", file=sys.stderr)  # noqa: T201
+
+
+@contextlib.contextmanager
+def _removed_unless_finished(out: Path) -> Iterator[None]:
+    """An output folder that this run creates is removed again when the run does not finish (an error, Ctrl-C):
+    no empty or partial folder is left. A folder that existed before is left as it was (``write_outputs`` moves
+    its files in only when all are written)."""
+    created = not out.exists()
+    try:
+        yield
+    except BaseException:
+        if created:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
 
 
 def _after_loading(bar: _Bar) -> Progress:
@@ -175,7 +245,7 @@ def _after_loading(bar: _Bar) -> Progress:
     return lambda stage, fraction: bar(stage, LOAD_SHARE + (1 - LOAD_SHARE) * fraction)
 
 
-def _summary(vol: Volume, rep: dict[str, Any], paths: dict[str, Path]) -> None:
+def _summary(vol: Volume, rep: Report, paths: dict[str, Path]) -> None:
     frame = rep["frame"]
     rows = [
         ("input", f"{tuple(vol.data.shape)} (z, y, x) {vol.data.dtype}, {vol.units}"),
@@ -191,14 +261,15 @@ def _summary(vol: Volume, rep: dict[str, Any], paths: dict[str, Path]) -> None:
         rows.append(
             (
                 "outside body",
-                f"{body['pieces_removed']} piece(s), {body['volume_removed_mm3']:,.0f} mm3 removed (couch, holders)",
+                f"{body['pieces_removed']} piece(s), {_number(body['volume_removed_mm3'])} mm3 removed (couch, "
+                "holders)",
             )
         )
     elif body:
         rows.append(("body mask", f"not applied: {body['reason']}"))
     isl = rep.get("islands")
     if isl:
-        rows.append(("specks", f"{isl['removed_pieces']} piece(s), {isl['removed_volume_mm3']:,.1f} mm3 removed"))
+        rows.append(("specks", f"{isl['removed_pieces']} piece(s), {_number(isl['removed_volume_mm3'])} mm3 removed"))
     for stage, secs in rep["stage_seconds"].items():
         counts = rep["counts"].get(stage)
         extra = f"  {counts['faces']:,} faces" if isinstance(counts, dict) and "faces" in counts else ""
@@ -208,9 +279,11 @@ def _summary(vol: Volume, rep: dict[str, Any], paths: dict[str, Path]) -> None:
         (
             "model",
             f"{mesh['n_faces']:,} faces, {mesh['components']} piece(s), watertight {mesh['watertight']}, volume "
-            f"{mesh['volume_mm3']:,.0f} mm3, area {mesh['area_mm2']:,.0f} mm2",
+            f"{_volume(mesh['volume_mm3'])}, area {_number(mesh['area_mm2'])} mm2",
         )
     )
+    for warning in rep.get("warnings", []):
+        rows.append(("WARNING", _warning_text(warning)))
     for name, path in paths.items():
         rows.append((name, f"{path.stat().st_size:,} bytes"))
     width = max(len(r[0]) for r in rows)
@@ -218,10 +291,37 @@ def _summary(vol: Volume, rep: dict[str, Any], paths: dict[str, Path]) -> None:
         print(f"{key:<{width}}  {value}")  # noqa: T201 - the command's summary table
 
 
+def _number(value: float) -> str:
+    """A measure with the digits it needs: thousands grouped and whole from 1,000 on, one decimal from 1, three
+    significant digits below (a micro-CT model of 0.0302 mm3 is not "0")."""
+    if value == 0:
+        return "0"
+    if abs(value) >= 1000:
+        return f"{value:,.0f}"
+    if abs(value) >= 1:
+        return f"{value:.1f}"
+    return f"{value:.3g}"
+
+
+def _volume(mm3: float) -> str:
+    """A model's volume in mm3, with millilitres beside from a millilitre on."""
+    return f"{_number(mm3)} mm3" + (f" ({mm3 / 1000:,.1f} mL)" if abs(mm3) >= 1000 else "")
+
+
+def _warning_text(warning: dict[str, typing.Any]) -> str:
+    """A report warning for the summary; a voxel size that looks swapped with the option that gives the likely
+    one."""
+    text = str(warning.get("message", warning))
+    likely = warning.get("likely_zyx_mm")
+    if warning.get("code") == "voxel_size_order" and likely:
+        text += f"; if so, give {voxel_size_option(likely)}"
+    return text
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run one command; returns the exit code (0 done, 2 bad input, 1 internal error)."""
-    args = build_parser().parse_args(argv)
+    """Run one command; returns the exit code (0 done, 2 bad input or arguments, 1 internal error, 130 interrupted)."""
     try:
+        args = build_parser().parse_args(argv)
         if args.command == "isosurface":
             return _isosurface(args)
         if args.command == "reconstruct":
@@ -230,6 +330,10 @@ def main(argv: list[str] | None = None) -> int:
             from engine.paper.cli_sweep import run as run_sweep
 
             return run_sweep(args)
+        if args.command == "orient":
+            from engine.cli_orient import run as run_orient
+
+            return run_orient(args)
     except InputError as exc:
         _Bar.end_line()
         print(f"bonemesh: error: {exc}", file=sys.stderr)  # noqa: T201
@@ -240,4 +344,8 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"bonemesh: internal error: {type(exc).__name__}: {exc}", file=sys.stderr)  # noqa: T201
         return 1
+    except KeyboardInterrupt:  # Ctrl-C: one line, not a traceback; the output folder is gone (_reconstruct)
+        _Bar.end_line()
+        print("bonemesh: interrupted", file=sys.stderr)  # noqa: T201
+        return EXIT_INTERRUPTED
     return 1

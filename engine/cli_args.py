@@ -9,11 +9,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from engine.errors import InputError
+from engine.errors import InputError, NoSpacingError
 from engine.params import (
     FIRST_SLICE_CHOICES,
     ISO_PRESETS_HU,
@@ -42,11 +42,10 @@ def default(kind: type, name: str) -> Any:
     raise KeyError(f"{kind.__name__} has no field {name!r}")
 
 
-def _axes(text: str, order: str) -> Spacing:
-    """Three positive mm values given in ``order`` ("zyx" or "xyz"), or named (``x=0.9,y=0.9,z=1.5``, any order);
-    returned as (z, y, x)."""
+def _axes(text: str) -> Spacing:
+    """Three positive mm values in z, y, x order, or named (``z=1.5,y=0.9,x=0.9``, any order); returned as
+    (z, y, x)."""
     parts = [p.strip() for p in text.split(",")]
-    example = "Z,Y,X" if order == "zyx" else "X,Y,Z"
     try:
         if any("=" in p for p in parts):
             named = {}
@@ -60,45 +59,74 @@ def _axes(text: str, order: str) -> Spacing:
             nums = tuple(float(p) for p in parts)
             if len(nums) != 3:
                 raise ValueError
-            vals = nums if order == "zyx" else nums[::-1]
+            vals = nums
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"expected three numbers {example} in mm, or named axes x=..,y=..,z=.., got {text!r}"
+            f"expected three numbers Z,Y,X in mm, or named axes z=..,y=..,x=.., got {text!r}"
         ) from None
     if not all(math.isfinite(v) and v > 0 for v in vals):
         raise argparse.ArgumentTypeError(f"expected three positive voxel sizes in mm, got {text!r}")
     return vals  # type: ignore[return-value]
 
 
-def spacing_zyx(text: str) -> Spacing:
-    """``--spacing Z,Y,X`` (the engine's array order), or named axes."""
-    return _axes(text, "zyx")
+def voxel_size_zyx(text: str) -> Spacing:
+    """``--voxel-size Z,Y,X`` (and its older name ``--spacing``): z, y, x in mm, the order of the API's ``spacing``,
+    the page's field and the library's ``spacing_zyx_mm``; or named axes in any order (``z=1.5,y=0.9,x=0.9``).
 
+    ``--voxel-size`` was x, y, z before this order was made one everywhere, so three bare numbers shaped like an
+    x, y, z size (two equal values first or around the odd one: ``0.957,0.957,1.5``) are refused, not read in the
+    new order: an old command would otherwise print a model squashed along the wrong axis. Named axes are taken as
+    given (a swapped-looking named size is only warned about)."""
+    from engine.params import spacing_order_warning
 
-def voxel_size_xyz(text: str) -> Spacing:
-    """``--voxel-size X,Y,Z`` (the order of most tools and of the datasets' READMEs), or named; returns (z, y, x)."""
-    return _axes(text, "xyz")
+    spacing = _axes(text)
+    warning = None if "=" in text else spacing_order_warning(spacing)
+    if warning is not None and warning["likely_zyx_mm"] is not None:
+        z, y, x = spacing
+        raise argparse.ArgumentTypeError(
+            f"{text!r} looks like an x, y, z voxel size (CT pixels are square, so the two equal values are the "
+            f"in-plane ones), but --voxel-size is z, y, x: name the axes to say which you mean, e.g. "
+            f"{voxel_size_option(warning['likely_zyx_mm'])[13:]} (or z={z:g},y={y:g},x={x:g} to keep it as typed)"
+        )
+    return spacing
 
 
 def describe_voxel_size(spacing: Spacing) -> str:
     """The voxel size with its axes named, so that the order cannot be misread."""
     z, y, x = spacing
-    return f"x {x:g} mm, y {y:g} mm, z {z:g} mm (x: image columns, y: image rows, z: slices)"
+    return f"z {z:g} mm, y {y:g} mm, x {x:g} mm (z: slice step, y: image rows, x: image columns)"
+
+
+def voxel_size_option(spacing: Sequence[float]) -> str:
+    """``--voxel-size`` for a (z, y, x) voxel size, with its axes named (as a warning suggests it)."""
+    z, y, x = spacing
+    return f"--voxel-size z={z:g},y={y:g},x={x:g}"
+
+
+def voxel_size_warning(spacing: Spacing | None) -> str | None:
+    """The CLI's sentence when a given voxel size looks swapped (``engine.params.spacing_order_warning``), with the
+    option that gives the likely size; None when it does not."""
+    from engine.params import spacing_order_warning
+
+    warning = spacing_order_warning(spacing) if spacing is not None else None
+    if warning is None:
+        return None
+    likely = warning["likely_zyx_mm"]
+    fix = f"; if so, give {voxel_size_option(likely)}" if likely else ""
+    return f"{warning['message']}{fix} (--voxel-size is z, y, x; name the axes to be sure)"
 
 
 def add_input_args(parser: argparse.ArgumentParser, what: str) -> None:
-    """INPUT, ``-o``, the voxel size (two unmisreadable forms) and the device."""
+    """INPUT, ``-o``, the voxel size (z, y, x, or named axes) and the device."""
     parser.add_argument("input", nargs="?", help="slice archive or folder, DICOM series (zip or folder), TIFF or .npy")
     parser.add_argument("-o", "--output", required=True, help=what)
     size = parser.add_mutually_exclusive_group()
     size.add_argument(
-        "--voxel-size", dest="spacing", type=voxel_size_xyz, metavar="X,Y,Z",
-        help="voxel size in mm in x, y, z order (x: image columns, y: rows, z: slice step), or x=..,y=..,z=..",
+        "--voxel-size", dest="spacing", type=voxel_size_zyx, metavar="Z,Y,X",
+        help="voxel size in mm in z, y, x order (z: slice step, y: row spacing, x: column spacing; the order of the "
+        "API and the page), or named in any order: z=1.5,y=0.5,x=0.5. Image stacks need it; DICOM carries it",
     )  # fmt: skip
-    size.add_argument(
-        "--spacing", dest="spacing", type=spacing_zyx, metavar="Z,Y,X",
-        help="the same in z, y, x order (array order), or z=..,y=..,x=..",
-    )  # fmt: skip
+    size.add_argument("--spacing", dest="spacing", type=voxel_size_zyx, metavar="Z,Y,X", help="same as --voxel-size")
     parser.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default auto)")
     parser.add_argument(
         "--max-device-bytes", type=_budget, default=None, metavar="SIZE",
@@ -245,4 +273,23 @@ def load_input(args: argparse.Namespace, on_progress: Callable[[float], None] | 
         raise InputError("no INPUT given (or use --demo)")
     if not Path(args.input).exists():
         raise InputError(f"{args.input} does not exist")
-    return load_volume(args.input, spacing_zyx_mm=args.spacing, on_progress=on_progress), math.nan
+    try:
+        return load_volume(args.input, spacing_zyx_mm=args.spacing, on_progress=on_progress), math.nan
+    except NoSpacingError as exc:  # the library names spacing_zyx_mm: say it with the command's option
+        raise InputError(no_voxel_size_message(args.input, exc)) from None
+
+
+def no_voxel_size_message(path: str, exc: NoSpacingError) -> str:
+    """The CLI's words for an input without a voxel size: its name, what it lacks and the option that gives it."""
+    name = Path(path).name or path
+    pixel = getattr(exc, "pixel_yx_mm", None)
+    if pixel is not None:
+        y, x = pixel
+        return (
+            f"{name}: the TIFF tags give the pixel size (y {y:g} mm, x {x:g} mm) but not the slice spacing; give "
+            f"--voxel-size z=SLICE_STEP,y={y:g},x={x:g} (mm)"
+        )
+    return (
+        f"{name}: the images do not say how large a voxel is; give --voxel-size Z,Y,X in mm (z: slice step, "
+        "y: row spacing, x: column spacing), e.g. --voxel-size z=1.5,y=0.5,x=0.5"
+    )

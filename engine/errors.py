@@ -7,7 +7,10 @@ EngineError
 │   ├── IncompleteSeriesError  the series is not whole (missing slice, clashing duplicates, too few images)
 │   ├── NotAScanError       not a scan container: neither archive nor volume file, an unreadable archive, one image
 │   ├── NoSpacingError      the images do not say how large a voxel is: the caller must give the voxel size
-│   └── BudgetError         the device memory budget is too small for this scan (``needed``: one that works)
+│   ├── BudgetError         the device memory budget is too small for this scan (``needed``: one that works)
+│   ├── NoSymmetryError     the bone has no mirror plane: a defect template cannot be mirrored (``engine.defect``)
+│   ├── NoDefectError       mirroring finds no one-sided defect (an intact bone, or one too small to fill)
+│   └── MidlineDefectError  the defect crosses the symmetry plane: the mirror image lacks the bone too
 ├── PrintCheckError         the print model is not printable (not watertight, not manifold, ...): nothing written
 └── StageError              a pipeline stage failed for a reason that is not the input's fault (``stage`` names it)
 
@@ -85,3 +88,20 @@ class NoSpacingError(InputError):
 
 
 __all__ += ["NoSpacingError", "NotAScanError"]
+
+
+class NoSymmetryError(InputError):
+    """The bone has no mirror plane that fits it: a defect template cannot be mirrored from it (``engine.defect``)."""
+
+
+class NoDefectError(InputError):
+    """Mirroring the bone finds no one-sided defect: the bone is intact, or what is missing is smaller than the
+    smallest defect reported (``engine.defect``)."""
+
+
+class MidlineDefectError(InputError):
+    """The defect crosses the symmetry plane: the mirror image lacks the same bone, so mirroring cannot make its
+    template (``engine.defect``)."""
+
+
+__all__ += ["MidlineDefectError", "NoDefectError", "NoSymmetryError"]

@@ -11,9 +11,7 @@ import ctypes
 import re
 from typing import Any
 
-from engine.budget import parse_bytes  # service.cli checks --max-device-bytes with it
-
-__all__ = ["PeakMemory", "parse_bytes"]
+__all__ = ["PeakMemory"]
 
 
 class PeakMemory:

@@ -20,14 +20,18 @@ A mirroring map (a stack flipped an odd number of times) reverses the faces' win
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
 
 from engine.params import OrientParams
 from engine.types import Mesh, Volume
+
+if TYPE_CHECKING:
+    from engine.report import FrameInfo
 
 PATIENT_FRAME = "LPS mm (DICOM patient frame: +x patient's left, +y posterior, +z superior)"
 GLTF_FRAME = "metres, +Y superior, +Z anterior (the patient faces +Z), +X patient's left, centred on the bounding box"
@@ -52,7 +56,7 @@ class Frame:
         """Whether the map reverses handedness (the faces' winding must be reversed)."""
         return bool(np.linalg.det(self.matrix) < 0)
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> FrameInfo:
         """The report's ``frame`` entry (JSON-able): the map as a 4x4 matrix on grid (x, y, z, 1) in mm."""
         m = np.eye(4)
         m[:3, :3], m[:3, 3] = self.matrix, self.offset_mm
@@ -64,7 +68,7 @@ class Frame:
         }
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any] | None) -> Frame:
+    def from_dict(cls, data: Mapping[str, Any] | None) -> Frame:
         """Inverse of :meth:`to_dict`; None gives the identity (grid = patient)."""
         if not data:
             return cls(np.eye(3), np.zeros(3), "identity (no frame recorded)")
@@ -124,7 +128,7 @@ def centred(mesh: Mesh) -> tuple[Mesh, npt.NDArray[np.float64]]:
     return Mesh(moved, mesh.faces, mesh.normals), centre_zyx[::-1]
 
 
-def export_meshes(mesh: Mesh, frame: dict[str, Any] | None) -> tuple[Mesh, Mesh, dict[str, Any]]:
+def export_meshes(mesh: Mesh, frame: FrameInfo | None) -> tuple[Mesh, Mesh, FrameInfo]:
     """The print mesh (patient LPS mm) and the viewing mesh (patient axes, centred: the glTF files), and the report's
     ``frame`` entry with the centre added.
 
@@ -135,5 +139,5 @@ def export_meshes(mesh: Mesh, frame: dict[str, Any] | None) -> tuple[Mesh, Mesh,
     f = Frame.from_dict(frame)
     patient = to_patient(mesh, f)
     viewing, centre = centred(patient)
-    info = {**(frame or f.to_dict()), "gltf_centre_lps_mm": [round(float(c), 6) for c in centre]}
+    info: FrameInfo = {**(frame or f.to_dict()), "gltf_centre_lps_mm": [round(float(c), 6) for c in centre]}
     return patient, viewing, info

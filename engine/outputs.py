@@ -1,6 +1,7 @@
 """The files of a reconstruction (``write_outputs``): ``model.stl`` (patient LPS mm, checked for printing),
 ``model.glb``, ``phone.glb`` (Draco), ``ar.glb``, the other viewers' files (``phone_meshopt.glb``, ``model.usdz``,
-``preview.png``: ``engine.export.viewers``) and ``report.json``.
+``preview.png``: ``engine.export.viewers``) and ``report.json`` (``engine.report``): the files of the registry
+``engine.export.files``, in its order.
 
 The finished mesh is laid out for its files on the device where the pipeline left it (``lay_out``: the patient
 frame, the STL's facet records and the glTF buffers, ``engine.export.kernels.layout``); only those buffers come
@@ -13,7 +14,6 @@ failure leaves no partial model.
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import tempfile
@@ -27,7 +27,9 @@ import numpy as np
 
 from engine.budget import LAYOUT_CHUNK_FACES, Budget, BudgetSpec
 from engine.decimation.viewing import viewing_copies
+from engine.export.files import MODEL_GLB, REPORT_JSON, VIEWING_ENTRY, engine_files
 from engine.params import ReconParams
+from engine.report import ExportInfo, MeshStats, Report, report_json
 from engine.types import Mesh
 
 if TYPE_CHECKING:
@@ -185,8 +187,8 @@ def _write_print_files(tmp: Path, stl: str, lay: Layout) -> dict[str, int]:
     with open(tmp / stl, "wb") as fh:
         sizes[stl] = write_stl(fh, lay.facets, STL_HEADER)
     document, parts = mesh_document(lay.gltf_pos, lay.gltf_normals, lay.tris, bounds=lay.gltf_bounds)
-    with open(tmp / "model.glb", "wb") as fh:
-        sizes["model.glb"] = write_glb(fh, document, parts)
+    with open(tmp / MODEL_GLB, "wb") as fh:
+        sizes[MODEL_GLB] = write_glb(fh, document, parts)
     return sizes
 
 
@@ -220,7 +222,7 @@ def write_outputs(
     out.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".bonemesh-", dir=out))
     report = recon.report
-    seconds: dict[str, float] = {}
+    seconds: dict[str, float | dict[str, float]] = {}
     t0 = time.perf_counter()
     try:
         budget = Budget.of(max_device_bytes)
@@ -254,9 +256,9 @@ def write_outputs(
         report["exports"].update({name: {**report["exports"].get(name, {}), "bytes": n} for name, n in sizes.items()})
         seconds["total"] = time.perf_counter() - t0
         report["write_seconds"] = seconds
-        (tmp / "report.json").write_text(json.dumps(report, indent=2, default=_json_default) + "\n")
+        (tmp / REPORT_JSON).write_text(report_json(report))
         paths = {}
-        for name in [stl, "model.glb", *small, "report.json"]:
+        for name in engine_files(closed=params.iso.closed):  # the STL of stl_name(params) among them
             os.replace(tmp / name, out / name)
             paths[name] = out / name
         return paths
@@ -266,13 +268,13 @@ def write_outputs(
 
 def _viewing_files(
     lay: Layout,
-    stats: dict[str, Any],
+    stats: MeshStats,
     params: ReconParams,
     room: Budget,
     tmp: Path,
-    seconds: dict[str, Any],
+    seconds: dict[str, float | dict[str, float]],
     dev: Any,
-) -> tuple[dict[str, bytes], dict[str, Any]]:
+) -> tuple[dict[str, bytes], dict[str, ExportInfo]]:
     """The phone and AR copies (decimated on ``dev`` within ``room`` bytes) and the small files made from them,
     written into ``tmp``: ``({name: bytes}, {"phone.glb": how the copy was made, "ar.glb": ...})``; their seconds go
     into ``seconds``."""
@@ -291,7 +293,7 @@ def _viewing_files(
     for name, data in small.items():
         (tmp / name).write_bytes(data)
     seconds["encode_small"] = time.perf_counter() - t1
-    return small, {"phone.glb": phone_info, "ar.glb": ar_info}
+    return small, {VIEWING_ENTRY["phone"]: phone_info, VIEWING_ENTRY["ar"]: ar_info}
 
 
 def _encode_small(phone: Mesh, ar: Mesh) -> tuple[dict[str, bytes], dict[str, float]]:
@@ -308,7 +310,7 @@ def _encode_small(phone: Mesh, ar: Mesh) -> tuple[dict[str, bytes], dict[str, fl
     return files, seconds
 
 
-def _layout_device(recon: Reconstruction, dev: Any, budget: Budget, report: dict[str, Any]) -> tuple[Any, bool]:
+def _layout_device(recon: Reconstruction, dev: Any, budget: Budget, report: Report) -> tuple[Any, bool]:
     """Where the model is laid out for its files, and whether that is the host (``Budget.place``: past the budget
     of a GPU; ``report["layout"]`` says where and why)."""
     n_faces = len(recon.device_mesh[1]) if recon.device_mesh is not None else len(recon.mesh.faces)
@@ -316,13 +318,3 @@ def _layout_device(recon: Reconstruction, dev: Any, budget: Budget, report: dict
     where, note = budget.place(dev, budget.costs.layout_bytes(n_faces), what)
     report["layout"] = note or {"device": str(where)}
     return where, note is not None
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")

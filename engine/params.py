@@ -106,6 +106,55 @@ def check_spacing_zyx_mm(spacing: object) -> tuple[float, float, float]:
     return values  # type: ignore[return-value]
 
 
+# ------------------------------------------------------------------------------------------ voxel size order
+# every voxel size in bonemesh is (z, y, x): the API's "spacing", the page's field, the CLI's --voxel-size, the
+# library's spacing_zyx_mm. CT images have square pixels (y = x); two sizes equal within this share are "equal"
+_SAME = 0.01
+_UNSQUARE = 1.1  # in-plane sizes that differ by more than this ratio (and match no other order) are warned about
+
+
+def _same(a: float, b: float) -> bool:
+    return abs(a - b) <= _SAME * max(a, b)
+
+
+def spacing_order_warning(spacing_zyx_mm: object) -> dict[str, Any] | None:
+    """A warning when a voxel size given as (z, y, x) looks swapped, else None (also for values that are not a
+    voxel size: ``check_spacing_zyx_mm`` refuses those).
+
+    CT images have square pixels, so y and x are expected equal. Given (a, a, b) or (a, b, a) with a != b, the two
+    equal values are probably the in-plane ones and the order was x, y, z (most tools' and most READMEs' order):
+    the likely voxel size is (b, a, a). Given three different values whose y and x differ by more than 10 %, the
+    order is questioned without a guess.
+
+    Returns:
+        ``{"code": "voxel_size_order", "message": ..., "given_zyx_mm": [z, y, x], "likely_zyx_mm": [z, y, x] or
+        None}``; the message names the axes, each front end adds how to give the size there.
+    """
+    try:
+        z, y, x = check_spacing_zyx_mm(spacing_zyx_mm)
+    except ValueError:
+        return None
+    if _same(y, x):
+        return None
+    given = f"z {z:g}, y {y:g}, x {x:g} mm"
+    likely: list[float] | None = None
+    if _same(z, y) or _same(z, x):
+        odd = x if _same(z, y) else y
+        likely = [odd, z, z]
+        message = (
+            f"the voxel size {given} looks swapped: CT images have square pixels (y = x), so these values are "
+            f"probably in x, y, z order, i.e. z {odd:g}, y {z:g}, x {z:g} mm"
+        )
+    elif max(y, x) / min(y, x) > _UNSQUARE:
+        message = (
+            f"the voxel size {given} has unequal in-plane sizes (y {y:g} mm, x {x:g} mm), while CT images have "
+            "square pixels: check the order (z: slice step, y: row spacing, x: column spacing)"
+        )
+    else:
+        return None
+    return {"code": "voxel_size_order", "message": message, "given_zyx_mm": [z, y, x], "likely_zyx_mm": likely}
+
+
 @dataclass(frozen=True)
 class PreprocessParams:
     """Optional per-slice preprocessing (the paper's) and a crop box.

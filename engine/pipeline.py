@@ -15,7 +15,7 @@ import os
 import platform
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -24,6 +24,7 @@ from engine.errors import EmptySurfaceError, InputError, StageError
 from engine.params import ReconParams
 from engine.plans import STAGES, State, plan_for
 from engine.progress import StageProgress
+from engine.report import Report
 from engine.types import Mesh, Volume
 
 if TYPE_CHECKING:
@@ -35,17 +36,18 @@ OnProgress = Callable[[str, float], None]
 
 
 class Reconstruction:
-    """The result: the final mesh (with normals) and a JSON-able report.
+    """The result: the final mesh (with normals) and a JSON-able report (``engine.report.Report``).
 
     ``reconstruct`` leaves the mesh on its device (``device_mesh``: positions, faces, normals as Warp arrays, which
     ``write_outputs`` lays out there); ``mesh`` brings it to the host on first use.
     """
 
-    def __init__(self, mesh: Mesh | None = None, report: dict[str, Any] | None = None, device_mesh: Any = None):
+    def __init__(self, mesh: Mesh | None = None, report: Report | None = None, device_mesh: Any = None):
         if mesh is None and device_mesh is None:
             raise ValueError("a Reconstruction needs a mesh or a device mesh")
         self._mesh = mesh
-        self.report: dict[str, Any] = {} if report is None else report
+        # a mesh made elsewhere has no pipeline blocks yet: write_outputs adds its own to an empty report
+        self.report: Report = cast(Report, {}) if report is None else report
         self.device_mesh = device_mesh
 
     @property
@@ -120,7 +122,7 @@ def reconstruct(
     dev = resolve_device(device)
     budget = Budget.of(max_device_bytes)
     plan = plan_for(budget)  # chosen once: the whole volume, or streamed within the budget
-    report: dict[str, Any] = {
+    report: Report = {
         "parameters": params.to_dict(),
         "device": {
             "spec": device if isinstance(device, str) else str(device),

@@ -9,8 +9,8 @@ ordered tuple of named stages over a small typed state (``State``).
   model does not fit (``Budget.place``).
 
 Both plans have the same stage names (``STAGES``), so the report and the progress read the same. Each stage is
-``stage(state, params, report, progress)``; everything after preprocess runs on the device where the data already
-is.
+``stage(state, params, report, progress)``, writing its blocks of the report (``engine.report.Report``);
+everything after preprocess runs on the device where the data already is.
 """
 
 from __future__ import annotations
@@ -25,8 +25,9 @@ import numpy as np
 
 from engine.budget import Budget
 from engine.errors import EmptySurfaceError, InputError
-from engine.level import choose_level, hu_offset
+from engine.level import LevelChoice, model_warnings, resolve_level
 from engine.params import ReconParams
+from engine.report import Report
 from engine.types import Volume
 
 SEAM_VOXELS = 6  # a budgeted decimation's last pass across the slab groups' borders reaches this far from them
@@ -46,6 +47,7 @@ class State:
     incidence: Any = None  # devmesh.Incidence of the current mesh, when built
     normals: Any = None
     stream: Any = None  # engine.isosurface.stream.StreamResult of the streamed plan
+    choice: LevelChoice | None = None  # the level and the HU offset (engine.level), chosen once in preprocess
 
     def incidence_built(self) -> Any:
         """The current mesh's stars (``engine.surface.devmesh.Incidence``), built once."""
@@ -56,10 +58,10 @@ class State:
         return self.incidence
 
 
-Stage = Callable[[State, ReconParams, dict[str, Any], Progress], None]
+Stage = Callable[[State, ReconParams, Report, Progress], None]
 
 
-def _preprocess(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+def _preprocess(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
     from engine.orient import patient_frame
     from engine.volume.preprocess import preprocess_volume
 
@@ -67,14 +69,15 @@ def _preprocess(st: State, params: ReconParams, report: dict[str, Any], progress
         st.volume = preprocess_volume(st.volume, params.preprocess)
     report["counts"]["voxels"] = int(st.volume.data.size)
     report["frame"] = patient_frame(st.volume, params.orient).to_dict()  # engine.orient: STL/glTF frames
+    st.choice = resolve_level(st.volume, params)  # given, a preset, or automatic (HU + offset detected: bone)
     if params.body is not None:  # bone of the body only (HU data): engine.volume.bodymask
         from engine.volume.bodymask import isolate_bone
 
-        level = choose_level(st.volume, params)[0]
-        st.volume, report["body_mask"] = isolate_bone(st.volume, level, params.body, hu_offset(st.volume, params))
+        st.volume, report["body_mask"] = isolate_bone(st.volume, st.choice.value, params.body, st.choice.hu_offset)
+    report["warnings"] = model_warnings(st.volume, st.choice)  # voxel size order, a skin surface (engine.level)
 
 
-def _upload(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+def _upload(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
     """The volume to the device, once (the whole-volume plan)."""
     import warp as wp
 
@@ -82,7 +85,7 @@ def _upload(st: State, params: ReconParams, report: dict[str, Any], progress: Pr
     _choose_level(st, params, report)
 
 
-def _stage_on_host(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+def _stage_on_host(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
     """The volume stays on the host, contiguous, to stream in slabs (the streamed plan: engine.isosurface.stream)."""
     st.volume = dataclasses.replace(st.volume, data=np.ascontiguousarray(_device_dtype(st.volume.data)))
     _choose_level(st, params, report)
@@ -95,23 +98,24 @@ def _device_dtype(data: np.ndarray) -> np.ndarray:
     return data
 
 
-def _choose_level(st: State, params: ReconParams, report: dict[str, Any]) -> None:
-    st.level, how = choose_level(st.volume, params)
-    report["iso_level"] = {"value": st.level, "units": st.volume.units, "chosen_by": how}
+def _choose_level(st: State, params: ReconParams, report: Report) -> None:
+    choice = st.choice or resolve_level(st.volume, params)
+    st.level = choice.value
+    report["iso_level"] = choice.report(st.volume.units)
 
 
-def _gaussian(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+def _gaussian(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
     from engine.volume.gaussian import smooth_volume
 
     if params.gaussian is not None:
         st.field = smooth_volume(st.field, params.gaussian)
 
 
-def _gaussian_in_slabs(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+def _gaussian_in_slabs(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
     """Nothing here: the streamed plan smooths slab by slab inside its isosurface stage."""
 
 
-def _isosurface(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+def _isosurface(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
     from engine.isosurface.mc33 import extract_isosurface
     from engine.isosurface.stats import IsosurfaceStats
 
@@ -124,7 +128,7 @@ def _isosurface(st: State, params: ReconParams, report: dict[str, Any], progress
     _take_surface(st, v, f, stats, report)
 
 
-def _isosurface_streamed(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+def _isosurface_streamed(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
     from engine.isosurface.stats import IsosurfaceStats
 
     stats = IsosurfaceStats()
@@ -148,7 +152,7 @@ def _data_errors() -> Iterator[None]:
         raise InputError(str(exc)) from None
 
 
-def _take_surface(st: State, v: Any, f: Any, stats: Any, report: dict[str, Any]) -> None:
+def _take_surface(st: State, v: Any, f: Any, stats: Any, report: Report) -> None:
     """The isosurface becomes the state's mesh; an empty one is ``EmptySurfaceError``."""
     if len(f) == 0:
         lo, hi = float(st.volume.data.min()), float(st.volume.data.max())
@@ -187,7 +191,7 @@ def _stream(st: State, params: ReconParams, stats: Any) -> tuple[Any, Any]:
     return wp.empty(0, dtype=wp.vec3), wp.empty(0, dtype=wp.vec3i)
 
 
-def _decimate(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+def _decimate(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
     if params.decimate is None:
         return
     from engine.decimation.passes import TOLERANCE, decimate_device
@@ -210,14 +214,14 @@ def _decimate(st: State, params: ReconParams, report: dict[str, Any], progress: 
     report["counts"]["decimate"] = {"vertices": len(st.pos), "faces": stats.output_faces}
 
 
-def _decimate_streamed(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+def _decimate_streamed(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
     if st.stream.grouped:
         _decimate_groups(st, params, report)
     else:
         _decimate(st, params, report, progress)
 
 
-def _decimate_groups(st: State, params: ReconParams, report: dict[str, Any]) -> None:
+def _decimate_groups(st: State, params: ReconParams, report: Report) -> None:
     """Finish a decimation begun in groups of slabs: tiled rounds across their borders, then a last pass."""
     from engine.decimation.groups import finish_groups
     from engine.decimation.passes import TOLERANCE
@@ -238,7 +242,7 @@ def _decimate_groups(st: State, params: ReconParams, report: dict[str, Any]) -> 
     report["counts"]["decimate"] = {"vertices": len(st.pos), "faces": out}
 
 
-def _fit_or_host(st: State, report: dict[str, Any]) -> None:
+def _fit_or_host(st: State, report: Report) -> None:
     """The finishing stages hold the whole final mesh: within a budget it cannot fit, they run on the host
     (``Budget.place``: Warp's CPU device, outside the budget; reported as ``report["finish"]``), or, where
     the device is the host, the job stops early with the budget that would work."""
@@ -253,7 +257,7 @@ def _fit_or_host(st: State, report: dict[str, Any]) -> None:
         report["finish"] = note
 
 
-def _islands(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+def _islands(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
     if params.islands is None:
         return
     from engine.surface.islands import remove_islands_device
@@ -268,13 +272,13 @@ def _islands(st: State, params: ReconParams, report: dict[str, Any], progress: P
     report["counts"]["islands"] = {"vertices": len(st.pos), "faces": len(st.faces)}
 
 
-def _islands_within(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+def _islands_within(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
     """Islands within the budget: the finishing stages first go to the host where the model does not fit."""
     _fit_or_host(st, report)
     _islands(st, params, report, progress)
 
 
-def _smooth(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+def _smooth(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
     if params.smooth is None:
         return
     from engine.surface.smooth import smooth_device
@@ -282,7 +286,7 @@ def _smooth(st: State, params: ReconParams, report: dict[str, Any], progress: Pr
     st.pos, report["smooth"] = smooth_device(st.pos, st.faces, params.smooth, st.incidence_built())
 
 
-def _normals(st: State, params: ReconParams, report: dict[str, Any], progress: Progress) -> None:
+def _normals(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
     from engine.surface.normals import normals_device
 
     st.normals = normals_device(st.pos, st.faces, st.incidence_built())

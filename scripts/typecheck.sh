@@ -1,13 +1,16 @@
 #!/usr/bin/env bash
-# mypy --strict on the engine's public API and its ground floor (issue 26). Warp and scikit-image have no type
-# information: calls into them are not held to the untyped-call rule, and modules outside this list are read for
-# their types but not reported (follow-imports=silent). Needs mypy in the virtual environment.
+# mypy --strict on the engine's public API, its ground floor, the report's type (engine/report.py) and the registry
+# of output files (engine/export/files.py) (issue 26). Warp and scikit-image have no type information: calls into
+# them are not held to the untyped-call rule, and modules outside this list are read for their types but not
+# reported (follow-imports=silent). Needs mypy in the virtual environment (the `test` extra installs it; the tests
+# run this script: tests/engine/test_typecheck.py).
 set -ex
 cd "$(dirname "$0")/.."
 .venv/bin/python -m mypy --strict --follow-imports=silent --ignore-missing-imports \
     --untyped-calls-exclude=warp --untyped-calls-exclude=skimage \
     engine/__init__.py engine/_lazy.py engine/errors.py engine/types.py engine/params.py engine/budget.py \
     engine/device.py engine/memory.py engine/level.py engine/orient.py engine/progress.py engine/staging.py \
-    engine/plans.py engine/pipeline.py engine/outputs.py engine/warmup.py engine/cli.py \
+    engine/plans.py engine/pipeline.py engine/outputs.py engine/report.py engine/warmup.py engine/cli.py \
+    engine/export/__init__.py engine/export/files.py engine/export/viewers.py \
     engine/volume/__init__.py engine/isosurface/__init__.py engine/decimation/__init__.py \
     engine/surface/__init__.py engine/paper/__init__.py

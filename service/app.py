@@ -66,7 +66,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             expose_headers=CORS_EXPOSED,
             max_age=600,
         )
-    for router in (page.router, health.router, jobs.router, files.router):
+    for router in (page.router, health.router, jobs.router, jobs.webhooks_router, files.router):
         app.include_router(router)
 
     def openapi() -> dict[str, Any]:

@@ -57,7 +57,11 @@ def main(argv: list[str] | None = None) -> int:
         from service.pacs.gateway import main as pacs_main
 
         return pacs_main(argv[1:])
-    from engine.cli import main as engine_main
+    try:
+        from engine.cli import main as engine_main
+    except KeyboardInterrupt:  # Ctrl-C while the engine loads: one line, as engine.cli.main says it later
+        print("bonemesh: interrupted", file=sys.stderr)  # noqa: T201
+        return 130
 
     if not argv or argv[0] in ("-h", "--help"):
         print("bonemesh serve | worker | pacs: the service, its worker, the PACS node (see bonemesh serve --help)")  # noqa: T201

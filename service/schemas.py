@@ -9,6 +9,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, Field
 
 from core.params import JobParams
+from engine.export.files import FILES
 from service.pacs.models import Delivery, SourceJobCreate
 
 
@@ -25,13 +26,11 @@ class JobError(BaseModel):
 
 
 class OutputFile(BaseModel):
-    """One output of a succeeded job, with its signed download link."""
+    """One output of a succeeded job, with its signed download link (the files are those of engine/export/files.py)."""
 
     name: str
-    kind: str = Field(
-        description="print (STL, mm), surface (open STL, mm), model (GLB, m), phone (Draco GLB), phone_meshopt "
-        "(meshopt GLB), ar (plain GLB for Scene Viewer), ar_ios (USDZ for AR Quick Look), preview (PNG), report"
-    )
+    kind: str = Field(description=", ".join(f"{f.kind} ({f.name})" for f in FILES.values()))
+    purpose: str = Field(description="what the file is for, in words (the page shows it)")
     media_type: str
     bytes: int
     triangles: int | None
@@ -140,7 +139,7 @@ DOWNLOAD_CONTENT = {
     "content": {
         **{
             media: {"schema": {"type": "string", "format": "binary"}}
-            for media in ("model/stl", "model/gltf-binary", "model/vnd.usdz+zip", "image/png")
+            for media in dict.fromkeys(f.media_type for f in FILES.values() if f.media_type != "application/json")
         },
         "application/json": {"schema": {"type": "object"}},
     },

@@ -13,6 +13,7 @@ from core.logsafe import safe_logger
 from core.queue import Queue
 from core.settings import Settings
 from core.storage import Storage, storage_from_settings
+from engine.export.files import FILES
 from service import tokens
 from service.pacs import api as pacs_api
 from service.schemas import JobError, JobOut, OutputFile, WebhookAttempt, WebhookOut
@@ -85,9 +86,11 @@ class Services:
             outputs = []
             for o in job.outputs:
                 token, expires = tokens.sign(self.key, job.id, o["name"], self.settings.url_ttl_seconds)
+                entry = FILES.get(o["name"])
                 outputs.append(
                     OutputFile(
                         **o,
+                        purpose=entry.purpose if entry is not None else "",
                         url=f"{base_url.rstrip('/')}/v1/files/{token}",
                         expires_at=dt.datetime.fromtimestamp(expires, dt.UTC),
                     )

@@ -18,14 +18,24 @@ from typing import Any
 from core.db import Database
 from core.logsafe import safe_logger
 from core.pacs.records import PacsRecords
-from engine.errors import EngineError
+from engine.export.files import MODEL_DCM, PRINT_STL
 from engine.types import Volume
 
 log = safe_logger("bonemesh.worker")
-MODEL_DCM = "model.dcm"
 
 
-class SourceUnavailable(EngineError):
+class JobSourceError(Exception):
+    """Base of the worker's errors about a job's source (not the engine's: the scan is never read). Each has its
+    error code in ``worker.tasks._explain``:
+
+    JobSourceError
+    ├── SourceUnavailable       source_unavailable: the DICOMweb series could not be fetched
+    │   └── SourceIncomplete    source_incomplete: the server returned fewer instances than it lists
+    └── UncheckedSource         incomplete_series: the series was not checked complete, so no model for the PACS
+    """
+
+
+class SourceUnavailable(JobSourceError):
     """The job's DICOMweb source could not be fetched (server down, refused, or the series is empty)."""
 
 
@@ -91,7 +101,7 @@ def fetch_source(db: Database, job_id: str, upload: Path) -> None:
     )  # fmt: skip
 
 
-class UncheckedSource(EngineError):
+class UncheckedSource(JobSourceError):
     """The volume's source was not checked complete, so no model is made for the PACS."""
 
 
@@ -106,7 +116,7 @@ def write_dicom_model(db: Database, job_id: str, upload: Path, staged: Path, vol
         UncheckedSource: the volume's source was not checked complete; such a model never goes to a PACS.
     """
     rec = PacsRecords(db).get(job_id)
-    stl_path = staged / "model.stl"
+    stl_path = staged / PRINT_STL
     if rec is None or not stl_path.is_file():
         return {}
     completeness = volume.source.get("completeness") or {}
@@ -167,4 +177,12 @@ def _version() -> str:
         return "unknown"
 
 
-__all__ = ["MODEL_DCM", "SourceIncomplete", "SourceUnavailable", "UncheckedSource", "fetch_source", "write_dicom_model"]
+__all__ = [
+    "MODEL_DCM",
+    "JobSourceError",
+    "SourceIncomplete",
+    "SourceUnavailable",
+    "UncheckedSource",
+    "fetch_source",
+    "write_dicom_model",
+]

@@ -20,7 +20,8 @@ from celery.exceptions import SoftTimeLimitExceeded
 from core.db import Database, utcnow
 from core.logsafe import escape_control, relabel, safe_logger
 from core.settings import Settings, get_settings
-from core.storage import OUTPUTS, is_storage_full, storage_from_settings
+from core.storage import is_storage_full, storage_from_settings
+from engine.export.files import FILES, triangle_count
 from worker.app import app
 from worker.pacs import SourceIncomplete, SourceUnavailable, UncheckedSource, fetch_source, write_dicom_model
 
@@ -143,7 +144,9 @@ def _run(
     job: Any, upload: Path, staged: Path, holder: _Holder, settings: Settings, db: Database
 ) -> list[dict[str, Any]]:
     """Load, reconstruct and write the files into ``staged`` (on ``settings.device``, within
-    ``settings.max_device_bytes``); returns the output descriptions."""
+    ``settings.max_device_bytes``: one ``Budget`` for the pipeline and the files, as the CLI's); returns the output
+    descriptions (``engine.export.files``: kind, media type and triangles of each)."""
+    from engine.budget import Budget
     from engine.io import codecs, load_volume
     from engine.outputs import write_outputs
     from engine.params import ReconParams
@@ -165,33 +168,79 @@ def _run(
     def on_progress(stage: str, fraction: float) -> None:
         holder.progress(stage, LOAD_END + (PIPELINE_END - LOAD_END) * fraction)
 
-    device, budget = settings.device, settings.max_device_bytes
+    device, budget = settings.device, Budget.of(settings.max_device_bytes)
     recon = reconstruct(volume, params, device=device, on_progress=on_progress, max_device_bytes=budget)
     holder.progress("writing", PIPELINE_END)
     paths = write_outputs(recon, staged, params, device=device, max_device_bytes=budget)
     paths.update(write_dicom_model(db, job.id, upload, staged, volume))  # PACS jobs: Encapsulated STL (worker.pacs)
-    report = recon.report
-    triangles = {
-        "model.stl": report["mesh"]["n_faces"],
-        "surface_open.stl": report["mesh"]["n_faces"],
-        "model.glb": report["mesh"]["n_faces"],
-        "phone.glb": report["exports"]["phone.glb"]["faces"],
-        "ar.glb": report["exports"]["ar.glb"]["faces"],
-        "phone_meshopt.glb": report["exports"]["phone.glb"]["faces"],
-        "model.usdz": report["exports"]["ar.glb"]["faces"],
-        "report.json": None,
-        "model.dcm": report["mesh"]["n_faces"],
-    }
     return [
         {
             "name": name,
-            "kind": OUTPUTS[name][0],
-            "media_type": OUTPUTS[name][1],
+            "kind": FILES[name].kind,
+            "media_type": FILES[name].media_type,
             "bytes": path.stat().st_size,
-            "triangles": triangles.get(name),
+            "triangles": triangle_count(name, recon.report),
         }
         for name, path in paths.items()
     ]
+
+
+@app.task(name="bonemesh.orient")
+def orient_job(job_id: str, orient: dict[str, Any]) -> str:
+    """Re-publish a succeeded job's outputs with the stack placed by ``orient`` (``engine.reorient``: no
+    reconstruction): the outputs are copied into a staging folder, written again there and published in one rename
+    (``Storage.publish``); the job's outputs, its params' ``orient`` and its stage (``orienting`` -> ``done``) follow.
+    Idempotent: the orientation is absolute, so a redelivered message writes the same files; a job no longer
+    re-orienting (deleted, or another message done first) is left alone."""
+    from core.db import ORIENTING
+    from engine.errors import InputError
+    from engine.params import OrientParams
+    from engine.reorient import read_report, reorient
+
+    settings = get_settings()
+    db = database(settings.db_url)
+    storage = storage_from_settings(settings.data_dir)
+    job = db.get(job_id)
+    report_path = storage.output_path(job_id, "report.json")
+    if job is None or job.state != "succeeded" or job.stage != ORIENTING or report_path is None:
+        log.info("job %s: not being re-oriented; message dropped", job_id)
+        return "skipped"
+    staged = storage.staging_dir(job_id)
+    try:
+        for path in report_path.parent.iterdir():
+            if path.is_file():
+                shutil.copy2(path, staged / path.name)
+        wanted = OrientParams(**orient)
+        paths = reorient(staged, wanted, device=settings.device, max_device_bytes=settings.max_device_bytes)
+        report = read_report(staged)
+        outputs = [
+            {**o, "bytes": (staged / o["name"]).stat().st_size, "triangles": triangle_count(o["name"], report)}
+            if o["name"] in paths
+            else o
+            for o in job.outputs or []
+        ]
+        storage.publish(job_id, staged)
+        params = {**job.params, "orient": dict(orient)}
+        engine_params = None
+        if job.engine_params:
+            engine_params = {**job.engine_params, "recon": {**job.engine_params["recon"], "orient": dict(orient)}}
+        values: dict[str, Any] = {"outputs": outputs, "params": params}
+        if engine_params is not None:
+            values["engine_params"] = engine_params
+        db.finish_orient(job_id, **values)
+        return "succeeded"
+    except Exception as exc:
+        shutil.rmtree(staged, ignore_errors=True)
+        known = isinstance(exc, InputError | TypeError | ValueError)
+        if not known:
+            log.exception("job %s: re-orientation failed", job_id)
+        message = str(exc) if known else f"the re-orientation failed ({type(exc).__name__}); the model is unchanged"
+        db.finish_orient(
+            job_id,
+            error_code="orient_failed",
+            error_message=escape_control(message.replace(str(staged), "the job's outputs")),
+        )
+        return "failed"
 
 
 def engine_params_of(job: Any) -> tuple[dict[str, Any], list[float] | None]:

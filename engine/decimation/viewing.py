@@ -6,9 +6,12 @@ copy continues from the phone copy, or is clustered from the same mesh when the 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from engine.budget import Budget, BudgetSpec
+
+if TYPE_CHECKING:
+    from engine.report import ExportInfo
 
 SPECK_FACES = 4  # a closed piece keeps at least a tetrahedron under the topology guard
 FACES_PER_PIECE = 200  # when pieces must go, a viewing copy keeps about this many faces per piece
@@ -19,13 +22,14 @@ STALL_PASSES = 10  # a round's last passes that tell whether another round could
 
 @dataclass
 class ViewingCopy:
-    """A viewing copy on the device (``pos``, ``faces``) and its report entry (``summary``), with what a smaller
+    """A viewing copy on the device (``pos``, ``faces``) and its report entry (``summary``: the report's
+    ``exports["phone.glb" | "ar.glb"]``, ``engine.report.ExportInfo``), with what a smaller
     copy made from it needs: its piece count when known, whether it is closed (watertight and 2-manifold), and
     where it was clustered, the prepared mesh it was clustered from (``engine.decimation.cluster.Clustering``)."""
 
     pos: Any
     faces: Any
-    summary: dict[str, Any]
+    summary: ExportInfo
     pieces: int | None = None
     closed: bool = False
     clustering: Any = None
@@ -62,7 +66,7 @@ def _prepares_within(n_faces: int, room: Budget, moving: bool) -> bool:
     return room.fits(n_faces * per_face)
 
 
-def _take_to(pos: Any, faces: Any, max_triangles: int, room: Budget, device: Any) -> tuple[Any, Any, dict]:
+def _take_to(pos: Any, faces: Any, max_triangles: int, room: Budget, device: Any) -> tuple[Any, Any, dict[str, Any]]:
     """A mesh taken to ``device`` for its viewing copies (their speck removal, censuses, decimation and clustering
     run there, not on Warp's one CPU thread): as it is where its speck removal fits ``room``, else first decimated
     in tiles on the device (``engine.decimation.tiles``, every guard kept, no piece dropped) to what fits."""
@@ -106,7 +110,7 @@ def _make_copy(
 
     passes = dropped = 0
     keep: int | None = None
-    summary: dict[str, Any] = {"topology_preserved": True}
+    summary: ExportInfo = {"topology_preserved": True}
     moving = device is not None and pos.device != device  # e.g. a print model laid out on the host, past the budget
     if moving or not _prepares_within(len(faces), room, moving):
         pos, faces, summary["taken_to"] = _take_to(pos, faces, max_triangles, room, device or pos.device)
@@ -158,14 +162,20 @@ def _make_copy(
         pos, faces, summary["clustered"] = clustering.copy(max_triangles)
         summary["topology_preserved"] = False
     summary.update(
-        faces=len(faces), decimated=True, passes=passes, pieces_dropped=dropped, over_budget=len(faces) > max_triangles
+        {
+            "faces": len(faces),
+            "decimated": True,
+            "passes": passes,
+            "pieces_dropped": dropped,
+            "over_budget": len(faces) > max_triangles,
+        }
     )
     return ViewingCopy(pos, faces, summary, pieces, closed and clustering is None, clustering)
 
 
 def viewing_copy(
     pos: Any, faces: Any, max_triangles: int, pieces: int | None = None, closed: bool = False
-) -> tuple[Any, Any, dict]:
+) -> tuple[Any, Any, ExportInfo]:
     """A device copy within ``max_triangles`` faces, decimated on the device; ``(pos, faces, summary)``, the arrays
     themselves when already within budget.
 
@@ -193,7 +203,7 @@ def viewing_copies(
     closed: bool = False,
     room: BudgetSpec = None,
     device: Any = None,
-) -> list[tuple[Any, Any, dict]]:
+) -> list[tuple[Any, Any, ExportInfo]]:
     """Viewing copies within each of ``budgets`` (largest first: the phone copy, then the AR copy), each made from
     the one before (``viewing_copy``; the first from the print model ``pos``, ``faces`` of ``pieces`` pieces,
     ``closed`` when watertight and 2-manifold), carrying its piece count and closedness.
@@ -207,7 +217,7 @@ def viewing_copies(
     is; a print model laid out on the host is decimated on the GPU).
     """
     room = Budget.of(room)
-    out: list[tuple[Any, Any, dict]] = []
+    out: list[tuple[Any, Any, ExportInfo]] = []
     prev: ViewingCopy | None = None
     for most in budgets:
         if prev is None:
@@ -217,8 +227,8 @@ def viewing_copies(
             copy.closed, copy.clustering = prev.closed, prev.clustering
         elif prev.clustering is not None:
             cpos, cfaces, info = prev.clustering.copy(most)
-            summary = {"topology_preserved": False, "clustered": info, "faces": len(cfaces), "decimated": True}
-            summary.update(passes=0, pieces_dropped=0, over_budget=len(cfaces) > most)
+            summary: ExportInfo = {"topology_preserved": False, "clustered": info, "faces": len(cfaces)}
+            summary.update({"decimated": True, "passes": 0, "pieces_dropped": 0, "over_budget": len(cfaces) > most})
             copy = ViewingCopy(cpos, cfaces, summary, None, False, prev.clustering)
         else:
             copy = _make_copy(prev.pos, prev.faces, most, prev.pieces, prev.closed, room, device)

@@ -8,18 +8,21 @@ written under another name (:data:`OPEN_STL`) and not checked.
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
 
 from engine.errors import PrintCheckError  # also imported from here by worker.tasks
+from engine.export.files import OPEN_STL, PRINT_STL  # the names are the registry's
 from engine.params import ReconParams
+
+if TYPE_CHECKING:
+    from engine.report import PrintCheck
 
 __all__ = ["OPEN_STL", "PRINT_STL", "PrintCheckError", "check_print_model", "stl_name", "zero_area_faces"]
 
-PRINT_STL = "model.stl"
-OPEN_STL = "surface_open.stl"
 _CHUNK = 1 << 21
 
 
@@ -42,9 +45,9 @@ def zero_area_faces(vertices: npt.NDArray[Any], faces: npt.NDArray[Any]) -> int:
 def check_print_model(
     vertices: npt.NDArray[Any] | None,
     faces: npt.NDArray[Any] | None,
-    stats: dict[str, Any] | None = None,
+    stats: Mapping[str, Any] | None = None,
     zero_area: int | None = None,
-) -> dict[str, Any]:
+) -> PrintCheck:
     """Judge a print model; returns the passed checks for the report.
 
     Args:

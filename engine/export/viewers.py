@@ -1,26 +1,24 @@
-"""The files for viewers beyond the phone app's Draco GLB, made from the phone and AR meshes: a meshopt GLB
-(three.js, model-viewer without Draco's WASM), a USDZ for iOS AR Quick Look, and a PNG thumbnail for lists."""
+"""The files made from the viewing copies (the phone and AR meshes): the phone app's Draco GLB, the plain AR GLB,
+a meshopt GLB (three.js, model-viewer without Draco's WASM), a USDZ for iOS AR Quick Look and a PNG thumbnail for
+lists. Which files they are, from which copy and by which exporter is the registry's
+(``engine.export.files.viewing_files``)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from typing import Any
 
-from engine.export.meshopt import to_meshopt_glb
-from engine.export.preview import to_preview_png
-from engine.export.usdz import to_usdz
+from engine.export.files import Exporter, exporter_of, viewing_files
 
 
 def small_files(phone: Any, ar: Any) -> dict[str, Callable[[], bytes]]:
     """Every small file of a model as a function that encodes it, from meshes with ``vertices``, ``faces`` and
-    ``normals`` (engine order, mm; centred as the glTF files are): the Draco ``phone.glb``, the plain ``ar.glb``,
-    the meshopt GLB, the USDZ and the preview (``engine.outputs`` runs them one after another)."""
-    from engine.export import to_draco_glb, to_glb
+    ``normals`` (engine order, mm; centred as the glTF files are), in the registry's order: ``phone.glb``,
+    ``ar.glb``, ``phone_meshopt.glb``, ``model.usdz``, ``preview.png`` (``engine.outputs`` runs them one after
+    another). The exporters are looked up when this is called."""
+    meshes: dict[str | None, Any] = {"phone": phone, "ar": ar}
+    return {f.name: _encoder(exporter_of(f), meshes[f.made_from]) for f in viewing_files()}
 
-    return {
-        "phone.glb": lambda: to_draco_glb(phone.vertices, phone.faces, phone.normals),
-        "ar.glb": lambda: to_glb(ar.vertices, ar.faces, ar.normals),
-        "phone_meshopt.glb": lambda: to_meshopt_glb(phone.vertices, phone.faces, phone.normals),
-        "model.usdz": lambda: to_usdz(ar.vertices, ar.faces, ar.normals),
-        "preview.png": lambda: to_preview_png(phone.vertices, phone.faces, phone.normals),
-    }
+
+def _encoder(export: Exporter, mesh: Any) -> Callable[[], bytes]:
+    return lambda: export(mesh.vertices, mesh.faces, mesh.normals)

@@ -36,7 +36,13 @@ _ENHANCED = "an Enhanced or Legacy Converted Enhanced image with per-frame funct
 
 
 class FrameError(ValueError):
-    """A multi-frame image whose frames cannot be placed (the message names the file and what is missing)."""
+    """A multi-frame image whose frames cannot be placed (the message names the file and what is missing).
+
+    Internal to the loader, outside ``engine.errors``' tree on purpose: it never leaves the engine. Only
+    :func:`frames` raises it, and its one caller, ``engine.io.dicom._frames``, catches it and marks the image an
+    unusable slice with this message, which becomes an ``InputError`` when that image's series is the one loaded
+    (as for any unreadable image).
+    """
 
 
 @dataclass(frozen=True)

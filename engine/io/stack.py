@@ -37,7 +37,10 @@ _UNIT_MM = {"mm": 1.0, "millimeter": 1.0, "cm": 10.0, "centimeter": 10.0, "m": 1
             "micron": 1e-3, "um": 1e-3, "\u00b5m": 1e-3, "\u03bcm": 1e-3, "micrometer": 1e-3, "nm": 1e-6,
             "inch": 25.4, "in": 25.4}  # fmt: skip
 _PRINT_DPI = {72.0, 96.0, 100.0, 150.0, 200.0, 300.0, 600.0, 1200.0}  # screen/print defaults, not scan geometry
-SPACING_HINT = "give it as spacing_zyx_mm=(z, y, x) (CLI: --voxel-size X,Y,Z or --spacing Z,Y,X), in mm"
+SPACING_HINT = (
+    'give the voxel size in mm in z, y, x order (CLI --voxel-size z=..,y=..,x=..; job params "spacing": [z, y, x]; '
+    "Python spacing_zyx_mm=(z, y, x))"
+)
 
 
 class StackWarning(UserWarning):
@@ -299,10 +302,13 @@ def _resolve_spacing(
             raise InputError(f"{label}: the TIFF tags give an implausible voxel size: {exc}; {SPACING_HINT}") from None
     if "yx" in geo:
         y, x = geo["yx"]
-        raise NoSpacingError(
+        err = NoSpacingError(
             f"{label}: the TIFF tags give the pixel size (y {y:g} mm, x {x:g} mm) but not the slice spacing; "
-            f"give it as spacing_zyx_mm=(z, {y:g}, {x:g}) (CLI: --spacing Z,{y:g},{x:g}), in mm"
+            f"give the voxel size in mm in z, y, x order (CLI --voxel-size z=..,y={y:g},x={x:g}; job params "
+            f'"spacing": [z, {y:g}, {x:g}]; Python spacing_zyx_mm=(z, {y:g}, {x:g}))'
         )
+        err.pixel_yx_mm = (y, x)  # type: ignore[attr-defined]  # for the front ends' own wording (engine.cli_args)
+        raise err
     note = f" ({geo['note']})" if "note" in geo else ""
     raise NoSpacingError(f"{label}: an image stack does not carry its voxel size{note}; {SPACING_HINT}")
 

@@ -1,6 +1,6 @@
 """``bonemesh sweep``: its arguments and the command (the sweep itself is the library ``engine.paper.sweep``).
 
-bonemesh sweep INPUT (--voxel-size X,Y,Z | --spacing Z,Y,X) (--iso V | --preset bone --hu-offset 1024) -o OUTDIR
+bonemesh sweep INPUT --voxel-size Z,Y,X (--iso V | --preset bone --hu-offset 1024) -o OUTDIR
                [--reductions 0.2,0.3,...] [--iterations 1,5,...] [--repeats 3] [--slices 64] [--points 200000]
                [--crop Z0:Z1,Y0:Y1,X0:X1] [--stride N] [--no-mc33] [--full-runs] [--resume] [--device ...]
 bonemesh sweep --demo -o OUTDIR                    (bundled headsq CT at level 1150)

@@ -7,9 +7,12 @@ a removed face is ``(-1, -1, -1)``. Kernels are in ``engine.surface.kernels``
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from engine.report import Bounds, MeshStats
 
 CLASS_NAMES = ("free", "border", "locked", "unused")  # the kernels' FREE, BORDER, LOCKED, DEAD
 
@@ -189,9 +192,9 @@ def _face_sums(pos: Any, faces: Any) -> tuple[float, float, int]:
     return volume, area_sum, round(degenerate)
 
 
-def mesh_stats_device(pos: Any, faces: Any, inc: Incidence | None = None) -> dict[str, Any]:
-    """``engine.surface.meshcheck.mesh_stats`` of a device mesh, computed on its device (same keys and meaning):
-    only counts and a few numbers come back to the host."""
+def mesh_stats_device(pos: Any, faces: Any, inc: Incidence | None = None) -> MeshStats:
+    """``engine.surface.meshcheck.mesh_stats`` of a device mesh, computed on its device (same keys and meaning: the
+    report's ``mesh``, ``engine.report.MeshStats``): only counts and a few numbers come back to the host."""
     import warp as wp
 
     from engine.surface.kernels import measures as kmeasure
@@ -209,7 +212,7 @@ def mesh_stats_device(pos: Any, faces: Any, inc: Incidence | None = None) -> dic
         wp.launch(kmeasure.count_roots, dim=nv, inputs=[label, inc.count, roots])
         components = int(roots.numpy()[0]) + int(classes[3])  # unused vertices count as pieces, as on the host
         edges, border, nonmanifold, inconsistent = (int(x) for x in totals.numpy())
-        bbox = None
+        bbox: Bounds | None = None
         if nv:
             lo, hi = bounds(pos)
             bbox = {"min": [float(x) for x in lo[::-1]], "max": [float(x) for x in hi[::-1]]}

@@ -4,8 +4,10 @@ that lies outside the patient's body outline, before meshing (host, scipy.ndimag
 The outline is the tissue at or above ``outline_hu`` and below the bone level, its holes filled slice by slice: a
 bone covered by soft tissue (skull under the scalp, a pelvis in the abdomen) becomes part of it, while a couch or
 a head holder, which touches the air outside, does not (even where a phantom rests on the couch without an air
-gap). Each connected bone piece (26-connected voxels at or above the level) is kept when enough of it lies inside
-the outline; the voxels of the others are set to the volume's minimum (air).
+gap). The partial-volume rim around a thin holder plate also closes in a slice, so parts of a slice's outline
+thinner than 6 mm beside a thicker part are not body (``body_outline``). Each connected bone piece (26-connected
+voxels at or above the level) is kept when enough of it lies inside the outline; the voxels of the others are set
+to the volume's minimum (air).
 """
 
 from __future__ import annotations
@@ -20,21 +22,65 @@ from engine.errors import NoBoneInBodyError
 from engine.params import BodyMaskParams
 from engine.types import Volume
 
+# a part of a slice's body outline thinner than this (twice this radius) beside a thicker part is not body
+THIN_PART_RADIUS_MM = 3.0
+
 
 def body_outline(
-    data: np.ndarray, level: float, outline: float, spacing_zyx_mm: tuple[float, float, float], dilate_mm: float
+    data: np.ndarray,
+    level: float,
+    outline: float,
+    spacing_zyx_mm: tuple[float, float, float],
+    dilate_mm: float,
+    thin_radius_mm: float | None = THIN_PART_RADIUS_MM,
 ) -> np.ndarray:
     """The filled body outline (bool, same shape): tissue >= ``outline`` and < ``level``, holes filled per slice,
-    grown in-plane by ``dilate_mm``."""
+    without the thin parts (see below), grown in-plane by ``dilate_mm``.
+
+    The partial-volume rim around a thin holder plate passes through the tissue range and closes around it in a
+    slice, so that hole filling puts the plate "inside" an outline of its own (the head-holder plates of the
+    gantry-tilt series, 18 mm beside the skull). A connected part of a slice's outline that does not hold a disc of
+    ``thin_radius_mm`` (6 mm across; a finger, a toe or a wrist holds one) is dropped when the slice has a thicker
+    part (the body); a slice whose parts are all thin keeps them. None: keep every part.
+    """
     from scipy import ndimage as ndi
 
     tissue = (data >= outline) & (data < level)
     body = np.empty_like(tissue)
     for z in range(tissue.shape[0]):
         body[z] = ndi.binary_fill_holes(tissue[z])
-        if dilate_mm > 0:
+    if thin_radius_mm is not None and body.any():
+        body = _without_thin_parts(body, thin_radius_mm, min(spacing_zyx_mm[1:]))
+    if dilate_mm > 0:
+        for z in range(body.shape[0]):
             body[z] = ndi.distance_transform_edt(~body[z], sampling=spacing_zyx_mm[1:]) <= dilate_mm
     return body
+
+
+def _without_thin_parts(body: np.ndarray, radius_mm: float, pixel_mm: float) -> np.ndarray:
+    """``body`` without its thin in-plane parts (``body_outline``): a part is thick when something of it survives
+    an in-plane erosion by the radius (city-block steps of a pixel, so a disc of that radius survives). Slice by
+    slice, so that the labels take a slice's memory, not the volume's."""
+    from scipy import ndimage as ndi
+
+    cross = ndi.generate_binary_structure(2, 1)
+    steps = max(1, round(radius_mm / pixel_mm))
+    out = body
+    for z in range(body.shape[0]):
+        if not body[z].any():
+            continue
+        thick = ndi.binary_erosion(body[z], structure=cross, iterations=steps)
+        if not thick.any():
+            continue  # only thin parts in this slice: all kept
+        parts, n = ndi.label(body[z], structure=cross)
+        keep = np.bincount(parts[thick], minlength=n + 1) > 0
+        keep[0] = False
+        if keep[1:].all():
+            continue
+        if out is body:
+            out = body.copy()
+        out[z] = keep[parts]
+    return out
 
 
 def isolate_bone(
@@ -61,11 +107,16 @@ def isolate_bone(
             "applied": False,
             "reason": "the volume is not in HU (for stacks of HU + offset give iso.hu_offset, CLI --hu-offset)",
         }
+    outline = params.outline_hu + hu_offset
+    if level <= outline:  # a skin surface (or lower): there is no tissue below the level to outline a body with
+        return volume, {
+            "applied": False,
+            "reason": f"the level is at or below the body outline's threshold ({params.outline_hu:g} HU)",
+        }
     from scipy import ndimage as ndi
 
     t0 = time.perf_counter()
     data = volume.data
-    outline = params.outline_hu + hu_offset
     voxel_mm3 = float(np.prod(volume.spacing_zyx_mm))
     bone = data >= level
     labels, n = ndi.label(bone, structure=np.ones((3, 3, 3), bool))

@@ -15,6 +15,7 @@ from pydantic import ValidationError
 from core.db import Database, Job
 from core.pacs.config import get_pacs_settings
 from core.pacs.records import PacsRecords
+from engine.export.files import MODEL_DCM
 from service.pacs.models import SourceJobCreate
 from service.problems import Problem
 
@@ -35,9 +36,6 @@ def records_of(db: Database) -> PacsRecords:
 def job_view(db: Database, job: Job) -> dict[str, Any]:
     """``source`` and ``delivery`` of the job resource ({} for an upload)."""
     return records_of(db).view(job)
-
-
-MODEL_DCM = "model.dcm"
 
 
 def redeliver(svc: Any, job: Job) -> None:

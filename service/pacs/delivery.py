@@ -20,9 +20,9 @@ from core.logsafe import escape_control, safe_logger
 from core.pacs.config import DicomNode, DicomwebTarget, PacsSettings
 from core.pacs.records import PacsJob, PacsRecords
 from core.storage import Storage
+from engine.export.files import MODEL_DCM
 
 log = safe_logger("bonemesh.pacs")
-MODEL_DCM = "model.dcm"
 _C_STORE_OK = frozenset({0x0000, 0xB000, 0xB006, 0xB007})  # success, or stored with coercion / elements discarded
 
 

@@ -11,7 +11,7 @@ from typing import Annotated
 from fastapi import APIRouter, Header
 from fastapi.responses import FileResponse, Response
 
-from core.storage import OUTPUTS
+from engine.export.files import FILES
 from service import tokens
 from service.deps import ServicesDep
 from service.problems import Problem
@@ -47,7 +47,7 @@ def _answer(svc: ServicesDep, token: str, if_none_match: str | None) -> Response
         if_none_match.strip() == "*" or etag in {t.strip().removeprefix("W/") for t in if_none_match.split(",")}
     ):
         return Response(status_code=304, headers=headers)
-    media = OUTPUTS.get(name, ("file", "application/octet-stream"))[1]
+    media = FILES[name].media_type if name in FILES else "application/octet-stream"
     return FileResponse(
         path,
         media_type=media,

@@ -1,13 +1,17 @@
-"""The job resource: create (upload), list, read, cancel, delete; and the key's webhook secret."""
+"""The job resource: create (upload), list, read, cancel, delete, re-orient; and the key's webhook secret (its own
+router, ``webhooks_router``: under the webhooks tag only, so /docs lists it once)."""
 
 from __future__ import annotations
 
+import datetime as dt
+import json
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, Response
 
-from core.db import Job
+from core.db import Job, utcnow
+from core.params import OrientJobParams
 from service.deps import BaseUrlDep, OwnerDep, ServicesDep
 from service.intake import FULL, receive
 from service.pacs import api as pacs_api
@@ -18,6 +22,7 @@ from service.services import Services
 from service.webhooks import key_secret
 
 router = APIRouter(prefix="/v1", tags=["jobs"])
+webhooks_router = APIRouter(prefix="/v1", tags=["webhooks"])
 MULTIPART_SLACK = 1 << 20  # multipart headers and boundaries around the file
 MAX_OFFSET = 2**31 - 1
 KEYED = errors(401, d401="missing or unknown API key")
@@ -128,10 +133,51 @@ def delete_job(job_id: str, who: OwnerDep, svc: ServicesDep) -> Response:
     return Response(status_code=204)
 
 
-@router.get(
+@router.post(
+    "/jobs/{job_id}/orient",
+    status_code=202,
+    response_model=JobOut,
+    summary="place a finished image-stack job's model in another orientation: every output is written again in the "
+    "corrected frame (no reconstruction) and published at once; the job shows stage 'orienting' meanwhile",
+    responses={
+        **KEYED,
+        **errors(
+            400,
+            404,
+            409,
+            422,
+            503,
+            d400="the body is not valid JSON",
+            d409="the job has not succeeded, is being re-oriented, or is a DICOM series (placed by its headers)",
+            d422="invalid orientation fields",
+            d503="the queue is unreachable; nothing changed",
+        ),
+    },
+)
+def orient_job(job_id: str, body: OrientJobParams, who: OwnerDep, svc: ServicesDep, base: BaseUrlDep) -> JobOut:
+    job = _job(svc, job_id, who)
+    if job.state != "succeeded":
+        raise Problem(409, f"job {job_id} has not succeeded ({job.state}); only a finished model can be re-oriented")
+    report_path = svc.storage.output_path(job_id, "report.json")
+    frame = json.loads(report_path.read_text()).get("frame") or {} if report_path is not None else {}
+    if str(frame.get("placed_by", "")).startswith("DICOM"):
+        raise Problem(
+            409, f"job {job_id} is a DICOM series: its headers place it in the patient; it cannot be re-oriented"
+        )
+    stale_before = utcnow() - dt.timedelta(seconds=svc.settings.stale_seconds)
+    if not svc.db.start_orient(job_id, stale_before):
+        raise Problem(409, f"job {job_id} is being re-oriented already; wait for it to finish")
+    try:
+        svc.queue.enqueue_orient(job_id, body.model_dump())
+    except Exception as exc:
+        svc.db.finish_orient(job_id)
+        raise Problem(503, f"the queue is unreachable ({type(exc).__name__}); try again") from None
+    return svc.job_out(_job(svc, job_id, who), base)
+
+
+@webhooks_router.get(
     "/webhook-secret",
     response_model=WebhookSecret,
-    tags=["webhooks"],
     summary="the secret your jobs' webhooks are signed with (Standard Webhooks, HMAC-SHA256)",
     responses=KEYED,
 )

@@ -3,12 +3,8 @@
 "use strict";
 const $ = (id) => document.getElementById(id);
 const KEY = "bonemesh-api-key";
-const FOR = {
-  "model.stl": "3D printing (mm)", "model.glb": "full-detail viewing", "phone.glb": "the phone app (Draco)",
-  "phone_meshopt.glb": "three.js / model-viewer without Draco", "ar.glb": "Android AR (Scene Viewer)",
-  "model.usdz": "iPhone / iPad AR (Quick Look)", "preview.png": "thumbnail", "report.json": "what was done",
-  "surface_open.stl": "open surface (mm)",
-};
+// the files are the job's outputs as the API lists them: each with its kind and purpose from the server's registry
+// (engine/export/files.py); the page knows kinds only, never file names
 let picked = null; // {name, blob}
 let polling = null;
 let current = null;
@@ -67,32 +63,64 @@ async function entriesOf(entry, prefix = "") { // files of a dropped folder
   }
   return out;
 }
+// files that are never slices nor DICOM: refused here under their own names (a zip of them would be "slices.zip")
+const NOT_A_SCAN = /\.(txt|md|csv|json|xml|html?|pdf|docx?|xlsx?|rtf|log)$/i;
 async function pick(files) {
   files = files.filter((f) => !f.name.startsWith("."));
   if (!files.length) return;
-  const single = files.length === 1 && /\.(zip|tar|tgz|tar\.gz)$/i.test(files[0].name);
+  const odd = files.filter((f) => NOT_A_SCAN.test(f.name));
+  if (odd.length === files.length) {
+    picked = null;
+    $("picked").textContent = `${odd.map((f) => f.name).join(", ")}: not slice images or DICOM files; choose a zip, `
+      + "a folder of slices or the files of a DICOM series";
+    return;
+  }
+  files = files.filter((f) => !NOT_A_SCAN.test(f.name)); // a folder's notes or readme are left out
+  // one file goes as it is, under its own name (an archive, a .npy, a TIFF, a DICOM file), so that the service's
+  // messages name it; several are packed into one zip named after their folder
+  const single = files.length === 1;
+  const folder = (files[0].webkitRelativePath || "").split("/")[0] || files[0].name.replace(/\.[^.]*$/, "");
   $("picked").textContent = single ? `${files[0].name} (${human(files[0].size)})` : `${files.length} files: packing…`;
-  picked = single ? { name: files[0].name, blob: files[0] } : { name: "slices.zip", blob: await zipFiles(files) };
+  picked = single ? { name: files[0].name, blob: files[0] } : { name: `${folder}.zip`, blob: await zipFiles(files) };
   if (!single) $("picked").textContent = `${files.length} files (${human(picked.blob.size)} as a zip)`;
 }
 
 // --- upload, then follow the job ----------------------------------------------------------------------------
+// the voxel size: empty, or three numbers z, y, x in mm; anything else is refused naming the field
+function voxelSize() {
+  const text = $("spacing").value.trim();
+  if (!text) return null;
+  const parts = text.split(/[ ,;xX×]+/).filter(Boolean);
+  const values = parts.map(Number);
+  if (values.length !== 3 || values.some((v) => !Number.isFinite(v) || v <= 0)) {
+    throw new Error(`Voxel size: give three positive numbers z, y, x in mm (e.g. 1.5, 0.957, 0.957); got "${text}"`);
+  }
+  return values;
+}
+function orientOf() {
+  return { first_slice: $("first-slice").value, flip_lr: $("flip-lr").checked, flip_ap: $("flip-ap").checked };
+}
 function params() {
   const p = {}; const kind = $("level-kind").value;
   if (kind === "iso") p.iso = Number($("iso").value);
   else if (kind !== "auto") p.preset = kind;
   if ($("hu-offset").value) p.hu_offset = Number($("hu-offset").value);
-  const spacing = $("spacing").value.split(/[ ,;]+/).filter(Boolean).map(Number);
-  if (spacing.length === 3) p.spacing = spacing;
+  const spacing = voxelSize();
+  if (spacing) p.spacing = spacing;
+  p.orient = orientOf();
   if ($("reduction").value) p.reduction = Number($("reduction").value);
   return p;
 }
 function upload() {
   if (!key()) { alert("Enter your API key first."); return; }
   if (!picked) { alert("Choose a scan first."); return; }
+  $("upload-progress").hidden = false;
+  reveal($("upload-progress"));
+  let fields;
+  try { fields = params(); } catch (e) { $("upload-bar").value = 0; $("upload-text").textContent = e.message; $("spacing").focus(); return; }
   const form = new FormData();
   form.append("file", picked.blob, picked.name);
-  form.append("params", JSON.stringify(params()));
+  form.append("params", JSON.stringify(fields));
   const xhr = new XMLHttpRequest();
   xhr.open("POST", "/v1/jobs");
   xhr.setRequestHeader("X-API-Key", key());
@@ -102,19 +130,22 @@ function upload() {
   xhr.onload = () => {
     $("start").disabled = false;
     let body = null; try { body = JSON.parse(xhr.responseText); } catch (e) { /* not JSON */ }
-    if (xhr.status !== 202) { $("upload-text").textContent = `refused: ${(body && body.detail) || xhr.status}`; return; }
+    if (xhr.status !== 202) { $("upload-text").textContent = `refused: ${(body && body.detail) || xhr.status}`; reveal($("upload-progress")); return; }
     $("upload-bar").value = 100; $("upload-text").textContent = "uploaded";
     follow(body.id); loadJobs();
   };
   xhr.onerror = () => { $("start").disabled = false; $("upload-text").textContent = "the upload failed (network)"; };
   xhr.send(form);
 }
+// a phone shows what happens after a press: the element scrolled into view (no jump when it is already there)
+function reveal(el) { if (el && el.scrollIntoView) el.scrollIntoView({ block: "nearest", behavior: "auto" }); }
 const QUICK_POLL_MS = 250, QUICK_FOR_MS = 10000, POLL_MS = 1000;
 function follow(id) {
   clearTimeout(polling); current = id;
   const mine = ++following; // a request still in flight from an earlier follow() ends its poll when it returns
   $("job-box").hidden = false; $("result-box").hidden = true; $("job-error").hidden = true;
   $("job-id").textContent = id; $("cancel").hidden = false;
+  reveal($("job-box"));
   const since = Date.now();
   const tick = async () => {
     let job = null, error = null;
@@ -123,7 +154,7 @@ function follow(id) {
     if (error) $("job-state").textContent = error.message;
     if (job) {
       show(job);
-      if (["succeeded", "failed", "cancelled"].includes(job.state)) { loadJobs(); return; }
+      if (["succeeded", "failed", "cancelled"].includes(job.state) && job.stage !== "orienting") { loadJobs(); return; }
     }
     // a young job is asked about four times a second (a job of a few seconds shows its stages), then once a second
     polling = setTimeout(tick, Date.now() - since < QUICK_FOR_MS ? QUICK_POLL_MS : POLL_MS);
@@ -132,34 +163,92 @@ function follow(id) {
 }
 function show(job) {
   $("job-bar").value = job.progress;
-  const stage = job.state === "running" && job.stage ? ` (${job.stage})` : "";
+  const stage = (job.state === "running" || job.stage === "orienting") && job.stage ? ` (${job.stage})` : "";
   $("job-state").textContent = `${job.state}${stage}: ${job.progress.toFixed(0)} %`;
   $("job-box").dataset.state = job.state;
   const active = job.state === "queued" || job.state === "running";
   $("cancel").hidden = !active;
-  if (job.state === "failed") { $("job-error").hidden = false; $("job-error").textContent = `It did not work: ${job.error.message}`; }
+  $("job-error").hidden = true;
+  if (job.state === "failed") {
+    const hint = job.error.code === "no_spacing" ? " Fill in the Voxel size field (z, y, x in mm) and try again." : "";
+    $("job-error").hidden = false; $("job-error").textContent = `It did not work: ${job.error.message}.${hint}`;
+    reveal($("job-error"));
+  }
+  if (job.state === "succeeded" && job.error) { // a re-orientation that failed: the model is unchanged
+    $("job-error").hidden = false; $("job-error").textContent = `It could not be turned: ${job.error.message}`;
+  }
   if (job.state === "cancelled") { $("job-error").hidden = false; $("job-error").textContent = "Cancelled: its files were removed."; }
   if (job.state === "succeeded") result(job);
 }
 function result(job) {
-  const outs = Object.fromEntries(job.outputs.map((o) => [o.name, o]));
+  const outs = Object.fromEntries(job.outputs.map((o) => [o.kind, o]));
   const viewer = $("viewer");
-  if (viewer.dataset.job !== job.id) {
-    viewer.dataset.job = job.id; viewer.dataset.loaded = "";
-    if (outs["model.usdz"]) viewer.setAttribute("ios-src", outs["model.usdz"].url);
-    viewer.setAttribute("src", (outs["phone.glb"] || outs["model.glb"]).url);
+  const shown = `${job.id}:${JSON.stringify(job.params && job.params.orient || {})}`;
+  viewer.dataset.arSrc = outs.ar ? outs.ar.url : "";
+  $("orient-tools").dataset.busy = job.stage === "orienting" ? "yes" : "";
+  for (const b of ["turn-over", "face-front", "mirror"]) $(b).disabled = job.stage === "orienting";
+  if (job.stage === "orienting") { $("orient-state").textContent = "turning the model…"; return; }
+  if (viewer.dataset.shown !== shown) {
+    viewer.dataset.shown = shown; viewer.dataset.job = job.id; viewer.dataset.loaded = "";
+    if (outs.ar_ios) viewer.setAttribute("ios-src", outs.ar_ios.url);
+    viewer.setAttribute("src", (outs.phone || outs.model).url);
+    showFrame(job, outs.report);
   }
-  const rows = job.outputs.map((o) => `<tr><td>${o.name}</td><td>${FOR[o.name] || o.kind}</td>
+  const rows = job.outputs.map((o) => `<tr><td>${o.name}</td><td>${o.purpose || o.kind}</td>
     <td>${o.triangles == null ? "" : o.triangles.toLocaleString("en")}</td><td>${human(o.bytes)}</td>
     <td><a class="button download" href="${o.url}" download="${o.name}" data-name="${o.name}">Download</a></td></tr>`);
   $("facts").tBodies[0].innerHTML = rows.join("");
-  const phone = outs["phone.glb"];
+  const phone = outs.phone;
   if (phone) {
     $("share-url").value = phone.url;
     if (window.qrcode) { const qr = qrcode(0, "L"); qr.addData(phone.url); qr.make(); $("qr").innerHTML = qr.createSvgTag(4, 0); }
   }
   $("result-box").hidden = false;
 }
+
+// --- where the patient is: direction labels on the model, and turning it (POST /v1/jobs/{id}/orient) ----------
+// the glTF files are in the patient frame of the report: +Y superior, +Z anterior, +X the patient's left
+const DIRECTIONS = { s: [0, 1, 0], i: [0, -1, 0], a: [0, 0, 1], p: [0, 0, -1], l: [1, 0, 0], r: [-1, 0, 0] };
+function placeLabels() {
+  const viewer = $("viewer");
+  const d = viewer.getDimensions ? viewer.getDimensions() : null;
+  if (!d) return;
+  const half = [d.x / 2, d.y / 2, d.z / 2];
+  for (const [name, v] of Object.entries(DIRECTIONS)) {
+    const at = v.map((c, k) => c * half[k] * 1.12);
+    const el = viewer.querySelector(`[slot="hotspot-${name}"]`);
+    if (el) { el.dataset.position = at.map((c) => c.toFixed(4)).join(" "); el.dataset.normal = v.join(" "); }
+    viewer.updateHotspot({ name: `hotspot-${name}`, position: at.join(" "), normal: v.join(" ") });
+  }
+}
+async function showFrame(job, report) {
+  const stack = !job.params || !job.params.orient ? null : job.params.orient;
+  $("orient-tools").dataset.job = job.id;
+  let frame = null;
+  if (report) { try { frame = (await (await fetch(report.url)).json()).frame; } catch (e) { frame = null; } }
+  const dicom = frame && String(frame.placed_by || "").startsWith("DICOM");
+  for (const b of ["turn-over", "face-front", "mirror"]) $(b).hidden = dicom;
+  $("frame-text").textContent = frame
+    ? `S/I: head/feet, A/P: front/back, L/R: the patient's left/right. Placed by ${frame.placed_by}.`
+    : "S/I: head/feet, A/P: front/back, L/R: the patient's left/right.";
+  $("frame-text").dataset.placedBy = frame ? frame.placed_by : "";
+  $("orient-state").textContent = dicom || !stack ? "" : `stack: first slice ${stack.first_slice}${stack.flip_lr ? ", mirrored L/R" : ""}${stack.flip_ap ? ", top posterior" : ""}`;
+}
+// a half turn about left-right (turn over), about head-feet (face front), or a mirror: the new stack orientation
+const TURNS = {
+  "turn-over": (o) => ({ ...o, first_slice: o.first_slice === "superior" ? "inferior" : "superior", flip_ap: !o.flip_ap }),
+  "face-front": (o) => ({ ...o, flip_lr: !o.flip_lr, flip_ap: !o.flip_ap }),
+  "mirror": (o) => ({ ...o, flip_lr: !o.flip_lr }),
+};
+async function turn(which, job) {
+  const now = { first_slice: "superior", flip_lr: false, flip_ap: false, ...(job.params && job.params.orient || {}) };
+  try {
+    show(await api(`/v1/jobs/${job.id}/orient`, { method: "POST", headers: { "Content-Type": "application/json" },
+      body: JSON.stringify(TURNS[which](now)) }));
+    follow(job.id);
+  } catch (e) { $("orient-state").textContent = e.message; }
+}
+const isAndroid = () => /Android/i.test(navigator.userAgent);
 
 // --- the key's recent jobs -----------------------------------------------------------------------------------
 async function loadJobs() {
@@ -169,7 +258,7 @@ async function loadJobs() {
   $("jobs").innerHTML = "";
   for (const job of list.items) {
     const li = document.createElement("li");
-    const thumb = (job.outputs || []).find((o) => o.name === "preview.png");
+    const thumb = (job.outputs || []).find((o) => o.kind === "preview");
     const img = document.createElement(thumb ? "img" : "span");
     if (thumb) { img.src = thumb.url; img.alt = "preview"; } else { img.style.width = "56px"; }
     const text = document.createElement("span");
@@ -203,6 +292,14 @@ window.addEventListener("DOMContentLoaded", () => {
     $("share-url").select(); navigator.clipboard && navigator.clipboard.writeText(url);
   };
   const viewer = $("viewer");
-  viewer.addEventListener("load", () => { viewer.dataset.loaded = "yes"; });
+  viewer.addEventListener("load", () => { viewer.dataset.loaded = "yes"; placeLabels(); });
+  for (const b of ["turn-over", "face-front", "mirror"]) {
+    $(b).onclick = async () => { if (current) turn(b, await api(`/v1/jobs/${current}`)); };
+  }
+  // Android's Scene Viewer opens model-viewer's src: give it ar.glb (plain glTF; it cannot open Draco's phone.glb)
+  $("ar-button").addEventListener("click", () => {
+    const ar = viewer.dataset.arSrc;
+    if (isAndroid() && ar && viewer.getAttribute("src") !== ar) viewer.setAttribute("src", ar);
+  });
   viewer.addEventListener("error", (e) => { viewer.dataset.loaded = "error"; console.error("viewer", e.detail); });
 });

@@ -10,7 +10,7 @@ from engine.io import load_volume
 from engine.params import BodyMaskParams, IsoParams, ReconParams
 from engine.pipeline import reconstruct
 from engine.types import Volume
-from engine.volume.bodymask import isolate_bone
+from engine.volume.bodymask import body_outline, isolate_bone
 from tests.conftest import shared_file
 
 SP = (1.0, 1.0, 1.0)
@@ -81,6 +81,41 @@ def test_pipeline_drops_couch_and_specks_by_default_and_each_step_switches_off()
     assert ReconParams.from_dict({"body": None, "islands": None}) == ReconParams(body=None, islands=None)
 
 
+def with_thin_plate(data: np.ndarray) -> np.ndarray:
+    """A 2-voxel holder plate (330 HU: plastic at the bone level) in the air beside the body, wrapped in a one-voxel
+    partial-volume rim at soft-tissue values: the rim closes around the plate in every slice, as around the head-holder
+    plates of the gantry-tilt series."""
+    out = data.copy()
+    out[4:16, 19:42, 3:7] = 0.0  # the rim
+    out[4:16, 20:41, 4:6] = 330.0  # the plate
+    return out
+
+
+def test_a_thin_plate_in_its_own_partial_volume_rim_is_outside_the_body():
+    """Hole filling put the plate inside an outline of its own rim, so the plate stayed in the model."""
+    vol = Volume(with_thin_plate(patient_on_a_couch(couch=False, holder=False)), SP, units="HU")
+    out, info = isolate_bone(vol, 300.0, BodyMaskParams(), hu_offset=0.0)
+    assert info["pieces_removed"] == 1 and info["voxels_removed"] == 12 * 21 * 2
+    np.testing.assert_array_equal(out.data >= 300, patient_on_a_couch(couch=False, holder=False) >= 300)
+
+
+def test_thick_body_parts_stay_and_a_lone_thin_part_stays():
+    """A finger beside the trunk (tissue 5 mm in radius round a bone) is body; so is a thin part that is all a slice
+    holds (the thin-part rule needs a thicker part in the same slice)."""
+    data = patient_on_a_couch(couch=False, holder=False)
+    z, y, x = np.indices(data.shape)
+    finger = np.hypot(y - 30, x - 57) < 5.5
+    data[(z > 3) & (z < 16) & finger] = 40.0
+    data[(z > 3) & (z < 16) & (np.hypot(y - 30, x - 57) < 2.5)] = 900.0
+    out, info = isolate_bone(Volume(data, SP, units="HU"), 300.0, BodyMaskParams(), hu_offset=0.0)
+    assert info["pieces_removed"] == 0 and out.data is data
+    alone = np.full((6, 30, 30), -1000.0, np.float32)
+    alone[1:5, 10:20, 13:17] = 0.0  # 4 voxels thick: thin, but the only part of its slices
+    alone[1:5, 11:19, 14:16] = 900.0
+    body = body_outline(alone, 300.0, -500.0, SP, 0.0)
+    assert body[1:5, 11:19, 14:16].all()
+
+
 # ---- the real scans (../shared/data) -----------------------------------------------------------------------------
 def test_cranium_print_model_has_no_holder_plates():
     vol = load_volume(shared_file("cranium_ct", "cranium_ct_png16.zip"), spacing_zyx_mm=(1.5, 0.9570312, 0.9570312))
@@ -105,3 +140,13 @@ def test_ctpace_has_no_bone_in_the_body():
     vol = load_volume(shared_file("ctpace_phantom_dicom_nometa", "ctpace_phantom_dicom.zip"))
     with pytest.raises(NoBoneInBodyError, match="no bone inside the body"):
         reconstruct(vol, ReconParams(iso=IsoParams(preset="bone")), device="cpu")
+
+
+def test_gantry_tilt_series_has_no_head_holder_plates():
+    """The two plates beside the skull (1,456 and 873 mm3 in the model, 18 mm outside it) survived the mask."""
+    vol = load_volume(shared_file("gantry_tilt_dicom", "gantry_tilt_dicom.zip"))  # resampled: tilt, uneven gaps
+    out, info = isolate_bone(vol, 300.0, BodyMaskParams(), hu_offset=0.0)
+    kept = out.data >= 300
+    xs = np.flatnonzero(kept.any(axis=(0, 1)))
+    assert (xs.max() - xs.min() + 1) * vol.spacing_zyx_mm[2] < 160  # the skull's width (the plates made it 196)
+    assert info["kept_mm3"] > 560_000 and info["pieces_removed"] >= 7

@@ -77,7 +77,7 @@ def test_npy_input(tmp_path):
         (["missing.zip", "--iso", "1"], "does not exist"),
         (["bad.zip", "--iso", "1", "--spacing", "1,1,1"], "not a readable zip"),
         (["ball.npy", "--spacing", "1,1,1"], "--iso"),
-        (["ball.npy", "--iso", "1"], "--spacing"),
+        (["ball.npy", "--iso", "1"], "--voxel-size"),
         (["ball.npy", "--iso", "1e9", "--spacing", "1,1,1"], "no surface"),
         (["flat.npy", "--iso", "1", "--spacing", "1,1,1"], "at least 3 slices"),
     ],
@@ -124,7 +124,7 @@ def test_reconstruct_demo_writes_every_output(tmp_path):
     [
         (["missing.zip"], "does not exist"),
         (["bad.zip"], "zip"),
-        (["stack.zip"], "--voxel-size X,Y,Z"),
+        (["stack.zip"], "stack.zip: the images do not say how large a voxel is; give --voxel-size Z,Y,X"),
         (["stack.zip", "--voxel-size", "1e300,1,1"], "Expected a voxel size between 0.0001 and 100 mm, got 1e+300"),
         (["stack.zip", "--spacing", "1e-300,1,1"], "Expected a voxel size between 0.0001 and 100 mm, got 1e-300"),
         (["ball.npy", "--spacing", "1,1,1", "--reduction", "0"], "reduction must be in (0, 1], got 0"),
@@ -182,11 +182,17 @@ def test_options_map_to_params():
 
 
 def test_voxel_size_forms_agree():
+    """One order everywhere: --voxel-size is z, y, x like the API's spacing and the page's field (it was x, y, z,
+    and --spacing z, y, x); named axes in any order."""
     want = (2.0, 1.0, 0.5)  # z, y, x
-    assert parse("x", "-o", "o", "--voxel-size", "0.5,1,2").spacing == want
+    assert parse("x", "-o", "o", "--voxel-size", "2,1,0.5").spacing == want
     assert parse("x", "-o", "o", "--spacing", "2,1,0.5").spacing == want
     assert parse("x", "-o", "o", "--spacing", "x=0.5,z=2,y=1").spacing == want
     assert parse("x", "-o", "o", "--voxel-size", "z=2, y=1, x=0.5").spacing == want
+    from engine.cli import build_parser
+
+    rec = next(a for a in build_parser()._actions if a.dest == "command").choices["reconstruct"]
+    assert "Z,Y,X" in rec.format_usage() and "X,Y,Z" not in rec.format_help()
 
 
 @pytest.mark.parametrize("bad", ["1,1", "0.5,-1,2", "x=1,y=1", "a,b,c"])
@@ -198,10 +204,11 @@ def test_bad_voxel_size_exits_2(tmp_path, bad):
 def test_summary_names_the_axes_of_the_voxel_size(tmp_path):
     z, y, x = np.indices((12, 14, 16))
     np.save(tmp_path / "ball.npy", (30 - ((z - 6) ** 2 + (y - 7) ** 2 + (x - 8) ** 2)).astype(np.int16))
-    res = run_cli("reconstruct", "ball.npy", "-o", "out", "--voxel-size", "0.5,1,2", "--iso", "0.5", "--device", "cpu",
+    res = run_cli("reconstruct", "ball.npy", "-o", "out", "--voxel-size", "2,1,0.5", "--iso", "0.5", "--device", "cpu",
                   "--quiet", cwd=tmp_path)  # fmt: skip
     assert res.returncode == 0, res.stderr
-    assert "x 0.5 mm, y 1 mm, z 2 mm" in res.stdout
+    assert "z 2 mm, y 1 mm, x 0.5 mm" in res.stdout
+    assert "unequal in-plane sizes" in res.stderr  # CT pixels are square: y 1 mm, x 0.5 mm is questioned
     assert "first slice superior" in res.stdout and "LPS" in res.stdout
 
 
@@ -234,3 +241,182 @@ def test_the_import_graph_has_no_cycle_through_the_cli_and_no_benchmarks():
         assert not any(m == "benchmarks" or m.startswith("benchmarks.") for m in names), path
         if not path.name.startswith("cli") and path.name != "__main__.py":
             assert not any(m.startswith("engine.cli") for m in names), path
+
+
+# ------------------------------------------------------------------------------------------- issue 27: right by default
+def write_png_stack(path: Path, volume: np.ndarray) -> None:
+    import zipfile
+
+    import imageio.v3 as iio
+
+    with zipfile.ZipFile(path, "w") as zf:
+        for i, image in enumerate(volume):
+            buf = io.BytesIO()
+            iio.imwrite(buf, image, extension=".png")
+            zf.writestr(f"head/slice_{i:03d}.png", buf.getvalue())
+
+
+def test_argument_errors_are_two_lines_not_the_usage_block(tmp_path):
+    res = run_cli("reconstruct", "x.zip", "-o", "out", "--bogus", cwd=tmp_path)
+    assert res.returncode == 2 and "usage:" not in res.stderr
+    assert res.stderr.splitlines() == [
+        "bonemesh: error: unrecognized arguments: --bogus",
+        "try 'bonemesh reconstruct --help'",
+    ]
+    res = run_cli("reconstruct", "x.zip", "-o", "out", "--voxel-size", "1,2", cwd=tmp_path)
+    assert res.returncode == 2 and len(res.stderr.splitlines()) == 2 and "Z,Y,X" in res.stderr
+
+
+def test_missing_voxel_size_names_the_option_and_the_input(tmp_path):
+    """It led with the library's name for it, spacing_zyx_mm."""
+    write_png_stack(tmp_path / "cranium.zip", np.zeros((3, 8, 8), np.uint16))
+    res = run_cli("reconstruct", "cranium.zip", "-o", "out", "--device", "cpu", "--quiet", cwd=tmp_path)
+    assert res.returncode == 2 and res.stderr.count("\n") == 1
+    assert res.stderr.startswith("bonemesh: error: cranium.zip: ") and "--voxel-size" in res.stderr
+    assert "spacing_zyx_mm" not in res.stderr
+
+
+def test_a_single_png_is_named_and_refused_in_one_line(tmp_path):
+    import imageio.v3 as iio
+
+    iio.imwrite(tmp_path / "one.png", np.zeros((256, 256), np.uint16))
+    res = run_cli("reconstruct", "one.png", "-o", "out", "--voxel-size", "1,1,1", "--device", "cpu", cwd=tmp_path)
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and "shape" not in res.stderr
+    assert "one.png: the series has 1 image(s); a volume needs at least 3 slices" in res.stderr
+
+
+def test_progress_is_a_bar_on_a_terminal_and_a_few_lines_in_a_log(tmp_path):
+    import pty
+
+    z, y, x = np.indices((16, 18, 20))
+    np.save(tmp_path / "ball.npy", (40 - ((z - 8) ** 2 + (y - 9) ** 2 + (x - 10) ** 2)).astype(np.int16))
+    args = ("reconstruct", "ball.npy", "-o", "out", "--voxel-size", "1,1,1", "--iso", "0.5", "--device", "cpu")
+    log = run_cli(*args, cwd=tmp_path)  # stderr is a pipe
+    assert log.returncode == 0, log.stderr
+    assert "\r" not in log.stderr and 2 <= len(log.stderr.splitlines()) <= 5  # was ~130 updates
+    assert log.stderr.splitlines()[-1].startswith("bonemesh: 100.0%")
+    leader, follower = pty.openpty()
+    try:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "engine", *args[:3], "out2", *args[4:]], cwd=tmp_path, stdout=subprocess.DEVNULL,
+            stderr=follower, env={**os.environ, "PYTHONPATH": str(REPO)},
+        )  # fmt: skip
+        os.close(follower)
+        seen = b""
+        while True:  # read while it runs: a full terminal buffer would stop it
+            try:
+                chunk = os.read(leader, 65536)
+            except OSError:  # EIO: the command closed the terminal
+                break
+            if not chunk:
+                break
+            seen += chunk
+        proc.wait(timeout=600)
+    finally:
+        os.close(leader)
+    assert proc.returncode == 0 and b"\r[" in seen and b"100.0%" in seen  # the bar, redrawn in place
+
+
+def test_ctrl_c_says_one_line_exits_130_and_leaves_no_output_folder(tmp_path):
+    import signal
+    import time
+
+    rng = np.random.default_rng(0)
+    np.save(tmp_path / "noise.npy", rng.normal(0, 1, (96, 96, 96)).astype(np.float32))  # seconds of work
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "engine", "reconstruct", "noise.npy", "-o", "out", "--voxel-size", "1,1,1", "--iso",
+         "0.5", "--keep-specks", "--device", "cpu"], cwd=tmp_path, stderr=subprocess.PIPE, stdout=subprocess.PIPE,
+        text=True, env={**os.environ, "PYTHONPATH": str(REPO)},
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
+    first = proc.stderr.readline()  # the first progress line: the run has started
+    assert first.startswith("bonemesh:"), first
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    _out, err = proc.communicate(timeout=120)
+    lines = (first + err).splitlines()
+    assert proc.returncode == 130, err
+    assert lines[-1] == "bonemesh: interrupted" and "Traceback" not in err and len(lines) <= 6
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_unfinished_run_removes_the_folder_it_created_and_only_that(tmp_path):
+    from engine.cli import _removed_unless_finished
+
+    new = tmp_path / "new"
+    with pytest.raises(KeyboardInterrupt), _removed_unless_finished(new):
+        new.mkdir()
+        (new / "part.tmp").write_bytes(b"x")
+        raise KeyboardInterrupt
+    assert not new.exists()
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "model.stl").write_bytes(b"earlier run")
+    with pytest.raises(RuntimeError), _removed_unless_finished(old):
+        raise RuntimeError
+    assert (old / "model.stl").read_bytes() == b"earlier run"
+
+
+def test_micro_ct_summary_gives_the_volume_in_digits_that_show_it(tmp_path):
+    """The shrew's summary said 'volume 0 mm3' (0.03 mm3 at 4.1 um voxels)."""
+    z, y, x = np.indices((24, 24, 24))
+    np.save(
+        tmp_path / "ball.npy", np.where((z - 12) ** 2 + (y - 12) ** 2 + (x - 12) ** 2 < 64, 255, 0).astype(np.uint8)
+    )
+    res = run_cli("reconstruct", "ball.npy", "-o", "out", "--voxel-size", "0.0041,0.0041,0.0041", "--device", "cpu",
+                  "--quiet", cwd=tmp_path)  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    model = next(line for line in res.stdout.splitlines() if line.startswith("model "))
+    assert "volume 0 mm3" not in model
+    import re
+
+    volume = float(re.search(r"volume ([0-9.e-]+) mm3", model).group(1))
+    assert volume == pytest.approx(4 / 3 * np.pi * 8**3 * 0.0041**3, rel=0.1)  # about 1.5e-4 mm3
+
+
+def test_a_swapped_voxel_size_is_refused_unnamed_and_warned_named(tmp_path):
+    """--voxel-size 0.957,0.957,1.5 (x, y, z, the option's old order, from an old command or a README) is refused
+    with both readings named; named axes that still look swapped are warned on stderr, in the summary and report."""
+    import json
+
+    z, y, x = np.indices((12, 14, 16))
+    np.save(tmp_path / "ball.npy", (30 - ((z - 6) ** 2 + (y - 7) ** 2 + (x - 8) ** 2)).astype(np.int16))
+    old = run_cli("reconstruct", "ball.npy", "-o", "old", "--voxel-size", "0.957,0.957,1.5", "--iso", "0.5",
+                  "--device", "cpu", "--quiet", cwd=tmp_path)  # fmt: skip
+    assert old.returncode == 2 and not (tmp_path / "old").exists()
+    assert "looks like an x, y, z voxel size" in old.stderr and "z=1.5,y=0.957,x=0.957" in old.stderr, old.stderr
+    assert len(old.stderr.strip().splitlines()) <= 2, old.stderr
+    res = run_cli("reconstruct", "ball.npy", "-o", "out", "--voxel-size", "z=0.957,y=0.957,x=1.5", "--iso", "0.5",
+                  "--device", "cpu", "--quiet", cwd=tmp_path)  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert "bonemesh: warning: the voxel size z 0.957, y 0.957, x 1.5 mm looks swapped" in res.stderr
+    assert "--voxel-size z=1.5,y=0.957,x=0.957" in res.stderr
+    assert any(line.startswith("WARNING") and "looks swapped" in line for line in res.stdout.splitlines())
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert [w["code"] for w in report["warnings"]] == ["voxel_size_order"]
+    assert report["warnings"][0]["likely_zyx_mm"] == [1.5, 0.957, 0.957]
+    same = run_cli("isosurface", "ball.npy", "-o", "b.stl", "--voxel-size", "x=1.5,y=0.957,z=0.957", "--iso", "0.5",
+                   "--device", "cpu", cwd=tmp_path)  # fmt: skip
+    assert same.returncode == 0 and "looks swapped" in same.stderr
+
+
+def test_automatic_level_on_a_hu_plus_1024_stack_is_bone_and_a_skin_level_is_flagged(tmp_path):
+    """Only --voxel-size on CT stored as HU + 1024 gave a skin model (3.3 L on the cranium), said on stderr only."""
+    import json
+
+    from tests.engine.test_level import hu_plus_1024_head
+
+    write_png_stack(tmp_path / "head.zip", hu_plus_1024_head())
+    res = run_cli("reconstruct", "head.zip", "-o", "bone", "--voxel-size", "1,1,1", "--device", "cpu", "--quiet",
+                  cwd=tmp_path)  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert "bone preset (300 HU = 1324 stored), CT stored as HU + 1024 detected" in res.stdout
+    assert "WARNING" not in res.stdout and res.stderr == ""
+    report = json.loads((tmp_path / "bone" / "report.json").read_text())
+    assert report["iso_level"]["value"] == 1324.0 and report["warnings"] == []
+    skin = run_cli("reconstruct", "head.zip", "-o", "skin", "--voxel-size", "1,1,1", "--iso", "624", "--device", "cpu",
+                   "--quiet", cwd=tmp_path)  # fmt: skip
+    assert skin.returncode == 0, skin.stderr
+    assert any(line.startswith("WARNING") and "skin" in line for line in skin.stdout.splitlines())
+    flagged = json.loads((tmp_path / "skin" / "report.json").read_text())["warnings"]
+    assert [w["code"] for w in flagged] == ["looks_like_skin"]

@@ -5,7 +5,7 @@
   and other kernel modules, and no host module;
 * no import cycle among the engine's modules at load time (module-level imports; those inside functions or under
   ``TYPE_CHECKING`` run later, and each package's public names load lazily through ``engine._lazy``);
-* the ground floor (``errors``, ``types``, ``params``, ``budget``, ``device``) imports no stage package, and importing
+* the ground floor (``errors``, ``types``, ``params``, ``budget``, ``device``, ``report``) imports no stage package, and importing
   it or a stage package loads no Warp;
 * the exporters and the other packages reach a stage package through its public face, never a module inside it
   (the print check uses ``engine.surface``'s functions);
@@ -26,7 +26,15 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 ENGINE = REPO / "engine"
 STAGE_PACKAGES = ("volume", "isosurface", "decimation", "surface", "paper")
-GROUND_FLOOR = ("engine.errors", "engine.types", "engine.params", "engine.budget", "engine.device", "engine._lazy")
+GROUND_FLOOR = (
+    "engine.errors",
+    "engine.types",
+    "engine.params",
+    "engine.budget",
+    "engine.device",
+    "engine.report",
+    "engine._lazy",
+)
 KERNEL_ALLOWED = ("__future__", "typing", "warp", "numpy")
 FORBIDDEN = ("service", "worker", "core", "celery", "fastapi", "starlette", "redis", "sqlalchemy", "benchmarks")
 

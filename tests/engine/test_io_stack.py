@@ -106,7 +106,7 @@ def test_rgb_becomes_luminance_with_one_warning(tmp_path: Path) -> None:
 
 
 def test_missing_spacing_says_how_to_give_it(tmp_path: Path) -> None:
-    with pytest.raises(InputError, match=r"spacing_zyx_mm=\(z, y, x\) \(CLI: --voxel-size X,Y,Z or --spacing Z,Y,X\)"):
+    with pytest.raises(InputError, match=r"z, y, x order \(CLI --voxel-size z=\.\.,y=\.\.,x=\.\.; job params"):
         load_volume(_write(tmp_path / "s.zip", _slices(_vol(3), ".png"), "zip"))
     for absurd in ((1, 0, 1), (1e300, 1, 1), (1, 1e-300, 1), (1, 1, float("nan"))):
         with pytest.raises(InputError, match=r"Expected a voxel size between 0.0001 and 100 mm"):
@@ -127,7 +127,7 @@ def test_tiff_resolution_tags_give_spacing(tmp_path: Path) -> None:
         buf = io.BytesIO()
         tifffile.imwrite(buf, s, resolution=(40.0, 20.0), resolutionunit="CENTIMETER")
         files[f"s{k}.tif"] = buf.getvalue()
-    with pytest.raises(InputError, match=r"pixel size \(y 0\.5 mm, x 0\.25 mm\).*spacing_zyx_mm=\(z, 0\.5, 0\.25\)"):
+    with pytest.raises(InputError, match=r"pixel size \(y 0\.5 mm, x 0\.25 mm\).*--voxel-size z=\.\.,y=0\.5,x=0\.25"):
         load_volume(_write(cm, files, "folder"))
     dpi = tmp_path / "dpi.tif"  # 72 dpi is a display default, never a voxel size
     tifffile.imwrite(dpi, vol, photometric="minisblack", resolution=(72.0, 72.0), resolutionunit="INCH")

@@ -19,6 +19,7 @@ from engine.params import (
     SmoothParams,
     check_reduction,
     is_reduction,
+    spacing_order_warning,
     target_faces,
 )
 
@@ -125,3 +126,30 @@ def test_the_cli_turns_a_refused_value_into_an_input_error():
     )  # fmt: skip
     with pytest.raises(InputError, match="max_triangles"):
         recon_params(args)
+
+
+# ---- voxel size order: (z, y, x) everywhere, a swapped-looking one warned about ------------------------------------
+@pytest.mark.parametrize(
+    ("given", "likely"),
+    [
+        ((0.957, 0.957, 1.5), [1.5, 0.957, 0.957]),  # x, y, z from a README, read as z, y, x
+        ((0.5, 0.6, 0.5), [0.6, 0.5, 0.5]),  # the odd one in y
+        ((0.488, 0.4882812, 4.0), [4.0, 0.488, 0.488]),  # equal within 1 %
+    ],
+)
+def test_a_voxel_size_that_looks_swapped_is_warned_with_the_likely_one(given, likely):
+    warning = spacing_order_warning(given)
+    assert warning is not None and warning["code"] == "voxel_size_order" and "looks swapped" in warning["message"]
+    assert warning["likely_zyx_mm"] == likely and warning["given_zyx_mm"] == list(given)
+
+
+@pytest.mark.parametrize("given", [(1.5, 0.957, 0.957), (0.5, 0.9, 0.9), (0.0041,) * 3, (5.0, 1.663, 1.66)])
+def test_a_plausible_voxel_size_is_not_warned(given):
+    assert spacing_order_warning(given) is None
+
+
+def test_unequal_pixels_are_questioned_and_non_sizes_left_to_the_check():
+    warning = spacing_order_warning((2.0, 1.0, 0.5))
+    assert warning is not None and warning["likely_zyx_mm"] is None and "unequal in-plane" in warning["message"]
+    assert spacing_order_warning((2.0, 1.0, 1.05)) is None  # within 10 %: rounding, not a swap
+    assert spacing_order_warning((1.0, 1.0)) is None and spacing_order_warning("abc") is None

@@ -41,7 +41,9 @@ def test_reconstruct_defaults_follow_the_paper(headsq_recon):
     assert rep["mesh"]["watertight"] and rep["mesh"]["n_faces"] == len(mesh.faces)
     assert signed_volume(mesh.vertices, mesh.faces) > 0
     np.testing.assert_allclose(np.linalg.norm(mesh.normals, axis=1), 1.0, rtol=1e-4)
-    assert rep["iso_level"] == {"value": 1150.0, "units": "raw", "chosen_by": "given"}
+    assert rep["iso_level"] == {
+        "value": 1150.0, "units": "raw", "chosen_by": "given", "hu_offset": None, "hu_offset_from": None
+    }  # fmt: skip
     json.dumps(rep, default=str)
 
 
@@ -137,12 +139,12 @@ def test_write_outputs(headsq_recon, tmp_path):
 
 
 def test_failed_export_leaves_no_partial_model(headsq_recon, tmp_path, monkeypatch):
-    import engine.export
+    import engine.export.draco
 
     def broken(*args, **kwargs):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr(engine.export, "to_draco_glb", broken)
+    monkeypatch.setattr(engine.export.draco, "to_draco_glb", broken)  # the registry's exporter of phone.glb
     with pytest.raises(RuntimeError, match="disk full"):
         write_outputs(headsq_recon, tmp_path, HEADSQ_PARAMS, device="cpu")
     assert list(tmp_path.iterdir()) == []

@@ -126,3 +126,23 @@ def test_the_worker_names_no_spacing_by_the_error_type() -> None:
     assert (code, message) == ("bad_input", "scan.zip: an image stack does not carry its voxel size")
     code, _ = _explain(NotAScanError("upload is not a readable zip archive"), "scan.zip")
     assert code == "bad_input"
+
+
+def test_the_workers_source_errors_are_its_own_and_keep_their_codes() -> None:
+    """The DICOMweb source's failures are the worker's (``JobSourceError``), not the engine's: no engine handler
+    catches them, and ``_explain`` still names each by its type."""
+    from engine.errors import EngineError
+    from worker.pacs import JobSourceError, SourceIncomplete, SourceUnavailable, UncheckedSource
+    from worker.tasks import _explain
+
+    for cls in (SourceUnavailable, SourceIncomplete, UncheckedSource):
+        assert issubclass(cls, JobSourceError) and not issubclass(cls, EngineError), cls.__mro__
+    missing = ("1.2.3", "1.2.4", "1.2.5", "1.2.6")
+    code, message = _explain(SourceIncomplete("pacs", 10, 6, missing), "scan.zip")
+    assert code == "source_incomplete" and "6 of 10" in message and "1.2.3, 1.2.4, 1.2.5, ..." in message
+    assert _explain(SourceUnavailable("server 'pacs' is not configured"), "scan.zip") == (
+        "source_unavailable",
+        "server 'pacs' is not configured",
+    )
+    code, message = _explain(UncheckedSource("upload: the source series was not checked complete"), "scan.zip")
+    assert (code, message) == ("incomplete_series", "scan.zip: the source series was not checked complete")

@@ -7,16 +7,19 @@ The screenshots are kept as test artefacts (their paths are printed): ``page.png
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from typing import Any
 
+import httpx
 import numpy as np
 import pytest
 
+from engine.export.files import FILES
 from tests.service.browser import find_chromium, start_chromium
 from tests.service.conftest import HEADSQ
-from tests.service.procs import ServiceStack, wait_until
+from tests.service.procs import ServiceStack, wait_for_job, wait_until
 
 pytestmark = pytest.mark.browser
 
@@ -101,6 +104,13 @@ def test_upload_watch_view_download(
         rows = driver.find_elements(By.CSS_SELECTOR, "#facts a.download")
         names = {a.get_attribute("data-name") for a in rows}
         assert {"model.stl", "phone.glb", "ar.glb", "model.usdz", "phone_meshopt.glb", "preview.png"} <= names
+        # each file's "for" column is the registry's purpose, as the job resource carries it
+        cells = _js(
+            driver,
+            "return [...document.querySelectorAll('#facts tbody tr')]"
+            ".map(r => [r.cells[0].textContent, r.cells[1].textContent])",
+        )
+        assert cells and all(FILES[name].purpose == shown for name, shown in cells), cells
         link = next(a for a in rows if a.get_attribute("data-name") == "phone.glb")
         with stack.client(None) as anon:
             expected = int(anon.head(link.get_attribute("href")).headers["content-length"])
@@ -143,3 +153,115 @@ def _assert_model_framed(path: Path) -> None:
     h, w = diff.shape
     assert rows.min() > 0.02 * h and rows.max() < 0.98 * h, f"the model touches the top or bottom in {path}"
     assert cols.min() > 0.02 * w and cols.max() < 0.98 * w, f"the model touches the sides in {path}"
+
+
+def _severe(driver: Any) -> list[str]:
+    return [str(e) for e in driver.get_log("browser") if e.get("level") == "SEVERE"]
+
+
+def _no_overflow(driver: Any) -> None:
+    widths = _js(driver, "return [document.documentElement.scrollWidth, window.innerWidth]")
+    assert widths[0] <= widths[1], f"the page is {widths[0]} px wide in a {widths[1]} px window"
+
+
+@pytest.mark.parametrize("width", [412, 1366])
+def test_phone_and_desktop_orient_ar_and_messages(
+    stack: ServiceStack, chromium_paths: tuple[str, str], tmp_path: Path, width: int
+) -> None:
+    """Issue 27: orientation before upload and after (turn over), direction labels, no horizontal overflow, the
+    AR file for Android, progress in view, the voxel size's own error, a refused .txt under its own name, a
+    dark backdrop, and no console error (the favicon)."""
+    from selenium.webdriver.common.by import By
+
+    from tests.service.conftest import slice_zip, sphere_volume
+
+    vol = sphere_volume((16, 24, 24), 0.3)
+    vol[1:4, 10:14, 10:14] = 1000
+    scan = tmp_path / "marked.zip"
+    scan.write_bytes(slice_zip(vol))
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not a scan")
+    readme = tmp_path / "readme.txt"
+    readme.write_text("nor this")
+    driver = start_chromium(*chromium_paths, tmp_path, width=width, height=860)
+    try:
+        driver.get(stack.base_url + "/")
+        driver.find_element(By.ID, "api-key").send_keys("key-a")
+        driver.find_element(By.ID, "key-save").click()
+        file_input = driver.find_element(By.ID, "file-input")
+        _js(driver, "arguments[0].hidden = false", file_input)
+        file_input.send_keys(f"{notes}\n{readme}")  # two files: once zipped and called 'slices.zip'
+        wait_until(lambda: "notes.txt" in driver.find_element(By.ID, "picked").text, 10, "the refusal")
+        assert "slices.zip" not in driver.find_element(By.ID, "picked").text
+        file_input.clear()
+        file_input.send_keys(str(scan))
+        wait_until(lambda: "marked.zip" in driver.find_element(By.ID, "picked").text, 10, "the file to be picked")
+        _js(driver, "document.getElementById('level-kind').value = 'iso'")
+        driver.find_element(By.ID, "iso").send_keys("500")
+        spacing = driver.find_element(By.ID, "spacing")
+        spacing.send_keys("1.5, 0.957")  # two numbers: refused, naming the field
+        driver.find_element(By.ID, "start").click()
+        message = driver.find_element(By.ID, "upload-text").text
+        assert message.startswith("Voxel size") and "spacing" not in message, message
+        spacing.clear()
+        spacing.send_keys("1, 1, 1")
+        _js(driver, "document.getElementById('first-slice').value = 'inferior'")
+        driver.find_element(By.ID, "flip-ap").click()
+        driver.find_element(By.ID, "start").click()
+        wait_until(lambda: driver.find_element(By.ID, "job-box").is_displayed(), 30, "the job box")
+        time.sleep(0.3)
+        top, bottom = _js(
+            driver, "const r = document.getElementById('job-box').getBoundingClientRect(); return [r.top, r.bottom]"
+        )
+        assert 0 <= top < _js(driver, "return innerHeight"), (top, bottom)  # the progress is in view
+        wait_until(lambda: driver.find_element(By.ID, "job-box").get_attribute("data-state") == "succeeded", 120, "job")
+        job_id = driver.find_element(By.ID, "job-id").text
+        with stack.client("key-a") as client:
+            job = client.get(f"/v1/jobs/{job_id}").json()
+        assert job["params"]["orient"] == {"first_slice": "inferior", "flip_lr": False, "flip_ap": True}
+        _js(driver, "document.getElementById('viewer').scrollIntoView()")  # model-viewer loads once in view
+        wait_until(lambda: _js(driver, "return document.getElementById('viewer').dataset.loaded"), 60, "the view")
+        assert _js(driver, "return document.getElementById('viewer').dataset.loaded") == "yes", _console(driver)
+        _no_overflow(driver)
+        # the directions beside the model: S above it (+Y), A toward the viewer (+Z)
+        spots = _js(
+            driver,
+            "return Object.fromEntries([...document.querySelectorAll('#viewer .dir')]"
+            ".map(e => [e.dataset.dir, e.dataset.position || '']))",
+        )
+        assert float(spots["S"].split()[1]) > 0 and float(spots["A"].split()[2]) > 0, spots
+        # a dark backdrop: the pale model stands out
+        background = _js(driver, "return getComputedStyle(document.getElementById('viewer')).backgroundImage")
+        assert "linear-gradient" in background and "rgb(253, 253, 253)" not in background, background
+        # Android: Scene Viewer gets ar.glb (model-viewer hands it its src)
+        ar_url = next(o["url"] for o in job["outputs"] if o["name"] == "ar.glb")
+        phone_url = next(o["url"] for o in job["outputs"] if o["name"] == "phone.glb")
+        assert (
+            _js(driver, "return document.getElementById('viewer').getAttribute('src')").split("/")[-1][:20]
+            == (phone_url.split("/")[-1][:20])
+        )
+        _js(
+            driver,
+            "Object.defineProperty(navigator, 'userAgent', {get: () => 'Mozilla/5.0 (Linux; Android 14)'});"
+            "document.getElementById('ar-button').click()",
+        )
+        src = _js(driver, "return document.getElementById('viewer').getAttribute('src')")
+        assert src.split("/")[-1][:20] == ar_url.split("/")[-1][:20], (src, ar_url)
+        # turn over: the outputs re-published, the report's frame turned back to the default convention
+        before = json.loads(httpx.get(next(o["url"] for o in job["outputs"] if o["name"] == "report.json")).text)
+        driver.find_element(By.ID, "turn-over").click()
+        with stack.client("key-a") as client:
+            job = wait_for_job(
+                client,
+                job_id,
+                timeout=60,
+                until=lambda j: j["stage"] == "done" and j["params"]["orient"]["first_slice"] == "superior",
+            )
+        after = json.loads(httpx.get(next(o["url"] for o in job["outputs"] if o["name"] == "report.json")).text)
+        assert after["frame"]["patient_from_grid_xyz"] != before["frame"]["patient_from_grid_xyz"]
+        assert after["parameters"]["orient"] == {"first_slice": "superior", "flip_lr": False, "flip_ap": False}
+        wait_until(lambda: "first slice superior" in driver.find_element(By.ID, "frame-text").text, 30, "new frame")
+        _no_overflow(driver)
+        assert not _severe(driver), _severe(driver)
+    finally:
+        driver.quit()

@@ -124,3 +124,12 @@ def test_bad_new_params_are_refused_by_the_api_and_the_engine(kind: str, client:
             ReconParams.from_dict(engine)
     jobs = Path(client.app.state.data_dir) / "jobs"  # type: ignore[attr-defined]
     assert not [p for p in jobs.rglob("*") if p.is_file()], "a refused upload left files behind"
+
+
+def test_a_spacing_that_looks_swapped_is_warned_in_the_apis_words():
+    """[0.957, 0.957, 1.5] is x, y, z in most READMEs; the API's order is [z, y, x]: accepted, and warned about."""
+    (warning,) = JobParams.model_validate({"spacing": [0.957, 0.957, 1.5]}).warnings()
+    assert warning["code"] == "voxel_size_order" and warning["likely_zyx_mm"] == [1.5, 0.957, 0.957]
+    assert 'send "spacing": [1.5, 0.957, 0.957]' in warning["message"]
+    assert JobParams.model_validate({"spacing": [1.5, 0.957, 0.957]}).warnings() == []
+    assert JobParams().warnings() == []

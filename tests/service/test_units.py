@@ -107,10 +107,12 @@ def test_storage_never_shows_a_partial_file(tmp_path: Path) -> None:
     store.publish(job, staged)
     again = store.staging_dir(job)
     (again / "model.stl").write_bytes(b"two")
+    (again / "notes.txt").write_bytes(b"not an output")
     store.publish(job, again)
     path = store.output_path(job, "model.stl")
     assert path is not None and path.read_bytes() == b"two"
     assert store.output_path(job, "../upload") is None
+    assert store.output_path(job, "notes.txt") is None  # published, but not a file of the registry
     with pytest.raises(ValueError):
         store.upload_path("../../etc")
     store.delete_job(job)
