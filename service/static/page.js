@@ -224,8 +224,14 @@ function placeLabels() {
 async function showFrame(job, report) {
   const stack = !job.params || !job.params.orient ? null : job.params.orient;
   $("orient-tools").dataset.job = job.id;
-  let frame = null;
-  if (report) { try { frame = (await (await fetch(report.url)).json()).frame; } catch (e) { frame = null; } }
+  let frame = null, warnings = [];
+  if (report) {
+    try { const r = await (await fetch(report.url)).json(); frame = r.frame; warnings = r.warnings || []; } catch (e) { frame = null; }
+  }
+  // what the engine doubts about this model (a skin-like surface, a voxel size that looks swapped): said, not hidden
+  const box = $("model-warnings");
+  box.replaceChildren(...warnings.map((w) => { const li = document.createElement("li"); li.dataset.code = w.code; li.textContent = w.message; return li; }));
+  box.hidden = warnings.length === 0;
   const dicom = frame && String(frame.placed_by || "").startsWith("DICOM");
   for (const b of ["turn-over", "face-front", "mirror"]) $(b).hidden = dicom;
   $("frame-text").textContent = frame

@@ -204,7 +204,7 @@ def test_phone_and_desktop_orient_ar_and_messages(
         message = driver.find_element(By.ID, "upload-text").text
         assert message.startswith("Voxel size") and "spacing" not in message, message
         spacing.clear()
-        spacing.send_keys("1, 1, 1")
+        spacing.send_keys("1, 1, 2")  # z = y != x: looks like an x, y, z size; the job runs and the page says so
         _js(driver, "document.getElementById('first-slice').value = 'inferior'")
         driver.find_element(By.ID, "flip-ap").click()
         driver.find_element(By.ID, "start").click()
@@ -223,6 +223,10 @@ def test_phone_and_desktop_orient_ar_and_messages(
         wait_until(lambda: _js(driver, "return document.getElementById('viewer').dataset.loaded"), 60, "the view")
         assert _js(driver, "return document.getElementById('viewer').dataset.loaded") == "yes", _console(driver)
         _no_overflow(driver)
+        # what the report doubts is shown beside the model (here: the voxel size's order)
+        wait_until(lambda: driver.find_element(By.ID, "model-warnings").is_displayed(), 10, "the model's warnings")
+        codes = _js(driver, "return [...document.querySelectorAll('#model-warnings li')].map(li => li.dataset.code)")
+        assert codes == ["voxel_size_order"], codes
         # the directions beside the model: S above it (+Y), A toward the viewer (+Z)
         spots = _js(
             driver,
