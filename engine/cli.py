@@ -95,6 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--quiet", action="store_true", help="no progress bar")
     add_sweep_parser(sub)
     add_orient_parser(sub)
+    from engine.cli_defect import add_parser as add_defect_parser
+
+    add_defect_parser(sub)
     return parser
 
 
@@ -334,6 +337,10 @@ def main(argv: list[str] | None = None) -> int:
             from engine.cli_orient import run as run_orient
 
             return run_orient(args)
+        if args.command == "defect":
+            from engine.cli_defect import run as run_defect
+
+            return run_defect(args)
     except InputError as exc:
         _Bar.end_line()
         print(f"bonemesh: error: {exc}", file=sys.stderr)  # noqa: T201

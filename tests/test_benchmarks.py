@@ -246,3 +246,25 @@ def test_throughput(tmp_path: Path, redis_executable: str) -> None:
         assert phase["workers"] == workers and phase["jobs"] == 2, key
         assert finite(phase["seconds"]) and finite(phase["jobs_per_minute"]), key
     assert finite(report["speedup"])
+
+
+def test_defect_quality(tmp_path: Path) -> None:
+    from benchmarks.defect_quality import main
+
+    out = tmp_path / "defect_quality.json"
+    assert main(["--device", "cpu", "--scans", "headsq", "--sizes", "30", "--out", str(out)]) == 0
+    report = load(out)
+    has_keys(report, "device", "summary", "rows")
+    assert report["rows"] and all(r["scan"] == "headsq" for r in report["rows"])
+    assert all(finite(r["seconds"]) for r in report["rows"] if "seconds" in r)
+
+
+def test_defect_speed(tmp_path: Path) -> None:
+    from benchmarks.defect_speed import main
+    from tests.conftest import shared_file
+
+    cranium = shared_file("cranium_ct", "cranium_ct_png16.zip")
+    out = tmp_path / "defect_speed.json"
+    assert main(["--device", "cpu", "--data", str(cranium), "--repeat", "1", "--out", str(out)]) == 0
+    text = out.read_text()
+    assert text.strip().startswith("{") and "NaN" not in text

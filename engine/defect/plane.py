@@ -1,0 +1,376 @@
+"""The bone's symmetry plane: the mirror that maps the skull's surface onto itself best.
+
+1. The skull (``grid.bone_and_skull``: the largest piece at or above the level) and its surface voxels, in the
+   grid's mm.
+2. Candidates: the planes through the skull's centroid normal to its three principal axes and to the three grid
+   axes; each is scored by the median distance from the mirrored surface to the surface, and the two best are
+   refined.
+3. Refinement: mirror-ICP constrained to reflections (3 parameters: the normal's two angles and the offset).
+   Every iteration mirrors a fixed sample of surface points, pairs each with the nearest surface voxel (k-d tree)
+   and takes a Gauss-Newton step on the point-to-point distances with Cauchy weights (the scale follows the
+   median distance), so that the bone missing from one side (the defect) and the unpaired parts of the face and
+   neck barely pull on the plane. A point hint leaves out the bone around the point and around its mirror image.
+4. The residual: the root mean square of the 80 % smallest distances (mm), with the median and the share of
+   mirrored points within one voxel diagonal of the surface (``inlier_fraction``). A bone without a mirror plane
+   (``inlier_fraction`` under ``MIN_INLIER_FRACTION``) is refused (``NoSymmetryError``).
+
+The normal is turned toward the patient's left (+x of LPS), so a positive signed distance is the left side.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from engine.defect.grid import FloatArray, Grid, bone_and_skull, reflect, surface_voxels
+from engine.errors import NoSymmetryError
+from engine.types import Volume
+
+N_SAMPLES = 6_000  # mirrored surface points per iteration
+SCORE_SAMPLES = 2_000  # mirrored points that rank the candidates
+GOOD_INLIER_FRACTION = 0.8  # a refined candidate this good is not compared with the next
+MAX_SURFACE = 150_000  # surface voxels paired with (a random subset beyond this)
+MAX_ITERATIONS = 40
+# converged: the last step turned the normal by less than 0.006 degrees and moved it by less than 0.01 mm
+TOL_RAD, TOL_MM = 1e-4, 0.01
+TRIM = 0.8  # the residual: RMS of this share of the smallest distances
+# a bone is mirror-symmetric when at least this share of its mirrored surface lies within a voxel diagonal of its
+# surface (real skulls: 0.8-0.99; an intact skull with its face and neck, 0.8 at 3.2 mm voxels)
+MIN_INLIER_FRACTION = 0.5
+METHOD = (
+    "mirror-ICP constrained to reflections: principal-axis and grid-axis candidates, Gauss-Newton on nearest "
+    "surface distances with Cauchy weights"
+)
+
+
+@dataclass(frozen=True)
+class SymmetryPlane:
+    """A mirror plane ``normal . p = offset_mm`` in the patient frame (LPS mm; ``normal`` a unit vector turned toward
+    the patient's left), and the same plane in the grid (``normal_grid`` . (x, y, z) mm = ``offset_grid_mm``).
+
+    ``residual_mm``: RMS of the 80 % smallest distances from the mirrored surface to the surface; ``median_mm``:
+    their median; ``inlier_fraction``: the share within one voxel diagonal. ``point_lps_mm``: the point of the plane
+    nearest to the skull's centroid.
+    """
+
+    normal: tuple[float, float, float]
+    offset_mm: float
+    point_lps_mm: tuple[float, float, float]
+    residual_mm: float
+    median_mm: float
+    inlier_fraction: float
+    normal_grid: tuple[float, float, float]
+    offset_grid_mm: float
+    method: str = METHOD
+    iterations: int = 0
+    seconds: float = 0.0
+    candidates: list[dict[str, Any]] = field(default_factory=list, compare=False, repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able (``defect.json``'s ``plane``)."""
+        return {
+            "normal_lps": [round(v, 6) for v in self.normal],
+            "offset_mm": round(self.offset_mm, 4),
+            "point_lps_mm": [round(v, 3) for v in self.point_lps_mm],
+            "residual_mm": round(self.residual_mm, 4),
+            "median_mm": round(self.median_mm, 4),
+            "inlier_fraction": round(self.inlier_fraction, 4),
+            "method": self.method,
+            "iterations": self.iterations,
+            "seconds": round(self.seconds, 4),
+        }
+
+    def signed_distance_grid(self, xyz: FloatArray) -> FloatArray:
+        """Signed distances (mm, + on the patient's left) of grid points (N, 3)."""
+        return np.asarray(xyz) @ np.asarray(self.normal_grid) - self.offset_grid_mm
+
+
+def _tangents(n: FloatArray) -> tuple[FloatArray, FloatArray]:
+    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(n, a)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(n, e1)
+
+
+class _Fit:
+    """Mirror-ICP over a fixed sample of surface points (grid mm, centred on the skull's centroid), point-to-plane:
+    each mirrored point's residual is its offset from its nearest surface voxel along that voxel's normal, so that
+    the voxels' staircase does not hold the plane to the grid's axes."""
+
+    def __init__(
+        self, surface: FloatArray, normals: FloatArray, sample: FloatArray, voxel_diag: float, max_spacing: float
+    ) -> None:
+        from scipy.spatial import cKDTree
+
+        self.tree = cKDTree(surface)
+        self.surface = surface
+        self.normals = normals
+        self.p = sample
+        self.voxel_diag = voxel_diag
+        self.floor = max_spacing  # the Cauchy scale never drops below a voxel: the surface is known to that
+        self.keep = np.ones(len(sample), dtype=bool)
+
+    def pairs(self, n: FloatArray, d: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Per sample point: the distance of its mirror image to the nearest surface voxel, the offset along that
+        voxel's normal, and the normal."""
+        q = reflect(self.p, n, d)
+        dist, j = self.tree.query(q, workers=-1)
+        nu = self.normals[j]
+        return dist, np.einsum("ij,ij->i", q - self.surface[j], nu), nu
+
+    def score(self, n: FloatArray, d: float) -> float:
+        """The median distance of a few mirrored points (a candidate's rank)."""
+        q = reflect(self.p[:SCORE_SAMPLES], n, d)
+        dist, _ = self.tree.query(q, workers=-1)
+        return float(np.median(dist))
+
+    def refine(self, n: FloatArray, d: float, exclude: Any = None) -> tuple[FloatArray, float, int]:
+        n = n / np.linalg.norm(n)
+        it = 0
+        for it in range(1, MAX_ITERATIONS + 1):  # noqa: B007 - the count is reported
+            if exclude is not None:
+                self.keep = exclude(n, d)
+            dist, r, nu = self.pairs(n, d)
+            k = self.keep
+            p, dist, r, nu = self.p[k], dist[k], r[k], nu[k]
+            scale = max(self.floor, 1.5 * float(np.median(dist)))
+            w = 1.0 / (1.0 + (dist / scale) ** 2)
+            s = p @ n - d
+            e1, e2 = _tangents(n)
+            # derivatives of the mirror image p' = p - 2 (n.p - d) n along the normal's two turns and the offset,
+            # projected on the paired voxel's normal
+            j1 = -2.0 * ((p @ e1) * (nu @ n) + s * (nu @ e1))
+            j2 = -2.0 * ((p @ e2) * (nu @ n) + s * (nu @ e2))
+            j3 = 2.0 * (nu @ n)
+            jac = np.stack([j1, j2, j3], axis=1)
+            h = (jac * w[:, None]).T @ jac
+            g = (jac * w[:, None]).T @ r
+            step = -np.linalg.solve(h + 1e-9 * np.eye(3), g)
+            n = n + step[0] * e1 + step[1] * e2
+            n /= np.linalg.norm(n)
+            d = d + step[2]
+            if abs(step[0]) + abs(step[1]) < TOL_RAD and abs(step[2]) < TOL_MM:
+                break
+        return n, float(d), it
+
+    def residuals(self, n: FloatArray, d: float) -> tuple[float, float, float]:
+        dist, _, _ = self.pairs(n, d)
+        dist = np.sort(dist[self.keep])
+        m = max(1, int(TRIM * len(dist)))
+        return (
+            float(np.sqrt(np.mean(dist[:m] ** 2))),
+            float(np.median(dist)),
+            float(np.mean(dist <= self.voxel_diag)),
+        )
+
+
+def surface_normals(mask: Any, index_zyx: Any, spacing_xyz: FloatArray) -> FloatArray:
+    """Outward unit normals (grid x, y, z) at mask voxels: the mask's Sobel gradient (3x3x3, mm), reversed."""
+    padded = np.pad(mask, 1)
+    idx = np.asarray(index_zyx) + 1
+    grad = np.zeros((len(idx), 3))
+    weights = {-1: 1.0, 0: 2.0, 1: 1.0}
+    for dz in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                if dz == dy == dx == 0:
+                    continue
+                v = padded[idx[:, 0] + dz, idx[:, 1] + dy, idx[:, 2] + dx].astype(np.float64)
+                for axis, o in ((0, dx), (1, dy), (2, dz)):
+                    if o:
+                        others = [dx, dy, dz]
+                        others.pop(axis)
+                        w = weights[others[0]] * weights[others[1]]
+                        grad[:, axis] += w * o * v
+    grad /= spacing_xyz
+    normal = -grad
+    norm = np.linalg.norm(normal, axis=1, keepdims=True)
+    return np.where(norm > 0, normal / np.maximum(norm, 1e-12), 0.0)
+
+
+def find_symmetry_plane(
+    volume: Volume,
+    level: float,
+    hint: Any = None,
+    *,
+    orient: Any = None,
+    skull: Any = None,
+    seed: int = 0,
+) -> SymmetryPlane:
+    """The bone's mirror plane (see the module's description).
+
+    Args:
+        volume: the scan.
+        level: the bone level in the volume's units.
+        hint: None, a side ("left" or "right": not used for the plane, only turned into nothing here), a point
+            (x, y, z) in the patient frame (mm) in or next to the defect, or ``DefectParams`` (its point).
+        orient: ``engine.params.OrientParams`` placing an image stack in the patient frame (default: the stack
+            convention); DICOM places itself.
+        skull: the skull mask (bool, the volume's shape) when the caller has it already.
+        seed: the surface sample's seed (the result is deterministic for a given seed).
+
+    Returns:
+        The plane, its residual and how it was found.
+
+    Raises:
+        EmptySurfaceError: no bone at the level.
+        NoSymmetryError: no mirror plane fits the bone.
+    """
+    t0 = time.perf_counter()
+    grid = Grid.of(volume, orient)
+    if skull is None:
+        _, skull = bone_and_skull(volume.data, level)
+    surf_idx = surface_voxels(skull)
+    rng = np.random.default_rng(seed)
+    if len(surf_idx) > MAX_SURFACE:
+        surf_idx = surf_idx[np.sort(rng.choice(len(surf_idx), MAX_SURFACE, replace=False))]
+    normals = surface_normals(skull, surf_idx, grid.spacing_xyz)
+    surface = grid.xyz(surf_idx)
+    centroid = surface.mean(axis=0)
+    surface = surface - centroid
+    pick = rng.choice(len(surface), min(N_SAMPLES, len(surface)), replace=False)
+    sample = surface[np.sort(pick)]
+    sp = grid.spacing_xyz
+    fit = _Fit(surface, normals, sample, float(np.linalg.norm(sp)), float(sp.max()))
+
+    exclude = None
+    point = _hint_point(hint)
+    if point is not None:
+        h = grid.from_patient(np.asarray(point)) - centroid
+        radius = float(getattr(hint, "point_radius_mm", 40.0))
+
+        def exclude(n: FloatArray, d: float) -> Any:
+            hm = reflect(h[None, :], n, d)[0]
+            far = (np.linalg.norm(sample - h, axis=1) > radius) & (np.linalg.norm(sample - hm, axis=1) > radius)
+            return far if far.sum() >= 100 else np.ones(len(sample), dtype=bool)
+
+    # candidates: principal axes of the skull's voxels and the grid axes, through the centroid
+    voxels = grid.xyz(np.argwhere(skull)[:: max(1, int(skull.sum()) // 200_000)]) - centroid
+    _, axes = np.linalg.eigh(np.cov(voxels.T))
+    candidates = [axes[:, k] for k in range(3)] + [np.eye(3)[k] for k in range(3)]
+    scored = sorted(((fit.score(c, 0.0), i, c) for i, c in enumerate(candidates)), key=lambda t: (t[0], t[1]))
+    best: tuple[float, FloatArray, float, int] | None = None
+    for _, _, c in scored[:2]:  # the best candidate, and the second where the best does not fit well
+        n, d, its = fit.refine(c, 0.0, exclude)
+        rms, _, share = fit.residuals(n, d)
+        if best is None or rms < best[0]:
+            best = (rms, n, d, its)
+        if share >= GOOD_INLIER_FRACTION:
+            break
+    assert best is not None
+    _, n, d, its = best
+    rms, median, inliers = fit.residuals(n, d)
+    d_grid = d + float(n @ centroid)
+    if n @ grid.left_in_grid() < 0:  # the normal toward the patient's left
+        n, d_grid = -n, -d_grid
+    n_p, off_p = grid.plane_to_patient(n, d_grid)
+    foot = centroid - (centroid @ n - d_grid) * n
+    plane = SymmetryPlane(
+        normal=tuple(float(v) for v in n_p),  # type: ignore[arg-type]
+        offset_mm=off_p,
+        point_lps_mm=tuple(float(v) for v in grid.to_patient(foot)),  # type: ignore[arg-type]
+        residual_mm=rms,
+        median_mm=median,
+        inlier_fraction=inliers,
+        normal_grid=tuple(float(v) for v in n),  # type: ignore[arg-type]
+        offset_grid_mm=d_grid,
+        iterations=its,
+        seconds=time.perf_counter() - t0,
+        candidates=[{"median_mm": round(s, 4), "normal_grid": [round(float(v), 4) for v in c]} for s, _, c in scored],
+    )
+    if inliers < MIN_INLIER_FRACTION:
+        raise NoSymmetryError(
+            f"the bone has no mirror plane: at best {inliers:.0%} of its mirrored surface lies within a voxel of "
+            f"its surface (residual {rms:.2f} mm); a template cannot be mirrored from it"
+        )
+    return plane
+
+
+RING_SAMPLES = 6_000  # voxels of the ring around a piece that its plane is fitted on
+
+
+def ring_plane(
+    data: Any,
+    grid: Grid,
+    normal: FloatArray,
+    offset: float,
+    ring_index: Any,
+    tissue: float,
+    level: float,
+    *,
+    seed: int = 0,
+) -> tuple[FloatArray, float, float]:
+    """The mirror plane that best maps the scan onto itself on a ring of voxels around a defect (grid indices
+    ``ring_index``, the defect left out): least squares (soft L1) of the difference between each voxel's bone
+    fraction and its mirror image's (trilinear), the bone fraction being the sample scaled from the tissue (0) to
+    the level (1), clipped to [0, 1.5]. Sub-voxel: the samples are interpolated, not thresholded. Starts from
+    ``normal . g = offset`` (grid); returns the plane and the RMS of the differences."""
+    from scipy import ndimage as ndi
+    from scipy.optimize import least_squares
+
+    idx = np.asarray(ring_index)
+    if len(idx) < 100:
+        return np.asarray(normal, dtype=np.float64), float(offset), float("nan")
+    contrast = max(float(level - tissue), 1e-6)
+
+    def bone_fraction(values: Any) -> Any:
+        return np.clip((values - tissue) / contrast, 0.0, 1.5)
+
+    rng = np.random.default_rng(seed)
+    if len(idx) > RING_SAMPLES:
+        # most samples where the bone fraction is not clipped (the bone's surfaces: what moves the fit), the rest
+        # anywhere in the ring
+        raw = (np.asarray(data[tuple(idx.T)], dtype=np.float64) - tissue) / contrast
+        edge = np.flatnonzero((raw > 0.0) & (raw < 1.5))
+        n_edge = min(len(edge), int(0.75 * RING_SAMPLES))
+        pick = rng.choice(edge, n_edge, replace=False) if n_edge else np.zeros(0, dtype=np.int64)
+        rest = np.setdiff1d(np.arange(len(idx)), pick)
+        pick = np.concatenate([pick, rng.choice(rest, RING_SAMPLES - n_edge, replace=False)])
+        idx = idx[np.sort(pick)]
+    sp = np.asarray(grid.spacing_zyx)
+    pts = grid.xyz(idx)
+    centre = pts.mean(axis=0)
+
+    own = bone_fraction(np.asarray(data[tuple(idx.T)], dtype=np.float64))
+    n0 = np.asarray(normal, dtype=np.float64)
+    e1, e2 = _tangents(n0)
+    d0 = float(offset - n0 @ centre)
+
+    def plane_of(x: Any) -> tuple[FloatArray, float]:
+        n = n0 + x[0] * e1 + x[1] * e2
+        n = n / np.linalg.norm(n)
+        return n, float(d0 + x[2])
+
+    def residual(x: Any) -> Any:
+        n, d = plane_of(x)
+        q = reflect(pts - centre, n, d) + centre
+        m = ndi.map_coordinates(data, (q[:, ::-1] / sp).T, order=1, mode="nearest", output=np.float64)
+        return bone_fraction(m) - own
+
+    fit = least_squares(residual, np.zeros(3), loss="soft_l1", f_scale=0.3, x_scale=[1e-3, 1e-3, 0.1],
+                        diff_step=[1e-4, 1e-4, 1e-3], max_nfev=12, ftol=1e-6, xtol=1e-6)  # fmt: skip
+    n, d = plane_of(fit.x)
+    if n @ n0 < 0:
+        n, d = -n, -d
+    return n, float(d + n @ centre), float(np.sqrt(np.mean(fit.fun**2)))
+
+
+def reflection(normal: Any, offset: float) -> tuple[FloatArray, FloatArray]:
+    """The mirror across ``normal . p = offset`` as ``p -> a @ p + b``."""
+    n = np.asarray(normal, dtype=np.float64)
+    return np.eye(3) - 2.0 * np.outer(n, n), 2.0 * offset * n
+
+
+def _hint_point(hint: Any) -> tuple[float, float, float] | None:
+    if hint is None or isinstance(hint, str):
+        return None
+    point = getattr(hint, "point_lps_mm", hint)
+    if point is None:
+        return None
+    p = tuple(float(v) for v in point)
+    if len(p) != 3:
+        raise ValueError(f"a point hint is (x, y, z) in mm, got {point!r}")
+    return p  # type: ignore[return-value]

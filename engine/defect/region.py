@@ -1,0 +1,582 @@
+"""The defect region: bone that the mirror image has and the scan lacks, where it is missing, not moved.
+
+On a crop around the skull and its mirror image (Warp kernels, ``engine.defect.kernels``; the host labels the
+pieces and measures them):
+
+1. **Mirror**: the scan sampled (trilinear) at every voxel's mirror image across the plane; the mirrored skull is
+   the mirrored samples at or above the level next to the skull's mirror image. ``tissue``: the median of the
+   samples 1.5 voxels to 2 mm beyond the bone (scalp, brain, air); a sample is *absent bone* when it is nearer to
+   that than to the level (``mid``, halfway), so thin bone below the level is not missing bone.
+2. **Shell rule**: the local thickness ``t`` of the healthy shell: the diameter of the largest ball inside the
+   skull centred within ``THICKNESS_REACH_MM`` of the voxel's mirror image. A voxel of the mirrored skull outside
+   the bone is a *core* voxel when no bone of the scan lies within ``t`` of it and its sample is absent bone: a
+   mirror that is off by less than the shell's thickness (asymmetry, an imperfect plane) leaves a sliver with bone
+   beside it, never a core; only a hole through the whole shell does. The defect is every voxel of the mirrored
+   skull outside the bone within ``t`` + one voxel of a core (the core grown back to the rim): 26-connected pieces
+   that hold a core.
+3. **Mirrored locally**: each candidate piece is mirrored again across the plane fitted to the scan around it
+   (``engine.defect.plane.ring_plane``: the samples within ``RING_MM`` of it, it left out, matched with their
+   mirror images, sub-voxel) and the rules rerun there: the template fits the rim it fills, and a piece that a
+   turned neck or jaw made (gone when mirrored across its own bone's plane) is asymmetry, not a hole. A local plane
+   that would move the piece's mirror image by more than ``MAX_LOCAL_MOVE_MM`` has matched something else (the
+   hole itself) and is not used.
+4. **Missing, not moved**: the same rule the other way round finds *anti-cores*, bone of the scan with no mirrored
+   bone within its thickness. Bone missing on one side has its anti-core at its mirror image, across the plane;
+   bone that moved has one right beside it as well. A piece with more anti-core than ``MAX_ANTI_SHARE`` of its core
+   beside it (within ``2 t`` + one voxel, its own mirror image's surroundings left out) is moved bone.
+5. **Rim** (``engine.defect.rim``): a defect fills a hole in the bone, so its rim meets the bone; a piece whose rim
+   meets it over less than ``MIN_CONTACT`` is not a hole's fill. A piece whose rim is open on the side of the plane,
+   or that lies across the plane, is a defect across the midline (``MidlineDefectError``).
+6. **Size**: a piece smaller than ``min_defect_volume`` is left out; none left is ``NoDefectError``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from engine.defect.grid import CONNECTIVITY, BoolArray, FloatArray, Grid, bounding_box, reflect
+from engine.defect.params import DefectParams
+from engine.defect.plane import SymmetryPlane, reflection, ring_plane
+from engine.defect.rim import Rim, open_toward_plane, rim_of
+from engine.errors import MidlineDefectError, NoDefectError
+
+THICKNESS_REACH_MM = 5.0  # the shell's middle is looked for this far around a voxel (shells up to 10 mm)
+RING_MM = 15.0  # a piece's own plane is fitted on the scan's samples within this distance of it (it left out)
+MAX_LOCAL_MOVE_MM = 4.0  # the local plane may move a piece's mirror image this far (or two voxels) from the global
+MAX_LOCAL_PIECES = 6  # the largest candidates (by core) that are mirrored locally
+MAX_ANTI_SHARE = 0.5
+MIN_CONTACT = 0.5
+# a piece that comes within a shell's thickness of the plane is looked at for a hole going on across it, this far
+# past its edge toward the plane (at least 3 shells)
+MIDLINE_REACH_MM = 15.0
+MIN_OPEN_TOWARD_PLANE = 0.4  # measured: one-sided defects 0.0-0.41 (near the midline), across it 0.45-0.78
+MIN_PLATE_SHARE = 0.5  # a defect is a plug through the shell: at least this share of the healthy shell's thickness
+MIN_CORE_VOXELS = 4
+MIN_DEFECT_WIDTH_MM = 15.0  # the smallest defect reported: a plug this wide through the shell
+MIN_DEFECT_SKULL_SHARE = 0.001  # ... and at least this share of the skull's volume
+# voxel classes of the kernels' ``code``
+BONE, SKULL, MIRROR = 1, 2, 4
+
+
+def min_defect_volume(shell_mm: float, skull_mm3: float) -> float:
+    """The default smallest defect (mm^3): a plug ``MIN_DEFECT_WIDTH_MM`` wide through a shell ``shell_mm`` thick,
+    and at least ``MIN_DEFECT_SKULL_SHARE`` of the skull."""
+    plug = math.pi * (MIN_DEFECT_WIDTH_MM / 2) ** 2 * shell_mm
+    return max(plug, MIN_DEFECT_SKULL_SHARE * skull_mm3)
+
+
+@dataclass
+class Piece:
+    """One candidate piece of the defect and the verdict on it (``local_*``: the plane of the bone around it)."""
+
+    label: int
+    voxels: int
+    volume_mm3: float
+    core_mm3: float
+    anti_mm3: float = 0.0
+    side_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)  # min, median, max distance to the plane (+: left)
+    centroid_lps_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    local_normal: tuple[float, float, float] | None = None
+    local_offset_mm: float | None = None
+    local_residual_mm: float | None = None
+    local_turn_deg: float | None = None
+    local_move_mm: float | None = None
+    local_used: bool = False
+    rim: Rim | None = None
+    fit: float | None = None
+    shell_mm: float | None = None  # the healthy shell's local thickness over the piece (median)
+    kept: bool = False
+    reason: str = ""
+    index: npt.NDArray[np.int64] | None = field(default=None, repr=False)  # voxels (z, y, x) in the region's crop
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "volume_mm3": round(self.volume_mm3, 2),
+            "core_mm3": round(self.core_mm3, 2),
+            "moved_bone_mm3": round(self.anti_mm3, 2),
+            "side": "left" if self.side_mm[1] > 0 else "right",
+            "plane_distance_mm": {"min": round(self.side_mm[0], 2), "median": round(self.side_mm[1], 2),
+                                  "max": round(self.side_mm[2], 2)},
+            "centroid_lps_mm": [round(v, 2) for v in self.centroid_lps_mm],
+            "kept": self.kept,
+            "reason": self.reason,
+        }  # fmt: skip
+        if self.local_turn_deg is not None:
+            out["local_plane"] = {
+                "used": self.local_used,
+                "turn_deg": round(self.local_turn_deg, 3),
+                "moves_mirror_mm": None if self.local_move_mm is None else round(self.local_move_mm, 3),
+                "residual_mm": None if self.local_residual_mm is None else round(self.local_residual_mm, 4),
+            }
+        if self.fit is not None:
+            out["mirror_fit_iou"] = round(self.fit, 4)
+        if self.rim is not None:
+            out["rim"] = self.rim.to_dict()
+        return out
+
+
+@dataclass
+class Region:
+    """The defect's voxels on a crop of the scan (``lo``: the crop's first voxel in the whole grid) and what the
+    rules saw. ``mask``: the template's voxels; ``mirrored``: the mirrored scan (across each kept piece's own
+    plane around it); ``data``: the scan (float32)."""
+
+    lo: npt.NDArray[np.int64]
+    mask: BoolArray
+    data: npt.NDArray[np.float32]
+    mirrored: npt.NDArray[np.float32]
+    bone: BoolArray
+    level: float
+    tissue: float
+    mid: float
+    shell_mm: float
+    skull_mm3: float
+    min_volume_mm3: float
+    pieces: list[Piece] = field(default_factory=list)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def kept(self) -> list[Piece]:
+        return [p for p in self.pieces if p.kept]
+
+
+@dataclass
+class _Rules:
+    """The voxel rules' output on one crop (host arrays)."""
+
+    lo: npt.NDArray[np.int64]
+    grown: BoolArray
+    core: npt.NDArray[np.uint8]  # 1: core, 2: anti-core
+    code: npt.NDArray[np.uint8]
+    mirrored: npt.NDArray[np.float32]
+    thick: npt.NDArray[np.float32]
+
+
+def _mirror_box(grid: Grid, lo: Any, hi: Any, normal: Any, offset: float, margin: Any) -> tuple[Any, Any]:
+    """The box [lo, hi) joined with its mirror image's, widened by ``margin`` voxels, within the grid."""
+    corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
+    mirrored = reflect(grid.xyz(corners), np.asarray(normal), offset)
+    m_idx = mirrored[:, ::-1] / np.asarray(grid.spacing_zyx)
+    a = np.minimum(np.asarray(lo), np.floor(m_idx.min(axis=0)).astype(np.int64)) - margin
+    b = np.maximum(np.asarray(hi), np.ceil(m_idx.max(axis=0)).astype(np.int64) + 1) + margin
+    return np.maximum(a, 0), np.minimum(b, grid.shape)
+
+
+@dataclass
+class _Source:
+    """The crop the mirror images are sampled from, on the device: the scan, the skull and the skull's inner
+    distances (``half``), its first voxel ``lo`` in the whole grid."""
+
+    data: Any
+    skull: Any
+    half: Any
+    lo: npt.NDArray[np.int64]
+    outside: float
+
+
+def _rules(
+    data: npt.NDArray[np.float32],
+    skull: BoolArray,
+    bone: BoolArray,
+    lo: npt.NDArray[np.int64],
+    source: _Source,
+    mirror: tuple[FloatArray, FloatArray],
+    grid: Grid,
+    level: float,
+    mid: float,
+    device: Any,
+    on_device: tuple[Any, Any, Any] | None = None,
+) -> _Rules:
+    """Mirror, shell rule and growth on one box of the scan (the kernels), mirror images sampled from ``source``;
+    results on the host. ``on_device``: the box's scan, skull and distance to the bone when already there."""
+    import warp as wp
+
+    from engine.defect.kernels.mirror import core_kernel, grow_kernel, mirror_kernel
+    from engine.defect.ops import bits, distance, select
+
+    sp = grid.spacing_zyx
+    sp_arr = np.asarray(sp)
+    rad = np.ceil(THICKNESS_REACH_MM / sp_arr).astype(np.int64)
+    shape = data.shape
+    with wp.ScopedDevice(device):
+        if on_device is None:
+            d_data: Any = wp.array(data, dtype=wp.float32)
+            d_skull: Any = wp.array(np.ascontiguousarray(skull).view(np.uint8), dtype=wp.uint8)
+            to_bone = distance(wp.array(np.ascontiguousarray(bone).view(np.uint8), dtype=wp.uint8), sp)
+        else:
+            d_data, d_skull, to_bone = on_device
+        mirrored = wp.empty(shape, dtype=wp.float32)
+        code = wp.empty(shape, dtype=wp.uint8)
+        thick = wp.empty(shape, dtype=wp.float32)
+        wp.launch(
+            mirror_kernel,
+            dim=shape,
+            inputs=[d_data, d_skull, wp.vec3i(*lo.tolist()), source.data, source.skull, source.half,
+                    wp.vec3i(*source.lo.tolist()), wp.mat33(*[float(v) for v in mirror[0].ravel()]),
+                    wp.vec3(*[float(v) for v in mirror[1]]), wp.vec3(*sp), float(level), float(mid),
+                    source.outside, wp.vec3i(*rad.tolist()), THICKNESS_REACH_MM],
+            outputs=[mirrored, code, thick],
+        )  # fmt: skip
+        to_mirror = distance(bits(code, MIRROR), sp)
+        core = wp.empty(shape, dtype=wp.uint8)
+        wp.launch(core_kernel, dim=shape, inputs=[code, thick, to_bone, to_mirror], outputs=[core])
+        to_core = distance(select(core, 1), sp)
+        grown = wp.empty(shape, dtype=wp.uint8)
+        wp.launch(
+            grow_kernel,
+            dim=shape,
+            inputs=[d_data, mirrored, code, thick, to_core, wp.vec3(*sp), float(level), float(sp_arr.max())],
+            outputs=[grown],
+        )
+        return _Rules(  # sync point
+            lo, grown.numpy().astype(bool), core.numpy(), code.numpy(), mirrored.numpy(), thick.numpy()
+        )
+
+
+def find_region(
+    volume_data: npt.NDArray[Any],
+    level: float,
+    plane: SymmetryPlane,
+    grid: Grid,
+    bone: BoolArray,
+    skull: BoolArray,
+    params: DefectParams,
+    device: Any,
+) -> Region:
+    """The defect region (see the module). Raises ``NoDefectError`` or ``MidlineDefectError``."""
+    import warp as wp
+
+    from engine.defect.kernels.mirror import ridge_kernel
+    from engine.defect.ops import distance
+
+    seconds: dict[str, float] = {}
+    t0 = time.perf_counter()
+    sp_arr = np.asarray(grid.spacing_zyx)
+    rad = np.ceil(THICKNESS_REACH_MM / sp_arr).astype(np.int64)
+    s_lo, s_hi = bounding_box(skull)
+    n_g, d_g = np.asarray(plane.normal_grid), float(plane.offset_grid_mm)
+    lo, hi = _mirror_box(grid, s_lo, s_hi, n_g, d_g, rad + 2)
+    box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+    data = np.ascontiguousarray(volume_data[box], dtype=np.float32)
+    bone_c = np.ascontiguousarray(bone[box])
+    skull_c = np.ascontiguousarray(skull[box])
+    smin = float(sp_arr.min())
+    with wp.ScopedDevice(device):
+        d_data: Any = wp.array(data, dtype=wp.float32)
+        d_skull: Any = wp.array(skull_c.view(np.uint8), dtype=wp.uint8)
+        half = distance(d_skull, grid.spacing_zyx, inside=True)
+        to_bone = distance(wp.array(bone_c.view(np.uint8), dtype=wp.uint8), grid.spacing_zyx)
+        ridge = wp.empty(data.shape, dtype=wp.uint8)
+        wp.launch(ridge_kernel, dim=data.shape, inputs=[half, ridge])
+        to_bone_h = to_bone.numpy()  # sync point: the tissue around the bone and the shell's thickness
+        ridge_h = ridge.numpy().astype(bool) & skull_c
+        half_at_ridge = half.numpy()[ridge_h]
+    band = (to_bone_h > 1.5 * smin) & (to_bone_h <= 1.5 * smin + 2.0)
+    tissue = float(np.median(data[band])) if band.any() else float(data.min())
+    mid = tissue + 0.5 * (level - tissue) if tissue < level else float(level)
+    shell_mm = float(2.0 * np.median(half_at_ridge)) if len(half_at_ridge) else float(sp_arr.max())
+    source = _Source(d_data, d_skull, half, lo, float(data.min()))
+    rules = _rules(data, skull_c, bone_c, lo, source, reflection(n_g, d_g), grid, level, mid, device,
+                   on_device=(d_data, d_skull, to_bone))  # fmt: skip
+    seconds["global_rules"] = time.perf_counter() - t0
+
+    skull_mm3 = float(skull.sum()) * grid.voxel_mm3
+    v_min = params.min_volume_mm3 if params.min_volume_mm3 is not None else min_defect_volume(shell_mm, skull_mm3)
+    region = Region(lo, np.zeros(data.shape, dtype=bool), data, rules.mirrored.copy(), bone_c, float(level), tissue,
+                    mid, shell_mm, skull_mm3, float(v_min), seconds=seconds)  # fmt: skip
+    t1 = time.perf_counter()
+    candidates = _pieces_of(rules, grid, region, n_g, d_g)
+    min_core = MIN_CORE_VOXELS * grid.voxel_mm3
+    pieces: list[Piece] = []
+    worth = [p for p in candidates if p.core_mm3 >= min_core and p.volume_mm3 >= 0.5 * region.min_volume_mm3]
+    worth = sorted(worth, key=lambda p: -p.core_mm3)[:MAX_LOCAL_PIECES]
+    for p in candidates:
+        if p in worth:
+            continue
+        p.reason = (
+            "no core: bone of the scan lies within the shell's thickness (asymmetry, not a hole)"
+            if p.core_mm3 < min_core
+            else f"smaller than the smallest defect ({region.min_volume_mm3:.0f} mm3)"
+        )
+        pieces.append(p)
+    for p in worth:
+        pieces.append(_mirror_locally(p, region, grid, skull, bone, volume_data, n_g, d_g, source, device))
+    seconds["local_rules"] = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    pieces.sort(key=lambda p: -p.volume_mm3)
+    region.pieces = pieces
+    _judge(region, grid, params)
+    seconds["judge"] = time.perf_counter() - t2
+    return region
+
+
+def _pieces_of(rules: _Rules, grid: Grid, region: Region, normal: Any, offset: float) -> list[Piece]:
+    """The 26-connected pieces of a rules pass that hold a core, with their voxels (in the region's crop)."""
+    from scipy import ndimage as ndi
+
+    labels, _ = ndi.label(rules.grown, structure=CONNECTIVITY)
+    is_core = rules.core == 1
+    with_core = np.unique(labels[is_core & (labels > 0)])
+    if not len(with_core):
+        return []
+    vox = grid.voxel_mm3
+    nl = int(labels.max()) + 1
+    cores = np.bincount(labels[is_core], minlength=nl)
+    in_piece = np.isin(labels, with_core)
+    idx = np.argwhere(in_piece)
+    lab = labels[in_piece]
+    order = np.argsort(lab, kind="stable")
+    starts = np.searchsorted(lab[order], with_core)
+    ends = np.searchsorted(lab[order], with_core, side="right")
+    shift = rules.lo - region.lo
+    out = []
+    for k, a, b in zip(with_core, starts, ends, strict=True):
+        sel = idx[order[a:b]]
+        out.append(Piece(label=int(k), voxels=len(sel), volume_mm3=len(sel) * vox, core_mm3=float(cores[k]) * vox,
+                         index=sel + shift))  # fmt: skip
+    for p in out:
+        _place(p, grid, region, normal, offset)
+    return out
+
+
+def _place(p: Piece, grid: Grid, region: Region, normal: Any, offset: float) -> None:
+    """The piece's side of the plane and centroid."""
+    assert p.index is not None
+    xyz = grid.xyz(p.index + region.lo)
+    s = xyz @ np.asarray(normal) - offset
+    p.side_mm = (float(s.min()), float(np.median(s)), float(s.max()))
+    p.centroid_lps_mm = tuple(float(v) for v in grid.to_patient(xyz.mean(axis=0)))  # type: ignore[assignment]
+
+
+def _mirror_locally(
+    p: Piece,
+    region: Region,
+    grid: Grid,
+    skull: BoolArray,
+    bone: BoolArray,
+    volume_data: npt.NDArray[Any],
+    n_g: FloatArray,
+    d_g: float,
+    source: _Source,
+    device: Any,
+) -> Piece:
+    """The piece again, mirrored across the plane of the bone around it (see the module), measured: the rules
+    rerun on a box around it, the mirror images sampled from the whole crop (``source``, on the device)."""
+    from scipy.spatial import cKDTree
+
+    assert p.index is not None
+    sp_arr = np.asarray(grid.spacing_zyx)
+    g_idx = p.index + region.lo
+    xyz = grid.xyz(g_idx)
+    centre = xyz.mean(axis=0)
+    n_l, d_l, res = ring_plane(volume_data, grid, n_g, d_g, _ring(g_idx, grid, RING_MM), region.tissue, region.level)
+    # how far the local mirror moves the piece's mirror image: a local plane corrects a millimetre's misfit; one
+    # that moves it by more has matched something else (the hole itself, when it crosses the midline)
+    moved = float(np.linalg.norm(reflect(centre[None, :], n_l, d_l)[0] - reflect(centre[None, :], n_g, d_g)[0]))
+    local_ok = moved <= max(MAX_LOCAL_MOVE_MM, 2.0 * float(sp_arr.max()))
+    if not local_ok:
+        n_l, d_l, res = np.asarray(n_g), float(d_g), float("nan")
+    rad = np.ceil(THICKNESS_REACH_MM / sp_arr).astype(np.int64)
+    margin = rad + np.ceil((2 * region.shell_mm + 2 * float(sp_arr.max())) / sp_arr).astype(np.int64) + 2
+    r_hi = region.lo + np.asarray(region.data.shape)
+    lo = np.maximum(g_idx.min(axis=0) - margin, region.lo)
+    hi = np.minimum(g_idx.max(axis=0) + 1 + margin, r_hi)
+    box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+    inner = tuple(slice(int(a - r), int(b - r)) for a, b, r in zip(lo, hi, region.lo, strict=True))
+    data = np.ascontiguousarray(region.data[inner])
+    rules = _rules(data, np.ascontiguousarray(skull[box]), np.ascontiguousarray(bone[box]), lo, source,
+                   reflection(n_l, d_l), grid, region.level, region.mid, device)  # fmt: skip
+    local = Piece(label=p.label, voxels=0, volume_mm3=0.0, core_mm3=0.0)
+    local.local_normal = tuple(float(v) for v in n_l)  # type: ignore[assignment]
+    local.local_offset_mm = d_l
+    local.local_residual_mm = None if not np.isfinite(res) else res
+    local.local_turn_deg = float(np.degrees(np.arccos(min(1.0, abs(float(n_l @ n_g))))))
+    local.local_move_mm = moved
+    local.local_used = local_ok
+    # the local pieces that overlap the global piece
+    region_probe = Region(lo, rules.grown, data, rules.mirrored, bone[box], region.level, region.tissue, region.mid,
+                          region.shell_mm, region.skull_mm3, region.min_volume_mm3)  # fmt: skip
+    parts = _pieces_of(rules, grid, region_probe, n_l, d_l)
+    old = np.zeros(data.shape, dtype=bool)
+    inside = np.all((g_idx >= lo) & (g_idx < hi), axis=1)
+    old[tuple((g_idx[inside] - lo).T)] = True
+    mine = [q for q in parts if q.index is not None and old[tuple(q.index.T)].any()]
+    local.side_mm, local.centroid_lps_mm = p.side_mm, p.centroid_lps_mm
+    if not mine:
+        local.reason = "asymmetry: gone when mirrored across the plane of the bone around it"
+        return local
+    idx = np.concatenate([q.index for q in mine if q.index is not None]) + lo  # whole grid
+    local.voxels = len(idx)
+    local.volume_mm3 = len(idx) * grid.voxel_mm3
+    local.core_mm3 = sum(q.core_mm3 for q in mine)
+    local.index = idx - region.lo
+    local.shell_mm = float(np.median(rules.thick[tuple((idx - lo).T)]))
+    _place(local, grid, region, n_l, d_l)
+    # moved bone beside it: anti-cores near the piece, its own mirror image's surroundings left out
+    reach = 2.0 * region.shell_mm + float(sp_arr.max())
+    anti_idx = np.argwhere(rules.core == 2) + lo
+    if len(anti_idx):
+        anti_xyz = grid.xyz(anti_idx)
+        p_xyz = grid.xyz(idx)
+        near = np.isfinite(cKDTree(p_xyz).query(anti_xyz, distance_upper_bound=reach, workers=1)[0])
+        mirror_near = np.isfinite(
+            cKDTree(reflect(p_xyz, n_l, d_l)).query(anti_xyz, distance_upper_bound=reach, workers=1)[0]
+        )
+        local.anti_mm3 = float(np.count_nonzero(near & ~mirror_near)) * grid.voxel_mm3
+    # the local mirror image replaces the global one around the piece (the implant's field)
+    r_hi = region.lo + np.asarray(region.data.shape)
+    a, b = np.maximum(lo, region.lo), np.minimum(hi, r_hi)
+    dst = tuple(slice(int(u - r), int(v - r)) for u, v, r in zip(a, b, region.lo, strict=True))
+    src = tuple(slice(int(u - w), int(v - w)) for u, v, w in zip(a, b, lo, strict=True))
+    region.mirrored[dst] = rules.mirrored[src]
+    return local
+
+
+def _ring(index: npt.NDArray[np.int64], grid: Grid, width_mm: float) -> npt.NDArray[np.int64]:
+    """Grid indices of the voxels within ``width_mm`` of a piece (whole-grid ``index``), the piece and the voxels
+    touching it left out."""
+    from scipy import ndimage as ndi
+
+    sp = np.asarray(grid.spacing_zyx)
+    margin = np.ceil(width_mm / sp).astype(np.int64) + 1
+    lo = np.maximum(index.min(axis=0) - margin, 0)
+    hi = np.minimum(index.max(axis=0) + margin + 1, grid.shape)
+    piece = np.zeros(tuple(int(b - a) for a, b in zip(lo, hi, strict=True)), dtype=bool)
+    piece[tuple((index - lo).T)] = True
+    near = ndi.binary_dilation(piece, structure=CONNECTIVITY)
+    ring = (ndi.distance_transform_edt(~piece, sampling=sp) <= width_mm) & ~near
+    return np.argwhere(ring) + lo
+
+
+def _judge(region: Region, grid: Grid, params: DefectParams) -> None:
+    """Keep the pieces that are defects; raise when the one that would be kept crosses the midline."""
+    sp = np.asarray(grid.spacing_zyx)
+    point = None
+    if params.point_lps_mm is not None:
+        point = grid.from_patient(np.asarray(params.point_lps_mm))
+    full = np.asarray(grid.shape)
+    crossing: list[Piece] = []
+    for p in region.pieces:
+        if p.reason:
+            continue
+        if p.anti_mm3 > MAX_ANTI_SHARE * p.core_mm3:
+            p.reason = "moved bone: the scan has bone beside it that the mirror lacks (asymmetry, not a hole)"
+            continue
+        if p.volume_mm3 < region.min_volume_mm3:
+            p.reason = f"smaller than the smallest defect ({region.min_volume_mm3:.0f} mm3)"
+            continue
+        if params.side is not None and (p.side_mm[1] > 0) != (params.side == "left"):
+            p.reason = f"not on the {params.side} side (the hint)"
+            continue
+        assert p.index is not None and p.local_normal is not None and p.local_offset_mm is not None
+        xyz = grid.xyz(p.index + region.lo)
+        if point is not None and float(np.min(np.linalg.norm(xyz - point, axis=1))) > params.point_radius_mm:
+            p.reason = f"farther than {params.point_radius_mm:g} mm from the hint point"
+            continue
+        g = p.index + region.lo
+        border = np.any((g == 0) | (g == full - 1), axis=1)
+        side = xyz @ np.asarray(p.local_normal) - p.local_offset_mm
+        reach = max(region.shell_mm, 3.0 * float(sp.max()))
+        shell = p.shell_mm if p.shell_mm else region.shell_mm
+        p.rim = rim_of(p.index, region.bone, grid.spacing_zyx, border, reach)
+        p.fit = local_fit(p.index, region.bone, region.mirrored >= region.level, grid.spacing_zyx,
+                          2.0 * region.shell_mm + float(sp.max()))  # fmt: skip
+        across = p.side_mm[0] < -float(sp.max()) and p.side_mm[2] > float(sp.max())
+        n_zyx = np.asarray(p.local_normal)[::-1]
+        toward = 0.0
+        if min(abs(p.side_mm[0]), abs(p.side_mm[2])) <= max(region.shell_mm, float(sp.max())):
+            toward = open_toward_plane(p.index, region.bone, region.mirrored, grid.spacing_zyx, side, n_zyx,
+                                       max(MIDLINE_REACH_MM, 3.0 * shell))  # fmt: skip
+        p.rim = dataclasses.replace(p.rim, open_toward_plane=toward)
+        if across or toward >= MIN_OPEN_TOWARD_PLANE:
+            p.reason = "crosses the midline" if across else "the hole goes on past it toward the midline"
+            crossing.append(p)
+            continue
+        if p.rim.thickness_mm < MIN_PLATE_SHARE * shell:
+            p.reason = (
+                f"a sliver {p.rim.thickness_mm:.1f} mm thick where the healthy shell is {shell:.1f} mm: asymmetry, "
+                "not a hole through the shell"
+            )
+            continue
+        if p.rim.contact < MIN_CONTACT:
+            p.reason = f"its rim meets the bone over {p.rim.contact:.0%} only (not a hole's fill)"
+            continue
+        p.kept = True
+        p.reason = "defect"
+    if point is not None:  # the one piece nearest the hint point
+        kept = [p for p in region.pieces if p.kept]
+        if len(kept) > 1:
+            nearest = min(
+                kept, key=lambda p: float(np.linalg.norm(grid.from_patient(np.asarray(p.centroid_lps_mm)) - point))
+            )
+            for p in kept:
+                if p is not nearest:
+                    p.kept, p.reason = False, "not the piece nearest the hint point"
+    kept = region.kept
+    if crossing and (not kept or max(c.volume_mm3 for c in crossing) >= max(p.volume_mm3 for p in kept)):
+        c = max(crossing, key=lambda p: p.volume_mm3)
+        raise MidlineDefectError(
+            f"the defect ({c.volume_mm3:,.0f} mm3 found by mirroring, {_where(c)}) {c.reason}: the mirror image "
+            "lacks that bone too, so mirroring cannot make its template"
+        )
+    if not kept:
+        raise NoDefectError(_no_defect_message(region))
+    mask = np.zeros(region.data.shape, dtype=bool)
+    for p in kept:
+        assert p.index is not None
+        mask[tuple(p.index.T)] = True
+    region.mask = mask
+
+
+def _where(p: Piece) -> str:
+    x, y, z = p.centroid_lps_mm
+    side = "left" if p.side_mm[1] > 0 else "right"
+    return f"centred at ({x:.0f}, {y:.0f}, {z:.0f}) mm LPS, {abs(p.side_mm[1]):.0f} mm {side} of the plane"
+
+
+def _no_defect_message(region: Region) -> str:
+    head = (
+        f"no one-sided defect found: mirroring the skull across its symmetry plane leaves no missing bone of at "
+        f"least {region.min_volume_mm3:,.0f} mm3 whose rim meets the bone (a defect centred on the midline is "
+        "missing on both sides and cannot be found or filled by mirroring)"
+    )
+    cands = [p for p in region.pieces if p.core_mm3 > 0]
+    if not cands:
+        return head + "; the scan looks intact at this level"
+    p = max(cands, key=lambda p: p.volume_mm3)
+    return head + f"; the largest candidate ({p.volume_mm3:,.0f} mm3, {_where(p)}) was left out: {p.reason}"
+
+
+def local_fit(
+    index: npt.NDArray[np.int64], bone: BoolArray, mirror: Any, spacing_zyx: tuple[float, float, float], reach_mm: float
+) -> float:
+    """How well the mirror matches the bone around a piece: the overlap (intersection over union) of the mirrored
+    bone and the bone within ``reach_mm`` of the piece, the piece left out."""
+    from scipy import ndimage as ndi
+
+    sp = np.asarray(spacing_zyx)
+    margin = np.ceil(reach_mm / sp).astype(np.int64) + 1
+    lo = np.maximum(index.min(axis=0) - margin, 0)
+    hi = np.minimum(index.max(axis=0) + margin + 1, bone.shape)
+    box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+    piece = np.zeros(tuple(int(b - a) for a, b in zip(lo, hi, strict=True)), dtype=bool)
+    piece[tuple((index - lo).T)] = True
+    ring = (ndi.distance_transform_edt(~piece, sampling=sp) <= reach_mm) & ~piece
+    b, m = bone[box] & ring, mirror[box] & ring
+    union = int((b | m).sum())
+    return float((b & m).sum()) / union if union else 0.0
+
+
+def patient_bounds(mask: BoolArray, lo: npt.NDArray[np.int64], grid: Grid) -> tuple[FloatArray, FloatArray]:
+    """The mask's voxel centres' bounds in the patient frame (x, y, z mm): the eight box corners mapped."""
+    a, b = bounding_box(mask)
+    corners = np.array([[z, y, x] for z in (a[0], b[0] - 1) for y in (a[1], b[1] - 1) for x in (a[2], b[2] - 1)])
+    p = grid.to_patient(grid.xyz(corners + lo))
+    return p.min(axis=0), p.max(axis=0)

@@ -1,0 +1,204 @@
+"""Where a template piece meets the bone around the hole: its rim, the gap there, and whether the hole goes on.
+
+A template piece is a thin plate; its rim is the outline of the plate seen along its thinnest principal axis. The
+plate's voxels are projected on the plane of its two widest axes (one pixel per voxel extent along each axis, so
+neighbouring voxels land on neighbouring pixels), the outline's pixels are its rim, and each takes the smallest gap
+of the voxels projected onto it: the distance from the voxel to the nearest bone voxel less the two voxels' extent
+along the line between them (voxels that share a face or a corner have no gap). Pixels of voxels on the scan's
+border are left out (the rim there was not scanned).
+
+``contact``: the share of the rim with a gap of at most ``CONTACT_GAP_VOXELS`` (the template meets the bone there);
+``gap_mm``/``gap_voxels``: the mean gap over the rim (no bone within reach counts as the reach); ``open_share``: the
+share with a gap of more than ``OPEN_GAP_VOXELS`` or no bone within reach. ``thickness_mm``: the piece's volume over
+its outline's area (a plate's thickness: a sliver of asymmetry beside a bone is much thinner than the shell).
+
+``open_toward_plane`` (its own function): whether the hole goes on past the template toward the symmetry plane,
+where the mirror image lacks the bone too (a defect across the midline).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+CONTACT_GAP_VOXELS = 1.0
+MIN_ALONG = 0.5  # a path toward the plane runs along the shell when the plane's direction is 30+ degrees off its normal
+OPEN_GAP_VOXELS = 2.0
+
+
+@dataclass(frozen=True)
+class Rim:
+    """The rim of one template piece (see the module)."""
+
+    contact: float
+    gap_mm: float
+    gap_voxels: float
+    open_share: float
+    open_toward_plane: float
+    samples: int
+    thickness_mm: float
+    thickness_voxels: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "contact_share": round(self.contact, 4),
+            "gap_mm": round(self.gap_mm, 4),
+            "gap_voxels": round(self.gap_voxels, 4),
+            "open_share": round(self.open_share, 4),
+            "open_toward_plane": round(self.open_toward_plane, 4),
+            "outline_samples": self.samples,
+            "thickness_mm": round(self.thickness_mm, 3),
+            "thickness_voxels": round(self.thickness_voxels, 3),
+        }
+
+
+NO_RIM = Rim(0.0, float("inf"), float("inf"), 1.0, 1.0, 0, 0.0, 0.0)
+
+
+def rim_of(
+    index: npt.NDArray[np.int64],
+    bone: npt.NDArray[np.bool_],
+    spacing_zyx: tuple[float, float, float],
+    on_border: npt.NDArray[np.bool_],
+    reach_mm: float,
+) -> Rim:
+    """The rim of a template piece (see the module).
+
+    Args:
+        index: (N, 3) voxel indices (z, y, x) of the piece in ``bone``'s array.
+        bone: the scan's bone (bool), the same array.
+        spacing_zyx: voxel size in mm.
+        on_border: (N,) the voxel lies on the scan's border.
+        reach_mm: how far to look for bone; a gap beyond it is open.
+    """
+    from scipy import ndimage as ndi
+    from scipy.spatial import cKDTree
+
+    if len(index) < 4:
+        return NO_RIM
+    sp = np.asarray(spacing_zyx, dtype=np.float64)
+    pts = index * sp
+    margin = np.ceil(reach_mm / sp).astype(np.int64) + 1
+    lo = np.maximum(index.min(axis=0) - margin, 0)
+    hi = np.minimum(index.max(axis=0) + margin + 1, bone.shape)
+    near = np.argwhere(bone[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]) + lo
+    if len(near) == 0:
+        gap_mm = np.full(len(index), np.inf)
+        ext = np.full(len(index), sp.min())
+    else:
+        dist, j = cKDTree(near * sp).query(pts, distance_upper_bound=reach_mm + float(sp.max()), workers=1)
+        found = np.isfinite(dist)
+        u = np.zeros_like(pts)
+        u[found] = (near[j[found]] * sp - pts[found]) / np.maximum(dist[found, None], 1e-12)
+        ext = np.where(found, np.abs(u) @ sp, sp.min())  # both voxels' half extents along the line between them
+        gap_mm = np.where(found, np.maximum(dist - ext, 0.0), np.inf)
+    gap_vox = gap_mm / ext
+    voxel = float(np.prod(sp)) ** (1 / 3)  # a gap beyond the reach counts as the reach, in voxels of this size
+    # the outline seen along the thinnest axis; each outline pixel takes its voxels' smallest gap
+    centre = pts.mean(axis=0)
+    _, axes = np.linalg.eigh(np.cov((pts - centre).T))
+    e1, e2, e3 = axes[:, 2], axes[:, 1], axes[:, 0]
+    h1, h2, h3 = float(np.abs(e1) @ sp), float(np.abs(e2) @ sp), float(np.abs(e3) @ sp)
+    u1 = np.round((pts - centre) @ e1 / h1).astype(np.int64)
+    u2 = np.round((pts - centre) @ e2 / h2).astype(np.int64)
+    u1 -= u1.min() - 1
+    u2 -= u2.min() - 1
+    img = np.zeros((int(u1.max()) + 2, int(u2.max()) + 2), dtype=bool)
+    img[u1, u2] = True
+    img = ndi.binary_fill_holes(img)
+    thickness = len(index) * float(np.prod(sp)) / (float(img.sum()) * h1 * h2)
+    outline = img & ~ndi.binary_erosion(img)
+    pix = u1 * img.shape[1] + u2
+    order = np.lexsort((gap_vox, pix))  # by pixel, then gap: each pixel's smallest gap first
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = pix[order][1:] != pix[order][:-1]
+    best = order[first]
+    best = best[outline.ravel()[pix[best]] & ~on_border[best]]
+    if len(best) == 0:
+        return Rim(0.0, float("inf"), float("inf"), 1.0, 0.0, 0, thickness, thickness / h3)
+    g_vox, g_mm = gap_vox[best], gap_mm[best]
+    finite = np.isfinite(g_mm)
+    return Rim(
+        contact=float(np.mean(finite & (g_vox <= CONTACT_GAP_VOXELS))),
+        gap_mm=float(np.mean(np.where(finite, g_mm, reach_mm))),
+        gap_voxels=float(np.mean(np.where(finite, g_vox, reach_mm / voxel))),
+        open_share=float(np.mean(~finite | (g_vox > OPEN_GAP_VOXELS))),
+        open_toward_plane=0.0,
+        samples=len(best),
+        thickness_mm=thickness,
+        thickness_voxels=thickness / h3,
+    )
+
+
+def open_toward_plane(
+    index: npt.NDArray[np.int64],
+    bone: npt.NDArray[np.bool_],
+    mirrored: npt.NDArray[np.float32],
+    spacing_zyx: tuple[float, float, float],
+    side_mm: npt.NDArray[np.float64],
+    plane_normal_zyx: npt.NDArray[np.float64],
+    reach_mm: float,
+) -> float:
+    """Whether the hole goes on past the template toward the symmetry plane. From every voxel of the piece a path
+    goes toward the plane along the shell (the way to the plane less its part along the shell's normal: the main
+    axis of the mirrored scan's gradients over the piece), through the piece and on out of it, up to ``reach_mm``
+    (or the plane) past its edge; returns the share of the paths that meet no bone (within a voxel of the path).
+    Where the shell faces the plane (a side wall) the way to the plane goes through it: those paths tell nothing
+    and are left out. A one-sided defect's paths meet its rim; a defect across the midline's meet none there (the
+    mirror image lacks that bone too)."""
+    from scipy import ndimage as ndi
+
+    sp = np.asarray(spacing_zyx, dtype=np.float64)
+    margin = np.ceil(reach_mm / sp).astype(np.int64) + 2
+    lo = np.maximum(index.min(axis=0) - margin, 0)
+    hi = np.minimum(index.max(axis=0) + margin + 1, bone.shape)
+    box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+    shape = np.asarray(tuple(int(b - a) for a, b in zip(lo, hi, strict=True)))
+    local = index - lo
+    piece = np.zeros(tuple(shape), dtype=bool)
+    piece[tuple(local.T)] = True
+    near_bone = ndi.binary_dilation(bone[box], structure=np.ones((3, 3, 3), dtype=bool))
+    # the shell's normal: the main axis of the mirrored scan's gradients over the piece (their structure tensor)
+    grads = np.gradient(mirrored[box].astype(np.float64), *sp)
+    g = np.stack([np.asarray(gr)[tuple(local.T)] for gr in grads], axis=1)
+    _, axes = np.linalg.eigh(g.T @ g)
+    nu = np.broadcast_to(axes[:, 2], (len(index), 3))
+    toward = -np.sign(side_mm)[:, None] * np.asarray(plane_normal_zyx)[None, :]
+    tangent = toward - np.einsum("ij,ij->i", toward, nu)[:, None] * nu
+    along = np.linalg.norm(tangent, axis=1)
+    tangent /= np.maximum(along[:, None], 1e-12)
+    # where the shell faces the plane (a side wall), the way to the plane goes through the shell, not along it: no
+    # path there tells whether the hole goes on toward the midline
+    keep = along >= MIN_ALONG
+    if not keep.any():
+        return 0.0
+    local, tangent, side_mm = local[keep], tangent[keep], side_mm[keep]
+    # every voxel of the piece walks toward the plane along the shell: through the piece, then out of it up to the
+    # reach (or the plane); its path meets the bone of the hole's rim, or nothing
+    step = 0.5 * float(sp.min())
+    start, tan = local, tangent
+    limit = np.minimum(np.abs(side_mm), reach_mm)
+    out_at = np.full(len(start), np.inf)  # the path's length when it left the piece
+    met = np.zeros(len(start), dtype=bool)
+    done = np.zeros(len(start), dtype=bool)
+    k = 0
+    while not done.all():
+        k += 1
+        live = np.flatnonzero(~done)
+        pos = np.round(start[live] + k * step * tan[live] / sp).astype(np.int64)
+        ok = np.all((pos >= 0) & (pos < shape), axis=1)
+        in_piece = np.zeros(len(pos), dtype=bool)
+        in_piece[ok] = piece[tuple(pos[ok].T)]
+        hit = np.zeros(len(pos), dtype=bool)
+        hit[ok] = near_bone[tuple(pos[ok].T)]
+        left = ~in_piece & ~np.isfinite(out_at[live])
+        out_at[live[left]] = k * step
+        hit &= np.isfinite(out_at[live])  # only once out of the piece: its own partial-volume rim is not the rim
+        met[live[hit]] = True
+        beyond = np.isfinite(out_at[live]) & (k * step - out_at[live] >= limit[live])
+        done[live[hit | ~ok | beyond]] = True
+        done[live[k * step > np.abs(side_mm[live]) + reach_mm]] = True
+    return float(np.mean(~met))
