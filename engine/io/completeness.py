@@ -78,14 +78,16 @@ def check_count(n: int, label: str) -> None:
 def _runs(gaps: np.ndarray) -> list[tuple[int, int, float]]:
     """Maximal runs of nearly equal consecutive gaps: (first gap index, count, mean gap)."""
     runs: list[tuple[int, int, float]] = []
-    start = 0
-    for i in range(1, len(gaps) + 1):
+    start, total = 0, 0.0  # the run so far: its first gap and the sum of its gaps (a running mean, not a re-sum)
+    for i in range(len(gaps) + 1):
         if i < len(gaps):
-            ref = float(np.mean(gaps[start:i]))
+            ref = total / (i - start) if i > start else float(gaps[i])
             if abs(float(gaps[i]) - ref) <= RUN_TOLERANCE * ref:
+                total += float(gaps[i])
                 continue
-        runs.append((start, i - start, float(np.mean(gaps[start:i]))))
-        start = i
+        if i > start:
+            runs.append((start, i - start, total / (i - start)))
+        start, total = i, float(gaps[i]) if i < len(gaps) else 0.0
     return runs
 
 

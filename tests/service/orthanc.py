@@ -10,15 +10,13 @@ Orthanc accepts C-STORE only from the modalities named in its configuration (``D
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import subprocess
 from pathlib import Path
 from typing import Any
 
 import httpx
 
-from tests.service.procs import Proc, ProcessError, free_port, wait_until
+from tests.service.procs import Proc, ProcessError, apt_install, free_port, wait_until
 
 PLUGIN_DIRS = ("/usr/share/orthanc/plugins", "/usr/lib/orthanc")
 AE_TITLE = "ORTHANC"
@@ -36,21 +34,7 @@ def find_orthanc(install: bool = True) -> tuple[str, str]:
         plugin = next((str(p) for d in PLUGIN_DIRS for p in sorted(Path(d).glob("libOrthancDicomWeb.so*"))), None)
         return (exe, plugin) if exe and plugin else None
 
-    hit = found()
-    if hit is None and install and shutil.which("apt-get") and os.geteuid() == 0:
-        argv = ["apt-get", "install", "-y", "-qq", "orthanc", "orthanc-dicomweb"]
-        for cmds in ([argv], [["apt-get", "update", "-qq"], argv]):
-            for cmd in cmds:
-                subprocess.run(
-                    cmd,
-                    capture_output=True,
-                    timeout=900,
-                    check=False,
-                    env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"},
-                )
-            hit = found()
-            if hit:
-                break
+    hit = apt_install(["orthanc", "orthanc-dicomweb"], found) if install else found()
     if hit is None:
         raise ProcessError(
             "Orthanc is not installed and could not be installed (apt-get install orthanc orthanc-dicomweb)"

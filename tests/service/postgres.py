@@ -24,7 +24,7 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-from tests.service.procs import Proc, ProcessError, free_port, wait_until
+from tests.service.procs import Proc, ProcessError, apt_install, free_port, wait_until
 
 BIN_GLOB = "/usr/lib/postgresql/*/bin"  # Debian: one folder per major version
 SUPERUSER = "postgres"  # the cluster's superuser (a role, whoever owns the files)
@@ -69,21 +69,7 @@ def find_postgres(install: bool = True) -> Path:
     Raises:
         PostgresUnavailable: not found and not installable here.
     """
-    found = _bin_dir()
-    if found is None and install and shutil.which("apt-get") and os.geteuid() == 0:
-        argv = ["apt-get", "install", "-y", "-qq", "postgresql"]
-        for cmds in ([argv], [["apt-get", "update", "-qq"], argv]):
-            for cmd in cmds:
-                subprocess.run(
-                    cmd,
-                    capture_output=True,
-                    timeout=900,
-                    check=False,
-                    env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"},
-                )
-            found = _bin_dir()
-            if found:
-                break
+    found = apt_install(["postgresql"], _bin_dir) if install else _bin_dir()
     if found is None:
         raise PostgresUnavailable(
             "PostgreSQL is not installed and could not be installed (as root: apt-get install postgresql)"

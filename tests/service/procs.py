@@ -28,7 +28,7 @@ import time
 import tomllib
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import httpx
 
@@ -51,6 +51,9 @@ _LIVE: set[Proc] = set()  # every process group still running, killed at exit
 
 class ProcessError(RuntimeError):
     """A helper process could not be started or died; the message carries its log tail."""
+
+
+T = TypeVar("T")
 
 
 def free_port() -> int:
@@ -166,6 +169,23 @@ def _kill_leftovers() -> None:
         proc.signal_group(signal.SIGKILL)
 
 
+def apt_install(packages: list[str], found: Callable[[], T | None]) -> T | None:
+    """``found()``, after installing ``packages`` with apt-get (as root, where apt-get exists) when it gives None:
+    first without, then after ``apt-get update``. None when still not found."""
+    hit = found()
+    if hit is not None or not shutil.which("apt-get") or os.geteuid() != 0:
+        return hit
+    install = ["apt-get", "install", "-y", "-qq", *packages]
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    for cmds in ([install], [["apt-get", "update", "-qq"], install]):
+        for cmd in cmds:
+            subprocess.run(cmd, capture_output=True, timeout=900, check=False, env=env)
+        hit = found()
+        if hit is not None:
+            return hit
+    return None
+
+
 def find_redis_server(path: str | os.PathLike[str] | None = None, *, install: bool = True) -> str:
     """The redis-server executable: ``path``, on PATH, or installed with apt-get (as root) when missing.
 
@@ -176,19 +196,15 @@ def find_redis_server(path: str | os.PathLike[str] | None = None, *, install: bo
         if not Path(path).is_file():
             raise ProcessError(f"redis-server not found at {path}")
         return str(Path(path).absolute())  # the server starts in its own working folder
-    found = shutil.which("redis-server") or next(
-        (p for p in ("/usr/bin/redis-server", "/usr/local/bin/redis-server") if Path(p).is_file()), None
-    )
+
+    def where() -> str | None:
+        return shutil.which("redis-server") or next(
+            (p for p in ("/usr/bin/redis-server", "/usr/local/bin/redis-server") if Path(p).is_file()), None
+        )
+
+    found = apt_install(["redis-server"], where) if install else where()
     if found:
         return found
-    if install and shutil.which("apt-get") and os.geteuid() == 0:
-        install_argv = ["apt-get", "install", "-y", "redis-server"]
-        for argvs in ([install_argv], [["apt-get", "update"], install_argv]):
-            for argv in argvs:
-                subprocess.run(argv, capture_output=True, timeout=600, check=False)
-            found = shutil.which("redis-server")
-            if found:
-                return found
     raise ProcessError(
         "redis-server is not installed and could not be installed with apt-get "
         "(install it: `apt-get install -y redis-server`, or pass its path)"
