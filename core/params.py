@@ -1,8 +1,9 @@
 """The job parameters a client sends (JSON), validated field by field, and their engine form.
 
 Most parameters are flat; the engine's optional steps are objects: ``orient`` (how an image stack lies),
-``preprocess`` (the paper's slice preprocessing, off unless given), and ``body`` and ``islands`` (bone inside the
-body outline, speck removal: on unless sent as ``null``). Left out, every step keeps the engine's default
+``preprocess`` (the paper's slice preprocessing, off unless given), ``defect`` (the one-sided defect and its
+mirrored template, off unless given), and ``body`` and ``islands`` (bone inside the body outline, speck removal: on
+unless sent as ``null``). Left out, every step keeps the engine's default
 (``engine.params.ReconParams()``).
 
 Part of the job's contract, so shared: the API validates a request with it and stores both forms, a PACS routing
@@ -15,6 +16,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from engine.defect.params import DEFAULT_MAX_FACES, DefectParams
 from engine.params import (
     DEFAULT_SPECK_VOXELS,
     FLOAT32_MAX,
@@ -99,6 +101,37 @@ class IslandJobParams(_Group):
     )
 
 
+class DefectJobParams(_Group):
+    """Find the bone's one-sided defect and make its mirrored fill template (``engine.defect``): ``implant.stl``
+    (patient frame of model.stl, mm), ``defect.json`` (its size, place and the symmetry plane, or why there is
+    none), and the template as its own coloured node in the GLB files. Send ``"defect": {}`` for the defaults."""
+
+    side: Literal["left", "right"] | None = Field(
+        default=None, description="a hint: the patient's side the defect is on (default: either)"
+    )
+    point_lps_mm: list[float] | None = Field(
+        default=None,
+        min_length=3,
+        max_length=3,
+        description="a hint: a point in or next to the defect, [x, y, z] mm in the patient frame (LPS) of model.stl",
+    )
+    point_radius_mm: float = Field(
+        default=40.0, gt=0, le=500, description="how far from point_lps_mm the defect may lie (mm)"
+    )
+    min_volume_mm3: float | None = Field(
+        default=None, ge=0, le=FLOAT32_MAX, description="smallest defect reported (mm³; default: a 15 mm plug)"
+    )
+    max_faces: int = Field(
+        default=DEFAULT_MAX_FACES, ge=100, le=INT32_MAX, description="the template's triangles at most"
+    )
+
+    def engine(self) -> DefectParams:
+        """The engine's form."""
+        data = self.model_dump()
+        data["point_lps_mm"] = None if self.point_lps_mm is None else tuple(self.point_lps_mm)
+        return DefectParams(**data)
+
+
 class JobParams(BaseModel):
     """Reconstruction parameters of a job (all optional; defaults are the paper's best combination).
 
@@ -145,6 +178,9 @@ class JobParams(BaseModel):
     )
     islands: IslandJobParams | None = Field(
         default_factory=IslandJobParams, description="speck removal; null: keep pieces of any size"
+    )
+    defect: DefectJobParams | None = Field(
+        default=None, description="the one-sided defect and its mirrored fill template (default off; {} turns it on)"
     )
     phone_max_triangles: int = Field(
         default=_EXPORT.phone_max_triangles, ge=100, le=2_000_000, description="phone.glb budget"
@@ -218,4 +254,5 @@ class JobParams(BaseModel):
             export=ExportParams(phone_max_triangles=self.phone_max_triangles, ar_max_triangles=self.ar_max_triangles),
             orient=OrientParams(**self.orient.model_dump()),
             body=None if self.body is None else BodyMaskParams(outline_hu=self.body.outline_hu),
+            defect=None if self.defect is None else self.defect.engine(),
         ).to_dict()

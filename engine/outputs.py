@@ -177,19 +177,48 @@ def _device_mesh(recon: Reconstruction, dev: Any) -> tuple[Any, Any, Any]:
     return pos, faces, wp.array(np.ascontiguousarray(mesh.normals, np.float32), dtype=wp.vec3)
 
 
-def _write_print_files(tmp: Path, stl: str, lay: Layout) -> dict[str, int]:
-    """The print model's STL and its full-resolution GLB, streamed from the laid-out buffers (no Warp here: this
-    runs in a thread beside the device work)."""
-    from engine.export.glb import mesh_document, write_glb
+def _write_print_files(tmp: Path, stl: str, lay: Layout, parts: list[Any]) -> dict[str, int]:
+    """The print model's STL and its full-resolution GLB (with ``parts`` beside the model: the defect template),
+    streamed from the laid-out buffers (no Warp here: this runs in a thread beside the device work)."""
+    from engine.export.glb import add_parts, mesh_document, write_glb
     from engine.export.stl import write_stl
 
     sizes = {}
     with open(tmp / stl, "wb") as fh:
         sizes[stl] = write_stl(fh, lay.facets, STL_HEADER)
-    document, parts = mesh_document(lay.gltf_pos, lay.gltf_normals, lay.tris, bounds=lay.gltf_bounds)
+    document, buffer = mesh_document(lay.gltf_pos, lay.gltf_normals, lay.tris, bounds=lay.gltf_bounds)
+    add_parts(document, buffer, parts)
     with open(tmp / MODEL_GLB, "wb") as fh:
-        sizes[MODEL_GLB] = write_glb(fh, document, parts)
+        sizes[MODEL_GLB] = write_glb(fh, document, buffer)
     return sizes
+
+
+def _defect_files(recon: Reconstruction, tmp: Path) -> dict[str, int]:
+    """The defect step's files (``engine.defect.step``: ``defect.json``, ``implant.stl`` with a template) written
+    into ``tmp``; their sizes by name (none when the reconstruction did not look for a defect)."""
+    if recon.defect is None:
+        return {}
+    sizes = {}
+    for name, data in recon.defect.files().items():
+        (tmp / name).write_bytes(data)
+        sizes[name] = len(data)
+    return sizes
+
+
+def _template_parts(
+    recon: Reconstruction, centre_xyz: np.ndarray, budgets: dict[str, int | None], dev: Any
+) -> dict[str, list[Any]]:
+    """The defect template as a glTF part for each file family (``"print"``: whole; ``"phone"``, ``"ar"``: at its
+    share of the copy's budget, ``engine.defect.step.view_faces``), centred as the glTF files are."""
+    from engine.defect.step import view_faces
+
+    if recon.defect is None or recon.defect.result is None:
+        return {}
+    centre_zyx = centre_xyz[::-1]
+    return {
+        source: [recon.defect.part(centre_zyx, None if budget is None else view_faces(budget), dev)]
+        for source, budget in budgets.items()
+    }
 
 
 def write_outputs(
@@ -243,22 +272,28 @@ def write_outputs(
                     report["print_check"] = check_print_model(None, None, stats, zero_area=lay.zero_area)
                 seconds["layout"] = time.perf_counter() - t0
                 seconds.update({f"layout_{k}": v for k, v in lay.seconds.items()})
+                export = params.export
+                budgets = {"print": None, "phone": export.phone_max_triangles, "ar": export.ar_max_triangles}
+                parts = _template_parts(recon, lay.centre_xyz, budgets, dev)
                 with ThreadPoolExecutor(1, thread_name_prefix="bonemesh-write") as pool:
-                    writing = pool.submit(_write_print_files, tmp, stl, lay)
+                    writing = pool.submit(_write_print_files, tmp, stl, lay, parts.pop("print", []))
                     held = 0 if on_host else budget.costs.held * len(lay.faces)
                     room = budget.beside(held)  # beside the model, where it is on the device
-                    small, infos = _viewing_files(lay, stats, params, room, tmp, seconds, dev)
+                    small, infos = _viewing_files(lay, stats, params, room, tmp, seconds, dev, parts)
                     t1 = time.perf_counter()
                     sizes = writing.result()
                     seconds["wait_print_files"] = time.perf_counter() - t1
         sizes.update({name: len(data) for name, data in small.items()})
+        sizes.update(_defect_files(recon, tmp))
         report["exports"] = infos
         report["exports"].update({name: {**report["exports"].get(name, {}), "bytes": n} for name, n in sizes.items()})
         seconds["total"] = time.perf_counter() - t0
         report["write_seconds"] = seconds
         (tmp / REPORT_JSON).write_text(report_json(report))
         paths = {}
-        for name in engine_files(closed=params.iso.closed):  # the STL of stl_name(params) among them
+        for name in engine_files(closed=params.iso.closed, defect=recon.defect is not None):
+            if name not in sizes and name != REPORT_JSON:  # implant.stl when no template was made
+                continue
             os.replace(tmp / name, out / name)
             paths[name] = out / name
         return paths
@@ -274,6 +309,7 @@ def _viewing_files(
     tmp: Path,
     seconds: dict[str, float | dict[str, float]],
     dev: Any,
+    parts: dict[str, list[Any]],
 ) -> tuple[dict[str, bytes], dict[str, ExportInfo]]:
     """The phone and AR copies (decimated on ``dev`` within ``room`` bytes) and the small files made from them,
     written into ``tmp``: ``({name: bytes}, {"phone.glb": how the copy was made, "ar.glb": ...})``; their seconds go
@@ -289,21 +325,21 @@ def _viewing_files(
     ar = phone if apos is ppos else _host_mesh(apos, afaces)
     seconds["viewing_copies"] = time.perf_counter() - t1
     t1 = time.perf_counter()
-    small, seconds["encode_parts"] = _encode_small(phone, ar)
+    small, seconds["encode_parts"] = _encode_small(phone, ar, parts)
     for name, data in small.items():
         (tmp / name).write_bytes(data)
     seconds["encode_small"] = time.perf_counter() - t1
     return small, {VIEWING_ENTRY["phone"]: phone_info, VIEWING_ENTRY["ar"]: ar_info}
 
 
-def _encode_small(phone: Mesh, ar: Mesh) -> tuple[dict[str, bytes], dict[str, float]]:
+def _encode_small(phone: Mesh, ar: Mesh, parts: dict[str, list[Any]]) -> tuple[dict[str, bytes], dict[str, float]]:
     """The small files (``engine.export.viewers.small_files``), one after another (in threads they hung on the
     H100 host), and each one's seconds."""
     from engine.export.viewers import small_files
 
     files: dict[str, bytes] = {}
     seconds: dict[str, float] = {}
-    for name, encode in small_files(phone, ar).items():
+    for name, encode in small_files(phone, ar, parts).items():
         t0 = time.perf_counter()
         files[name] = encode()
         seconds[name] = time.perf_counter() - t0

@@ -12,6 +12,8 @@ import numbers
 from dataclasses import dataclass, field
 from typing import Any
 
+from engine.defect.params import DefectParams
+
 # lower HU bounds of InVesalius' threshold presets (adult); "bone" is the usual 300 HU
 ISO_PRESETS_HU: dict[str, float] = {"bone": 300.0, "compact-bone": 662.0, "spongy-bone": 148.0}
 # speck removal by default: pieces smaller than this many voxels' volume are dropped (IslandParams)
@@ -392,6 +394,7 @@ _NESTED = {
     "export": ExportParams,
     "orient": OrientParams,
     "body": BodyMaskParams,
+    "defect": DefectParams,
 }
 
 
@@ -401,7 +404,8 @@ class ReconParams:
 
     By default the model is bone only: ``body`` drops bone outside the body outline (HU data) and ``islands``
     drops specks below ``DEFAULT_SPECK_VOXELS`` voxels; set either to None to keep what it would drop. ``orient``
-    places image stacks in the patient frame (DICOM carries its own).
+    places image stacks in the patient frame (DICOM carries its own). ``defect`` (off unless given) also finds the
+    bone's one-sided defect and its mirrored template (``engine.defect``: ``implant.stl``, ``defect.json``).
     """
 
     preprocess: PreprocessParams | None = None
@@ -413,10 +417,14 @@ class ReconParams:
     export: ExportParams = field(default_factory=ExportParams)
     orient: OrientParams = field(default_factory=OrientParams)
     body: BodyMaskParams | None = field(default_factory=BodyMaskParams)
+    defect: DefectParams | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able dict (tuples become lists)."""
-        return dataclasses.asdict(self)
+        out = dataclasses.asdict(self)
+        if self.defect is not None:
+            out["defect"] = self.defect.to_dict()
+        return out
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ReconParams:
@@ -442,5 +450,5 @@ class ReconParams:
                 raise ValueError(f"Unknown {name} parameters {sorted(bad)}; expected some of {sorted(names)}")
             if name == "preprocess" and value.get("crop_zyx_mm") is not None:
                 value = {**value, "crop_zyx_mm": tuple(tuple(r) for r in value["crop_zyx_mm"])}
-            kwargs[name] = kind(**value)
+            kwargs[name] = DefectParams.from_dict(value) if name == "defect" else kind(**value)
         return cls(**kwargs)

@@ -42,10 +42,13 @@ class Reconstruction:
     ``write_outputs`` lays out there); ``mesh`` brings it to the host on first use.
     """
 
-    def __init__(self, mesh: Mesh | None = None, report: Report | None = None, device_mesh: Any = None):
+    def __init__(
+        self, mesh: Mesh | None = None, report: Report | None = None, device_mesh: Any = None, defect: Any = None
+    ):
         if mesh is None and device_mesh is None:
             raise ValueError("a Reconstruction needs a mesh or a device mesh")
         self._mesh = mesh
+        self.defect = defect  # engine.defect.step.DefectOutcome when ReconParams.defect asked for it
         # a mesh made elsewhere has no pipeline blocks yet: write_outputs adds its own to an empty report
         self.report: Report = cast(Report, {}) if report is None else report
         self.device_mesh = device_mesh
@@ -178,5 +181,27 @@ def reconstruct(
         memory.stop()
         if st.stream is not None:
             report["memory"]["stream"] = st.stream.info
+    defect = _defect_step(st, params, report, dev)
     report["total_seconds"] = sum(report["stage_seconds"].values())
-    return Reconstruction(report=report, device_mesh=(st.pos, st.faces, st.normals))
+    return Reconstruction(report=report, device_mesh=(st.pos, st.faces, st.normals), defect=defect)
+
+
+def _defect_step(st: State, params: ReconParams, report: Report, dev: Any) -> Any:
+    """The defect and its template (``engine.defect.step``) on the scan as the model saw it (cropped, bone inside
+    the body), at the model's level, when ``params.defect`` asks; None otherwise."""
+    if params.defect is None:
+        return None
+    from engine.defect.step import find_defect
+
+    t0 = time.perf_counter()
+    try:
+        outcome = find_defect(st.volume, params.defect, st.level, dev, params.orient)
+    except InputError:
+        raise
+    except Exception as exc:
+        if os.environ.get("BONEMESH_DEBUG") == "1":
+            raise
+        raise StageError("defect", exc) from exc
+    report["stage_seconds"]["defect"] = time.perf_counter() - t0
+    report["defect"] = outcome.summary()
+    return outcome

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
+from engine.defect.params import DEFECT_REORIENT
 from engine.errors import InputError
 from engine.export.files import MODEL_GLB, OPEN_STL, PRINT_STL, REPORT_JSON
 from engine.params import OrientParams, ReconParams
@@ -142,6 +143,8 @@ def reorient(
         raise InputError(
             f"{src}: a DICOM series is placed in the patient by its headers; only an image stack can be re-oriented"
         )
+    if (report.get("parameters") or {}).get("defect") is not None:
+        raise InputError(DEFECT_REORIENT.format(job=str(src)))
     before = current_orient(report)
     mesh = _grid_mesh(src, report)
     params_dict = dict(report.get("parameters") or {})

@@ -205,6 +205,7 @@ class Report(TypedDict):
     print_check: NotRequired[PrintCheck]  # write_outputs, a closed surface (model.stl)
     exports: NotRequired[dict[str, ExportInfo]]  # write_outputs: every file but report.json, by name
     write_seconds: NotRequired[dict[str, float | dict[str, float]]]  # write_outputs (encode_parts: per file)
+    defect: NotRequired[dict[str, Any]]  # ReconParams.defect: found or refused (engine.defect.step.DefectOutcome)
     reoriented: NotRequired[dict[str, Any]]  # engine.reorient: {"from": OrientParams, "to": OrientParams} as dicts
 
 

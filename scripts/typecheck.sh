@@ -13,4 +13,5 @@ cd "$(dirname "$0")/.."
     engine/plans.py engine/pipeline.py engine/outputs.py engine/report.py engine/warmup.py engine/cli.py \
     engine/export/__init__.py engine/export/files.py engine/export/viewers.py \
     engine/volume/__init__.py engine/isosurface/__init__.py engine/decimation/__init__.py \
-    engine/surface/__init__.py engine/paper/__init__.py
+    engine/surface/__init__.py engine/paper/__init__.py \
+    engine/defect/__init__.py engine/defect/params.py engine/defect/step.py engine/defect/template.py

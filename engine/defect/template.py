@@ -18,12 +18,11 @@ from engine.defect.grid import Grid, bone_and_skull
 from engine.defect.params import DefectParams
 from engine.defect.plane import SymmetryPlane, find_symmetry_plane
 from engine.defect.region import Piece, Region, find_region
+from engine.export.files import DEFECT_JSON, IMPLANT_STL
 from engine.types import Mesh, Volume
 
 FORMAT = "bonemesh defect 1"
 PATIENT_FRAME = "LPS mm (DICOM patient frame: +x patient's left, +y posterior, +z superior)"
-IMPLANT_STL = "implant.stl"
-DEFECT_JSON = "defect.json"
 
 
 @dataclass

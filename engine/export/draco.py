@@ -20,6 +20,7 @@ DracoPy quirks handled here:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import DracoPy
@@ -30,11 +31,14 @@ from engine.errors import InputError
 from engine.export.glb import (
     FLOAT,
     TRIANGLES,
+    Part,
     accessor_bounds,
+    add_node,
     base_document,
     gltf_mesh,
     index_type,
     pack_glb,
+    part_material,
 )
 
 EXTENSION = "KHR_draco_mesh_compression"
@@ -58,6 +62,7 @@ def to_draco_glb(
     normal_quantization_bits: int | None = 10,
     compression_level: int = 7,
     include_normals: bool = True,
+    parts: Sequence[Part] = (),
 ) -> bytes:
     """Encode a mesh as Draco-compressed binary glTF 2.0 (metres, +Y up; axes as in ``engine.export.glb``).
 
@@ -71,6 +76,7 @@ def to_draco_glb(
         normal_quantization_bits: normal quantisation, 1..30, or None for lossless float normals.
         compression_level: Draco's effort, 0..10 (higher: smaller and slower).
         include_normals: encode a NORMAL attribute; without it viewers compute flat or smooth normals themselves.
+        parts: more meshes (``engine.export.glb.Part``), each its own Draco primitive, node and material.
 
     Returns:
         The GLB file's bytes.
@@ -84,42 +90,67 @@ def to_draco_glb(
         raise InputError(f"normal_quantization_bits must be in 1..30 or None, got {normal_quantization_bits}")
     if not 0 <= compression_level <= 10:
         raise InputError(f"compression_level must be in 0..10, got {compression_level}")
+    settings = (quantization_bits, normal_quantization_bits if include_normals else None, compression_level)
+    accessors: list[dict[str, Any]] = []
+    blobs: list[bytes] = []
+    primitive = _draco_primitive(vertices_zyx_mm, faces, normals_zyx, settings, accessors, blobs)
+    document = base_document(name, primitive, accessors)
+    for part in parts:
+        document["materials"].append(part_material(part))
+        prim = _draco_primitive(part.vertices_zyx_mm, part.faces, part.normals_zyx, settings, accessors, blobs)
+        add_node(document, part.name, {**prim, "material": len(document["materials"]) - 1})
+    document["extensionsUsed"] = [EXTENSION]
+    document["extensionsRequired"] = [EXTENSION]
+    views, offset = [], 0
+    for blob in blobs:
+        offset += -offset % 4
+        views.append({"buffer": 0, "byteOffset": offset, "byteLength": len(blob)})
+        offset += len(blob)
+    document["bufferViews"] = views
+    binary = b"".join(blob + b"\x00" * (-len(blob) % 4) for blob in blobs[:-1]) + blobs[-1]
+    document["buffers"] = [{"byteLength": len(binary)}]
+    return pack_glb(document, binary)
+
+
+def _draco_primitive(
+    vertices_zyx_mm: npt.ArrayLike,
+    faces: npt.ArrayLike,
+    normals_zyx: npt.ArrayLike | None,
+    settings: tuple[int, int | None, int],
+    accessors: list[dict[str, Any]],
+    blobs: list[bytes],
+) -> dict[str, Any]:
+    """Encode one mesh with Draco (``settings``: position bits, normal bits or None for no normals, compression
+    level), appending its accessors and its encoded bytes (the next buffer view); returns its primitive."""
+    bits, normal_bits, level = settings
     positions, unit_normals, tris = gltf_mesh(vertices_zyx_mm, faces, normals_zyx)
-    positions = positions.astype(np.float32)
-    normals = unit_normals.astype(np.float64) if include_normals else None
+    normals = unit_normals.astype(np.float64) if normal_bits is not None else None
     encoded = DracoPy.encode(
-        positions,
+        positions.astype(np.float32),
         tris.astype(np.uint32),
-        quantization_bits=quantization_bits,
-        compression_level=compression_level,
+        quantization_bits=bits,
+        compression_level=level,
         normals=normals,
-        normal_quantization_bits=normal_quantization_bits if normals is not None else None,
+        normal_quantization_bits=normal_bits,
     )
     decoded = DracoPy.decode(encoded)
     if decoded.faces is None or len(decoded.faces) == 0:
         raise InputError("the mesh has no non-degenerate faces to compress")
     points = np.asarray(decoded.points, dtype=np.float32)
     attribute_ids = {"POSITION": _unique_id(decoded, DracoPy.AttributeType.POSITION)}
-    accessors: list[dict[str, Any]] = [
-        {"componentType": FLOAT, "count": len(points), "type": "VEC3", **accessor_bounds(points)}
-    ]
-    attributes = {"POSITION": 0}
+    attributes = {"POSITION": len(accessors)}
+    accessors.append({"componentType": FLOAT, "count": len(points), "type": "VEC3", **accessor_bounds(points)})
     if normals is not None:
         attribute_ids["NORMAL"] = _unique_id(decoded, DracoPy.AttributeType.NORMAL)
+        attributes["NORMAL"] = len(accessors)
         accessors.append({"componentType": FLOAT, "count": len(points), "type": "VEC3"})
-        attributes["NORMAL"] = 1
     index_ctype, _ = index_type(len(points))
     accessors.append({"componentType": index_ctype, "count": int(decoded.faces.size), "type": "SCALAR"})
-    primitive = {
+    blobs.append(bytes(encoded))
+    return {
         "attributes": attributes,
         "indices": len(accessors) - 1,
         "material": 0,
         "mode": TRIANGLES,
-        "extensions": {EXTENSION: {"bufferView": 0, "attributes": attribute_ids}},
+        "extensions": {EXTENSION: {"bufferView": len(blobs) - 1, "attributes": attribute_ids}},
     }
-    document = base_document(name, primitive, accessors)
-    document["extensionsUsed"] = [EXTENSION]
-    document["extensionsRequired"] = [EXTENSION]
-    document["bufferViews"] = [{"buffer": 0, "byteOffset": 0, "byteLength": len(encoded)}]
-    document["buffers"] = [{"byteLength": len(encoded)}]
-    return pack_glb(document, encoded)

@@ -26,8 +26,10 @@ if TYPE_CHECKING:
 
 __all__ = [
     "DEFAULT_FILES",
+    "DEFECT_JSON",
     "EXPORTERS",
     "FILES",
+    "IMPLANT_STL",
     "MODEL_DCM",
     "MODEL_GLB",
     "OPEN_STL",
@@ -44,8 +46,8 @@ __all__ = [
     "viewing_files",
 ]
 
-MeshSource = Literal["print", "phone", "ar"]
-When = Literal["always", "closed", "open", "pacs"]
+MeshSource = Literal["print", "phone", "ar", "implant"]
+When = Literal["always", "closed", "open", "pacs", "defect"]
 Exporter = Callable[..., bytes]
 
 PRINT_STL = "model.stl"
@@ -53,6 +55,8 @@ OPEN_STL = "surface_open.stl"
 MODEL_GLB = "model.glb"
 REPORT_JSON = "report.json"
 MODEL_DCM = "model.dcm"
+IMPLANT_STL = "implant.stl"
+DEFECT_JSON = "defect.json"
 
 
 @dataclass(frozen=True)
@@ -65,15 +69,18 @@ class OutputFile:
         media_type: the Content-Type of its download.
         purpose: what it is for, in words: the README's table "Which file for which viewer" and the page's column.
         made_from: the mesh it is made from: the print model (``"print"``: the pipeline's mesh, in the patient
-            frame), the phone copy or the AR copy (``"phone"``, ``"ar"``: ``engine.decimation.viewing``); None for
-            the report.
+            frame), the phone copy or the AR copy (``"phone"``, ``"ar"``: ``engine.decimation.viewing``), the defect
+            template (``"implant"``: ``engine.defect``); None for the reports.
         triangles: whether the job resource gives its triangle count (that of ``made_from``: ``triangle_count``);
             False for an image and the report.
         exporter: the exporter of its format as ``"module:function"`` (taking ``(vertices_zyx_mm, faces, ...)``,
             returning the file's bytes), imported only by ``exporter_of``; None for the report.
         when: which jobs have it: every job (``"always"``), a closed surface, the default (``"closed"``), an open
             surface (``"open"``, ``IsoParams.closed=False``), a PACS job (``"pacs"``: written by ``worker.pacs``,
-            every other file by ``engine.outputs.write_outputs``).
+            every other file by ``engine.outputs.write_outputs``), a job that asked for the defect (``"defect"``:
+            ``ReconParams.defect``).
+        parts: whether the exporter shows named parts beside the model (``engine.export.glb.Part``: the defect
+            template as its own coloured node).
     """
 
     name: str
@@ -84,6 +91,7 @@ class OutputFile:
     triangles: bool
     exporter: str | None
     when: When = "always"
+    parts: bool = False
 
     @property
     def format(self) -> str | None:
@@ -121,6 +129,7 @@ _FILES = (
         made_from="print",
         triangles=True,
         exporter="engine.export.glb:to_glb",
+        parts=True,
     ),
     OutputFile(
         name="phone.glb",
@@ -130,6 +139,7 @@ _FILES = (
         made_from="phone",
         triangles=True,
         exporter="engine.export.draco:to_draco_glb",
+        parts=True,
     ),
     OutputFile(
         name="ar.glb",
@@ -139,6 +149,7 @@ _FILES = (
         made_from="ar",
         triangles=True,
         exporter="engine.export.glb:to_glb",
+        parts=True,
     ),
     OutputFile(
         name="phone_meshopt.glb",
@@ -186,16 +197,37 @@ _FILES = (
         exporter="engine.export.dicom_stl:to_encapsulated_stl",
         when="pacs",
     ),
+    OutputFile(
+        name=IMPLANT_STL,
+        kind="implant",
+        media_type="model/stl",
+        purpose="the defect's mirrored fill template: printers, CAD (patient frame of model.stl, mm)",
+        made_from="implant",
+        triangles=True,
+        exporter="engine.export.stl:to_stl",
+        when="defect",
+    ),
+    OutputFile(
+        name=DEFECT_JSON,
+        kind="defect",
+        media_type="application/json",
+        purpose="the defect's size, place and symmetry plane, or why none was made",
+        made_from=None,
+        triangles=False,
+        exporter=None,
+        when="defect",
+    ),
 )
 FILES: Mapping[str, OutputFile] = MappingProxyType({f.name: f for f in _FILES})
 # where the report keeps the account of each viewing copy (``exports``), and so its triangle count
 VIEWING_ENTRY: Mapping[MeshSource, str] = MappingProxyType({"phone": "phone.glb", "ar": "ar.glb"})
 
 
-def engine_files(closed: bool = True) -> tuple[str, ...]:
+def engine_files(closed: bool = True, defect: bool = False) -> tuple[str, ...]:
     """The files ``engine.outputs.write_outputs`` writes, in order, for a closed surface (the print model
-    ``model.stl``) or an open one (``surface_open.stl``)."""
-    wanted = ("always", "closed" if closed else "open")
+    ``model.stl``) or an open one (``surface_open.stl``), with the defect's (``defect.json``; ``implant.stl``
+    when a template was made) when asked."""
+    wanted = ("always", "closed" if closed else "open", *(("defect",) if defect else ()))
     return tuple(f.name for f in _FILES if f.when in wanted)
 
 
@@ -255,4 +287,6 @@ def triangle_count(name: str, report: Report) -> int | None:
         return None
     if entry.made_from == "print":
         return report["mesh"]["n_faces"]
+    if entry.made_from == "implant":
+        return report.get("defect", {}).get("implant_faces")
     return report["exports"][VIEWING_ENTRY[entry.made_from]]["faces"]

@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import json
 import struct
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any, BinaryIO
 
 import numpy as np
@@ -52,6 +54,85 @@ BONE_MATERIAL: dict[str, Any] = {
     "pbrMetallicRoughness": {"baseColorFactor": [0.89, 0.85, 0.79, 1.0], "metallicFactor": 0.0, "roughnessFactor": 0.6},
     "doubleSided": False,
 }
+
+
+# a part's default colour: the defect template, a clear blue beside the bone's ivory
+TEMPLATE_RGBA = (0.23, 0.56, 0.93, 1.0)
+
+
+@dataclass(frozen=True)
+class Part:
+    """A named, coloured mesh shown beside the model in a glTF file (its own node and material): the defect
+    template, or one label of a segmentation. Engine order (z, y, x) mm, in the frame and centring of the model's
+    own vertices."""
+
+    name: str
+    vertices_zyx_mm: Any
+    faces: Any
+    rgba: tuple[float, float, float, float] = TEMPLATE_RGBA
+    normals_zyx: Any = None
+
+    def moved(self, shift_zyx_mm: Sequence[float]) -> Part:
+        """The part with ``shift_zyx_mm`` added to every vertex (e.g. the glTF files' centring)."""
+        verts = np.asarray(self.vertices_zyx_mm, np.float64) + np.asarray(shift_zyx_mm, np.float64)
+        return Part(self.name, verts, self.faces, self.rgba, self.normals_zyx)
+
+
+def part_material(part: Part) -> dict[str, Any]:
+    """A part's material: its colour, matte like the bone's."""
+    return {
+        "name": part.name,
+        "pbrMetallicRoughness": {"baseColorFactor": list(part.rgba), "metallicFactor": 0.0, "roughnessFactor": 0.5},
+        "doubleSided": False,
+    }
+
+
+def add_node(document: dict[str, Any], name: str, primitive: dict[str, Any]) -> None:
+    """Append a one-primitive mesh to ``document`` as a node of its scene."""
+    document["meshes"].append({"name": name, "primitives": [primitive]})
+    document["nodes"].append({"name": name, "mesh": len(document["meshes"]) - 1})
+    document["scenes"][0]["nodes"].append(len(document["nodes"]) - 1)
+
+
+def add_parts(document: dict[str, Any], buffer: list[npt.NDArray[Any]], parts: Sequence[Part]) -> None:
+    """Append each part (plain accessors: POSITION, NORMAL, indices) to a document of :func:`mesh_document`, its
+    arrays to the buffer's parts, every view 4-byte aligned.
+
+    Raises:
+        InputError: an empty or malformed part.
+    """
+    offset = int(document["buffers"][0]["byteLength"])
+    for part in parts:
+        pad = -offset % 4  # uint16 indices before may end mid-word
+        if pad:
+            buffer.append(np.zeros(pad, np.uint8))
+            offset += pad
+        positions, normals, tris = gltf_mesh(part.vertices_zyx_mm, part.faces, part.normals_zyx)
+        index_ctype, index_dtype = index_type(len(positions))
+        arrays = [positions.astype(np.float32), normals, np.ascontiguousarray(tris, index_dtype)]
+        first = len(document["accessors"])
+        for data, target in zip(arrays, (ARRAY_BUFFER, ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER), strict=True):
+            document["bufferViews"].append(
+                {"buffer": 0, "byteOffset": offset, "byteLength": data.nbytes, "target": target}
+            )
+            buffer.append(data)
+            offset += data.nbytes
+        views = len(document["bufferViews"])
+        document["accessors"] += [
+            {"bufferView": views - 3, "componentType": FLOAT, "count": len(positions), "type": "VEC3",
+             **accessor_bounds(arrays[0])},
+            {"bufferView": views - 2, "componentType": FLOAT, "count": len(positions), "type": "VEC3"},
+            {"bufferView": views - 1, "componentType": index_ctype, "count": arrays[2].size, "type": "SCALAR"},
+        ]  # fmt: skip
+        document["materials"].append(part_material(part))
+        primitive = {
+            "attributes": {"POSITION": first, "NORMAL": first + 1},
+            "indices": first + 2,
+            "material": len(document["materials"]) - 1,
+            "mode": TRIANGLES,
+        }
+        add_node(document, part.name, primitive)
+    document["buffers"][0]["byteLength"] = offset
 
 
 def check_mesh(
@@ -245,8 +326,10 @@ def to_glb(
     normals_zyx: npt.ArrayLike | None = None,
     *,
     name: str = "bone",
+    parts: Sequence[Part] = (),
 ) -> bytes:
-    """Encode a mesh as binary glTF 2.0 (metres, +Y up; axes as in the module docstring).
+    """Encode a mesh as binary glTF 2.0 (metres, +Y up; axes as in the module docstring), with ``parts`` (each its
+    own named, coloured node) beside it.
 
     Args:
         vertices_zyx_mm: (V, 3) vertices in (z, y, x) order, mm (the engine's convention).
@@ -254,16 +337,18 @@ def to_glb(
         normals_zyx: optional (V, 3) per-vertex normals in (z, y, x) order; area-weighted vertex normals when
             None. They are rotated like the positions and normalised.
         name: the scene, node and mesh name.
+        parts: more meshes, each its own node and material (``Part``: engine order, same frame as the mesh).
 
     Returns:
         The GLB file's bytes.
 
     Raises:
-        InputError: an empty or malformed mesh.
+        InputError: an empty or malformed mesh or part.
     """
     positions, normals, tris = gltf_mesh(vertices_zyx_mm, faces, normals_zyx)
-    document, parts = mesh_document(positions, normals, tris, name)
-    return pack_glb(document, b"".join(p.tobytes() for p in parts))
+    document, buffer = mesh_document(positions, normals, tris, name)
+    add_parts(document, buffer, parts)
+    return pack_glb(document, b"".join(p.tobytes() for p in buffer))
 
 
 def read_glb(data: bytes) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.uint32]]:

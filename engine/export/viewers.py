@@ -5,20 +5,30 @@ lists. Which files they are, from which copy and by which exporter is the regist
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from engine.export.files import Exporter, exporter_of, viewing_files
 
 
-def small_files(phone: Any, ar: Any) -> dict[str, Callable[[], bytes]]:
+def small_files(
+    phone: Any, ar: Any, parts: Mapping[str, Sequence[Any]] | None = None
+) -> dict[str, Callable[[], bytes]]:
     """Every small file of a model as a function that encodes it, from meshes with ``vertices``, ``faces`` and
     ``normals`` (engine order, mm; centred as the glTF files are), in the registry's order: ``phone.glb``,
     ``ar.glb``, ``phone_meshopt.glb``, ``model.usdz``, ``preview.png`` (``engine.outputs`` runs them one after
-    another). The exporters are looked up when this is called."""
+    another). ``parts``: named parts beside each copy (``{"phone": [Part, ...], "ar": [...]}``, e.g. the defect
+    template), given to the files whose exporter takes them (``OutputFile.parts``). The exporters are looked up
+    when this is called."""
     meshes: dict[str | None, Any] = {"phone": phone, "ar": ar}
-    return {f.name: _encoder(exporter_of(f), meshes[f.made_from]) for f in viewing_files()}
+    beside = parts or {}
+    return {
+        f.name: _encoder(exporter_of(f), meshes[f.made_from], beside.get(str(f.made_from), ()) if f.parts else ())
+        for f in viewing_files()
+    }
 
 
-def _encoder(export: Exporter, mesh: Any) -> Callable[[], bytes]:
+def _encoder(export: Exporter, mesh: Any, parts: Sequence[Any]) -> Callable[[], bytes]:
+    if parts:
+        return lambda: export(mesh.vertices, mesh.faces, mesh.normals, parts=parts)
     return lambda: export(mesh.vertices, mesh.faces, mesh.normals)

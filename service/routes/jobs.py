@@ -12,6 +12,7 @@ from fastapi.responses import JSONResponse, Response
 
 from core.db import Job, utcnow
 from core.params import OrientJobParams
+from engine.defect.params import DEFECT_REORIENT
 from service.deps import BaseUrlDep, OwnerDep, ServicesDep
 from service.intake import FULL, receive
 from service.pacs import api as pacs_api
@@ -148,7 +149,8 @@ def delete_job(job_id: str, who: OwnerDep, svc: ServicesDep) -> Response:
             422,
             503,
             d400="the body is not valid JSON",
-            d409="the job has not succeeded, is being re-oriented, or is a DICOM series (placed by its headers)",
+            d409="the job has not succeeded, is being re-oriented, is a DICOM series (placed by its headers) or has a "
+            "defect template (its side and measures belong to the orientation it was made in)",
             d422="invalid orientation fields",
             d503="the queue is unreachable; nothing changed",
         ),
@@ -164,6 +166,8 @@ def orient_job(job_id: str, body: OrientJobParams, who: OwnerDep, svc: ServicesD
         raise Problem(
             409, f"job {job_id} is a DICOM series: its headers place it in the patient; it cannot be re-oriented"
         )
+    if (job.params or {}).get("defect") is not None:
+        raise Problem(409, DEFECT_REORIENT.format(job=f"job {job_id}"))
     stale_before = utcnow() - dt.timedelta(seconds=svc.settings.stale_seconds)
     if not svc.db.start_orient(job_id, stale_before):
         raise Problem(409, f"job {job_id} is being re-oriented already; wait for it to finish")

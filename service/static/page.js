@@ -109,6 +109,7 @@ function params() {
   if (spacing) p.spacing = spacing;
   p.orient = orientOf();
   if ($("reduction").value) p.reduction = Number($("reduction").value);
+  if ($("defect").checked) p.defect = $("defect-side").value ? { side: $("defect-side").value } : {};
   return p;
 }
 function upload() {
@@ -193,6 +194,7 @@ function result(job) {
     if (outs.ar_ios) viewer.setAttribute("ios-src", outs.ar_ios.url);
     viewer.setAttribute("src", (outs.phone || outs.model).url);
     showFrame(job, outs.report);
+    showDefect(job, outs.defect);
   }
   const rows = job.outputs.map((o) => `<tr><td>${o.name}</td><td>${o.purpose || o.kind}</td>
     <td>${o.triangles == null ? "" : o.triangles.toLocaleString("en")}</td><td>${human(o.bytes)}</td>
@@ -233,12 +235,28 @@ async function showFrame(job, report) {
   box.replaceChildren(...warnings.map((w) => { const li = document.createElement("li"); li.dataset.code = w.code; li.textContent = w.message; return li; }));
   box.hidden = warnings.length === 0;
   const dicom = frame && String(frame.placed_by || "").startsWith("DICOM");
-  for (const b of ["turn-over", "face-front", "mirror"]) $(b).hidden = dicom;
+  // a DICOM series is placed by its headers; a defect template's side and measures belong to its orientation
+  const fixed = dicom || !!(job.params && job.params.defect);
+  for (const b of ["turn-over", "face-front", "mirror"]) $(b).hidden = fixed;
   $("frame-text").textContent = frame
     ? `S/I: head/feet, A/P: front/back, L/R: the patient's left/right. Placed by ${frame.placed_by}.`
     : "S/I: head/feet, A/P: front/back, L/R: the patient's left/right.";
   $("frame-text").dataset.placedBy = frame ? frame.placed_by : "";
-  $("orient-state").textContent = dicom || !stack ? "" : `stack: first slice ${stack.first_slice}${stack.flip_lr ? ", mirrored L/R" : ""}${stack.flip_ap ? ", top posterior" : ""}`;
+  $("orient-state").textContent = fixed || !stack ? "" : `stack: first slice ${stack.first_slice}${stack.flip_lr ? ", mirrored L/R" : ""}${stack.flip_ap ? ", top posterior" : ""}`;
+}
+// the defect's answer (defect.json): the template's size beside the model, or why none was made
+async function showDefect(job, defect) {
+  const box = $("defect-text");
+  box.hidden = !defect; box.dataset.found = ""; box.textContent = "";
+  if (!defect) return;
+  let d = null;
+  try { d = await (await fetch(defect.url)).json(); } catch (e) { box.textContent = "The defect's report could not be read."; return; }
+  box.dataset.found = d.found ? "yes" : "no";
+  if (!d.found) { box.textContent = `No defect template: ${d.message}`; return; }
+  const f = d.defect, mm = (v) => v.toLocaleString("en", { maximumFractionDigits: 0 });
+  box.textContent = `Defect template (blue): the patient's ${f.side}, ${mm(f.volume_mm3)} mm³, ` +
+    `${f.extent_lps_mm.size.map((v) => v.toFixed(0)).join(" × ")} mm, rim gap ${f.rim.gap_mm.toFixed(1)} mm. ` +
+    "Download implant.stl to print it (same frame as model.stl).";
 }
 // a half turn about left-right (turn over), about head-feet (face front), or a mirror: the new stack orientation
 const TURNS = {

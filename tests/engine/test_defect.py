@@ -178,3 +178,131 @@ def test_cli_refuses_an_intact_skull_with_one_line(tmp_path, capsys):
 
 def test_errors_are_input_errors():
     assert issubclass(NoDefectError, InputError) and issubclass(MidlineDefectError, InputError)
+
+
+# --- the defect as a step of the reconstruction (ReconParams.defect): its files and the template's glTF node ---
+
+
+def _glb_document(data: bytes) -> tuple[dict, bytes]:
+    n = int.from_bytes(data[12:16], "little")
+    return json.loads(data[20 : 20 + n]), data[20 + n + 8 :]
+
+
+def _gltf_to_lps(positions_m: np.ndarray, centre_lps: np.ndarray) -> np.ndarray:
+    from engine.export.glb import GLTF_FROM_XYZ
+
+    return positions_m.astype(np.float64) / 1e-3 @ GLTF_FROM_XYZ + centre_lps
+
+
+@pytest.fixture(scope="module")
+def with_template(headsq, tmp_path_factory):
+    """A 30 mm left-temple trephination, reconstructed with ``defect`` on, and its files."""
+    from engine.defect.params import DefectParams
+    from engine.outputs import write_outputs
+    from engine.params import IsoParams, ReconParams
+    from engine.pipeline import reconstruct
+
+    cut = _cut(headsq, (1.0, -0.1, 0.0), 30.0)
+    params = ReconParams(iso=IsoParams(iso=HEADSQ_LEVEL), orient=HEADSQ_ORIENT, defect=DefectParams())
+    recon = reconstruct(cut.volume, params, device="cpu")
+    out = tmp_path_factory.mktemp("with_template")
+    return cut, recon, write_outputs(recon, out, params, device="cpu"), out
+
+
+def test_reconstruct_with_defect_publishes_the_template_beside_the_model(with_template):
+    from engine.export.files import engine_files
+    from engine.export.glb import read_glb
+    from engine.export.stl import from_stl
+    from engine.surface import mesh_stats
+
+    cut, recon, paths, out = with_template
+    assert set(paths) == set(engine_files(closed=True, defect=True))
+    summary = recon.report["defect"]
+    assert summary["found"] is True and summary["side"] == "left"
+    info = json.loads((out / "defect.json").read_text())
+    assert info["found"] is True and info["defect"]["side"] == "left"
+    verts, faces = from_stl((out / "implant.stl").read_bytes())
+    stats = mesh_stats(verts, faces)
+    assert stats["watertight"] and stats["n_faces"] == summary["implant_faces"] == info["implant"]["faces"]
+    report = json.loads((out / "report.json").read_text())
+    assert report["defect"] == json.loads(json.dumps(summary)) and report["stage_seconds"]["defect"] > 0
+    # model.glb: the bone, then the template as its own named node with its own (blue) material
+    data = (out / "model.glb").read_bytes()
+    doc, binary = _glb_document(data)
+    assert [n["name"] for n in doc["nodes"]] == ["bone", "defect template"]
+    assert doc["scenes"][0]["nodes"] == [0, 1]
+    colours = [m["pbrMetallicRoughness"]["baseColorFactor"] for m in doc["materials"]]
+    assert len(colours) == 2 and colours[0] != colours[1]
+    assert all(v["byteOffset"] % 4 == 0 for v in doc["bufferViews"])
+    prim = doc["meshes"][1]["primitives"][0]
+    acc = doc["accessors"][prim["attributes"]["POSITION"]]
+    view = doc["bufferViews"][acc["bufferView"]]
+    pos = np.frombuffer(binary, np.float32, acc["count"] * 3, view["byteOffset"]).reshape(-1, 3)
+    centre = np.array(report["frame"]["gltf_centre_lps_mm"])
+    # the node is the implant.stl mesh, in the model's glTF frame: back in LPS mm it lies on the STL's vertices
+    lps = _gltf_to_lps(pos, centre)
+    assert np.allclose(np.sort(lps, axis=0), np.sort(verts[:, ::-1].astype(np.float64), axis=0), atol=1e-3)
+    bone_pos = read_glb(data)[0]  # the bone itself is still the first mesh, unchanged for readers of one mesh
+    assert len(bone_pos) == report["mesh"]["n_vertices"]
+
+
+def test_the_phone_copies_carry_a_lighter_template_node(with_template):
+    import DracoPy
+
+    from engine.defect.step import view_faces
+    from engine.export.glb import read_glb
+
+    _, recon, _, out = with_template
+    centre = np.array(recon.report["frame"]["gltf_centre_lps_mm"])
+    implant_lps = recon.defect.result.mesh.vertices[:, ::-1].astype(np.float64)
+    doc, binary = _glb_document((out / "phone.glb").read_bytes())  # Draco: one compressed primitive per node
+    assert [n["name"] for n in doc["nodes"]] == ["bone", "defect template"]
+    ext = doc["meshes"][1]["primitives"][0]["extensions"]["KHR_draco_mesh_compression"]
+    view = doc["bufferViews"][ext["bufferView"]]
+    mesh = DracoPy.decode(binary[view["byteOffset"] : view["byteOffset"] + view["byteLength"]])
+    assert 0 < len(mesh.faces) <= view_faces(recon.report["parameters"]["export"]["phone_max_triangles"])
+    lps = _gltf_to_lps(np.asarray(mesh.points), centre)
+    assert np.all(np.abs(lps.min(axis=0) - implant_lps.min(axis=0)) < 2.0)  # the same place, to Draco's steps
+    assert np.all(np.abs(lps.max(axis=0) - implant_lps.max(axis=0)) < 2.0)
+    ar = (out / "ar.glb").read_bytes()
+    assert [n["name"] for n in _glb_document(ar)[0]["nodes"]] == ["bone", "defect template"]
+    assert len(read_glb(ar)[2]) == recon.report["exports"]["ar.glb"]["faces"]  # the bone copy, as before
+
+
+def test_reconstruct_without_a_defect_says_why_and_makes_no_implant(headsq, tmp_path):
+    from engine.defect.params import DefectParams
+    from engine.outputs import write_outputs
+    from engine.params import IsoParams, ReconParams
+    from engine.pipeline import reconstruct
+
+    params = ReconParams(iso=IsoParams(iso=HEADSQ_LEVEL), orient=HEADSQ_ORIENT, defect=DefectParams())
+    recon = reconstruct(headsq, params, device="cpu")
+    paths = write_outputs(recon, tmp_path, params, device="cpu")
+    assert "implant.stl" not in paths and not (tmp_path / "implant.stl").exists()
+    info = json.loads(paths["defect.json"].read_text())
+    assert info["found"] is False and info["code"] == "no_defect" and "no one-sided defect" in info["message"]
+    assert recon.report["defect"]["found"] is False and paths["model.stl"].stat().st_size > 0
+    doc, _ = _glb_document(paths["model.glb"].read_bytes())
+    assert [n["name"] for n in doc["nodes"]] == ["bone"]
+
+
+def test_a_model_with_a_template_is_not_reoriented(with_template):
+    from engine.params import OrientParams
+    from engine.reorient import reorient
+
+    *_, out = with_template
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    with pytest.raises(InputError, match="defect template"):
+        reorient(out, OrientParams(first_slice="inferior"), device="cpu")
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
+
+
+def test_recon_params_carry_the_defect_through_json():
+    from engine.defect.params import DefectParams
+    from engine.params import ReconParams
+
+    params = ReconParams(defect=DefectParams(side="right", point_lps_mm=(1.0, 2.0, 3.0), min_volume_mm3=500.0))
+    again = ReconParams.from_dict(json.loads(json.dumps(params.to_dict())))
+    assert again == params and ReconParams.from_dict(ReconParams().to_dict()).defect is None
+    with pytest.raises(ValueError, match="Unknown defect parameters"):
+        ReconParams.from_dict({"defect": {"sides": "left"}})

@@ -60,6 +60,8 @@ def test_the_registry_names_each_file_once_with_its_own_kind():
         "preview.png",
         "report.json",
         "model.dcm",
+        "implant.stl",
+        "defect.json",
     ]
     kinds = [f.kind for f in FILES.values()]
     assert len(set(kinds)) == len(kinds), kinds
@@ -68,6 +70,9 @@ def test_the_registry_names_each_file_once_with_its_own_kind():
     assert engine_files(closed=True) == DEFAULT_FILES and PRINT_STL in DEFAULT_FILES and OPEN_STL not in DEFAULT_FILES
     assert engine_files(closed=False) == tuple(OPEN_STL if n == PRINT_STL else n for n in DEFAULT_FILES)
     assert MODEL_DCM not in engine_files(True) + engine_files(False) and FILES[MODEL_DCM].when == "pacs"
+    # a job that asked for the defect also has its answer (defect.json) and, when one was made, the template
+    assert engine_files(closed=True, defect=True) == (*DEFAULT_FILES, "implant.stl", "defect.json")
+    assert [f.name for f in FILES.values() if f.parts] == ["model.glb", "phone.glb", "ar.glb"]
     viewing = ["phone.glb", "ar.glb", "phone_meshopt.glb", "model.usdz", "preview.png"]
     assert [f.name for f in viewing_files()] == viewing
 
