@@ -26,6 +26,22 @@ class Settings(BaseSettings):
     redis_url: str = "redis://127.0.0.1:6379/0"
     data_dir: Path = Path("bonemesh-data")
     database_url: str | None = Field(default=None, description="SQLAlchemy URL; default SQLite in data_dir")
+    storage_url: str | None = Field(
+        default=None,
+        description="where uploads and outputs live: file:///path or s3://bucket/prefix (docs/storage.md); "
+        "default: the data folder",
+    )
+    s3_endpoint_url: str | None = Field(
+        default=None, description="the S3 API's URL for a store other than AWS (SeaweedFS, MinIO, R2, ...)"
+    )
+    download_links: Literal["api", "store"] = Field(
+        default="api",
+        description="download links: api (the API's signed /v1/files links) or store (the S3 store's presigned "
+        "URLs, expiring with url_ttl_seconds; S3 storage only)",
+    )
+    scratch_dir: Path | None = Field(
+        default=None, description="the worker's local copies of S3 inputs and staged outputs; default data_dir/scratch"
+    )
     api_keys: Annotated[list[str], NoDecode] = Field(default_factory=lambda: [DEV_API_KEY])
     secret_key: str | None = Field(default=None, description="signs download links; default: a key file in data_dir")
     device: str = "auto"
@@ -94,6 +110,30 @@ class Settings(BaseSettings):
         if not value:
             raise ValueError("BONEMESH_API_KEYS holds no key")
         return value
+
+    @field_validator("storage_url")
+    @classmethod
+    def _storage_scheme(cls, value: str | None) -> str | None:
+        if value is not None and not value.startswith(("file://", "s3://")):
+            raise ValueError("BONEMESH_STORAGE_URL must be file:///path or s3://bucket/prefix")
+        if value is not None and value.startswith("s3://") and not value[5:].split("/", 1)[0]:
+            raise ValueError("BONEMESH_STORAGE_URL s3://bucket/prefix names no bucket")
+        return value
+
+    def storage_location(self) -> tuple[Literal["file", "s3"], str]:
+        """("file", folder) or ("s3", "bucket/prefix") from ``BONEMESH_STORAGE_URL`` (default: the data folder)."""
+        url = self.storage_url or ""
+        if url.startswith("s3://"):
+            return "s3", url[5:].strip("/")
+        if url.startswith("file://"):
+            from urllib.parse import unquote, urlparse
+
+            return "file", unquote(urlparse(url).path)
+        return "file", str(self.data_dir)
+
+    def scratch_root(self) -> Path:
+        """The worker's (and the API's) private local folder for copies from the store."""
+        return self.scratch_dir or self.data_dir / "scratch"
 
     @property
     def db_url(self) -> str:

@@ -1,14 +1,21 @@
-"""Where uploads and results live. ``Storage`` is the interface (a local folder here; S3-compatible storage can
-implement it later); ``LocalStorage`` keeps ``jobs/<id>/upload`` and ``jobs/<id>/outputs/`` under one root.
+"""Where uploads and results live. ``Storage`` is the interface, with two backends: ``LocalStorage`` (a folder:
+``jobs/<id>/upload`` and ``jobs/<id>/outputs/`` under one root; the default) and ``core.s3storage.S3Storage`` (any
+S3-compatible store; ``BONEMESH_STORAGE_URL=s3://bucket/prefix``). ``storage_from_settings`` picks one.
 
-Nothing is ever visible half-written: uploads stream into a temporary name and are renamed when complete; a
-job's outputs are staged in a temporary folder and moved into place in one rename. The outputs a job may have are
-the files of the registry ``engine.export.files.FILES`` (their kinds and media types are there too); only those
-names are served.
+Nothing is ever visible half-written: uploads stream into a temporary name (a multipart upload on S3) and become
+the job's upload when complete; a job's outputs are staged in a private local folder and published as one
+*version* (``publish`` returns it). The worker records that version with the outputs in the job's row, and that
+database commit is what makes them visible: readers ask for the recorded version (``version_of(job)``); on local
+disk the version's folder is also moved into place in one rename. The outputs a job may have are the files of the
+registry ``engine.export.files.FILES`` (their kinds and media types are there too); only those names are served.
+
+Consumers never need a shared disk: the worker takes its input through ``local_upload`` (in place on local disk, a
+scratch copy from S3, removed afterwards) and gives its outputs back through ``publish``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import re
@@ -16,7 +23,10 @@ import shutil
 import sqlite3
 import uuid
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from engine.export.files import FILES
 
@@ -68,32 +78,115 @@ class UploadWriter(ABC):
         """Drop what was written."""
 
 
+@dataclass(frozen=True)
+class StoredFile:
+    """A published output: its size, a validator (changes whenever the bytes may have) and, on local disk, its
+    path."""
+
+    name: str
+    size: int
+    tag: str
+    path: Path | None = None
+
+
+def version_of(job: Any) -> str | None:
+    """The output version recorded with a job's outputs (``publish``'s answer, committed by the worker), or None
+    (a job recorded before versions, or one without outputs)."""
+    for entry in getattr(job, "outputs", None) or []:
+        if entry.get("version"):
+            return str(entry["version"])
+    return None
+
+
+_JOB_PATH = re.compile(r"(?:[A-Za-z]:)?[/\\][^\s'\"]*?[/\\]jobs[/\\][0-9a-f]{32}(?:[/\\][^\s'\":,;)]*)?")
+
+
+def scrub_paths(message: str, labels: dict[str, str] | None = None) -> str:
+    """``message`` with server paths hidden: each key of ``labels`` (a local path: the upload's, a staging
+    folder's) written as its value, longest first, then any path left inside a job's folder as "the job's files"."""
+    for path, label in sorted((labels or {}).items(), key=lambda kv: -len(kv[0])):
+        if path:
+            message = message.replace(path, label)
+    return _JOB_PATH.sub("the job's files", message)
+
+
 class Storage(ABC):
     """Job files: one upload and a set of outputs per job."""
+
+    #: the store's own presigned download links are available (``output_url``)
+    presigns = False
 
     @abstractmethod
     def upload_writer(self, job_id: str, max_bytes: int) -> UploadWriter:
         """A writer that streams an upload in, never holding it whole in memory."""
 
     @abstractmethod
-    def upload_path(self, job_id: str) -> Path:
-        """A local path of the upload (for the loader)."""
+    def put_upload_folder(self, job_id: str, folder: Path) -> contextlib.AbstractContextManager[None]:
+        """Make a local folder (a DICOM series received by the PACS gateway) the job's upload for the ``with``
+        block: kept when the block succeeds (the folder is then gone: moved, or copied and removed), given back
+        into ``folder`` when it raises (nothing of it left in the store)."""
+
+    @abstractmethod
+    def has_upload(self, job_id: str) -> bool:
+        """Whether the job has a complete upload."""
+
+    @abstractmethod
+    def local_upload(self, job_id: str) -> contextlib.AbstractContextManager[Path]:
+        """A local path of the upload for the time of the ``with`` block (a scratch copy where the store is not
+        local, removed on leaving, also on failure). The path may not exist (no upload: the loader says so)."""
+
+    @abstractmethod
+    def inspect_path(self, job_id: str) -> contextlib.AbstractContextManager[Path]:
+        """A local path of a just-committed upload for the API's checks (``service.upload_check``)."""
 
     @abstractmethod
     def staging_dir(self, job_id: str) -> Path:
-        """A fresh private folder to write outputs into before ``publish``."""
+        """A fresh private local folder to write outputs into before ``publish``."""
+
+    def drop_staging(self, staged: Path) -> None:
+        """Remove a staging folder that will not be published."""
+        shutil.rmtree(staged, ignore_errors=True)
 
     @abstractmethod
     def clean_staging(self, job_id: str) -> int:
         """Remove what earlier attempts at a job left (staging folders, replaced outputs); returns how many."""
 
     @abstractmethod
-    def publish(self, job_id: str, staged: Path) -> None:
-        """Make the staged outputs the job's outputs, at once (replacing any earlier set)."""
+    def publish(self, job_id: str, staged: Path) -> str:
+        """Store the staged outputs as a new version of the job's outputs and return the version; the staged
+        folder is consumed. The caller records the version with the outputs (one database commit): that makes
+        them the job's outputs."""
+
+    def retire(self, job_id: str, keep: str) -> None:
+        """Remove every output version of a job but ``keep`` (after its commit; also what killed attempts left).
+        Local disk keeps one version in place: nothing to do."""
+        return None
 
     @abstractmethod
-    def output_path(self, job_id: str, name: str) -> Path | None:
-        """A published output file, or None (also for a name that is no output file: ``FILES``)."""
+    def output(self, job_id: str, name: str, version: str | None = None) -> StoredFile | None:
+        """A published output, or None (also for a name that is no output file: ``FILES``)."""
+
+    @abstractmethod
+    def read_output(self, job_id: str, name: str, version: str | None = None) -> bytes | None:
+        """A (small) published output's bytes, or None."""
+
+    @abstractmethod
+    def open_output(self, job_id: str, name: str, version: str | None = None) -> Iterator[bytes]:
+        """A published output's bytes, in chunks (FileNotFoundError when gone)."""
+
+    @abstractmethod
+    def local_output(
+        self, job_id: str, name: str, version: str | None = None
+    ) -> contextlib.AbstractContextManager[Path | None]:
+        """A local path of a published output for the ``with`` block (a scratch copy off local disk), or None."""
+
+    @abstractmethod
+    def copy_outputs(self, job_id: str, version: str | None, into: Path) -> list[str]:
+        """Copy every published output of ``version`` into the local folder ``into``; returns their names."""
+
+    def output_url(self, job_id: str, name: str, version: str | None, ttl_seconds: int) -> str | None:
+        """The store's own presigned download link (None where there is none: local disk)."""
+        return None
 
     @abstractmethod
     def delete_job(self, job_id: str) -> None:
@@ -107,24 +200,59 @@ class Storage(ABC):
     def free_bytes(self) -> int | None:
         """Bytes still free for uploads, or None when unknown."""
 
+    def local_paths(self, job_id: str) -> dict[str, str]:
+        """Local paths of a job this storage may put in a message, with the words to show instead."""
+        return {}
+
+
+def check_job_id(job_id: str) -> str:
+    if not _ID.match(job_id):
+        raise ValueError(f"not a job id: {job_id!r}")
+    return job_id
+
+
+def output_name_ok(name: str) -> bool:
+    """Only the registry's names: never a path of the caller's making."""
+    return name in FILES
+
 
 class LocalStorage(Storage):
-    """Job files in a folder on local disk."""
+    """Job files in a folder on local disk (the version of the outputs in place is the one in ``outputs/.version``)."""
 
     def __init__(self, root: str | Path) -> None:
         self.root = Path(root)
         (self.root / "jobs").mkdir(parents=True, exist_ok=True)
 
     def _job(self, job_id: str) -> Path:
-        if not _ID.match(job_id):
-            raise ValueError(f"not a job id: {job_id!r}")
-        return self.root / "jobs" / job_id
+        return self.root / "jobs" / check_job_id(job_id)
 
     def upload_writer(self, job_id: str, max_bytes: int) -> UploadWriter:
         return _LocalUpload(self._job(job_id), max_bytes)
 
+    @contextlib.contextmanager
+    def put_upload_folder(self, job_id: str, folder: Path) -> Iterator[None]:
+        upload = self.upload_path(job_id)
+        upload.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(folder, upload)
+        try:
+            yield
+        except BaseException:
+            os.replace(upload, folder)
+            raise
+
+    def has_upload(self, job_id: str) -> bool:
+        return self.upload_path(job_id).exists()
+
     def upload_path(self, job_id: str) -> Path:
+        """The upload's path (local disk only)."""
         return self._job(job_id) / "upload"
+
+    @contextlib.contextmanager
+    def local_upload(self, job_id: str) -> Iterator[Path]:
+        yield self.upload_path(job_id)
+
+    def inspect_path(self, job_id: str) -> contextlib.AbstractContextManager[Path]:
+        return self.local_upload(job_id)
 
     def staging_dir(self, job_id: str) -> Path:
         folder = self._job(job_id) / f".staging-{uuid.uuid4().hex}"
@@ -140,19 +268,54 @@ class LocalStorage(Storage):
             shutil.rmtree(path, ignore_errors=True)
         return len(left)
 
-    def publish(self, job_id: str, staged: Path) -> None:
+    def publish(self, job_id: str, staged: Path) -> str:
+        version = uuid.uuid4().hex
+        (staged / ".version").write_text(version)
         final = self._job(job_id) / "outputs"
         old = self._job(job_id) / f".old-{uuid.uuid4().hex}"
         if final.exists():
             os.replace(final, old)
         os.replace(staged, final)
         shutil.rmtree(old, ignore_errors=True)
+        return version
 
     def output_path(self, job_id: str, name: str) -> Path | None:
-        if name not in FILES:  # the registry's names only: never a path of the caller's making
+        """A published output's path (local disk only), or None."""
+        if not output_name_ok(name):
             return None
         path = self._job(job_id) / "outputs" / name
         return path if path.is_file() else None
+
+    def output(self, job_id: str, name: str, version: str | None = None) -> StoredFile | None:
+        path = self.output_path(job_id, name)
+        if path is None:
+            return None
+        st = path.stat()
+        return StoredFile(name, st.st_size, f"{st.st_mtime_ns}/{st.st_size}", path)
+
+    def read_output(self, job_id: str, name: str, version: str | None = None) -> bytes | None:
+        path = self.output_path(job_id, name)
+        return path.read_bytes() if path is not None else None
+
+    def open_output(self, job_id: str, name: str, version: str | None = None) -> Iterator[bytes]:
+        path = self.output_path(job_id, name)
+        if path is None:
+            raise FileNotFoundError(name)
+        with open(path, "rb") as fh:
+            while chunk := fh.read(1 << 20):
+                yield chunk
+
+    @contextlib.contextmanager
+    def local_output(self, job_id: str, name: str, version: str | None = None) -> Iterator[Path | None]:
+        yield self.output_path(job_id, name)
+
+    def copy_outputs(self, job_id: str, version: str | None, into: Path) -> list[str]:
+        names = []
+        for path in (self._job(job_id) / "outputs").iterdir():
+            if path.is_file() and output_name_ok(path.name):
+                shutil.copy2(path, into / path.name)
+                names.append(path.name)
+        return names
 
     def delete_job(self, job_id: str) -> None:
         shutil.rmtree(self._job(job_id), ignore_errors=True)
@@ -167,6 +330,9 @@ class LocalStorage(Storage):
             return shutil.disk_usage(self.root).free
         except OSError:
             return None
+
+    def local_paths(self, job_id: str) -> dict[str, str]:
+        return {str(self.upload_path(job_id)): "upload", str(self._job(job_id)): "the job's files"}
 
 
 class _LocalUpload(UploadWriter):
@@ -200,6 +366,22 @@ class _LocalUpload(UploadWriter):
             self.tmp.unlink(missing_ok=True)
 
 
-def storage_from_settings(data_dir: Path) -> Storage:
-    """The storage of the settings (local disk under the data folder)."""
-    return LocalStorage(data_dir)
+def storage_from_settings(settings: Any) -> Storage:
+    """The storage of the settings: ``BONEMESH_STORAGE_URL`` (``file:///path``, default the data folder, or
+    ``s3://bucket/prefix``; core.s3storage). A bare data folder (older callers) means local disk there."""
+    if isinstance(settings, str | Path):
+        return LocalStorage(settings)
+    kind, where = settings.storage_location()
+    if kind == "s3":
+        from core.s3storage import S3Storage
+
+        bucket, _, prefix = where.partition("/")
+        return S3Storage(bucket, prefix, endpoint_url=settings.s3_endpoint_url, scratch=settings.scratch_root())
+    return LocalStorage(where)
+
+
+def scrub_exception(exc: BaseException, labels: dict[str, str]) -> BaseException:
+    """``exc`` with the server paths in its message hidden (``scrub_paths``), for messages made from it."""
+    if len(exc.args) == 1 and isinstance(exc.args[0], str):
+        exc.args = (scrub_paths(exc.args[0], labels),)
+    return exc

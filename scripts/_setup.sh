@@ -17,6 +17,9 @@ case "${BONEMESH_EXTRAS:-}" in *test*)  # the PACS tests run a real Orthanc; dci
   ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || need="$need postgresql"  # the database tests' server
   command -v dciodvfy >/dev/null || need="$need dicom3tools" ;;
 esac
+case "${BONEMESH_EXTRAS:-}" in *test*|*opencl*)  # the OpenCL backend (engine.backend) on the CPU: PoCL's driver
+  ls /etc/OpenCL/vendors/*.icd >/dev/null 2>&1 || need="$need pocl-opencl-icd ocl-icd-libopencl1" ;;
+esac
 if [ -n "$need" ] && command -v apt-get >/dev/null; then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq $need >/dev/null 2>&1 || { $SUDO apt-get update -qq && $SUDO apt-get install -y -qq $need >/dev/null; }
 fi

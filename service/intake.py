@@ -11,9 +11,9 @@ from fastapi import Request
 from pydantic import ValidationError
 
 from core.db import Database, Job
-from core.logsafe import safe_logger
+from core.logsafe import escape_control, safe_logger
 from core.params import JobParams
-from core.storage import UploadTooLarge, is_storage_full
+from core.storage import Storage, UploadTooLarge, is_storage_full, scrub_paths
 from service.problems import Problem
 from service.services import Services
 from service.upload_check import inspect_upload
@@ -42,7 +42,7 @@ async def receive(request: Request, svc: Services, who: str, limit: int, base_ur
             except CallbackRefused as exc:
                 raise Problem(422, str(exc), errors=[{"field": "callback_url", "message": str(exc)}]) from None
         await svc.in_upload_thread(writer.commit)
-        summary = await svc.in_upload_thread(inspect_upload, svc.storage.upload_path(job_id), parsed.filename, params)
+        summary = await svc.in_upload_thread(_inspect, svc.storage, job_id, parsed.filename, params)
         log.info("job %s: upload of %d bytes: %s", job_id, writer.size, summary)
         name = parsed.filename or "upload"
         return await svc.in_upload_thread(  # type: ignore[no-any-return]
@@ -61,6 +61,17 @@ async def receive(request: Request, svc: Services, who: str, limit: int, base_ur
     except BaseException:  # cancelled: clean up without awaiting
         svc.discard(writer, job_id)
         raise
+
+
+def _inspect(storage: Storage, job_id: str, filename: str | None, params: JobParams) -> str:
+    """``inspect_upload`` on the committed upload (a scratch copy where the store is not local disk)."""
+    with storage.inspect_path(job_id) as path:
+        try:
+            return inspect_upload(path, filename, params)
+        except UploadError as exc:  # never a server path in the answer
+            shown = escape_control(filename) if filename else "the upload"
+            exc.detail = scrub_paths(exc.detail, {**storage.local_paths(job_id), str(path): shown})
+            raise
 
 
 def parse_params(text: str | None) -> tuple[JobParams, dict[str, Any]]:

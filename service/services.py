@@ -4,6 +4,7 @@ the broker client, the link-signing key and the upload thread pool (held on ``ap
 from __future__ import annotations
 
 import datetime as dt
+import time
 from typing import Any
 
 import anyio
@@ -12,7 +13,7 @@ from core.db import Database, Job
 from core.logsafe import safe_logger
 from core.queue import Queue
 from core.settings import Settings
-from core.storage import Storage, storage_from_settings
+from core.storage import Storage, storage_from_settings, version_of
 from engine.export.files import FILES
 from service import tokens
 from service.pacs import api as pacs_api
@@ -33,7 +34,9 @@ class Services:
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         self.settings = settings
         self.db = Database(settings.db_url)
-        self.storage: Storage = storage_from_settings(settings.data_dir)
+        self.storage: Storage = storage_from_settings(settings)
+        if settings.download_links == "store" and not self.storage.presigns:
+            raise ValueError("BONEMESH_DOWNLOAD_LINKS=store needs S3 storage (BONEMESH_STORAGE_URL=s3://...)")
         self.queue = Queue(settings.redis_url, settings.queue)
         self.key = settings.signing_key()
         self.upload_threads = anyio.CapacityLimiter(UPLOAD_THREADS)
@@ -79,19 +82,31 @@ class Services:
         finally:
             self.storage.delete_job(job_id)
 
+    def link(self, job: Job, name: str, base_url: str) -> tuple[str, int]:
+        """A download link of an output and its expiry (Unix time): the API's signed link, or the store's
+        presigned URL (``BONEMESH_DOWNLOAD_LINKS=store``), both valid for ``url_ttl_seconds``."""
+        ttl = self.settings.url_ttl_seconds
+        if self.settings.download_links == "store":
+            expires = int(time.time()) + ttl
+            url = self.storage.output_url(job.id, name, version_of(job), ttl)
+            if url is not None:
+                return url, expires
+        token, expires = tokens.sign(self.key, job.id, name, ttl)
+        return f"{base_url.rstrip('/')}/v1/files/{token}", expires
+
     def job_out(self, job: Job, base_url: str) -> JobOut:
         """The job resource as clients see it, with fresh signed links to its outputs."""
         outputs = None
         if job.state == "succeeded" and job.outputs:
             outputs = []
             for o in job.outputs:
-                token, expires = tokens.sign(self.key, job.id, o["name"], self.settings.url_ttl_seconds)
+                url, expires = self.link(job, o["name"], base_url)
                 entry = FILES.get(o["name"])
                 outputs.append(
                     OutputFile(
                         **o,
                         purpose=entry.purpose if entry is not None else "",
-                        url=f"{base_url.rstrip('/')}/v1/files/{token}",
+                        url=url,
                         expires_at=dt.datetime.fromtimestamp(expires, dt.UTC),
                     )
                 )

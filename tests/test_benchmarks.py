@@ -268,3 +268,16 @@ def test_defect_speed(tmp_path: Path) -> None:
     assert main(["--device", "cpu", "--data", str(cranium), "--repeat", "1", "--out", str(out)]) == 0
     text = out.read_text()
     assert text.strip().startswith("{") and "NaN" not in text
+
+
+def test_storage_clients(tmp_path: Path) -> None:
+    out = tmp_path / "storage_clients.json"
+    args = ["--sizes-mib", "9", "--repeat", "1", "--outputs", "2", "--output-mib", "1", "--signs", "4"]
+    run_module("storage_clients", [*args, "--out", str(out)], tmp_path)
+    report = load(out)
+    has_keys(report, "benchmark", "store", "versions", "machine", "args", "results")
+    assert sorted(r["client"] for r in report["results"]) == ["boto3", "obstore"]
+    for r in report["results"]:
+        assert r["size_mib"] == 9, r
+        for key in ("upload_s", "download_s", "publish_s", "sign_s", "client_s", "upload_mib_s", "sign_us_each"):
+            assert finite(r[key]) and r[key] > 0, (key, r)

@@ -39,6 +39,27 @@ def test_compose_gpu_workers_claim_their_own_gpu_and_are_health_checked() -> Non
     assert "COPY docker/worker-entry.sh /usr/local/bin/bonemesh-worker-entry" in dockerfile
 
 
+def test_compose_scale_profile_runs_postgresql_and_an_s3_store_that_every_process_is_pointed_at() -> None:
+    compose = _compose()
+    services = compose["services"]
+    for name in ("db", "s3", "s3-init"):
+        assert services[name]["profiles"] == ["scale"], name
+    assert services["db"]["image"].startswith("postgres:") and "healthcheck" in services["db"]
+    assert services["s3"]["command"][:2] == ["server", "-dir=/data"] and "-s3" in services["s3"]["command"]
+    assert services["s3-init"]["depends_on"]["s3"]["condition"] == "service_healthy"
+    identities = compose["configs"]["s3-identities"]["content"]
+    assert "${AWS_ACCESS_KEY_ID" in identities and "${AWS_SECRET_ACCESS_KEY" in identities
+    # the API and every worker read the database and the store from the same variables (embedded defaults kept)
+    for name in ("api", "worker", "worker-cpu", "worker-opencl"):
+        env = services[name]["environment"]
+        assert env["BONEMESH_DATABASE_URL"] == "${BONEMESH_DATABASE_URL:-sqlite:////data/bonemesh.db}", name
+        assert env["BONEMESH_STORAGE_URL"] == "${BONEMESH_STORAGE_URL:-}", name
+        assert {"BONEMESH_S3_ENDPOINT_URL", "AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY"} <= set(env), name
+    assert services["worker-opencl"]["environment"]["BONEMESH_DEVICE"] == "opencl"
+    dockerfile = (REPO / "Dockerfile").read_text()
+    assert "ARG BONEMESH_OPENCL=0" in dockerfile and "pocl-opencl-icd" in dockerfile and "s3" in dockerfile
+
+
 def test_compose_config_validates_when_docker_compose_is_present(tmp_path: Path) -> None:
     docker = shutil.which("docker")
     if docker is None or subprocess.run([docker, "compose", "version"], capture_output=True).returncode != 0:

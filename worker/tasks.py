@@ -8,7 +8,6 @@ from __future__ import annotations
 import datetime as dt
 import functools
 import os
-import shutil
 import socket
 import threading
 import uuid
@@ -20,7 +19,7 @@ from celery.exceptions import SoftTimeLimitExceeded
 from core.db import Database, utcnow
 from core.logsafe import escape_control, relabel, safe_logger
 from core.settings import Settings, get_settings
-from core.storage import is_storage_full, storage_from_settings
+from core.storage import is_storage_full, scrub_exception, scrub_paths, storage_from_settings, version_of
 from engine.export.files import FILES, triangle_count
 from worker.app import app
 from worker.pacs import SourceIncomplete, SourceUnavailable, UncheckedSource, fetch_source, write_dicom_model
@@ -76,7 +75,7 @@ def reconstruct_job(self: Any, job_id: str) -> str:
     """Run one job (see the module docstring); returns what happened, for the worker's log."""
     settings = get_settings()
     db = database(settings.db_url)
-    storage = storage_from_settings(settings.data_dir)
+    storage = storage_from_settings(settings)
     worker = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
     stale_before = utcnow() - dt.timedelta(seconds=settings.stale_seconds)
     job = db.claim(job_id, worker, stale_before)
@@ -94,19 +93,25 @@ def reconstruct_job(self: Any, job_id: str) -> str:
         )
         return "failed"
     staged: Path | None = None
+    labels = storage.local_paths(job_id)  # server paths a message may carry, and the words shown instead
     try:
         with _Holder(db, job_id, worker, settings.heartbeat_seconds) as holder:
             left = storage.clean_staging(job_id)  # a killed earlier attempt's staging folders
             if left:
                 log.info("job %s: removed %d folder(s) left by an earlier attempt", job_id, left)
             staged = storage.staging_dir(job_id)
-            outputs = _run(job, storage.upload_path(job_id), staged, holder, settings, db)
+            labels[str(staged)] = "the job's outputs"
+            with storage.local_upload(job_id) as upload:  # a scratch copy where the store is not local
+                labels[str(upload)] = "upload"
+                outputs = _run(job, upload, staged, holder, settings, db)
             if holder.lost.is_set():
                 raise Cancelled(job_id)
-            storage.publish(job_id, staged)
+            version = storage.publish(job_id, staged)  # invisible until the commit below records it
             staged = None
+            outputs = [{**o, "version": version} for o in outputs]
             if not db.finish(job_id, worker, "succeeded", outputs=outputs, stage="done", progress=100.0):
                 raise Cancelled(job_id)
+            storage.retire(job_id, keep=version)
         return "succeeded"
     except Cancelled:
         log.info("job %s: cancelled, deleted or taken over while running; its files are dropped", job_id)
@@ -126,9 +131,10 @@ def reconstruct_job(self: Any, job_id: str) -> str:
         return "failed"
     except Exception as exc:
         if staged is not None:  # free the space before recording the failure (the disk may be full)
-            shutil.rmtree(staged, ignore_errors=True)
+            storage.drop_staging(staged)
             staged = None
-        code, message = _explain(exc, job.upload_name)
+        code, message = _explain(scrub_exception(exc, labels), job.upload_name)
+        message = scrub_paths(message, labels)  # no server path in what a client reads
         if code == "internal_error":
             log.exception("job %s failed (%s)", job_id, code)
         else:
@@ -137,7 +143,7 @@ def reconstruct_job(self: Any, job_id: str) -> str:
         return "failed"
     finally:
         if staged is not None:
-            shutil.rmtree(staged, ignore_errors=True)
+            storage.drop_staging(staged)
 
 
 def _run(
@@ -199,17 +205,16 @@ def orient_job(job_id: str, orient: dict[str, Any]) -> str:
 
     settings = get_settings()
     db = database(settings.db_url)
-    storage = storage_from_settings(settings.data_dir)
+    storage = storage_from_settings(settings)
     job = db.get(job_id)
-    report_path = storage.output_path(job_id, "report.json")
-    if job is None or job.state != "succeeded" or job.stage != ORIENTING or report_path is None:
+    version = version_of(job)
+    has_report = job is not None and storage.output(job_id, "report.json", version) is not None
+    if job is None or job.state != "succeeded" or job.stage != ORIENTING or not has_report:
         log.info("job %s: not being re-oriented; message dropped", job_id)
         return "skipped"
     staged = storage.staging_dir(job_id)
     try:
-        for path in report_path.parent.iterdir():
-            if path.is_file():
-                shutil.copy2(path, staged / path.name)
+        storage.copy_outputs(job_id, version, staged)
         wanted = OrientParams(**orient)
         paths = reorient(staged, wanted, device=settings.device, max_device_bytes=settings.max_device_bytes)
         report = read_report(staged)
@@ -219,7 +224,8 @@ def orient_job(job_id: str, orient: dict[str, Any]) -> str:
             else o
             for o in job.outputs or []
         ]
-        storage.publish(job_id, staged)
+        new_version = storage.publish(job_id, staged)  # invisible until finish_orient records it
+        outputs = [{**o, "version": new_version} for o in outputs]
         params = {**job.params, "orient": dict(orient)}
         engine_params = None
         if job.engine_params:
@@ -227,10 +233,11 @@ def orient_job(job_id: str, orient: dict[str, Any]) -> str:
         values: dict[str, Any] = {"outputs": outputs, "params": params}
         if engine_params is not None:
             values["engine_params"] = engine_params
-        db.finish_orient(job_id, **values)
+        if db.finish_orient(job_id, **values):
+            storage.retire(job_id, keep=new_version)
         return "succeeded"
     except Exception as exc:
-        shutil.rmtree(staged, ignore_errors=True)
+        storage.drop_staging(staged)
         known = isinstance(exc, InputError | TypeError | ValueError)
         if not known:
             log.exception("job %s: re-orientation failed", job_id)
@@ -238,7 +245,7 @@ def orient_job(job_id: str, orient: dict[str, Any]) -> str:
         db.finish_orient(
             job_id,
             error_code="orient_failed",
-            error_message=escape_control(message.replace(str(staged), "the job's outputs")),
+            error_message=escape_control(scrub_paths(message, {str(staged): "the job's outputs"})),
         )
         return "failed"
 

@@ -85,8 +85,11 @@ class Dispatcher:
         return float(min(base * 2 ** max(attempts - 1, 0), self.pacs.delivery_max_backoff_seconds))
 
     def _deliver(self, rec: PacsJob) -> bool:
+        with self.storage.local_output(rec.job_id, MODEL_DCM) as path:  # a scratch copy off local disk
+            return self._deliver_file(rec, path)
+
+    def _deliver_file(self, rec: PacsJob, path: Path | None) -> bool:
         job_id, dest = rec.job_id, rec.destination or {}
-        path = self.storage.output_path(job_id, MODEL_DCM)
         try:
             if path is None:
                 raise DeliveryError("the job has no model.dcm (its source lacked a Frame of Reference UID?)")

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import signal
 import threading
 from typing import Any
@@ -64,7 +63,7 @@ class Gateway:
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         self.db = Database(settings.db_url)
         self.records = PacsRecords(self.db)
-        self.storage = storage_from_settings(settings.data_dir)
+        self.storage = storage_from_settings(settings)
         self.queue = Queue(settings.redis_url, settings.queue)
         self.inbox = Inbox(settings.data_dir / "pacs", pacs.stable_seconds)
         self.scp = StorageSCP(pacs, self.inbox)
@@ -113,12 +112,9 @@ class Gateway:
             self.inbox.drop(series)
             return None
         job_id = Database.new_id()
-        upload = self.storage.upload_path(job_id)
-        upload.parent.mkdir(parents=True, exist_ok=True)
         for extra in (SENDER, ".uids"):
             (series.folder / extra).unlink(missing_ok=True)
         size = sum(p.stat().st_size for p in files)
-        os.replace(series.folder, upload)
         sender = series.sender.get("ae_title", "?")
         job = Job(
             id=job_id,
@@ -136,11 +132,9 @@ class Gateway:
             "images": summary.images,  # frames of multi-frame images counted
         }
         dest = self.pacs.destination.model_dump() if self.pacs.destination else None
-        try:
+        # the series becomes the job's upload; back to the claim if the record fails (the next sweep tries again)
+        with self.storage.put_upload_folder(job_id, series.folder):
             self.records.create_job(job, source, dest, rule=rule.name)
-        except Exception:
-            os.replace(upload, series.folder)  # back to the claim: the next sweep tries again
-            raise
         log.info(
             "series %s of study %s: %d images from %s -> job %s (%s)",
             series.series_uid,

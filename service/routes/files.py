@@ -1,5 +1,6 @@
 """Downloads through signed links (no API key): ``GET`` and ``HEAD``, with an ``ETag`` (``If-None-Match`` answers
-304) and ``Cache-Control: private, max-age`` up to the link's expiry."""
+304) and ``Cache-Control: private, max-age`` up to the link's expiry. The file is the output version the job's
+record committed (``core.storage``): served from local disk, or streamed from an S3 store."""
 
 from __future__ import annotations
 
@@ -9,8 +10,10 @@ from email.utils import formatdate
 from typing import Annotated
 
 from fastapi import APIRouter, Header
-from fastapi.responses import FileResponse, Response
+from fastapi.responses import FileResponse, Response, StreamingResponse
+from starlette.concurrency import iterate_in_threadpool
 
+from core.storage import version_of
 from engine.export.files import FILES
 from service import tokens
 from service.deps import ServicesDep
@@ -26,18 +29,19 @@ RESPONSES = {
 }
 
 
-def _answer(svc: ServicesDep, token: str, if_none_match: str | None) -> Response:
+def _answer(svc: ServicesDep, token: str, if_none_match: str | None, head: bool = False) -> Response:
     try:
         job_id, name = tokens.verify(svc.key, token)
         expires = tokens.expiry(token)
     except tokens.BadToken as exc:
         raise Problem(403, str(exc)) from None
     job = svc.db.get(job_id)
-    path = svc.storage.output_path(job_id, name) if job is not None and job.state == "succeeded" else None
-    if path is None:
+    stored = None
+    if job is not None and job.state == "succeeded":
+        stored = svc.storage.output(job_id, name, version_of(job))  # the version the job's record committed
+    if stored is None:
         raise Problem(404, "this file no longer exists (the job was deleted)")
-    stat = path.stat()
-    etag = '"' + hashlib.sha256(f"{job_id}/{name}/{stat.st_mtime_ns}/{stat.st_size}".encode()).hexdigest()[:32] + '"'
+    etag = '"' + hashlib.sha256(f"{job_id}/{name}/{stored.tag}/{stored.size}".encode()).hexdigest()[:32] + '"'
     headers = {
         "etag": etag,
         "cache-control": f"private, max-age={max(0, expires - int(time.time()))}",
@@ -48,14 +52,20 @@ def _answer(svc: ServicesDep, token: str, if_none_match: str | None) -> Response
     ):
         return Response(status_code=304, headers=headers)
     media = FILES[name].media_type if name in FILES else "application/octet-stream"
-    return FileResponse(
-        path,
-        media_type=media,
-        filename=name,
-        content_disposition_type="attachment",
-        headers=headers,
-        stat_result=stat,
-    )
+    if stored.path is not None:  # local disk: served from the file (ranges, sendfile)
+        return FileResponse(
+            stored.path,
+            media_type=media,
+            filename=name,
+            content_disposition_type="attachment",
+            headers=headers,
+            stat_result=stored.path.stat(),
+        )
+    headers |= {"content-length": str(stored.size), "content-disposition": f'attachment; filename="{name}"'}
+    if head:
+        return Response(status_code=200, media_type=media, headers=headers)
+    chunks = svc.storage.open_output(job_id, name, version_of(job))  # streamed from the store, never whole
+    return StreamingResponse(iterate_in_threadpool(chunks), media_type=media, headers=headers)
 
 
 @router.get(
@@ -83,4 +93,4 @@ def download_head(
     svc: ServicesDep,
     if_none_match: Annotated[str | None, Header(description="an ETag seen before: 304 if unchanged")] = None,
 ) -> Response:
-    return _answer(svc, token, if_none_match)
+    return _answer(svc, token, if_none_match, head=True)

@@ -12,6 +12,7 @@ from fastapi.responses import JSONResponse, Response
 
 from core.db import Job, utcnow
 from core.params import OrientJobParams
+from core.storage import version_of
 from engine.defect.params import DEFECT_REORIENT
 from service.deps import BaseUrlDep, OwnerDep, ServicesDep
 from service.intake import FULL, receive
@@ -160,8 +161,8 @@ def orient_job(job_id: str, body: OrientJobParams, who: OwnerDep, svc: ServicesD
     job = _job(svc, job_id, who)
     if job.state != "succeeded":
         raise Problem(409, f"job {job_id} has not succeeded ({job.state}); only a finished model can be re-oriented")
-    report_path = svc.storage.output_path(job_id, "report.json")
-    frame = json.loads(report_path.read_text()).get("frame") or {} if report_path is not None else {}
+    report = svc.storage.read_output(job_id, "report.json", version_of(job))
+    frame = json.loads(report).get("frame") or {} if report is not None else {}
     if str(frame.get("placed_by", "")).startswith("DICOM"):
         raise Problem(
             409, f"job {job_id} is a DICOM series: its headers place it in the patient; it cannot be re-oriented"
