@@ -201,17 +201,19 @@ class Budget:
         """The same plan with another byte count."""
         return dataclasses.replace(self, bytes=n)
 
-    def host_for(self, device: wp.Device) -> wp.Device | None:
-        """Where work goes that cannot fit this budget on ``device`` (the finished model's islands, smoothing,
-        normals and file layout): Warp's CPU device, outside the budget (``host_fallback``); ``None`` where it stays
-        an error (by default the CPU device itself, whose memory the budget is)."""
+    def host_for(self, device: Any) -> wp.Device | None:
+        """Where work goes that cannot fit this budget on ``device`` (a Warp device or an ``engine.backend``
+        backend; the finished model's islands, smoothing, normals and file layout): Warp's CPU device, outside the
+        budget (``host_fallback``); ``None`` where it stays an error (by default a CPU device itself, whose memory
+        the budget is)."""
         import warp as wp
 
-        if self.host_fallback or (self.host_fallback is None and device.is_cuda):
+        gpu = device.is_cuda if hasattr(device, "is_cuda") else not getattr(device, "is_host", True)
+        if self.host_fallback or (self.host_fallback is None and gpu):
             return wp.get_device("cpu")
         return None
 
-    def place(self, device: wp.Device, need: int, what: str, remedy: str = "") -> tuple[Any, Placement | None]:
+    def place(self, device: Any, need: int, what: str, remedy: str = "") -> tuple[Any, Placement | None]:
         """Where work that needs ``need`` bytes of device memory runs: ``(device, None)`` within the budget; past it
         ``(host, note)``, the host of ``host_for`` with a note for the report (``device``, ``reason``).
 

@@ -55,7 +55,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--min-volume", type=float, metavar="MM3", help="smallest defect reported (default: the rule)")
     p.add_argument("--max-faces", type=int, default=DEFAULT_MAX_FACES,
                    help="decimate the implant to at most this many triangles (default %(default)s)")  # fmt: skip
-    p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default auto)")
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda[:N] or opencl[:N] (default auto)")
     p.add_argument("--demo", action="store_true", help="use the bundled VTK headsq CT head")
     return p
 

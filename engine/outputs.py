@@ -77,53 +77,54 @@ def lay_out(
     to_host: HostCopies | None = None,
     chunk_faces: int = LAYOUT_CHUNK_FACES,
 ) -> Layout:
-    """Map a device mesh (grid (z, y, x) mm, unit normals) into the patient frame (``engine.orient.Frame``) and lay
-    out its file buffers; the host arrays come back in one sync (through ``to_host``: pinned memory where it
-    holds some, ``engine.staging``); the STL's facets go to the host ``chunk_faces`` at a time
-    (``Costs.layout_chunk_faces``)."""
-    import warp as wp
-
+    """Map a device mesh (grid (z, y, x) mm, unit normals; on any ``engine.backend``) into the patient frame
+    (``engine.orient.Frame``) and lay out its file buffers; the host arrays come back in one sync (on Warp through
+    ``to_host``: pinned memory where it holds some, ``engine.staging``); the STL's facets go to the host
+    ``chunk_faces`` at a time (``Costs.layout_chunk_faces``)."""
+    from engine.backend.base import VEC3F, VEC3I
+    from engine.export import kernel_specs as kx
     from engine.export.glb import MM_TO_M
-    from engine.export.kernels import layout as kx
-    from engine.staging import HostCopies
     from engine.surface.devmesh import bounds
+    from engine.surface.ops import backend_of
 
     t0 = time.perf_counter()
-    n = len(pos)
-    m = wp.mat33d(*frame.matrix.ravel().tolist())
-    patient = wp.empty(n, dtype=wp.vec3)
-    wp.launch(kx.affine_points, dim=n, inputs=[pos, m, wp.vec3d(*frame.offset_mm.tolist()), patient])
+    bk = backend_of(pos)
+    n, nf = len(pos), len(faces)
+    m = bk.empty(12, np.float64)  # the map (row-major), then the offset
+    bk.upload(m, np.concatenate([frame.matrix.ravel(), frame.offset_mm]).astype(np.float64))
+    patient = bk.empty(n, VEC3F)
+    bk.launch(kx.AFFINE_POINTS, n, [pos, m, patient])
     if frame.mirrored:
-        wound = wp.empty(len(faces), dtype=wp.vec3i)
-        wp.launch(kx.reverse_faces, dim=len(faces), inputs=[faces, wound])
+        wound = bk.empty(nf, VEC3I)
+        bk.launch(kx.REVERSE_FACES, nf, [faces, wound])
         faces = wound
-    turned = wp.empty(n, dtype=wp.vec3)
-    wp.launch(kx.rotate_vectors, dim=n, inputs=[normals, m, turned])
+    turned = bk.empty(n, VEC3F)
+    bk.launch(kx.ROTATE_VECTORS, n, [normals, m, turned])
     lo, hi = bounds(patient)  # sync point: 24 bytes
     centre = (lo.astype(np.float64) + hi.astype(np.float64)) / 2 if n else np.zeros(3)
-    view = wp.empty(n, dtype=wp.vec3)
-    shift = wp.vec3d(*(-centre[::-1]).tolist())  # centre is (z, y, x)
-    wp.launch(
-        kx.affine_points, dim=n, inputs=[patient, wp.mat33d(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), shift, view]
-    )
-    gpos = wp.empty(n, dtype=wp.vec3)
-    gnrm = wp.empty(n, dtype=wp.vec3)
-    wp.launch(kx.gltf_vertices, dim=n, inputs=[view, turned, wp.float64(MM_TO_M), gpos, gnrm])
+    shift = bk.empty(12, np.float64)
+    bk.upload(shift, np.concatenate([np.eye(3).ravel(), -centre[::-1]]))  # centre is (z, y, x)
+    view = bk.empty(n, VEC3F)
+    bk.launch(kx.AFFINE_POINTS, n, [patient, shift, view])
+    gpos = bk.empty(n, VEC3F)
+    gnrm = bk.empty(n, VEC3F)
+    scale = bk.empty(1, np.float64)  # float64 by value is not portable through the interface: one element
+    bk.upload(scale, np.array([MM_TO_M]))
+    bk.launch(kx.GLTF_VERTICES, n, [view, turned, scale, gpos, gnrm])
     glo, ghi = bounds(gpos)  # sync point: every kernel above has run
     t1 = time.perf_counter()
-    to_host = to_host or HostCopies(None, pos.device)
-    host = [to_host(a) for a in (gpos, gnrm, faces)]
+    copies = _copies_for(bk, to_host)
+    host = [copies(a) for a in (gpos, gnrm, faces)]
     del gpos, gnrm
     # the STL's facet records (48 B a face) go to the host a chunk at a time, never whole on the device
-    nf = len(faces)
-    facets, host_facets = to_host.empty((nf, 12), wp.float32)
-    chunk = wp.empty((max(min(nf, chunk_faces), 1), 12), dtype=wp.float32)
-    zero_area = wp.zeros(1, dtype=wp.int32)
+    facets, host_facets = copies.empty((nf, 12), np.float32)
+    chunk = bk.empty((max(min(nf, chunk_faces), 1), 12), np.float32)
+    zero_area = bk.zeros(1, np.int32)
     for first in range(0, nf, len(chunk)):
         k = min(len(chunk), nf - first)
-        wp.launch(kx.stl_facets, dim=k, inputs=[patient, faces, first, chunk, zero_area])
-        wp.copy(facets[first : first + k], chunk[:k])  # stream-ordered: the next chunk waits for this copy
-    to_host.wait()
+        bk.launch(kx.STL_FACETS, k, [patient, faces, first, chunk, zero_area])
+        copies.rows(facets, first, chunk, k)  # stream-ordered: the next chunk waits for this copy
+    copies.wait()
     gltf_pos, gltf_normals, tris = (a.reshape(-1, 3) for a in host)
     lay = Layout(
         pos=patient,
@@ -136,31 +137,89 @@ def lay_out(
         gltf_normals=gltf_normals,
         gltf_bounds={"min": [float(x) for x in glo], "max": [float(x) for x in ghi]},
         tris=tris,
-        zero_area=int(zero_area.numpy()[0]),
+        zero_area=int(bk.to_host(zero_area)[0]),
         seconds={"kernels": t1 - t0},
     )
     lay.seconds["copies"] = time.perf_counter() - t1
-    lay.seconds["pinned"] = float(to_host.pinned)
+    lay.seconds["pinned"] = float(copies.pinned)
     return lay
 
 
+class _WarpCopies:
+    """``lay_out``'s copies to the host on Warp: ``engine.staging.HostCopies`` (pinned where it holds a buffer),
+    chunks of rows copied in stream order."""
+
+    def __init__(self, to_host: HostCopies) -> None:
+        self.to_host, self.pinned = to_host, to_host.pinned
+
+    def __call__(self, arr: Any) -> np.ndarray:
+        return self.to_host(arr)
+
+    def empty(self, shape: tuple[int, ...], dtype: Any) -> tuple[Any, np.ndarray]:
+        import warp as wp
+
+        return self.to_host.empty(shape, wp.dtype_from_numpy(np.dtype(dtype)))
+
+    def rows(self, dest: Any, first: int, chunk: Any, k: int) -> None:
+        import warp as wp
+
+        wp.copy(dest[first : first + k], chunk[:k])
+
+    def wait(self) -> None:
+        self.to_host.wait()
+
+
+class _BackendCopies:
+    """``lay_out``'s copies to the host on another backend (OpenCL): plain numpy arrays, each copy a sync."""
+
+    pinned = False
+
+    def __init__(self, bk: Any) -> None:
+        self.bk = bk
+
+    def __call__(self, arr: Any) -> np.ndarray:
+        out: np.ndarray = self.bk.to_host(arr)
+        return out
+
+    def empty(self, shape: tuple[int, ...], dtype: Any) -> tuple[Any, np.ndarray]:
+        out = np.empty(shape, dtype)
+        return out, out
+
+    def rows(self, dest: Any, first: int, chunk: Any, k: int) -> None:
+        dest[first : first + k] = self.bk.to_host(chunk, k)
+
+    def wait(self) -> None:
+        self.bk.synchronize()
+
+
+def _copies_for(bk: Any, to_host: HostCopies | None) -> _WarpCopies | _BackendCopies:
+    """How ``lay_out`` copies to the host on ``bk``."""
+    if bk.kind != "warp":
+        return _BackendCopies(bk)
+    from engine.staging import HostCopies
+
+    return _WarpCopies(to_host or HostCopies(None, bk.device))
+
+
 def _host_mesh(pos: Any, faces: Any, normals: Any = None) -> Mesh:
+    from engine.backend.select import backend_of
     from engine.surface.normals import normals_device
 
     if normals is None:
         normals = normals_device(pos, faces)
+    be = backend_of(pos)
     return Mesh(
-        np.ascontiguousarray(pos.numpy(), np.float32).reshape(-1, 3),
-        faces.numpy().astype(np.int32).reshape(-1, 3),
-        np.ascontiguousarray(normals.numpy(), np.float32).reshape(-1, 3),
+        np.ascontiguousarray(be.to_host(pos), np.float32).reshape(-1, 3),
+        be.to_host(faces).astype(np.int32).reshape(-1, 3),
+        np.ascontiguousarray(be.to_host(normals), np.float32).reshape(-1, 3),
     )
 
 
 def _device_mesh(recon: Reconstruction, dev: Any) -> tuple[Any, Any, Any]:
     """The reconstruction's mesh on ``dev``: the pipeline's own arrays (copied across where they are on another
     device, e.g. a model finished on the host), else uploaded (with fresh normals when it has none)."""
-    import warp as wp
-
+    from engine.backend.base import VEC3F, VEC3I
+    from engine.backend.select import get_backend
     from engine.export.glb import check_mesh
     from engine.surface.devmesh import on_device
     from engine.surface.normals import normals_device
@@ -170,11 +229,12 @@ def _device_mesh(recon: Reconstruction, dev: Any) -> tuple[Any, Any, Any]:
         return on_device(dev, *held)
     mesh = recon.mesh
     check_mesh(mesh.vertices, mesh.faces, mesh.normals)  # InputError: empty, malformed, out-of-range indices
-    pos: Any = wp.array(np.ascontiguousarray(mesh.vertices, np.float32), dtype=wp.vec3)
-    faces: Any = wp.array(np.ascontiguousarray(mesh.faces, np.int32), dtype=wp.vec3i)
+    be = get_backend(dev)
+    pos: Any = be.from_host(np.ascontiguousarray(mesh.vertices, np.float32), VEC3F)
+    faces: Any = be.from_host(np.ascontiguousarray(mesh.faces, np.int32), VEC3I)
     if mesh.normals is None:
         return pos, faces, normals_device(pos, faces)
-    return pos, faces, wp.array(np.ascontiguousarray(mesh.normals, np.float32), dtype=wp.vec3)
+    return pos, faces, be.from_host(np.ascontiguousarray(mesh.normals, np.float32), VEC3F)
 
 
 def _write_print_files(tmp: Path, stl: str, lay: Layout, parts: list[Any]) -> dict[str, int]:
@@ -239,14 +299,15 @@ def write_outputs(
     """
     import warp as wp
 
-    from engine.device import resolve_device
+    from engine.device import resolve_backend, resolve_device
     from engine.export.printcheck import PRINT_STL, check_print_model, stl_name
     from engine.orient import Frame
-    from engine.staging import host_copies
     from engine.surface.devmesh import mesh_stats_device
 
     params = params or ReconParams()
     dev = resolve_device(device)
+    be = resolve_backend(device)
+    target = dev if be.kind == "warp" else be  # OpenCL: the layout and the viewing copies run on its device
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".bonemesh-", dir=out))
@@ -255,11 +316,11 @@ def write_outputs(
     t0 = time.perf_counter()
     try:
         budget = Budget.of(max_device_bytes)
-        where, on_host = _layout_device(recon, dev, budget, report)  # the host, past the budget
-        with wp.ScopedDevice(where):
+        where, on_host = _layout_device(recon, target, budget, report)  # the host, past the budget
+        with wp.ScopedDevice(where if isinstance(where, wp.Device) else dev):
             pos, faces, normals = _device_mesh(recon, where)
             frame = report.get("frame")
-            with host_copies(where, layout_host_bytes(len(pos), len(faces))) as to_host:
+            with _host_copies(where, layout_host_bytes(len(pos), len(faces))) as to_host:
                 lay = lay_out(pos, faces, normals, Frame.from_dict(frame), to_host, budget.costs.layout_chunk_faces)
                 # the STL in patient LPS mm, the glTF files in patient axes centred on the model (engine.orient)
                 report["frame"] = {
@@ -279,7 +340,8 @@ def write_outputs(
                     writing = pool.submit(_write_print_files, tmp, stl, lay, parts.pop("print", []))
                     held = 0 if on_host else budget.costs.held * len(lay.faces)
                     room = budget.beside(held)  # beside the model, where it is on the device
-                    small, infos = _viewing_files(lay, stats, params, room, tmp, seconds, dev, parts)
+                    views = target if not on_host else dev  # as the model: where it was laid out, or the job's
+                    small, infos = _viewing_files(lay, stats, params, room, tmp, seconds, views, parts)
                     t1 = time.perf_counter()
                     sizes = writing.result()
                     seconds["wait_print_files"] = time.perf_counter() - t1
@@ -352,5 +414,19 @@ def _layout_device(recon: Reconstruction, dev: Any, budget: Budget, report: Repo
     n_faces = len(recon.device_mesh[1]) if recon.device_mesh is not None else len(recon.mesh.faces)
     what = f"laying out the model ({n_faces:,} faces) for its files"
     where, note = budget.place(dev, budget.costs.layout_bytes(n_faces), what)
-    report["layout"] = note or {"device": str(where)}
+    report["layout"] = note or {"device": str(getattr(where, "label", where))}
     return where, note is not None
+
+
+def _host_copies(where: Any, nbytes: int) -> Any:
+    """``engine.staging.host_copies`` on a Warp device (pinned memory where it holds some); on another backend
+    none (``lay_out`` copies plain)."""
+    import contextlib
+
+    import warp as wp
+
+    from engine.staging import host_copies
+
+    if isinstance(where, wp.Device):
+        return host_copies(where, nbytes)
+    return contextlib.nullcontext(None)

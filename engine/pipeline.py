@@ -56,11 +56,14 @@ class Reconstruction:
     @property
     def mesh(self) -> Mesh:
         if self._mesh is None:
+            from engine.backend.select import backend_of
+
             pos, faces, normals = self.device_mesh  # sync point: the finished mesh comes back
+            be = backend_of(pos)
             self._mesh = Mesh(
-                pos.numpy().astype(np.float32).reshape(-1, 3),
-                faces.numpy().astype(np.int32).reshape(-1, 3),
-                normals.numpy().astype(np.float32).reshape(-1, 3),
+                be.to_host(pos).astype(np.float32).reshape(-1, 3),
+                be.to_host(faces).astype(np.int32).reshape(-1, 3),
+                be.to_host(normals).astype(np.float32).reshape(-1, 3),
             )
         return self._mesh
 
@@ -95,7 +98,8 @@ def reconstruct(
     Args:
         volume: the scan (see ``engine.types.Volume``).
         params: pipeline parameters (defaults: the paper's best combination).
-        device: "auto", "cpu", "cuda" or "cuda:N", or a Warp device (``engine.device.resolve_device``).
+        device: "auto", "cpu", "cuda" or "cuda:N", "opencl" or "opencl:N" (``engine.backend``: every stage on
+            OpenCL), or a Warp device (``engine.device.resolve_device``, ``resolve_backend``).
         on_progress: called as ``on_progress(stage, fraction_done)`` when a stage starts and ends and inside long
             stages (the decimation's passes); the fraction weights stages by their expected time
             (``engine.progress``).
@@ -118,19 +122,20 @@ def reconstruct(
     """
     import warp as wp
 
-    from engine.device import resolve_device
-    from engine.memory import PeakMemory
+    from engine.device import resolve_backend, resolve_device
 
     params = params or ReconParams()
-    dev = resolve_device(device)
+    dev = resolve_device(device)  # Warp's device: the scope of Warp's stages (Warp's CPU for an OpenCL spec)
+    be = resolve_backend(device)  # where the device stages run
     budget = Budget.of(max_device_bytes)
     plan = plan_for(budget)  # chosen once: the whole volume, or streamed within the budget
     report: Report = {
         "parameters": params.to_dict(),
         "device": {
             "spec": device if isinstance(device, str) else str(device),
-            "name": str(dev),
-            "description": getattr(dev, "name", str(dev)),
+            "name": str(dev) if be.kind == "warp" else be.label,
+            "description": getattr(dev, "name", str(dev)) if be.kind == "warp" else be.label,
+            "backend": be.kind,
         },
         "versions": _versions(),
         "input": {
@@ -143,9 +148,9 @@ def reconstruct(
         "stage_seconds": {},
         "counts": {},
     }
-    st = State(volume, budget)
+    st = State(volume, budget, backend=be)
     progress = StageProgress(STAGES, on_progress)
-    memory = PeakMemory(dev)
+    memory = be.peak_tracker()
     with wp.ScopedDevice(dev):
         memory.start()
         for name, stage in plan:
@@ -156,7 +161,7 @@ def reconstruct(
             progress.start(name)
             t0 = time.perf_counter()
             try:
-                with wp.ScopedDevice(dev if st.pos is None else st.pos.device):  # the host, past the budget
+                with wp.ScopedDevice(_warp_device(st.pos, dev)):  # the host, past the budget
                     stage(st, params, report, within)
             except (InputError, StageError):
                 raise
@@ -169,7 +174,7 @@ def reconstruct(
         t0 = time.perf_counter()
         from engine.surface.devmesh import mesh_stats_device
 
-        with wp.ScopedDevice(st.pos.device):  # sync point: the counts come back
+        with wp.ScopedDevice(_warp_device(st.pos, dev)):  # sync point: the counts come back
             report["mesh"] = mesh_stats_device(st.pos, st.faces, st.incidence_built())
         report["finish_seconds"] = time.perf_counter() - t0
         report["memory"] = {
@@ -184,6 +189,14 @@ def reconstruct(
     defect = _defect_step(st, params, report, dev)
     report["total_seconds"] = sum(report["stage_seconds"].values())
     return Reconstruction(report=report, device_mesh=(st.pos, st.faces, st.normals), defect=defect)
+
+
+def _warp_device(arr: Any, dev: Any) -> Any:
+    """The Warp device a stage runs in: that of ``arr`` where it is a Warp array (the host, past the budget), else
+    ``dev`` (an OpenCL array's stages need no Warp scope; Warp's CPU device then)."""
+    import warp as wp
+
+    return arr.device if isinstance(arr, wp.array) else dev
 
 
 def _defect_step(st: State, params: ReconParams, report: Report, dev: Any) -> Any:

@@ -40,10 +40,11 @@ class State:
 
     volume: Volume
     budget: Budget = field(default_factory=Budget)  # every stage keeps to it (the streamed plan)
+    backend: Any = None  # engine.backend.Backend the device stages run on (Warp's, or OpenCL's)
     field: Any = None
     level: float = 0.0
-    pos: Any = None  # wp.array(dtype=wp.vec3), (z, y, x) mm
-    faces: Any = None  # wp.array(dtype=wp.vec3i)
+    pos: Any = None  # the backend's VEC3F array (wp.array(dtype=wp.vec3) on Warp), (z, y, x) mm
+    faces: Any = None  # the backend's VEC3I array
     incidence: Any = None  # devmesh.Incidence of the current mesh, when built
     normals: Any = None
     stream: Any = None  # engine.isosurface.stream.StreamResult of the streamed plan
@@ -79,9 +80,7 @@ def _preprocess(st: State, params: ReconParams, report: Report, progress: Progre
 
 def _upload(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
     """The volume to the device, once (the whole-volume plan)."""
-    import warp as wp
-
-    st.field = wp.array(np.ascontiguousarray(_device_dtype(st.volume.data)))
+    st.field = st.backend.from_host(np.ascontiguousarray(_device_dtype(st.volume.data)))
     _choose_level(st, params, report)
 
 
@@ -168,8 +167,7 @@ def _take_surface(st: State, v: Any, f: Any, stats: Any, report: Report) -> None
 def _stream(st: State, params: ReconParams, stats: Any) -> tuple[Any, Any]:
     """The Gaussian and MC33 within the budget (``engine.isosurface.stream``): the device mesh, or (when groups of
     slabs had to be decimated on the way) empty arrays and the groups in ``st.stream``."""
-    import warp as wp
-
+    from engine.backend.base import VEC3F, VEC3I
     from engine.isosurface.stream import stream_surface
 
     dec = params.decimate
@@ -182,13 +180,13 @@ def _stream(st: State, params: ReconParams, stats: Any) -> tuple[Any, Any]:
         budget=st.budget,
         ratio=None if dec is None else dec.reduction,
         decimate=dec is not None,
-        dev=wp.get_device(),
+        dev=st.backend,
         stats=stats,
     )
     if st.stream.device is not None:
         device_mesh: tuple[Any, Any] = st.stream.device
         return device_mesh
-    return wp.empty(0, dtype=wp.vec3), wp.empty(0, dtype=wp.vec3i)
+    return st.backend.empty(0, VEC3F), st.backend.empty(0, VEC3I)
 
 
 def _decimate(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
@@ -209,7 +207,7 @@ def _decimate(st: State, params: ReconParams, report: Report, progress: Progress
     info = stats.to_dict()
     info["achieved_ratio"] = stats.output_faces / n_in
     info["limited_by_guards"] = stats.output_faces > target * (1 + TOLERANCE)
-    info["method"] = "warp quadric edge collapse (link condition, border kept, normal turn guard)"
+    info["method"] = f"{_kind(st)} quadric edge collapse (link condition, border kept, normal turn guard)"
     report["decimate"] = info
     report["counts"]["decimate"] = {"vertices": len(st.pos), "faces": stats.output_faces}
 
@@ -233,24 +231,33 @@ def _decimate_groups(st: State, params: ReconParams, report: Report) -> None:
     host, sr.host = sr.host, None
     pieces, sr.pieces = (None if sr.pieces is None else list(sr.pieces)), None  # finish_groups takes them over
     seam_mm = SEAM_VOXELS * max(st.volume.spacing_zyx_mm)
-    st.pos, st.faces, info = finish_groups(host, pieces, sr.origin, target, st.budget, sr.borders, seam_mm)
+    device = st.backend if st.backend.kind != "warp" else None  # Warp: where the groups are (as before)
+    st.pos, st.faces, info = finish_groups(host, pieces, sr.origin, target, st.budget, sr.borders, seam_mm, device)
     out = len(st.faces)
     info |= {"input_faces": n_in, "target_faces": target, "achieved_ratio": out / n_in}
     info["limited_by_guards"] = out > target * (1 + TOLERANCE)
-    info["method"] = "warp quadric edge collapse in slab groups and z tiles with pinned borders (memory budget)"
+    info["method"] = f"{_kind(st)} quadric edge collapse in slab groups and z tiles with pinned borders (memory budget)"
     report["decimate"] = info
     report["counts"]["decimate"] = {"vertices": len(st.pos), "faces": out}
+
+
+def _kind(st: State) -> str:
+    """The backend the mesh is on, in words for the report ("warp", "opencl")."""
+    from engine.backend.select import backend_of
+
+    return str(backend_of(st.faces).kind) if st.faces is not None else str(st.backend.kind)
 
 
 def _fit_or_host(st: State, report: Report) -> None:
     """The finishing stages hold the whole final mesh: within a budget it cannot fit, they run on the host
     (``Budget.place``: Warp's CPU device, outside the budget; reported as ``report["finish"]``), or, where
     the device is the host, the job stops early with the budget that would work."""
+    from engine.backend.select import backend_of
     from engine.surface.devmesh import on_device
 
     what = f"finishing the model ({len(st.faces):,} faces: islands, smoothing, normals, outputs)"
     need = st.budget.costs.finish_bytes(len(st.faces))
-    where, note = st.budget.place(st.faces.device, need, what, " or decimate further")
+    where, note = st.budget.place(backend_of(st.faces), need, what, " or decimate further")
     if note is not None:
         st.pos, st.faces = on_device(where, st.pos, st.faces)
         st.incidence = None

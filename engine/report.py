@@ -37,11 +37,13 @@ __all__ = [
 
 
 class DeviceInfo(TypedDict):
-    """Where the pipeline ran: the caller's spec, the Warp device's name (``cuda:0``) and its description."""
+    """Where the pipeline ran: the caller's spec, the device's name (Warp's ``cuda:0``, or the OpenCL device's
+    ``opencl:N`` label), its description and the backend (``"warp"`` or ``"opencl"``: ``engine.backend``)."""
 
     spec: str
     name: str
     description: str
+    backend: str
 
 
 class InputInfo(TypedDict):

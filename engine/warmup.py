@@ -28,9 +28,10 @@ def warm_up(device: str = "auto", max_device_bytes: int | str | None = None) -> 
 
     t0 = time.perf_counter()
     dev = resolve_device(device)
+    spec = device if device.startswith("opencl") else str(dev)  # OpenCL: its own context and programs
     hu = bone_phantom(WARMUP_SHAPE, dtype=np.int16) - np.int16(1024)  # the phantom is in HU + 1024
     volume = Volume(hu, (0.5, 0.5, 0.5), units="HU")
-    recon = reconstruct(volume, ReconParams(), device=str(dev), max_device_bytes=max_device_bytes)
+    recon = reconstruct(volume, ReconParams(), device=spec, max_device_bytes=max_device_bytes)
     with tempfile.TemporaryDirectory(prefix="bonemesh-warmup-") as out:
-        write_outputs(recon, out, device=str(dev), max_device_bytes=max_device_bytes)
-    return {"device": str(dev), "seconds": time.perf_counter() - t0}
+        write_outputs(recon, out, device=spec, max_device_bytes=max_device_bytes)
+    return {"device": recon.report["device"]["name"], "seconds": time.perf_counter() - t0}

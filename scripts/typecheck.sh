@@ -14,4 +14,6 @@ cd "$(dirname "$0")/.."
     engine/export/__init__.py engine/export/files.py engine/export/viewers.py \
     engine/volume/__init__.py engine/isosurface/__init__.py engine/decimation/__init__.py \
     engine/surface/__init__.py engine/paper/__init__.py \
-    engine/defect/__init__.py engine/defect/params.py engine/defect/step.py engine/defect/template.py
+    engine/defect/__init__.py engine/defect/params.py engine/defect/step.py engine/defect/template.py \
+    engine/backend/__init__.py engine/backend/base.py engine/backend/select.py engine/backend/warp_backend.py \
+    engine/backend/opencl_backend.py

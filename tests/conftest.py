@@ -17,7 +17,8 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption(
         "--device",
         default="cpu",
-        help="device(s) for engine tests: cpu, cuda, cuda:N, or all (cpu + every CUDA device)",
+        help="device(s) for engine tests: cpu, cuda, cuda:N, opencl, opencl:N, or all (cpu + every CUDA device + "
+        "opencl); modules marked both_backends run on cpu and opencl by default",
     )
     parser.addoption("--runslow", action="store_true", help="also run tests marked slow")
 
@@ -32,10 +33,25 @@ def _cuda_devices() -> tuple[str, ...]:
     return tuple(f"cuda:{i}" for i in range(wp.get_cuda_device_count()))
 
 
+def _opencl_param() -> object:
+    """``"opencl"`` as a parameter, skipped (saying why) where no OpenCL backend can run."""
+    from tests.engine.conftest import opencl_missing
+
+    why = opencl_missing()
+    marks = () if why is None else (pytest.mark.skip(reason=f"OpenCL backend: {why}"),)
+    return pytest.param("opencl", marks=marks)
+
+
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     if "device" in metafunc.fixturenames:
         opt = metafunc.config.getoption("--device")
-        devices = ["cpu", *_cuda_devices()] if opt == "all" else [opt]
+        both = metafunc.definition.get_closest_marker("both_backends") is not None
+        if opt == "all":
+            devices: list[object] = ["cpu", *_cuda_devices(), _opencl_param()]
+        elif opt == "cpu" and both:  # the one suite over both backends (engine.backend): Warp's CPU and OpenCL
+            devices = ["cpu", _opencl_param()]
+        else:
+            devices = [opt]
         metafunc.parametrize("device", devices)
 
 

@@ -181,6 +181,43 @@ def test_viewing_copies(tmp_path: Path) -> None:
         assert finite(r[name]["distance_to_print_model"]["mean_mm"]), name
 
 
+
+def test_opencl_stages(tmp_path: Path) -> None:
+    from tests.engine.conftest import opencl_missing
+
+    if opencl_missing():
+        pytest.skip(f"OpenCL backend: {opencl_missing()}")
+    from benchmarks.opencl_stages import main
+
+    out = tmp_path / "opencl_stages.json"
+    assert main(["--phantom", PHANTOM, "--repeat", "1", "--out", str(out)]) == 0  # 1: the meshes differ
+    report = load(out)
+    has_keys(report, "benchmark", "host", "devices", "versions", "inputs")
+    assert sorted(report["inputs"]) == ["headsq", NAME]
+    for name, entry in report["inputs"].items():
+        assert entry["identical"], name
+        for key in ("warp", "opencl"):
+            assert entry[key]["faces"] > 0 and finite(entry[key]["seconds"]["total"]), (name, key)
+        assert all(finite(v) for v in entry["ratios_warp_over_opencl"].values()), name
+
+
+
+def test_backends(tmp_path: Path) -> None:
+    from tests.engine.conftest import opencl_missing
+
+    if opencl_missing():
+        pytest.skip(f"OpenCL backend: {opencl_missing()}")
+    from benchmarks.backends import main
+
+    out = tmp_path / "backends.json"
+    args = ["--devices", "cpu,opencl", "--no-scans", "--phantom", "24,32,32", "--repeat", "1"]
+    assert main([*args, "--out", str(out)]) == 0
+    report = load(out)
+    has_keys(report, "benchmark", "host", "devices", "inputs", "min_ratio")
+    (entry,) = report["inputs"].values()
+    assert entry["identical_topology"]["opencl"] and entry["identical_mesh"]["opencl"]
+    assert finite(entry["ratio_first_over"]["opencl"]) and entry["cpu"]["topology"]["watertight"]
+
 # -- benchmarks that start processes of their own: python -m benchmarks.X --------------------------------------
 def test_ingest(tmp_path: Path) -> None:
     out = tmp_path / "ingest.json"

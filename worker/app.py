@@ -57,10 +57,11 @@ def _allow_children(**_: object) -> None:
 
 
 def warms_up(settings: Settings) -> bool:
-    """Whether the worker warms its device up at start: ``BONEMESH_WARMUP`` true, or auto on a CUDA device."""
+    """Whether the worker warms its device up at start: ``BONEMESH_WARMUP`` true, or auto on a CUDA or OpenCL
+    device (an OpenCL context builds its kernel programs on first use)."""
     if settings.warmup != "auto":
         return settings.warmup == "true"
-    if settings.device.startswith("cuda"):
+    if settings.device.startswith(("cuda", "opencl")):
         return True
     if settings.device != "auto":
         return False

@@ -1,7 +1,10 @@
 """The paper's step 3, quadric-error decimation, under one roof (meshoptimizer's simplifier family):
 
 * ``passes``: the pass loop on the device, running the named phases of ``phases`` (update adjacency, price, rank,
-  guard, claim, trim, perform, compact), Warp kernels in ``engine.decimation.kernels`` split by concern;
+  guard, claim, trim, perform, compact), written once over the backend interface (``engine.backend``: Warp or
+  OpenCL, the backend found from the arrays): Warp kernels in ``engine.decimation.kernels`` split by concern, their
+  OpenCL C twins beside them (``kernels/*.cl``), both named in ``kernel_specs``; the device mesh's stars, classes
+  and compaction in ``meshops``;
   ``arrays``: the numpy entry point with a full report;
 * within a memory budget: ``groups`` (groups of slabs while the volume streams), ``seams`` (across their borders),
   ``tiles`` (tiled rounds, on the device or from the host) and ``pieces`` (a flagged piece decimated beside the

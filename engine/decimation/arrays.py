@@ -1,5 +1,6 @@
-"""The decimation's numpy entry point (``decimate_mesh``): arrays in, arrays and a full report out, by the Warp
-kernels (``engine.decimation.passes``) or MeshLab's collapse (``engine.decimation.meshlab``, the reference).
+"""The decimation's numpy entry point (``decimate_mesh``): arrays in, arrays and a full report out, by the device
+kernels (``engine.decimation.passes``, Warp or OpenCL) or MeshLab's collapse (``engine.decimation.meshlab``, the
+reference).
 """
 
 from __future__ import annotations
@@ -32,9 +33,11 @@ def decimate_mesh(
         faces: (F, 3) integer vertex indices, outward normals with vertices in (x, y, z) order.
         reduction: fraction of the faces to keep, in (0, 1] (0.2 keeps about 20 %).
         max_triangles: or the number of faces to reduce to (>= 1); at or above F the mesh is returned as is.
-        device: Warp device (or spec) for the Warp kernels.
-        method: ``"warp"`` (the Warp kernels), ``"meshlab"`` (MeshLab's collapse in CPU processes) or ``"auto"``
-            (Warp: the faster on every device measured, see ``docs/benchmarks.md``).
+        device: the device (spec) of the device kernels: a Warp device, ``"auto"``, ``"cpu"``, ``"cuda[:N]"``, or
+            ``"opencl[:N]"`` for their OpenCL twins (``engine.backend.get_backend``).
+        method: ``"warp"`` (the device kernels, on ``device``'s backend), ``"meshlab"`` (MeshLab's collapse in CPU
+            processes) or ``"auto"`` (the device kernels: the faster on every device measured, see
+            ``docs/benchmarks.md``).
         workers: MeshLab processes (``method="meshlab"`` only).
 
     Returns:
@@ -78,16 +81,8 @@ def decimate_mesh(
         out_v, out_faces, extra = collapse_meshlab(pts, faces, target, closed, workers)
         info.update(extra)
     else:
-        import warp as wp
-
-        from engine.device import resolve_device
-
-        dev = resolve_device(device)
-        with wp.ScopedDevice(dev):
-            p, f, st = decimate_device(wp.array(verts, dtype=wp.vec3), wp.array(faces, dtype=wp.vec3i), target)
-            out_v, out_faces = p.numpy(), f.numpy().astype(np.int32)  # sync point
-        info.update(method="warp quadric edge collapse", device=str(dev), passes=st.passes, stopped=st.stopped)
-        info["vertex_classes"] = st.vertex_classes
+        out_v, out_faces, extra = _collapse_device(verts, faces, target, device)
+        info.update(extra)
     out_pts = out_v[:, ::-1].astype(np.float64)
     after = edge_report(out_faces, len(out_pts))
     closed_out = after["boundary_edges"] == 0 and after["nonmanifold_edges"] == 0
@@ -106,3 +101,19 @@ def decimate_mesh(
         seconds=time.perf_counter() - t0,
     )
     return np.ascontiguousarray(out_v, dtype=np.float32), out_faces, info
+
+
+def _collapse_device(
+    verts: npt.NDArray[Any], faces: npt.NDArray[Any], target: int, device: Any
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int32], dict[str, Any]]:
+    """The device kernels' decimation on the backend of ``device`` (Warp or OpenCL)."""
+    from engine.backend.base import VEC3F, VEC3I
+    from engine.backend.select import get_backend
+
+    be = get_backend(device)
+    p, f, st = decimate_device(be.from_host(verts, VEC3F), be.from_host(faces, VEC3I), target)
+    out_v, out_faces = be.to_host(p), be.to_host(f).astype(np.int32)  # sync point
+    kind = "warp" if be.kind == "warp" else "opencl"
+    device_name = str(be.device) if be.kind == "warp" else be.label  # type: ignore[attr-defined]
+    extra = {"method": f"{kind} quadric edge collapse", "device": device_name, "passes": st.passes}
+    return out_v, out_faces, extra | {"stopped": st.stopped, "vertex_classes": st.vertex_classes}

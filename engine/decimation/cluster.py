@@ -26,7 +26,10 @@ from typing import Any
 
 import numpy as np
 
-from engine.surface.devmesh import exclusive_scan
+from engine.backend.base import VEC3F, VEC3I
+from engine.backend.select import backend_of
+from engine.decimation import kernel_specs as K
+from engine.decimation import meshops
 
 SEARCH_STEPS = 14  # trial cell sizes at most
 CLOSE_ENOUGH = 0.95  # a trial keeping between this share of the budget and the budget ends the search
@@ -36,41 +39,33 @@ MAX_CELLS = 1 << 21  # cell ids are packed in 21 bits each (engine.decimation.ke
 
 def _cells(pos: Any, lo: Any, h: float) -> tuple[Any, Any, Any, int]:
     """Per vertex its cell id, the vertices sorted by cell and each cell's first sorted slot; and the cell count."""
-    import warp as wp
-
-    from engine.decimation.kernels import cluster as kc
-
+    be = backend_of(pos)
     n = len(pos)
-    keys = wp.empty(2 * n, dtype=wp.int64)
-    order = wp.empty(2 * n, dtype=wp.int32)
-    wp.launch(kc.cell_keys, dim=n, inputs=[pos, lo, 1.0 / h, keys, order])
-    wp.utils.radix_sort_pairs(keys, order, n)
-    flag = wp.empty(n, dtype=wp.int32)
-    wp.launch(kc.run_starts, dim=n, inputs=[keys, flag])
-    scan, n_cells = exclusive_scan(flag)
-    cell_of = wp.empty(n, dtype=wp.int32)
-    start = wp.empty(max(n_cells, 1), dtype=wp.int32)
-    wp.launch(kc.assign_cells, dim=n, inputs=[flag, scan, order, cell_of, start])
+    keys, order = be.empty(2 * n, np.int64), be.empty(2 * n, np.int32)
+    be.launch(K.CELL_KEYS, n, [pos, lo, 1.0 / h, keys, order])
+    meshops.sort_pairs(be, keys, order, n)
+    flag, scan = be.empty(n, np.int32), be.empty(n, np.int32)
+    be.launch(K.RUN_STARTS, n, [keys, flag])
+    n_cells = be.exclusive_scan(flag, scan)  # sync point
+    cell_of = be.empty(n, np.int32)
+    start = be.empty(max(n_cells, 1), np.int32)
+    be.launch(K.ASSIGN_CELLS, n, [flag, scan, order, cell_of, start])
     return cell_of, order, start, n_cells
 
 
 def _faces(faces: Any, cell_of: Any) -> tuple[Any, int]:
     """The faces in cells, each set of three cells once (the first face's winding); and their count."""
-    import warp as wp
-
-    from engine.decimation.kernels import cluster as kc
-
+    be = backend_of(faces)
     nf = len(faces)
-    cells = wp.empty(nf, dtype=wp.vec3i)
-    keys = wp.empty(2 * nf, dtype=wp.int64)
-    order = wp.empty(2 * nf, dtype=wp.int32)
-    wp.launch(kc.face_cells, dim=nf, inputs=[faces, cell_of, cells, keys, order])
-    wp.utils.radix_sort_pairs(keys, order, nf)
-    flag = wp.empty(nf, dtype=wp.int32)
-    wp.launch(kc.run_starts, dim=nf, inputs=[keys, flag])
-    scan, kept = exclusive_scan(flag)
-    out = wp.empty(kept, dtype=wp.vec3i)
-    wp.launch(kc.gather_faces, dim=nf, inputs=[flag, scan, order, cells, out])
+    cells = be.empty(nf, VEC3I)
+    keys, order = be.empty(2 * nf, np.int64), be.empty(2 * nf, np.int32)
+    be.launch(K.FACE_CELLS, nf, [faces, cell_of, cells, keys, order])
+    meshops.sort_pairs(be, keys, order, nf)
+    flag, scan = be.empty(nf, np.int32), be.empty(nf, np.int32)
+    be.launch(K.RUN_STARTS, nf, [keys, flag])
+    kept = be.exclusive_scan(flag, scan)  # sync point
+    out = be.empty(kept, VEC3I)
+    be.launch(K.GATHER_FACES, nf, [flag, scan, order, cells, out])
     return out, kept
 
 
@@ -97,18 +92,14 @@ def _next_size(tried: dict[float, int | None], budget: int, aim: float, h: float
 
 
 class Clustering:
-    """A device mesh (``wp.vec3`` positions, ``wp.vec3i`` faces) prepared for clustering, at one budget or several
-    (``copy``): its bounds and vertex quadrics are computed once; face counts already tried are remembered."""
+    """A device mesh (positions and faces on one ``engine.backend``) prepared for clustering, at one budget or
+    several (``copy``): its bounds and vertex quadrics are computed once; face counts already tried are
+    remembered."""
 
     def __init__(self, pos: Any, faces: Any) -> None:
-        import warp as wp
-
-        from engine.surface.devmesh import bounds
-
-        self.pos, self.faces = pos, faces
-        with wp.ScopedDevice(pos.device):
-            lo_np, hi_np = bounds(pos)
-        self.lo = wp.vec3(*(float(x) for x in lo_np))
+        self.pos, self.faces, self.be = pos, faces, backend_of(pos)
+        lo_np, hi_np = meshops.bounds(self.be, pos)
+        self.lo = meshops.vec3f_arg(self.be, lo_np)
         self.diag = float(np.linalg.norm(hi_np - lo_np)) or 1.0
         self.tried: dict[float, int | None] = {}  # cell size -> faces kept (None: too many cells)
         self._quad: tuple[Any, Any] | None = None
@@ -116,17 +107,14 @@ class Clustering:
 
     def count(self, h: float) -> int | None:
         """Faces kept with cells of size ``h`` (None where the cells would be too many to number)."""
-        import warp as wp
-
         if h not in self.tried:
-            with wp.ScopedDevice(self.pos.device):
-                cells = _cells(self.pos, self.lo, h)
-                self._last = None
-                if cells[3] >= MAX_CELLS:
-                    self.tried[h] = None
-                else:
-                    out_faces, self.tried[h] = _faces(self.faces, cells[0])
-                    self._last = (h, cells, out_faces)  # the last trial's arrays: often the one chosen
+            cells = _cells(self.pos, self.lo, h)
+            self._last = None
+            if cells[3] >= MAX_CELLS:
+                self.tried[h] = None
+            else:
+                out_faces, self.tried[h] = _faces(self.faces, cells[0])
+                self._last = (h, cells, out_faces)  # the last trial's arrays: often the one chosen
         return self.tried[h]
 
     def cell_size(self, max_triangles: int) -> tuple[float, int]:
@@ -160,33 +148,26 @@ class Clustering:
     def copy(self, max_triangles: int) -> tuple[Any, Any, dict[str, Any]]:
         """The clustered copy within ``max_triangles`` faces (as close below as the cell size allows): new device
         arrays and a report (``cell_mm``, ``faces``, ``input_faces``, ``trials``: new cell sizes tried, ``seconds``)."""
-        import warp as wp
-
-        from engine.decimation.kernels import cluster as kc
         from engine.decimation.phases import vertex_quadrics
-        from engine.surface.devmesh import compact_vertices
 
         t0 = time.perf_counter()
-        with wp.ScopedDevice(self.pos.device):
-            h, trials = self.cell_size(max_triangles)
-            if self._last is not None and self._last[0] == h:
-                _, (cell_of, order, start, n_cells), out_faces = self._last
-            else:
-                cell_of, order, start, n_cells = _cells(self.pos, self.lo, h)
-                out_faces = _faces(self.faces, cell_of)[0]
-            self._last = None  # compact_vertices remaps the faces in place
-            kept = len(out_faces)
-            if self._quad is None:
-                _, _, origin, quad = vertex_quadrics(self.pos, self.faces)
-                self._quad = (origin, quad)
-            origin, quad = self._quad
-            cell_pos = wp.empty(max(n_cells, 1), dtype=wp.vec3)
-            wp.launch(
-                kc.cell_positions,
-                dim=n_cells,
-                inputs=[self.pos, quad, order, start, len(self.pos), n_cells, origin, cell_pos],
-            )
-            out_pos, out_faces = compact_vertices(cell_pos[:n_cells], out_faces)
+        be = self.be
+        h, trials = self.cell_size(max_triangles)
+        if self._last is not None and self._last[0] == h:
+            _, (cell_of, order, start, n_cells), out_faces = self._last
+        else:
+            cell_of, order, start, n_cells = _cells(self.pos, self.lo, h)
+            out_faces = _faces(self.faces, cell_of)[0]
+        self._last = None  # compact_vertices remaps the faces in place
+        kept = len(out_faces)
+        if self._quad is None:
+            _, _, origin, quad = vertex_quadrics(self.pos, self.faces)
+            self._quad = (origin, quad)
+        origin, quad = self._quad
+        cell_pos = be.empty(max(n_cells, 1), VEC3F)
+        inputs = [self.pos, quad, order, start, len(self.pos), n_cells, origin, cell_pos]
+        be.launch(K.CELL_POSITIONS, n_cells, inputs)
+        out_pos, out_faces = meshops.compact_vertices(be, be.view(cell_pos, 0, n_cells), out_faces)
         info = {
             "cell_mm": h,
             "faces": kept,
@@ -200,7 +181,7 @@ class Clustering:
 def cluster_device(pos: Any, faces: Any, max_triangles: int) -> tuple[Any, Any, dict[str, Any]]:
     """Cluster a device mesh down to at most ``max_triangles`` faces (as close below it as the cell size allows).
 
-    Returns new device arrays (``wp.vec3`` positions, ``wp.vec3i`` faces) and ``Clustering.copy``'s report.
+    Returns new device arrays (positions and faces, on the mesh's backend) and ``Clustering.copy``'s report.
     """
     return Clustering(pos, faces).copy(max_triangles)
 
@@ -231,19 +212,15 @@ class Pieces:
 
 def piece_census(pos: Any, faces: Any) -> Pieces:
     """Count the pieces of a device mesh (``engine.surface.islands.measure_pieces``, and the used vertices of each)."""
-    import warp as wp
-
-    from engine.decimation.kernels import cluster as kc
     from engine.surface.islands import measure_pieces
-    from engine.surface.kernels import topology as ktopo
 
+    be = backend_of(pos)
     nv, nf = len(pos), len(faces)
-    with wp.ScopedDevice(pos.device):
-        label, roots, counts, volume = measure_pieces(pos, faces)
-        used = wp.zeros(nv, dtype=wp.int32)
-        nverts = wp.zeros(nv, dtype=wp.int32)
-        if nf:
-            wp.launch(ktopo.count_incidence, dim=nf, inputs=[faces, used])
-            wp.launch(kc.piece_vertices, dim=nv, inputs=[used, label, nverts])
-        order = np.argsort(-volume, kind="stable")
-        return Pieces(volume[order], counts[roots][order], nverts.numpy()[roots][order])
+    label, roots, counts, volume = measure_pieces(pos, faces)
+    used = be.zeros(nv, np.int32)
+    nverts = be.zeros(nv, np.int32)
+    if nf:
+        be.launch(K.COUNT_INCIDENCE, nf, [faces, used])
+        be.launch(K.PIECE_VERTICES, nv, [used, label, nverts])
+    order = np.argsort(-volume, kind="stable")
+    return Pieces(volume[order], counts[roots][order], be.to_host(nverts)[roots][order])

@@ -16,7 +16,11 @@ from typing import Any
 
 import numpy as np
 
+from engine.backend.base import VEC3F, VEC3I, Backend
+from engine.backend.select import backend_of, get_backend
 from engine.budget import Budget
+from engine.decimation import kernel_specs as K
+from engine.decimation import meshops
 from engine.decimation.seams import seam_pass, seam_passes_device, seams_fit_beside
 from engine.decimation.tiles import PIECE_TOLERANCE, HostMesh, final_pass, finish_host
 
@@ -127,35 +131,34 @@ class GroupDecimator:
     def _number(self, res: Any, nf: int, tid: np.ndarray, v0: int) -> None:
         """Number the group's output after the groups before it. Its first ``nf`` vertices are the shared ones below
         (pinned, so all kept, in order); its own vertices get new ids."""
-        import warp as wp
-
-        from engine.decimation.kernels import tiles as ktile
-
-        kept = res.kept.numpy()  # sync point: 4 bytes per vertex
+        be = get_backend(self.dev)
+        kept = be.to_host(res.kept)  # sync point: 4 bytes per vertex
         if nf and not np.array_equal(kept[:nf], np.arange(nf)):
             raise RuntimeError("a pinned vertex was removed by the decimation of a group of slabs")
         carry = self.carries_quadrics
         if nf and carry:
-            self.deferred.append((self.top_out, res.quad[:nf].numpy().reshape(-1, 10)))
-        with wp.ScopedDevice(self.dev):
-            foreign_out = wp.array(self.top_out.astype(np.int32) if nf else np.zeros(1, np.int32), dtype=wp.int32)
-            base = self.n_out - nf
-            wp.launch(ktile.globalize_faces, dim=len(res.faces), inputs=[res.faces, nf, foreign_out, base])
+            self.deferred.append((self.top_out, be.to_host(res.quad, nf).reshape(-1, 10)))
+        foreign_out = be.from_host(self.top_out.astype(np.int32) if nf else np.zeros(1, np.int32))
+        base = self.n_out - nf
+        be.launch(K.GLOBALIZE_FACES, len(res.faces), [res.faces, int(nf), foreign_out, int(base)])
         top_res = np.searchsorted(kept, tid - v0 + nf)  # the pinned top vertices' rows in the output
         self.top_ids, self.top_out = tid, top_res + base
-        self.top_pos = res.pos.numpy()[top_res] if len(top_res) else np.zeros((0, 3), np.float32)
+        self.top_pos = be.to_host(res.pos)[top_res] if len(top_res) else np.zeros((0, 3), np.float32)
         if len(top_res):
             self.borders.append(float(np.median(self.top_pos[:, 0])))
         n_new = len(kept) - nf
-        self.pieces.append((res.pos[nf:], res.faces, res.quad[nf:] if carry else None))
+        n_res = len(res.pos)
+        quad = be.view(res.quad, nf, n_res) if carry else None
+        self.pieces.append((be.view(res.pos, nf, n_res), res.faces, quad))
         self.held += n_new * (12 + (80 if carry else 0)) + len(res.faces) * 12
         self.n_out += n_new
 
     def spill(self) -> None:
         """The decimated groups held on the device go to the host."""
+        be = get_backend(self.dev)
         for pos, faces, quad in self.pieces:
-            q = quad.numpy().reshape(-1, 10) if quad is not None else np.zeros((0, 10))
-            self.host.append((pos.numpy().reshape(-1, 3), faces.numpy().reshape(-1, 3), q))
+            q = be.to_host(quad).reshape(-1, 10) if quad is not None else np.zeros((0, 10))
+            self.host.append((be.to_host(pos).reshape(-1, 3), be.to_host(faces).reshape(-1, 3), q))
         self.pieces, self.held = [], 0
 
     def result(self) -> tuple[HostMesh | None, tuple[Any, Any, Any] | None]:
@@ -193,31 +196,27 @@ def gather_group(parts: list[Any], n_faces: int, top_ids: np.ndarray, top_pos: n
     """The slab meshes ``parts`` (``engine.isosurface.slabs.SlabMesh``) as one group on ``dev``, after the vertices
     it shares with the group below (``top_ids``, their MC33 ids, and ``top_pos``); one sync point (the top slab's
     shared plane)."""
-    import warp as wp
-
-    from engine.decimation.kernels import tiles as ktile
-
+    be = get_backend(dev)
     v0 = parts[0].vstart
     fid = top_ids  # the shared vertices below are the last group's top ones
     nf, n_own = len(fid), sum(p.nv for p in parts)
-    above = parts[-1].plane_above.numpy()  # sync point: 8 bytes per plane edge
+    above = backend_of(parts[-1].plane_above).to_host(parts[-1].plane_above)  # sync point: 8 bytes per plane edge
     shared = np.zeros(n_own, bool)  # (a mark per vertex: np.unique sorted the plane, 5 ms a group on the H100)
     shared[above[above >= v0] - v0] = True
     tid = np.flatnonzero(shared) + v0
-    with wp.ScopedDevice(dev):
-        pos = wp.empty(nf + n_own, dtype=wp.vec3)
-        faces = wp.empty(n_faces, dtype=wp.vec3i)
-        if nf:
-            wp.copy(pos, wp.array(top_pos, dtype=wp.vec3), count=nf)
-        ov, of = nf, 0
-        for p in parts:
-            wp.copy(pos, p.verts, dest_offset=ov, count=p.nv)
-            wp.copy(faces, p.faces, dest_offset=of, count=p.nt)
-            ov, of = ov + p.nv, of + p.nt
-        fmin = int(fid[0]) if nf else v0
-        fmap = np.full(max(v0 - fmin, 1), -1, np.int32)
-        fmap[fid - fmin] = np.arange(nf, dtype=np.int32)
-        wp.launch(ktile.localize_faces, dim=n_faces, inputs=[faces, v0, nf, fmin, wp.array(fmap, dtype=wp.int32)])
+    pos = be.empty(nf + n_own, VEC3F)
+    faces = be.empty(n_faces, VEC3I)
+    if nf:
+        be.upload(pos, np.asarray(top_pos, np.float32))
+    ov, of = nf, 0
+    for p in parts:
+        be.copy(pos, p.verts, dst_offset=ov, count=p.nv)
+        be.copy(faces, p.faces, dst_offset=of, count=p.nt)
+        ov, of = ov + p.nv, of + p.nt
+    fmin = int(fid[0]) if nf else v0
+    fmap = np.full(max(v0 - fmin, 1), -1, np.int32)
+    fmap[fid - fmin] = np.arange(nf, dtype=np.int32)
+    be.launch(K.LOCALIZE_FACES, n_faces, [faces, int(v0), nf, fmin, be.from_host(fmap)])
     lock = np.zeros(nf + n_own, np.int32)
     lock[:nf] = 1
     lock[tid - v0 + nf] = 1
@@ -227,19 +226,11 @@ def gather_group(parts: list[Any], n_faces: int, top_ids: np.ndarray, top_pos: n
 def decimate_group(group: Group, goal: int, origin: np.ndarray, dev: Any) -> Any:
     """A gathered group decimated toward ``goal`` faces with its shared vertices pinned, its quadrics about
     ``origin`` carried out (``engine.decimation.passes.Decimated``); the group's mesh is let go."""
-    import warp as wp
-
     from engine.decimation.passes import decimate_carrying
 
-    with wp.ScopedDevice(dev):
-        res = decimate_carrying(
-            group.pos,
-            group.faces,
-            goal,
-            locked=wp.array(group.lock, dtype=wp.int32),
-            origin=wp.vec3d(*origin),
-            stop_tolerance=PIECE_TOLERANCE,
-        )
+    be = get_backend(dev)
+    locked = be.from_host(group.lock)
+    res = decimate_carrying(group.pos, group.faces, goal, locked=locked, origin=origin, stop_tolerance=PIECE_TOLERANCE)
     group.pos = group.faces = None
     return res
 
@@ -262,27 +253,31 @@ def join_on_device(
 ) -> tuple[Any, Any, Any]:
     """The groups held on the device as one mesh ``(pos, faces, quad)`` (``quad`` where ``carried``, each shared
     vertex given the other side's share); ``pieces`` is emptied as it is joined."""
+    be = get_backend(dev)
+    pos = be.empty(n_out, VEC3F)
+    quad = meshops.quadrics(be, n_out) if carried else None
+    faces = be.empty(sum(len(p[1]) for p in pieces), VEC3I)
+    ov = of = 0
+    for p, f, q in pieces:
+        be.copy(pos, p, dst_offset=ov, count=len(p))
+        if quad is not None:
+            meshops.copy_quadrics(be, quad, q, ov)
+        be.copy(faces, f, dst_offset=of, count=len(f))
+        ov, of = ov + len(p), of + len(f)
+    pieces.clear()
+    if len(ids) and quad is not None:
+        add = [be.from_host(ids.astype(np.int32)), meshops.quadrics_from_host(be, shares), quad]
+        be.launch(K.ADD_QUADRICS, len(ids), add)
+    return pos, faces, quad
+
+
+def _host_device(device: Any) -> Backend:
+    """The backend a mesh on the host is finished on: ``device``'s, else Warp's current device."""
+    if device is not None:
+        return get_backend(device)
     import warp as wp
 
-    from engine.decimation.kernels import tiles as ktile
-    from engine.decimation.kernels.quadrics import quadric
-
-    with wp.ScopedDevice(dev):
-        pos = wp.empty(n_out, dtype=wp.vec3)
-        quad = wp.empty(n_out, dtype=quadric) if carried else None
-        faces = wp.empty(sum(len(p[1]) for p in pieces), dtype=wp.vec3i)
-        ov = of = 0
-        for p, f, q in pieces:
-            wp.copy(pos, p, dest_offset=ov, count=len(p))
-            if quad is not None:
-                wp.copy(quad, q, dest_offset=ov, count=len(q))
-            wp.copy(faces, f, dest_offset=of, count=len(f))
-            ov, of = ov + len(p), of + len(f)
-        pieces.clear()
-        if len(ids) and quad is not None:
-            add = [wp.array(ids.astype(np.int32), dtype=wp.int32), wp.array(shares, dtype=quadric), quad]
-            wp.launch(ktile.add_quadrics, dim=len(ids), inputs=add)
-    return pos, faces, quad
+    return get_backend(wp.get_device())
 
 
 def finish_groups(
@@ -293,23 +288,22 @@ def finish_groups(
     budget: Budget,
     borders: list[float],
     seam_mm: float,
+    device: Any = None,
 ) -> tuple[Any, Any, dict[str, Any]]:
     """Finish a decimation begun in groups of slabs (``engine.isosurface.stream``): one last pass on the device where
     they are and fit; otherwise across the ``borders`` (a seam pass on the faces within ``seam_mm`` of them),
     then tiled rounds if still needed, all within ``budget``. ``pieces``: ``[pos, faces, quad]`` on the device,
-    emptied (the finish owns the mesh from here, so that no earlier version of it outlives its replacement)."""
-    import warp as wp
-
+    emptied (the finish owns the mesh from here, so that no earlier version of it outlives its replacement).
+    ``device``: where a mesh spilled to the host is finished (default: Warp's current device)."""
     t0 = time.perf_counter()
     info: dict[str, Any] = {"tiled": True, "rounds": []}
     if pieces is None and host is not None and borders and seams_fit_beside(len(host.pos), len(host.faces), budget):
         # groups spilled to the host while the volume streamed, but the joined mesh fits the device seam pass: it
         # goes back up (with its quadrics where the last pass fits too)
-        from engine.decimation.kernels.quadrics import quadric
-
+        be = _host_device(device)
         carry = len(host.quad) == len(host.pos) and budget.last_pass_fits(len(host.faces))
-        quad = wp.array(host.quad, dtype=quadric) if carry else None
-        pieces = [wp.array(host.pos, dtype=wp.vec3), wp.array(host.faces, dtype=wp.vec3i), quad]
+        quad = meshops.quadrics_from_host(be, host.quad) if carry else None
+        pieces = [be.from_host(host.pos, VEC3F), be.from_host(host.faces, VEC3I), quad]
         info["uploaded"] = {"faces": len(host.faces), "why": "the spilled groups fit the device seam pass"}
         host = None
     if pieces is not None:
@@ -329,12 +323,12 @@ def finish_groups(
             borders = seams["remaining"]
             if seams["batches"]:
                 quad = None  # the vertices were renumbered: the host pass takes quadrics of the current faces
-        dev = pos.device
-        q = quad.numpy().reshape(-1, 10) if quad is not None else np.zeros((0, 10))
-        host = HostMesh(pos.numpy().reshape(-1, 3), faces.numpy().reshape(-1, 3), q, origin)
+        dev = backend_of(pos)
+        q = dev.to_host(quad).reshape(-1, 10) if quad is not None else np.zeros((0, 10))
+        host = HostMesh(dev.to_host(pos).reshape(-1, 3), dev.to_host(faces).reshape(-1, 3), q, origin)
         del pos, faces, quad, pieces
     else:
-        dev = wp.get_device()
+        dev = _host_device(device)
     assert host is not None
     if borders and len(host.faces) > target:
         host, info["seams"] = seam_pass(host, borders, seam_mm, target, budget, dev)

@@ -21,9 +21,9 @@ out until something it reads changes.
 The result depends only on the input and the device: incidence lists are sorted, ties are broken by a hash of the
 edge slot, and every floating-point sum runs in a fixed order.
 
-``decimate_device`` works on Warp arrays (the pipeline's device-resident path); ``engine.decimation.arrays``'
-``decimate_mesh`` takes and returns numpy arrays with a full report, and is also the entry point of the MeshLab path
-(``method="meshlab"``).
+``decimate_device`` works on device arrays of any backend (the pipeline's device-resident path: Warp or OpenCL, the
+backend found from the arrays); ``engine.decimation.arrays``' ``decimate_mesh`` takes and returns numpy arrays with
+a full report, and is also the entry point of the MeshLab path (``method="meshlab"``).
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
+from engine.backend.select import backend_of
 from engine.decimation import phases
 
 TOLERANCE = 0.05  # a closed result this far over the target is reported as limited by the guards
@@ -74,8 +75,8 @@ class DecimationStats:
 class _Clock:
     """Per-step wall times for ``profile=True`` (synchronises the device at each tick); does nothing otherwise."""
 
-    def __init__(self, device: Any, stats: DecimationStats | None) -> None:
-        self.device, self.stats = device, stats
+    def __init__(self, be: Any, stats: DecimationStats | None) -> None:
+        self.be, self.stats = be, stats
         if stats is not None:
             stats.profile = {}
         self.t = time.perf_counter()
@@ -83,9 +84,7 @@ class _Clock:
     def tick(self, name: str) -> None:
         if self.stats is None or self.stats.profile is None:
             return
-        import warp as wp
-
-        wp.synchronize_device(self.device)
+        self.be.synchronize()
         now = time.perf_counter()
         self.stats.profile[name] = self.stats.profile.get(name, 0.0) + now - self.t
         self.t = now
@@ -146,50 +145,46 @@ def decimate_carrying(
     carried in from earlier collapses of the same surface (``quadrics`` about ``origin``; by default each vertex's
     faces' quadrics about ``origin`` or the bounding box's centre), and, with ``carry``, the kept vertices' input
     indices and quadrics carried out. Other arguments as for ``decimate_device``."""
-    import warp as wp
-
     t0 = time.perf_counter()
-    dev = pos.device
     stats = DecimationStats(input_faces=len(faces), target_faces=int(target))
-    clock = _Clock(dev, stats if profile else None)
-    with wp.ScopedDevice(dev):
-        c, stats.vertex_classes = phases.start(
-            pos, faces, locked=locked, quadrics=quadrics, origin=origin, max_normal_turn_deg=max_normal_turn_deg
-        )
-        clock.tick("setup")
-        stats.stopped = "target reached"
-        while True:
-            needed = (c.alive - target) // 2
-            if needed <= 0 or c.alive <= target * (1 + stop_tolerance):
-                break
-            if stats.passes >= max_passes:
-                stats.stopped = "pass limit"
-                break
-            if stats.passes:
-                phases.update_adjacency(c)
-                clock.tick("incidence")
-            phases.price(c)
-            clock.tick("edge_costs")
-            cut = phases.rank(c, needed, candidate_fraction)
-            clock.tick("histogram")
-            if cut is None:
-                stats.stopped = "no edge may collapse (guards)"
-                break
-            phases.guard(c, cut)
-            clock.tick("guards")
-            won = phases.trim(c, cut, needed, phases.claim(c, cut, claim_rounds))
-            clock.tick("claims")
-            phases.perform(c, cut)
-            stats.passes += 1
-            stats.collapses.append(won)
-            # near the target, the candidates the guards refuse leave too few winners: offer more next pass
-            c.boost = 1 if won >= needed else min(c.boost * (2 if won else 4), 1 << 20)
-            clock.tick("apply")
-            if on_pass is not None:
-                on_pass(c.alive)
-            phases.compact(c)
-        out_pos, out_faces, out_quad, kept = phases.finish(c, carry)
-        clock.tick("compact")
+    clock = _Clock(backend_of(pos), stats if profile else None)
+    c, stats.vertex_classes = phases.start(
+        pos, faces, locked=locked, quadrics=quadrics, origin=origin, max_normal_turn_deg=max_normal_turn_deg
+    )
+    clock.tick("setup")
+    stats.stopped = "target reached"
+    while True:
+        needed = (c.alive - target) // 2
+        if needed <= 0 or c.alive <= target * (1 + stop_tolerance):
+            break
+        if stats.passes >= max_passes:
+            stats.stopped = "pass limit"
+            break
+        if stats.passes:
+            phases.update_adjacency(c)
+            clock.tick("incidence")
+        phases.price(c)
+        clock.tick("edge_costs")
+        cut = phases.rank(c, needed, candidate_fraction)
+        clock.tick("histogram")
+        if cut is None:
+            stats.stopped = "no edge may collapse (guards)"
+            break
+        phases.guard(c, cut)
+        clock.tick("guards")
+        won = phases.trim(c, cut, needed, phases.claim(c, cut, claim_rounds))
+        clock.tick("claims")
+        phases.perform(c, cut)
+        stats.passes += 1
+        stats.collapses.append(won)
+        # near the target, the candidates the guards refuse leave too few winners: offer more next pass
+        c.boost = 1 if won >= needed else min(c.boost * (2 if won else 4), 1 << 20)
+        clock.tick("apply")
+        if on_pass is not None:
+            on_pass(c.alive)
+        phases.compact(c)
+    out_pos, out_faces, out_quad, kept = phases.finish(c, carry)
+    clock.tick("compact")
     stats.output_faces = len(out_faces)
     stats.seconds = time.perf_counter() - t0
     return Decimated(out_pos, out_faces, out_quad, kept, c.origin, stats)

@@ -13,7 +13,9 @@ the mesh under decimation and the work arrays its passes reuse (``Collapsing``);
 8. ``compact``: the faces array drops its removed faces once few enough are alive.
 
 ``start`` builds the state (stars, vertex classes, quadrics, pinned vertices) and ``finish`` compacts the result.
-Every sync point is labelled.
+Every sync point is labelled. Written once over the backend interface (``engine.backend``): the Warp kernels and
+their OpenCL C twins are named in ``engine.decimation.kernel_specs``; the device mesh's stars, classes and
+compaction are ``engine.decimation.meshops``.
 """
 
 from __future__ import annotations
@@ -24,15 +26,12 @@ from typing import Any
 
 import numpy as np
 
-from engine.surface.devmesh import (
-    CLASS_NAMES,
-    Incidence,
-    bbox_centre,
-    compact_faces,
-    compact_vertices,
-    used_slots,
-    vertex_classes,
-)
+from engine.backend.base import VEC3F, Backend
+from engine.backend.select import backend_of
+from engine.decimation import kernel_specs as K
+from engine.decimation import meshops
+from engine.decimation.meshops import Stars
+from engine.surface.devmesh import CLASS_NAMES
 
 OVERSHOOT = 4  # near the target, this many candidates per collapse still needed (the surplus winners are trimmed)
 TRIMS = 4  # at most this many trims of a pass's surplus winners (each a hashed share of the last cost bin)
@@ -42,17 +41,19 @@ COMPACT_BELOW = 0.85  # the faces array is compacted when its live share falls b
 
 @dataclass
 class Collapsing:
-    """A device mesh under decimation (its own copies of ``pos`` and ``faces``; removed faces are ``(-1, -1, -1)``,
-    ``alive`` of them are not), its stars, vertex classes and quadrics about ``origin``, and the work arrays every
-    pass reuses (the per-slot arrays grow with the faces array: ``price``)."""
+    """A device mesh under decimation on backend ``be`` (its own copies of ``pos`` and ``faces``; removed faces are
+    ``(-1, -1, -1)``, ``alive`` of them are not), its stars, vertex classes and quadrics about ``origin`` (a kernel
+    argument: ``meshops.origin_arg``), and the work arrays every pass reuses (the per-slot arrays grow with the
+    faces array: ``price``)."""
 
+    be: Backend
     pos: Any
     faces: Any
-    inc: Incidence
+    inc: Stars
     state: Any
     quad: Any
     origin: Any
-    cos_max: Any  # the cosine of the largest turn of a face normal (float64)
+    cos_max: Any  # the cosine of the largest turn of a face normal (a float64 argument)
     alive: int
     hist: Any
     counter: Any
@@ -67,8 +68,8 @@ class Collapsing:
     boost: int = 1  # grows while passes fall short of what is needed (candidates refused by the guards)
 
     @property
-    def listed(self) -> tuple[Any, Any]:
-        return self.listing, self.n_listed
+    def listed(self) -> list[Any]:
+        return [self.listing, self.n_listed]
 
 
 @dataclass(frozen=True)
@@ -81,20 +82,17 @@ class Cut:
     most: int
 
 
-def vertex_quadrics(pos: Any, faces: Any, origin: Any = None) -> tuple[Incidence, Any, Any, Any]:
-    """What the collapses start from, for a device mesh without removed faces: the vertices' stars, their classes
-    (``devmesh.vertex_classes``), the local origin (``origin``, by default the bounding box's centre) and each
-    vertex's quadric (the sum of its faces' area-weighted plane quadrics, float64, about that origin)."""
-    import warp as wp
-
-    from engine.decimation.kernels import quadrics as kquad
-
-    inc = Incidence(len(pos)).build(faces, len(faces))
-    state = vertex_classes(faces, inc)
-    if origin is None:
-        origin = bbox_centre(pos)
-    quad = wp.empty(len(pos), dtype=kquad.quadric, device=pos.device)
-    wp.launch(kquad.vertex_quadrics, dim=len(pos), inputs=[pos, faces, *inc.inputs, origin, quad], device=pos.device)
+def vertex_quadrics(pos: Any, faces: Any, origin: Any = None) -> tuple[Stars, Any, Any, Any]:
+    """What the collapses start from, for a device mesh without removed faces (on its backend): the vertices'
+    stars, their classes (``meshops.vertex_classes``), the local origin (``origin``, by default the bounding box's
+    centre; returned as a kernel argument) and each vertex's quadric (the sum of its faces' area-weighted plane
+    quadrics, float64, about that origin)."""
+    be = backend_of(pos)
+    inc = Stars(be, len(pos)).build(faces, len(faces))
+    state = meshops.vertex_classes(be, faces, inc)
+    origin = meshops.origin_arg(be, meshops.bbox_centre(be, pos) if origin is None else origin)
+    quad = meshops.quadrics(be, len(pos))
+    be.launch(K.VERTEX_QUADRICS, len(pos), [pos, faces, *inc.inputs, origin, quad])
     return inc, state, origin, quad
 
 
@@ -102,20 +100,7 @@ def compact_carrying(pos: Any, faces: Any, quad: Any) -> tuple[Any, Any, Any, An
     """``compact_vertices`` that also carries the quadrics and says where each kept vertex was:
     ``(pos, faces, quad, kept)`` with ``kept[i]`` the input index of output vertex ``i`` (``faces`` is remapped in
     place)."""
-    import warp as wp
-
-    from engine.decimation.kernels import quadrics as kquad
-    from engine.surface.kernels import compaction as kcompact
-
-    with wp.ScopedDevice(pos.device):
-        count, slot, n_used = used_slots(pos, faces)
-        out = wp.empty(n_used, dtype=wp.vec3)
-        kept = wp.empty(n_used, dtype=wp.int32)
-        out_quad = wp.empty(n_used, dtype=kquad.quadric)
-        wp.launch(kcompact.scatter_vertices, dim=len(pos), inputs=[pos, count, slot, out])
-        wp.launch(kquad.scatter_kept, dim=len(pos), inputs=[count, slot, quad, kept, out_quad])
-        wp.launch(kcompact.remap_faces, dim=len(faces), inputs=[faces, slot])
-    return out, faces, out_quad, kept
+    return meshops.compact_carrying(backend_of(pos), pos, faces, quad)
 
 
 def _quantile(hist: np.ndarray, m: int) -> tuple[int, int, int]:
@@ -133,54 +118,48 @@ def _quantile(hist: np.ndarray, m: int) -> tuple[int, int, int]:
     return kbin, frac_bits, int(cum[k])
 
 
-def _winner_histogram(hist: Any, n: int, listed: tuple[Any, Any], cand: Any, key: Any) -> np.ndarray:
+def _winner_histogram(c: Collapsing, n: int) -> np.ndarray:
     """The pass's winners counted by cost bin (on the host)."""
-    import warp as wp
-
-    from engine.decimation.kernels import claims as kclaim
-
-    hist.zero_()
-    wp.launch(kclaim.winner_histogram, dim=n, inputs=[*listed, cand, key, hist])
-    return hist.numpy()  # type: ignore[no-any-return]
+    c.be.fill(c.hist, 0)
+    c.be.launch(K.WINNER_HISTOGRAM, n, [*c.listed, c.cand, c.key, c.hist])
+    return c.be.to_host(c.hist)  # sync point
 
 
 def start(
     pos: Any, faces: Any, *, locked: Any, quadrics: Any, origin: Any, max_normal_turn_deg: float
 ) -> tuple[Collapsing, dict[str, int]]:
-    """The state a decimation starts from (on the current device): copies of the mesh, its stars and vertex classes,
-    the quadrics (each vertex's faces' about ``origin``, or carried in as ``quadrics``), the vertices in ``locked``
-    pinned; and the count of each vertex class (a sync point)."""
-    import warp as wp
-
-    from engine.decimation.kernels import collapse as kcollapse
-
-    pos = wp.clone(pos)
-    faces = wp.clone(faces)
+    """The state a decimation starts from (on the mesh's backend): copies of the mesh, its stars and vertex
+    classes, the quadrics (each vertex's faces' about ``origin``, or carried in as ``quadrics``), the vertices in
+    ``locked`` pinned; and the count of each vertex class (a sync point)."""
+    be = backend_of(pos)
+    pos = meshops.clone(be, pos)
+    faces = meshops.clone(be, faces)
     nv = len(pos)
     if quadrics is None:
         inc, state, origin, quad = vertex_quadrics(pos, faces, origin)
     else:  # carried in: the error stays measured against the surface before the earlier collapses
-        inc = Incidence(nv).build(faces, len(faces))
-        state = vertex_classes(faces, inc)
-        origin = bbox_centre(pos) if origin is None else origin
-        quad = wp.clone(quadrics)
+        inc = Stars(be, nv).build(faces, len(faces))
+        state = meshops.vertex_classes(be, faces, inc)
+        origin = meshops.origin_arg(be, meshops.bbox_centre(be, pos) if origin is None else origin)
+        quad = meshops.clone(be, quadrics)
     if locked is not None:
-        wp.launch(kcollapse.lock_vertices, dim=nv, inputs=[locked, state])
-    classes = np.bincount(state.numpy(), minlength=4)  # sync point
+        be.launch(K.LOCK_VERTICES, nv, [locked, state])
+    classes = np.bincount(be.to_host(state), minlength=4)  # sync point
     c = Collapsing(
+        be=be,
         pos=pos,
         faces=faces,
         inc=inc,
         state=state,
         quad=quad,
         origin=origin,
-        cos_max=wp.float64(math.cos(math.radians(max_normal_turn_deg))),
+        cos_max=meshops.f64(be, math.cos(math.radians(max_normal_turn_deg))),
         alive=len(faces),
-        hist=wp.zeros(HIST_BINS, dtype=wp.int32),
-        counter=wp.zeros(1, dtype=wp.int32),
-        removed=wp.zeros(1, dtype=wp.int32),
-        n_listed=wp.zeros(1, dtype=wp.int32),
-        dirty=wp.ones(nv, dtype=wp.int32),
+        hist=be.zeros(HIST_BINS, np.int32),
+        counter=be.zeros(1, np.int32),
+        removed=be.zeros(1, np.int32),
+        n_listed=be.zeros(1, np.int32),
+        dirty=be.full(nv, 1, np.int32),
     )
     return c, {name: int(n) for name, n in zip(CLASS_NAMES, classes, strict=True)}
 
@@ -193,31 +172,23 @@ def update_adjacency(c: Collapsing) -> None:
 def price(c: Collapsing) -> None:
     """The cost code and new position of every edge whose ends are dirty (the per-slot arrays grown first where the
     faces array outgrew them)."""
-    import warp as wp
-
-    from engine.decimation.kernels import costs as kcost
-
-    slots = 3 * len(c.faces)
+    be, slots = c.be, 3 * len(c.faces)
     if c.key is None or len(c.key) < slots:
-        c.key = wp.empty(slots, dtype=wp.int32)
-        c.target_pos = wp.empty(slots, dtype=wp.vec3)
-        c.cand = wp.empty(slots, dtype=wp.int32)
-        c.checked = wp.empty(slots, dtype=wp.int32)
-        c.listing = wp.empty(slots, dtype=wp.int32)
+        c.key = be.empty(slots, np.int32)
+        c.target_pos = be.empty(slots, VEC3F)
+        c.cand = be.empty(slots, np.int32)
+        c.checked = be.empty(slots, np.int32)
+        c.listing = be.empty(slots, np.int32)
     inputs = [c.pos, c.faces, c.inc.count, c.state, c.quad, c.origin, c.dirty, c.key, c.target_pos, c.checked]
-    wp.launch(kcost.edge_costs, dim=slots, inputs=inputs)
+    be.launch(K.EDGE_COSTS, slots, inputs)
 
 
 def rank(c: Collapsing, needed: int, candidate_fraction: float) -> Cut | None:
     """The pass's cut: about ``candidate_fraction`` of the collapsible edges, cheapest first, but no more than
     ``OVERSHOOT`` (times the boost) per collapse still ``needed``; None where no edge may collapse."""
-    import warp as wp
-
-    from engine.decimation.kernels import costs as kcost
-
-    c.hist.zero_()
-    wp.launch(kcost.cost_histogram, dim=3 * len(c.faces), inputs=[c.key, c.hist])
-    h = c.hist.numpy()  # sync point: 256 KB
+    c.be.fill(c.hist, 0)
+    c.be.launch(K.COST_HISTOGRAM, 3 * len(c.faces), [c.key, c.hist])
+    h = c.be.to_host(c.hist)  # sync point: 256 KB
     n_valid = int(h.sum())
     if n_valid == 0:
         return None
@@ -227,79 +198,61 @@ def rank(c: Collapsing, needed: int, candidate_fraction: float) -> Cut | None:
 
 def guard(c: Collapsing, cut: Cut) -> None:
     """List the edges under the cut and run their guards (an edge refused drops out of the pass)."""
-    import warp as wp
-
-    from engine.decimation.kernels import costs as kcost
-    from engine.decimation.kernels import guards as kguard
-
-    bits = wp.int64(cut.frac_bits)
-    c.n_listed.zero_()
-    select = [c.key, cut.bin_below, bits, c.cand, c.listing, c.n_listed]
-    wp.launch(kcost.select_candidates, dim=3 * len(c.faces), inputs=select)
+    be = c.be
+    bits = meshops.i64(be, cut.frac_bits)
+    be.fill(c.n_listed, 0)
+    be.launch(K.SELECT_CANDIDATES, 3 * len(c.faces), [c.key, cut.bin_below, bits, c.cand, c.listing, c.n_listed])
     inputs = [*c.listed, c.cand, c.pos, c.faces, *c.inc.inputs, c.state, c.quad, c.origin, c.cos_max]
-    inputs += [cut.bin_below, bits]
-    wp.launch(kguard.check_candidates, dim=cut.most, inputs=inputs, outputs=[c.key, c.target_pos, c.checked])
+    be.launch(K.CHECK_CANDIDATES, cut.most, [*inputs, cut.bin_below, bits, c.key, c.target_pos, c.checked])
 
 
 def claim(c: Collapsing, cut: Cut, claim_rounds: int) -> int:
     """The candidates claim their stars in ``claim_rounds`` rounds; returns how many won (a sync point)."""
-    import warp as wp
-
-    from engine.decimation.kernels import claims as kclaim
-
-    claim = wp.full(len(c.faces), kclaim.CLAIM_FREE, dtype=wp.int64)
-    c.counter.zero_()
+    be = c.be
+    claim = be.full(len(c.faces), K.CLAIM_FREE, np.int64)
+    be.fill(c.counter, 0)
     star = [*c.listed, c.cand, c.key, c.faces, *c.inc.inputs, claim]
-    rounds = [  # recorded once, launched every round (packing the arguments cost more than the launch)
-        wp.launch(kclaim.claim_stars, dim=cut.most, inputs=star, record_cmd=True),
-        wp.launch(kclaim.settle_claims, dim=cut.most, inputs=[*star, c.counter], record_cmd=True),
-        wp.launch(
-            kclaim.take_stars, dim=cut.most, inputs=[*c.listed, c.cand, c.faces, *c.inc.inputs, claim], record_cmd=True
-        ),
-        wp.launch(kclaim.release_claims, dim=len(claim), inputs=[claim], record_cmd=True),
+    rounds = [  # packed once, launched every round (packing the arguments cost more than the launch)
+        meshops.recorded(be, K.CLAIM_STARS, cut.most, star),
+        meshops.recorded(be, K.SETTLE_CLAIMS, cut.most, [*star, c.counter]),
+        meshops.recorded(be, K.TAKE_STARS, cut.most, [*c.listed, c.cand, c.faces, *c.inc.inputs, claim]),
+        meshops.recorded(be, K.RELEASE_CLAIMS, len(c.faces), [claim]),
     ]
     for r in range(claim_rounds):  # (the last round's claims are made afresh next pass: not released)
-        for cmd in rounds if r < claim_rounds - 1 else rounds[:3]:
-            cmd.launch()
-    return int(c.counter.numpy()[0])  # sync point
+        for launch in rounds if r < claim_rounds - 1 else rounds[:3]:
+            launch()
+    return int(be.to_host(c.counter)[0])  # sync point
 
 
 def trim(c: Collapsing, cut: Cut, needed: int, won: int) -> int:
     """Keep no more winners than the collapses still ``needed``, cheapest first (up to ``TRIMS`` hashed shares of
     the last cost bin; if every winner went, the cheapest comes back); returns the winners left."""
-    import warp as wp
-
-    from engine.decimation.kernels import claims as kclaim
-
+    be = c.be
     for salt in range(TRIMS):
         if won <= needed:
             break
         if salt == 0:
-            h_won = _winner_histogram(c.hist, cut.most, c.listed, c.cand, c.key)
+            h_won = _winner_histogram(c, cut.most)
         kbin, frac_bits, _ = _quantile(h_won, needed)
-        inputs = [*c.listed, c.cand, c.key, kbin, wp.int64(frac_bits), salt]
-        wp.launch(kclaim.trim_winners, dim=cut.most, inputs=inputs)
-        h_won = _winner_histogram(c.hist, cut.most, c.listed, c.cand, c.key)
+        be.launch(K.TRIM_WINNERS, cut.most, [*c.listed, c.cand, c.key, kbin, meshops.i64(be, frac_bits), salt])
+        h_won = _winner_histogram(c, cut.most)
         won = int(h_won.sum())
         if won == 0:
-            best = wp.full(1, kclaim.CLAIM_FREE, dtype=wp.int64)
-            wp.launch(kclaim.cheapest_trimmed, dim=cut.most, inputs=[*c.listed, c.cand, c.key, best])
-            wp.launch(kclaim.restore_cheapest, dim=cut.most, inputs=[*c.listed, c.cand, c.key, best])
+            best = be.full(1, K.CLAIM_FREE, np.int64)
+            be.launch(K.CHEAPEST_TRIMMED, cut.most, [*c.listed, c.cand, c.key, best])
+            be.launch(K.RESTORE_CHEAPEST, cut.most, [*c.listed, c.cand, c.key, best])
             won = 1
     return won
 
 
 def perform(c: Collapsing, cut: Cut) -> int:
     """Collapse the winners; returns the faces removed (a sync point) and leaves dirty what they changed."""
-    import warp as wp
-
-    from engine.decimation.kernels import collapse as kcollapse
-
-    c.dirty.zero_()
-    c.removed.zero_()
+    be = c.be
+    be.fill(c.dirty, 0)
+    be.fill(c.removed, 0)
     inputs = [*c.listed, c.cand, c.target_pos, c.faces, *c.inc.inputs, c.state, c.quad, c.pos, c.removed, c.dirty]
-    wp.launch(kcollapse.apply_collapses, dim=cut.most, inputs=inputs)
-    n_removed = int(c.removed.numpy()[0])  # sync point
+    be.launch(K.APPLY_COLLAPSES, cut.most, inputs)
+    n_removed = int(be.to_host(c.removed)[0])  # sync point
     c.alive -= n_removed
     return n_removed
 
@@ -308,15 +261,15 @@ def compact(c: Collapsing) -> None:
     """Drop the removed faces once fewer than ``COMPACT_BELOW`` of the slots are alive (new slots: every edge is
     priced and checked again)."""
     if c.alive < len(c.faces) * COMPACT_BELOW:
-        c.faces = compact_faces(c.faces, c.alive)
-        c.dirty.fill_(1)
+        c.faces = meshops.compact_faces(c.be, c.faces, c.alive)
+        c.be.fill(c.dirty, 1)
 
 
 def finish(c: Collapsing, carry: bool) -> tuple[Any, Any, Any, Any]:
     """The compact result: ``(pos, faces, quad, kept)``, with the kept vertices' quadrics and input indices where
     ``carry`` (else None)."""
-    faces = compact_faces(c.faces, c.alive) if c.alive < len(c.faces) else c.faces
+    faces = meshops.compact_faces(c.be, c.faces, c.alive) if c.alive < len(c.faces) else c.faces
     if carry:
-        return compact_carrying(c.pos, faces, c.quad)
-    out_pos, out_faces = compact_vertices(c.pos, faces)
+        return meshops.compact_carrying(c.be, c.pos, faces, c.quad)
+    out_pos, out_faces = meshops.compact_vertices(c.be, c.pos, faces)
     return out_pos, out_faces, None, None

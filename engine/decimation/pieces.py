@@ -1,13 +1,16 @@
 """Decimation of a flagged piece of a device mesh beside the rest of it (a seam across slab groups' borders, or
-a z tile): the piece is split off, pinned where it meets the rest, decimated and joined back, all on the device,
-where that fits the memory budget (``decimate_piece_device``); and the cost model it is planned with (the mesh and
-its joined copy, 12 B per vertex and per face, beside ``Costs.piece`` per face of the piece).
+a z tile): the piece is split off, pinned where it meets the rest, decimated and joined back, all on the device
+(the mesh's backend), where that fits the memory budget (``decimate_piece_device``); and the cost model it is
+planned with (the mesh and its joined copy, 12 B per vertex and per face, beside ``Costs.piece`` per face of the
+piece).
 """
 
 from __future__ import annotations
 
 import time
 from typing import Any
+
+import numpy as np
 
 from engine.budget import Budget, Costs
 
@@ -43,56 +46,51 @@ def decimate_piece_device(
     to ``goal_of(flagged faces)`` (quadrics from the current faces; ``options`` for ``decimate_carrying``) and
     joined back. ``((pos, faces), info)``, or
     ``(None, why)`` where it does not fit. The caller's ``pos`` and ``faces`` may be freed once it returns."""
-    import warp as wp
-
-    from engine.decimation.kernels import tiles as ktile
+    from engine.backend.base import VEC3F, VEC3I
+    from engine.backend.select import backend_of
+    from engine.decimation import kernel_specs as K
+    from engine.decimation import meshops
     from engine.decimation.passes import decimate_carrying
-    from engine.surface.devmesh import compact_vertices, exclusive_scan
-    from engine.surface.kernels import compaction as kcompact
 
     t0 = time.perf_counter()
+    be = backend_of(pos)
     n_faces, n_verts = len(faces), len(pos)
-    with wp.ScopedDevice(pos.device):
-        flag = wp.empty(n_faces, dtype=wp.int32)
-        flags(flag)
-        slot, n_seam = exclusive_scan(flag)
-        need = piece_need(n_verts, n_faces, n_seam, budget.costs)
-        if n_seam == 0 or not budget.fits(need):
-            return None, {"seam_faces": n_seam, "faces": n_faces, "need_bytes": need, "budget_bytes": budget.bytes}
-        in_seam = wp.zeros(n_verts, dtype=wp.int32)
-        in_rest = wp.zeros(n_verts, dtype=wp.int32)
-        wp.launch(ktile.mark_used, dim=n_faces, inputs=[faces, flag, 1, in_seam])
-        wp.launch(ktile.mark_used, dim=n_faces, inputs=[faces, flag, 0, in_rest])
-        vslot, n_local = exclusive_scan(in_seam)
-        seam = wp.empty(n_seam, dtype=wp.vec3i)
-        rest = wp.empty(n_faces - n_seam, dtype=wp.vec3i)
-        wp.launch(ktile.split_faces, dim=n_faces, inputs=[faces, flag, slot, vslot, seam, rest])
-        del flag, slot
-        vids = wp.empty(n_local, dtype=wp.int32)
-        local_pos = wp.empty(n_local, dtype=wp.vec3)
-        lock = wp.empty(n_local, dtype=wp.int32)
-        wp.launch(ktile.gather_seam, dim=n_verts, inputs=[pos, in_seam, in_rest, vslot, vids, local_pos, lock])
-        del in_seam, in_rest, vslot
-        res = decimate_carrying(local_pos, seam, goal_of(n_seam), locked=lock, **options)
-        del local_pos, seam
-        n_out = len(res.pos)
-        new = wp.empty(n_out, dtype=wp.int32)
-        wp.launch(ktile.new_vertex_flags, dim=n_out, inputs=[res.kept, lock, new])
-        new_slot, n_new = exclusive_scan(new)
-        out_id = wp.empty(n_out, dtype=wp.int32)
-        joined_pos = wp.empty(n_verts + n_new, dtype=wp.vec3)
-        wp.copy(joined_pos, pos, count=n_verts)
-        new_pos = wp.empty(max(n_new, 1), dtype=wp.vec3)
-        join = [res.pos, res.kept, lock, vids, new_slot, n_verts, out_id, new_pos]
-        wp.launch(ktile.join_seam, dim=n_out, inputs=join)
-        if n_new:
-            wp.copy(joined_pos, new_pos, dest_offset=n_verts, count=n_new)
-        wp.launch(kcompact.remap_faces, dim=len(res.faces), inputs=[res.faces, out_id])
-        joined = wp.empty(len(rest) + len(res.faces), dtype=wp.vec3i)
-        wp.copy(joined, rest, count=len(rest))
-        wp.copy(joined, res.faces, dest_offset=len(rest), count=len(res.faces))
-        del rest, pos, faces
-        out_pos, out_faces = compact_vertices(joined_pos, joined)  # drops the seam's replaced vertices
+    flag, slot = be.empty(n_faces, np.int32), be.empty(n_faces, np.int32)
+    flags(flag)
+    n_seam = be.exclusive_scan(flag, slot)  # sync point
+    need = piece_need(n_verts, n_faces, n_seam, budget.costs)
+    if n_seam == 0 or not budget.fits(need):
+        return None, {"seam_faces": n_seam, "faces": n_faces, "need_bytes": need, "budget_bytes": budget.bytes}
+    in_seam, in_rest = be.zeros(n_verts, np.int32), be.zeros(n_verts, np.int32)
+    be.launch(K.MARK_USED, n_faces, [faces, flag, 1, in_seam])
+    be.launch(K.MARK_USED, n_faces, [faces, flag, 0, in_rest])
+    vslot = be.empty(n_verts, np.int32)
+    n_local = be.exclusive_scan(in_seam, vslot)  # sync point
+    seam, rest = be.empty(n_seam, VEC3I), be.empty(n_faces - n_seam, VEC3I)
+    be.launch(K.SPLIT_FACES, n_faces, [faces, flag, slot, vslot, seam, rest])
+    del flag, slot
+    vids, local_pos, lock = be.empty(n_local, np.int32), be.empty(n_local, VEC3F), be.empty(n_local, np.int32)
+    be.launch(K.GATHER_SEAM, n_verts, [pos, in_seam, in_rest, vslot, vids, local_pos, lock])
+    del in_seam, in_rest, vslot
+    res = decimate_carrying(local_pos, seam, goal_of(n_seam), locked=lock, **options)
+    del local_pos, seam
+    n_out = len(res.pos)
+    new, new_slot = be.empty(n_out, np.int32), be.empty(n_out, np.int32)
+    be.launch(K.NEW_VERTEX_FLAGS, n_out, [res.kept, lock, new])
+    n_new = be.exclusive_scan(new, new_slot)  # sync point
+    out_id = be.empty(n_out, np.int32)
+    joined_pos = be.empty(n_verts + n_new, VEC3F)
+    be.copy(joined_pos, pos, count=n_verts)
+    new_pos = be.empty(max(n_new, 1), VEC3F)
+    be.launch(K.JOIN_SEAM, n_out, [res.pos, res.kept, lock, vids, new_slot, n_verts, out_id, new_pos])
+    if n_new:
+        be.copy(joined_pos, new_pos, dst_offset=n_verts, count=n_new)
+    be.launch(K.REMAP_FACES, len(res.faces), [res.faces, out_id])
+    joined = be.empty(len(rest) + len(res.faces), VEC3I)
+    be.copy(joined, rest, count=len(rest))
+    be.copy(joined, res.faces, dst_offset=len(rest), count=len(res.faces))
+    del rest, pos, faces
+    out_pos, out_faces = meshops.compact_vertices(be, joined_pos, joined)  # drops the seam's replaced vertices
     pinned = res.stats.vertex_classes.get("locked")
     info = {"faces_in": n_faces, "seam_faces_in": n_seam, "seam_faces_out": len(res.faces), "pinned": pinned}
     info.update(faces_out=len(out_faces), passes=res.stats.passes, seconds=time.perf_counter() - t0, on="device")

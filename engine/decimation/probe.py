@@ -21,41 +21,32 @@ def price_edges(
     device: Any = "cpu",
 ) -> tuple[dict[tuple[int, int], int], int]:
     """One pricing pass of the kernels on a small mesh: ``({(a, b): cost code}, NO_KEY)`` for every edge (a < b),
-    the code being ``NO_KEY`` where a guard refuses the collapse. For tests and diagnosis."""
-    import warp as wp
-
-    from engine.decimation.kernels import costs as kcost
-    from engine.decimation.kernels import guards as kguard
-    from engine.device import resolve_device
+    the code being ``NO_KEY`` where a guard refuses the collapse; on ``device``'s backend (a Warp device or spec,
+    ``"opencl[:N]"``, or a ``Backend``). For tests and diagnosis."""
+    from engine.backend.base import VEC3F, VEC3I
+    from engine.backend.select import get_backend
+    from engine.decimation import kernel_specs as K
+    from engine.decimation import meshops
 
     verts, faces = validate_mesh(verts, faces)
-    with wp.ScopedDevice(resolve_device(device)):
-        pos = wp.array(np.asarray(verts, np.float32), dtype=wp.vec3)
-        f = wp.array(np.asarray(faces, np.int32), dtype=wp.vec3i)
-        inc, state, origin, quad = vertex_quadrics(pos, f)
-        key = wp.empty(3 * len(faces), dtype=wp.int32)
-        target = wp.empty(3 * len(faces), dtype=wp.vec3)
-        cos_max = wp.float64(math.cos(math.radians(max_normal_turn_deg)))
-        dirty = wp.ones(len(verts), dtype=wp.int32)
-        checked = wp.empty(len(key), dtype=wp.int32)
-        cand = wp.empty(len(key), dtype=wp.int32)
-        wp.launch(
-            kcost.edge_costs, dim=len(key), inputs=[pos, f, inc.count, state, quad, origin, dirty, key, target, checked]
-        )
-        top = HIST_BINS  # every priced edge competes, so every one is checked
-        listing = wp.empty(len(key), dtype=wp.int32)
-        n_listed = wp.zeros(1, dtype=wp.int32)
-        wp.launch(kcost.select_candidates, dim=len(key), inputs=[key, top, wp.int64(0), cand, listing, n_listed])
-        wp.launch(
-            kguard.check_candidates,
-            dim=len(key),
-            inputs=[listing, n_listed, cand, pos, f, *inc.inputs, state, quad, origin, cos_max, top, wp.int64(0)],
-            outputs=[key, target, checked],
-        )
-        codes = key.numpy()
+    be = get_backend(device)
+    pos = be.from_host(np.asarray(verts, np.float32), VEC3F)
+    f = be.from_host(np.asarray(faces, np.int32), VEC3I)
+    inc, state, origin, quad = vertex_quadrics(pos, f)
+    n = 3 * len(faces)
+    key, target = be.empty(n, np.int32), be.empty(n, VEC3F)
+    checked, cand, listing = be.empty(n, np.int32), be.empty(n, np.int32), be.empty(n, np.int32)
+    cos_max = meshops.f64(be, math.cos(math.radians(max_normal_turn_deg)))
+    dirty, n_listed = be.full(len(verts), 1, np.int32), be.zeros(1, np.int32)
+    be.launch(K.EDGE_COSTS, n, [pos, f, inc.count, state, quad, origin, dirty, key, target, checked])
+    top, zero = HIST_BINS, meshops.i64(be, 0)  # every priced edge competes, so every one is checked
+    be.launch(K.SELECT_CANDIDATES, n, [key, top, zero, cand, listing, n_listed])
+    guards = [listing, n_listed, cand, pos, f, *inc.inputs, state, quad, origin, cos_max, top, zero]
+    be.launch(K.CHECK_CANDIDATES, n, [*guards, key, target, checked])
+    codes = be.to_host(key)  # sync point
     out: dict[tuple[int, int], int] = {}
     for h, c in enumerate(codes):
         a, b = int(faces[h // 3][h % 3]), int(faces[h // 3][(h % 3 + 1) % 3])
         e = (min(a, b), max(a, b))
-        out[e] = min(out.get(e, int(kcost.NO_KEY)), int(c))
-    return out, int(kcost.NO_KEY)
+        out[e] = min(out.get(e, K.NO_KEY), int(c))
+    return out, K.NO_KEY

@@ -56,15 +56,15 @@ def seam_pass_device(
     are decimated (quadrics from the current faces), pinned where they meet the rest, down to the mesh's ``target``
     (or to ``keep`` of the seam's faces). ``((pos, faces), info)``, or ``(None, why)`` where it does not fit (or
     where it would take more borders than ``Budget.seam_batch_borders``)."""
-    import warp as wp
+    from engine.backend.select import backend_of
+    from engine.decimation import kernel_specs as K
 
-    from engine.decimation.kernels import tiles as ktile
-
+    be = backend_of(pos)
     n_faces = len(faces)
 
     def flags(flag: Any) -> None:
-        borders = wp.array(np.asarray(borders_z, np.float32), dtype=wp.float32)
-        wp.launch(ktile.seam_flags, dim=n_faces, inputs=[pos, faces, borders, float(width_mm), flag])
+        borders = be.from_host(np.asarray(borders_z, np.float32))
+        be.launch(K.SEAM_FLAGS, n_faces, [pos, faces, borders, len(borders_z), float(width_mm), flag])
 
     def goal(n_seam: int) -> int:
         return max(n_seam - (n_faces - target) if keep is None else round(keep * n_seam), 1)

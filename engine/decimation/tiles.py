@@ -24,7 +24,11 @@ from typing import Any
 
 import numpy as np
 
+from engine.backend.base import VEC3F, VEC3I
+from engine.backend.select import backend_of, get_backend
 from engine.budget import Budget, BudgetSpec
+from engine.decimation import kernel_specs as K
+from engine.decimation import meshops
 from engine.decimation.pieces import decimate_piece_device, piece_room
 
 PIECE_TOLERANCE = 0.01  # a group or tile stops this close to its share (the last pass across them is exact)
@@ -46,26 +50,28 @@ class HostMesh:
 
 def to_host(pos: Any, faces: Any) -> HostMesh:
     """A device mesh on the host, without quadrics yet (the tiles compute them from their faces)."""
-    p = pos.numpy().reshape(-1, 3).astype(np.float32)
+    be = backend_of(pos)
+    p = be.to_host(pos).reshape(-1, 3).astype(np.float32)
     lo, hi = (p.min(axis=0), p.max(axis=0)) if len(p) else (np.zeros(3), np.zeros(3))
     origin = 0.5 * (lo.astype(np.float64) + hi.astype(np.float64))
-    return HostMesh(p, faces.numpy().reshape(-1, 3).astype(np.int32), np.zeros((0, 10)), origin)
+    return HostMesh(p, be.to_host(faces).reshape(-1, 3).astype(np.int32), np.zeros((0, 10)), origin)
 
 
 def decimate_within(
     pos: Any, faces: Any, target: int, budget: BudgetSpec, dev: Any, **kwargs: Any
 ) -> tuple[Any, Any, dict[str, Any]]:
     """``decimate_device`` on ``dev`` within ``budget`` of its memory (a ``Budget``, or bytes as ``Budget.of``
-    reads them): ``(pos, faces, info)``, arrays on ``dev`` (a mesh elsewhere, e.g. on the host, is taken there or
-    tiled from where it is)."""
+    reads them): ``(pos, faces, info)``, arrays on ``dev`` (a Warp device or spec, ``"opencl[:N]"`` or an
+    ``engine.backend.Backend``; a mesh elsewhere, e.g. on the host, is taken there or tiled from where it is)."""
     from engine.decimation.passes import decimate_device
     from engine.surface.devmesh import on_device
 
     budget = Budget.of(budget)
+    dev = get_backend(dev)
     if budget.fits_decimation(len(faces)):
         p, f, st = decimate_device(*on_device(dev, pos, faces), target, **kwargs)
         return p, f, {"tiled": False, **st.to_dict()}
-    if pos.device == dev and budget.limited:  # tiled rounds without leaving the device, where tiles fit beside it
+    if backend_of(pos) is dev and budget.limited:  # tiled rounds without leaving the device, where tiles fit beside it
         mesh = [pos, faces]
         del pos, faces
         done, why = tiled_rounds_device(mesh, target, budget, **kwargs)
@@ -81,26 +87,21 @@ def finish_host(
     mesh: HostMesh, target: int, budget: Budget, dev: Any, **kwargs: Any
 ) -> tuple[Any, Any, dict[str, Any]]:
     """Decimate a host mesh to ``target`` faces within ``budget`` (tiled rounds, then one pass on the device once
-    the mesh fits); the result is on the device."""
-    import warp as wp
-
-    from engine.decimation.kernels.quadrics import quadric
-
+    the mesh fits); the result is on the device ``dev`` (as for ``decimate_within``)."""
+    be = get_backend(dev)
     t0 = time.perf_counter()
     rounds: list[dict[str, Any]] = []
     shift = 0.5
     while _another_round(len(mesh.faces), target, budget, rounds):
         before = len(mesh.faces)
-        mesh, info = tiled_round(mesh, target, budget, dev, shift, **kwargs)
+        mesh, info = tiled_round(mesh, target, budget, be, shift, **kwargs)
         rounds.append(info)
         shift = 0.5 - shift
         if len(mesh.faces) > before * (1 - MIN_PROGRESS):
             break
-    with wp.ScopedDevice(dev):
-        pos = wp.array(mesh.pos, dtype=wp.vec3)
-        faces = wp.array(mesh.faces, dtype=wp.vec3i)
-        last = len(mesh.quad) and len(mesh.faces) > target and budget.fits_decimation(len(mesh.faces))
-        quad = wp.array(mesh.quad, dtype=quadric) if last else None
+    pos, faces = be.from_host(mesh.pos, VEC3F), be.from_host(mesh.faces, VEC3I)
+    last = len(mesh.quad) and len(mesh.faces) > target and budget.fits_decimation(len(mesh.faces))
+    quad = meshops.quadrics_from_host(be, mesh.quad) if last else None
     return final_pass(pos, faces, quad, mesh.origin, target, budget, {"tiled": True, "rounds": rounds}, t0)
 
 
@@ -108,15 +109,12 @@ def final_pass(
     pos: Any, faces: Any, quad: Any, origin: np.ndarray, target: int, budget: Budget, info: dict, t0: float
 ) -> tuple[Any, Any, dict[str, Any]]:
     """The last pass on the device across every border, when the mesh fits (quadrics carried, if any)."""
-    import warp as wp
-
     from engine.decimation.passes import decimate_carrying
 
-    with wp.ScopedDevice(pos.device):
-        if len(faces) > target and budget.fits_decimation(len(faces)):
-            res = decimate_carrying(pos, faces, target, quadrics=quad, origin=wp.vec3d(*origin), carry=False)
-            pos, faces = res.pos, res.faces
-            info["final_pass"] = res.stats.to_dict()
+    if len(faces) > target and budget.fits_decimation(len(faces)):
+        res = decimate_carrying(pos, faces, target, quadrics=quad, origin=origin, carry=False)
+        pos, faces = res.pos, res.faces
+        info["final_pass"] = res.stats.to_dict()
     info.update(output_faces=len(faces), seconds=time.perf_counter() - t0)
     return pos, faces, info
 
@@ -159,11 +157,9 @@ def decimate_tiles(
 ) -> tuple[HostMesh, dict[str, Any]]:
     """Decimate the tiles named in ``goals`` (tile id -> faces to reach) on the device, each with the vertices it
     shares with another tile pinned and its quadrics carried; the other tiles' faces are kept as they are."""
-    import warp as wp
-
-    from engine.decimation.kernels.quadrics import quadric
     from engine.decimation.passes import decimate_carrying
 
+    be = get_backend(dev)
     t0 = time.perf_counter()
     n_faces, n_verts = len(mesh.faces), len(mesh.pos)
     tile = tile.astype(np.int16)
@@ -193,18 +189,17 @@ def decimate_tiles(
         lut[vids] = np.arange(len(vids), dtype=np.int32)
         pinned = shared[vids]
         goal = goals[t]
-        with wp.ScopedDevice(dev):
-            res = decimate_carrying(
-                wp.array(mesh.pos[vids], dtype=wp.vec3),
-                wp.array(lut[tf], dtype=wp.vec3i),
-                goal,
-                locked=wp.array(pinned.astype(np.int32), dtype=wp.int32),
-                quadrics=wp.array(quad[vids], dtype=quadric) if carried else None,
-                origin=wp.vec3d(*mesh.origin),
-                **{"stop_tolerance": PIECE_TOLERANCE, **kwargs},
-            )
-            out_pos, out_faces = res.pos.numpy().reshape(-1, 3), res.faces.numpy().reshape(-1, 3)  # sync point
-            out_quad, kept = res.quad.numpy().reshape(-1, 10), res.kept.numpy()
+        res = decimate_carrying(
+            be.from_host(mesh.pos[vids], VEC3F),
+            be.from_host(lut[tf], VEC3I),
+            goal,
+            locked=be.from_host(pinned.astype(np.int32)),
+            quadrics=meshops.quadrics_from_host(be, quad[vids]) if carried else None,
+            origin=mesh.origin,
+            **{"stop_tolerance": PIECE_TOLERANCE, **kwargs},
+        )
+        out_pos, out_faces = be.to_host(res.pos).reshape(-1, 3), be.to_host(res.faces).reshape(-1, 3)  # sync point
+        out_quad, kept = be.to_host(res.quad).reshape(-1, 10), be.to_host(res.kept)
         times["decimate"] += res.stats.seconds
         keep_id = vids[kept]
         was_pinned = pinned[kept]
@@ -245,13 +240,11 @@ def tiled_rounds_device(
     with its borders pinned, and the next round's cuts fall half a tile further; then, once the mesh fits, one pass
     takes it to ``target``. The tiles start from the quadrics of their current faces (the host rounds carry them).
     ``(None, why)`` with the mesh left in ``mesh`` where not even a small tile fits beside it."""
-    import warp as wp
-
-    from engine.decimation.kernels import tiles as ktile
     from engine.decimation.passes import decimate_device
 
     t0 = time.perf_counter()
     pos, faces = mesh
+    be = backend_of(pos)
     rounds: list[dict[str, Any]] = []
     shift = 0.5
     while _another_round(len(faces), target, budget, rounds):
@@ -262,10 +255,9 @@ def tiled_rounds_device(
             return None, {"tile_faces_room": cap, "faces": n_faces, "budget_bytes": budget.bytes}
         n_tiles = max(2, -(-n_faces // max(cap * 9 // 10, 1)))
         stride = max(n_faces // SAMPLE_FACES, 1)
-        with wp.ScopedDevice(pos.device):
-            pts = wp.empty(n_faces // stride, dtype=wp.vec3)
-            wp.launch(ktile.face_sample, dim=len(pts), inputs=[pos, faces, stride, pts])
-            pts_np = pts.numpy()
+        pts = be.empty(n_faces // stride, VEC3F)
+        be.launch(K.FACE_SAMPLE, len(pts), [pos, faces, stride, pts])
+        pts_np = be.to_host(pts)
         axis = int(np.argmax(np.ptp(pts_np, axis=0)))  # the tiles cut the longest side (a plate: not across it)
         sample = np.sort(pts_np[:, axis])
         qs = (np.arange(1, n_tiles + 1) - shift) / n_tiles if shift else np.arange(1, n_tiles) / n_tiles
@@ -277,7 +269,7 @@ def tiled_rounds_device(
             zr = (float(z0), float(z1))
 
             def flags(flag: Any, p: Any = pos, f: Any = faces, zr: tuple[float, float] = zr, ax: int = axis) -> None:
-                wp.launch(ktile.range_flags, dim=len(f), inputs=[p, f, ax, *zr, flag])
+                be.launch(K.RANGE_FLAGS, len(f), [p, f, ax, *zr, flag])
 
             def goal(n_tile: int, n: int = n_faces) -> int:
                 return max(round(n_tile * target / n), 1)

@@ -8,6 +8,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from engine.backend.base import Backend
+from engine.backend.select import backend_of, get_backend
 from engine.budget import Budget, BudgetSpec
 
 if TYPE_CHECKING:
@@ -44,6 +46,16 @@ def _stalled(stats: Any, excess: int) -> bool:
     return 2 * sum(tail) * VIEW_MAX_PASSES < excess * max(len(tail), 1)
 
 
+def _backend(device: Any, arr: Any) -> Backend:
+    """The backend of ``device`` (a Warp device or spec, ``"opencl[:N]"`` or a ``Backend``), or where ``arr`` is."""
+    return backend_of(arr) if device is None else get_backend(device)
+
+
+def _name(be: Backend) -> str:
+    """A device's name in the report (a Warp device's own name, as before the backends)."""
+    return str(be.device) if be.kind == "warp" else be.label  # type: ignore[attr-defined]
+
+
 def _decimate(pos: Any, faces: Any, max_triangles: int, room: Budget, device: Any = None) -> tuple[Any, Any, Any]:
     """``decimate_device`` for a viewing copy on ``device`` (default: where the mesh is; a host mesh is taken there),
     tiled (``engine.decimation.tiles``) where it would not fit ``room``."""
@@ -51,10 +63,10 @@ def _decimate(pos: Any, faces: Any, max_triangles: int, room: Budget, device: An
     from engine.decimation.tiles import decimate_within
     from engine.surface.devmesh import on_device
 
-    dev = pos.device if device is None else device
+    be = _backend(device, pos)
     if room.fits_decimation(len(faces)):
-        return decimate_device(*on_device(dev, pos, faces), max_triangles, max_passes=VIEW_MAX_PASSES)
-    pos, faces, _ = decimate_within(pos, faces, max_triangles, room, dev, max_passes=VIEW_MAX_PASSES)
+        return decimate_device(*on_device(be, pos, faces), max_triangles, max_passes=VIEW_MAX_PASSES)
+    pos, faces, _ = decimate_within(pos, faces, max_triangles, room, be, max_passes=VIEW_MAX_PASSES)
     return pos, faces, DecimationStats(output_faces=len(faces), passes=0, stopped="tiled (memory budget)")
 
 
@@ -72,11 +84,12 @@ def _take_to(pos: Any, faces: Any, max_triangles: int, room: Budget, device: Any
     in tiles on the device (``engine.decimation.tiles``, every guard kept, no piece dropped) to what fits."""
     from engine.surface.devmesh import on_device
 
-    if _prepares_within(len(faces), room, pos.device != device):
-        return (*on_device(device, pos, faces), {"device": str(device), "faces": len(faces)})
+    be = _backend(device, pos)
+    if _prepares_within(len(faces), room, backend_of(pos) is not be):
+        return (*on_device(be, pos, faces), {"device": _name(be), "faces": len(faces)})
     n_in = len(faces)
-    pos, faces, tiled = _decimated_to_fit(pos, faces, room.costs.decimate, max_triangles, room, device)
-    return pos, faces, {"device": str(device), "faces": len(faces), "tiled_from_faces": n_in, "tiled": tiled}
+    pos, faces, tiled = _decimated_to_fit(pos, faces, room.costs.decimate, max_triangles, room, be)
+    return pos, faces, {"device": _name(be), "faces": len(faces), "tiled_from_faces": n_in, "tiled": tiled}
 
 
 def _decimated_to_fit(
@@ -88,7 +101,8 @@ def _decimated_to_fit(
     from engine.decimation.tiles import decimate_within
 
     fitting = max(room.share(1) // per_face, max_triangles)
-    pos, faces, info = decimate_within(pos, faces, fitting, room, device, max_passes=VIEW_MAX_PASSES)
+    be = _backend(device, pos)
+    pos, faces, info = decimate_within(pos, faces, fitting, room, be, max_passes=VIEW_MAX_PASSES)
     return pos, faces, bool(info.get("tiled"))
 
 
@@ -111,9 +125,9 @@ def _make_copy(
     passes = dropped = 0
     keep: int | None = None
     summary: ExportInfo = {"topology_preserved": True}
-    moving = device is not None and pos.device != device  # e.g. a print model laid out on the host, past the budget
+    moving = device is not None and backend_of(pos) is not get_backend(device)  # e.g. a model laid out on the host
     if moving or not _prepares_within(len(faces), room, moving):
-        pos, faces, summary["taken_to"] = _take_to(pos, faces, max_triangles, room, device or pos.device)
+        pos, faces, summary["taken_to"] = _take_to(pos, faces, max_triangles, room, device)
 
     def drop(n: int) -> None:
         nonlocal pos, faces, dropped, pieces
@@ -156,7 +170,7 @@ def _make_copy(
     if len(faces) > max_triangles:  # pieces of high genus: this viewing copy may close tunnels to meet the budget
         if not room.fits(len(faces) * room.costs.cluster):  # first decimated to what fits
             n_in = len(faces)
-            pos, faces, _ = _decimated_to_fit(pos, faces, room.costs.cluster, max_triangles, room, pos.device)
+            pos, faces, _ = _decimated_to_fit(pos, faces, room.costs.cluster, max_triangles, room, None)
             summary["tiled_for_clustering"] = {"faces_in": n_in, "faces": len(faces)}
         clustering = Clustering(pos, faces)
         pos, faces, summary["clustered"] = clustering.copy(max_triangles)

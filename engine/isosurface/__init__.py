@@ -1,7 +1,9 @@
 """The paper's step 2, Marching Cubes 33: the host wrapper (``mc33``: ``marching_cubes_33`` on numpy,
 ``extract_isosurface`` on a device volume) over the slab pass (``slabs``: classify blocks -> count -> scan -> emit,
-kernels in ``engine.isosurface.kernels``, tables in ``mc33_tables`` with their generator ``_make_mc33_tables``
-beside them), and the volume stages streamed within a memory budget (``stream``, fed by ``feed``).
+kernels in ``engine.isosurface.kernels``: Warp's ``mc33.py`` and OpenCL's ``mc33.cl``, named in ``kernel_specs``
+and launched through ``engine.backend``; tables in ``mc33_tables`` with their generator ``_make_mc33_tables``
+beside them, uploaded to either backend from that one source), and the volume stages streamed within a memory
+budget (``stream``, fed by ``feed``).
 
 Public names load lazily (``engine._lazy``): ``from engine.isosurface import marching_cubes_33``.
 """

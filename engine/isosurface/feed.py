@@ -26,10 +26,14 @@ READERS = 4  # by this many threads (one copied 5 GB/s on the H100 host: slower 
 
 
 def upload_planes(volume: np.ndarray, zlo: int, zhi: int, device: Any) -> Any:
-    """Planes ``zlo..zhi`` of a host volume as a new array on ``device``, copied directly (pageable)."""
+    """Planes ``zlo..zhi`` of a host volume as a new array on ``device`` (a Warp device, or a backend of
+    ``engine.backend``), copied directly (pageable)."""
+    planes = np.ascontiguousarray(volume[zlo : zhi + 1])
+    if hasattr(device, "from_host"):  # a backend (OpenCL: its queue does the copy)
+        return device.from_host(planes)
     import warp as wp
 
-    return wp.array(np.ascontiguousarray(volume[zlo : zhi + 1]), device=device)
+    return wp.array(planes, device=device)
 
 
 class DirectFeed:
@@ -183,10 +187,13 @@ def plane_feed(
     ``BONEMESH_PINNED_MAX``), or ``ring_bytes`` exactly on any device (``Budget.feed_ring_bytes``: for tests), and
     grown when a larger one is needed; where the ring is held by another job, would hold fewer than two planes or
     cannot be locked, a ``DirectFeed``."""
+    volume = np.ascontiguousarray(volume)
+    if getattr(device, "kind", None) == "opencl":  # the pinned ring is Warp's: an OpenCL queue copies directly
+        yield DirectFeed(volume, device)
+        return
     import warp as wp
 
-    dev = wp.get_device(device)
-    volume = np.ascontiguousarray(volume)
+    dev = wp.get_device(getattr(device, "device", device))
     plane_bytes = volume[0].nbytes if volume.size else 0
     if ring_bytes is None:
         ring_bytes = min(max(FEED_MIN_BYTES, RING_SLABS * slab_bytes), FEED_MAX_BYTES, pinned_max(), volume.nbytes)

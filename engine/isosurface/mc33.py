@@ -17,12 +17,12 @@ array sits half a voxel outside it.
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from engine.backend.base import VEC3F, VEC3I, Backend
 from engine.isosurface.slabs import SlabPlan, join_parts, run_slabs
 from engine.isosurface.stats import IsosurfaceStats, Timer
 
@@ -55,18 +55,8 @@ def _validate(volume: Any, level: float, spacing: Any) -> tuple[np.ndarray, floa
     return np.ascontiguousarray(volume), float(np.float32(lvl)), (sp[0], sp[1], sp[2])
 
 
-def _default_budget(dev: Any) -> int:
-    if dev.is_cuda:
-        return int(dev.free_memory * 0.5)
-    try:
-        avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
-        avail = 8 << 30
-    return int(avail * 0.25)
-
-
-def _budget(max_device_bytes: int | None, dev: Any) -> int:
-    budget = int(max_device_bytes) if max_device_bytes is not None else _default_budget(dev)
+def _budget(max_device_bytes: int | None, be: Backend) -> int:
+    budget = int(max_device_bytes) if max_device_bytes is not None else be.default_budget()
     if budget <= 0:
         raise ValueError(f"Expected a positive max_device_bytes, got {max_device_bytes!r}")
     return budget
@@ -77,7 +67,7 @@ def marching_cubes_33(
     level: float,
     *,
     spacing: tuple[float, float, float] = (1.0, 1.0, 1.0),
-    device: str = "auto",
+    device: Any = "auto",
     closed: bool = False,
     max_device_bytes: int | None = None,
     stats: IsosurfaceStats | None = None,
@@ -88,7 +78,8 @@ def marching_cubes_33(
         volume: (nz, ny, nx) array of uint8, uint16, int16 or float32; converted to float on the device.
         level: iso value in the volume's units. Samples equal to it count as above it.
         spacing: voxel size (z, y, x) in mm; vertices are scaled by it.
-        device: "auto", "cpu", "cuda" or "cuda:N".
+        device: "auto", "cpu", "cuda" or "cuda:N" (Warp), "opencl" or "opencl:N" (OpenCL), or a backend
+            (``engine.backend.get_backend``). Every backend gives the same mesh.
         closed: treat everything outside the array as below the level, so the surface is watertight.
         max_device_bytes: working-set budget per slab; default half the free device memory (a quarter of
             the available RAM on the CPU). The volume is uploaded slab by slab.
@@ -103,31 +94,52 @@ def marching_cubes_33(
         ValueError: the volume, level, spacing or device is not as expected, or a float volume holds NaN.
     """
     vol, lvl, sp = _validate(volume, level, spacing)
-    from engine.device import resolve_device
+    from engine.backend.select import get_backend
 
-    dev = resolve_device(device)
-    import warp as wp
-
+    be = get_backend(device)
     st = stats if stats is not None else IsosurfaceStats()
-    budget = _budget(max_device_bytes, dev)
+    budget = _budget(max_device_bytes, be)
     vert_parts: list[np.ndarray] = []
     face_parts: list[np.ndarray] = []
-    with wp.ScopedDevice(dev):
 
-        def upload(zlo: int, zhi: int) -> Any:
-            return wp.array(vol[zlo : zhi + 1], device=dev)
+    def upload(zlo: int, zhi: int) -> Any:
+        return be.from_host(vol[zlo : zhi + 1])
 
-        plan = SlabPlan(budget, vol.shape[1] * vol.shape[2] * vol.itemsize)
-        for part in run_slabs(upload, vol.shape, plan, vol.dtype == np.float32, lvl, sp, closed, dev, st):
-            timer = Timer(st, dev)
-            vert_parts.append(part.verts.numpy()[: part.nv])  # sync point
-            face_parts.append(part.faces.numpy()[: part.nt])  # sync point
-            timer.lap("download")
+    plan = SlabPlan(budget, vol.shape[1] * vol.shape[2] * vol.itemsize)
+    for part in run_slabs(upload, vol.shape, plan, vol.dtype == np.float32, lvl, sp, closed, be, st):
+        timer = Timer(st, be)
+        vert_parts.append(be.to_host(part.verts, part.nv))  # sync point
+        face_parts.append(be.to_host(part.faces, part.nt))  # sync point
+        timer.lap("download")
     if not st.level_in_range or not face_parts:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
     verts_np = np.concatenate(vert_parts).astype(np.float32, copy=False).reshape(-1, 3)
     faces_np = np.concatenate(face_parts).astype(np.int32, copy=False).reshape(-1, 3)
     return verts_np, faces_np
+
+
+def _device_field(field: Any) -> tuple[Backend, np.dtype[Any]]:
+    """The backend and sample type of a device volume (a Warp array or an OpenCL ``CLArray``), checked."""
+    from engine.backend.select import backend_of
+    from engine.volume.gaussian import sample_dtype
+
+    ok = False
+    if type(field).__name__ == "CLArray":
+        ok = field.ndim == 3 and np.dtype(field.dtype).type in SUPPORTED_DTYPES
+    else:
+        import warp as wp
+
+        ok = (
+            isinstance(field, wp.array)
+            and field.ndim == 3
+            and field.dtype in (wp.uint8, wp.uint16, wp.int16, wp.float32)
+        )
+    if not ok:
+        got = f"{type(field).__name__} ndim={getattr(field, 'ndim', None)} dtype={getattr(field, 'dtype', None)}"
+        raise ValueError(f"Expected a 3-D Warp array (or an OpenCL one) of uint8, uint16, int16 or float32, got {got}")
+    if min(field.shape) < 2:
+        raise ValueError(f"Expected every dimension of the volume to be at least 2, got shape {field.shape}")
+    return backend_of(field), sample_dtype(field)
 
 
 def extract_isosurface(
@@ -139,40 +151,32 @@ def extract_isosurface(
     max_device_bytes: int | None = None,
     stats: IsosurfaceStats | None = None,
 ) -> tuple[Any, Any]:
-    """Device-resident Marching Cubes 33: a Warp array in, Warp arrays out, on the field's device.
+    """Device-resident Marching Cubes 33: a device volume in, device arrays out, on the field's backend.
 
     Args:
-        field: ``wp.array3d`` (nz, ny, nx) of uint8, uint16, int16 or float32.
+        field: (nz, ny, nx) device volume of uint8, uint16, int16 or float32: a ``wp.array3d`` (Warp) or an
+            ``engine.backend`` OpenCL array.
         level, spacing, closed, max_device_bytes, stats: as for :func:`marching_cubes_33` (the budget bounds the
             per-slab working set; the field itself is already resident).
 
     Returns:
-        ``verts`` ``wp.array(dtype=wp.vec3)`` (z, y, x) in mm and ``faces`` ``wp.array(dtype=wp.vec3i)``.
+        ``verts`` (z, y, x) in mm and ``faces``: ``wp.array(dtype=wp.vec3)`` and ``wp.array(dtype=wp.vec3i)`` on
+        Warp, arrays of ``VEC3F`` / ``VEC3I`` on OpenCL (``engine.backend``).
 
     Raises:
         ValueError: as for :func:`marching_cubes_33`.
     """
-    import warp as wp
-
-    kinds = {wp.uint8: np.uint8, wp.uint16: np.uint16, wp.int16: np.int16, wp.float32: np.float32}
-    if not isinstance(field, wp.array) or field.ndim != 3 or field.dtype not in kinds:
-        got = f"{type(field).__name__} ndim={getattr(field, 'ndim', None)} dtype={getattr(field, 'dtype', None)}"
-        raise ValueError(f"Expected a 3-D Warp array of uint8, uint16, int16 or float32, got {got}")
-    if min(field.shape) < 2:
-        raise ValueError(f"Expected every dimension of the volume to be at least 2, got shape {field.shape}")
-    probe = np.zeros((2, 2, 2), kinds[field.dtype])
+    be, dtype = _device_field(field)
+    probe = np.zeros((2, 2, 2), dtype)
     _, lvl, sp = _validate(probe, level, spacing)
-    dev = field.device
     st = stats if stats is not None else IsosurfaceStats()
-    budget = _budget(max_device_bytes, dev)
-    itemsize = np.dtype(kinds[field.dtype]).itemsize
-    with wp.ScopedDevice(dev):
+    budget = _budget(max_device_bytes, be)
 
-        def view(zlo: int, zhi: int) -> Any:
-            return field[zlo : zhi + 1]
+    def view(zlo: int, zhi: int) -> Any:
+        return be.view(field, zlo, zhi + 1)
 
-        plan = SlabPlan(budget, field.shape[1] * field.shape[2] * itemsize)
-        parts = list(run_slabs(view, field.shape, plan, field.dtype == wp.float32, lvl, sp, closed, dev, st))
-        if not st.level_in_range or not parts:
-            return wp.empty(0, dtype=wp.vec3), wp.empty(0, dtype=wp.vec3i)
-        return join_parts(parts)
+    plan = SlabPlan(budget, field.shape[1] * field.shape[2] * dtype.itemsize)
+    parts = list(run_slabs(view, tuple(field.shape), plan, dtype == np.float32, lvl, sp, closed, be, st))
+    if not st.level_in_range or not parts:
+        return be.empty(0, VEC3F), be.empty(0, VEC3I)
+    return join_parts(parts, be)

@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from engine.backend.base import VEC3F, VEC3I, Backend
+from engine.isosurface.kernel_specs import BLOCK, BLOCK_CELLS, BLOCKS, COUNT, EMIT, GRID, NAN, PLANE
 from engine.isosurface.stats import IsosurfaceStats, Timer
 
 TIE_TAU = 1.0 / 1024.0  # an edge point is never closer than this (in edges) to a sample (engine.isosurface.mc33)
@@ -22,10 +24,9 @@ _INT32_MAX = 2**31 - 1
 
 
 @functools.cache
-def _tables(device_name: str) -> dict[str, Any]:
-    """Lookup tables uploaded once per device."""
-    import warp as wp
-
+def _tables(be: Backend) -> dict[str, Any]:
+    """Lookup tables uploaded once per backend, from the one generated source (``mc33_tables`` and its generator's
+    face cycles) for every backend."""
     from engine.isosurface import _make_mc33_tables as gen
     from engine.isosurface import mc33_tables as t
 
@@ -34,9 +35,7 @@ def _tables(device_name: str) -> dict[str, Any]:
     face_cyc = np.asarray([c for cyc, _ in gen.FACES for c in cyc], dtype=np.int32)
 
     def up(values: Any, dtype: Any) -> Any:
-        return wp.array(
-            np.asarray(values, dtype=dtype), dtype=wp.int32 if dtype == np.int32 else wp.float32, device=device_name
-        )
+        return be.from_host(np.asarray(values, dtype=dtype))
 
     return {
         "key_map": up(key_map, np.int32),
@@ -53,15 +52,11 @@ def _tables(device_name: str) -> dict[str, Any]:
 def _per_active_block() -> int:
     """Working-set bytes per active block: 5 int32 per cell slot, plus room for ~1 vertex and ~2 triangles per
     cell of output (a worst case; the real output is known after the count)."""
-    from engine.isosurface.kernels.mc33 import BLOCK_CELLS
-
     return BLOCK_CELLS * (20 + 36)
 
 
 def _per_layer(shape: tuple[int, int, int], plane_bytes: int) -> int:
     """Fixed bytes per block layer: its volume planes (``plane_bytes`` each) and the per-block arrays."""
-    from engine.isosurface.kernels.mc33 import BLOCK
-
     _, ny, nx = shape
     nby, nbx = -(-(ny + 1) // BLOCK), -(-(nx + 1) // BLOCK)
     return BLOCK * plane_bytes + nby * nbx * 16
@@ -69,8 +64,6 @@ def _per_layer(shape: tuple[int, int, int], plane_bytes: int) -> int:
 
 def _layers_per_slab(shape: tuple[int, int, int], plane_bytes: int, budget: int, active_share: float = 1.0) -> int:
     """Block layers per slab within ``budget`` when ``active_share`` of the blocks are active (1: the worst case)."""
-    from engine.isosurface.kernels.mc33 import BLOCK, BLOCK_CELLS
-
     _, ny, nx = shape
     nby, nbx = -(-(ny + 1) // BLOCK), -(-(nx + 1) // BLOCK)
     per_layer = _per_layer(shape, plane_bytes) + int(nby * nbx * active_share * _per_active_block())
@@ -113,82 +106,61 @@ class SlabPlan:
 
 
 class _SlabPass:
-    """What every slab of a pass shares: the volume's block grid, the lookup tables on the device, the sizes the slabs
-    are planned with (``SlabPlan``), the flags the kernels raise (level below/above seen, NaN, table misses), the
-    stats and the timer; and the phases of one slab, each over explicit arrays (classify the blocks, compact the
-    active ones, count, emit)."""
+    """What every slab of a pass shares: the backend, the volume's block grid, the lookup tables on the device, the
+    sizes the slabs are planned with (``SlabPlan``), the flags the kernels raise (level below/above seen, NaN, table
+    misses), the stats and the timer; and the phases of one slab, each over explicit arrays (classify and compact
+    the blocks, count, emit). Kernels are launched by name (``engine.isosurface.kernel_specs``) on any backend."""
 
-    def __init__(self, shape: tuple[int, int, int], plan: SlabPlan, dev: Any, st: IsosurfaceStats) -> None:
-        import warp as wp
-
-        from engine.isosurface.kernels import mc33 as k
-
-        self.k, self.shape, self.plan, self.dev, self.st = k, shape, plan, dev, st
-        self.tables = _tables(str(dev))
+    def __init__(self, shape: tuple[int, int, int], plan: SlabPlan, be: Backend, st: IsosurfaceStats) -> None:
+        self.be, self.shape, self.plan, self.st = be, shape, plan, st
+        self.tables = _tables(be)
         nz, ny, nx = shape
-        self.nbz_total = -(-(nz + 1) // k.BLOCK)
-        self.nby, self.nbx = -(-(ny + 1) // k.BLOCK), -(-(nx + 1) // k.BLOCK)
+        self.nbz_total = -(-(nz + 1) // BLOCK)
+        self.nby, self.nbx = -(-(ny + 1) // BLOCK), -(-(nx + 1) // BLOCK)
         self.fixed = _per_layer(shape, plan.plane_bytes)
         self.halo = plan.halo_planes * plan.plane_bytes
-        self.per_block = k.BLOCK_CELLS * 20  # the per-cell slot arrays; the output is counted once known
+        self.per_block = BLOCK_CELLS * 20  # the per-cell slot arrays; the output is counted once known
         self.layers = _layers_per_slab(shape, plan.plane_bytes, max(plan.budget - self.halo, 1))
-        self.flags = wp.zeros(4, dtype=wp.int32, device=dev)
-        self.timer = Timer(st, dev)
+        self.flags = be.zeros(4, np.int32)
+        self.timer = Timer(st, be)
+        self.dtype: Any = None  # the slabs' sample type (the OpenCL programs are built per type)
 
     def grid(self, zlo: int, bz0: int, n_layers: int, level: float, spacing: Any, closed: bool) -> Any:
         """The slab's ``Grid`` (planes from ``zlo``, block layers ``bz0`` .. ``bz0 + n_layers``)."""
-        g = self.k.Grid()
-        g.nz, g.ny, g.nx = self.shape
-        g.zoff, g.bz0, g.nbz, g.nby, g.nbx = zlo, bz0, n_layers, self.nby, self.nbx
-        g.cz_first = bz0 * self.k.BLOCK - 1
-        g.level = level
-        g.pad = -1.0  # only its sign is used (see engine.isosurface.mc33's docstring)
-        g.closed = int(bool(closed))
-        g.tau = TIE_TAU
-        g.sz, g.sy, g.sx = spacing
-        return g
+        nz, ny, nx = self.shape
+        sz, sy, sx = spacing
+        return self.be.struct(
+            GRID, nz=nz, ny=ny, nx=nx, zoff=zlo, bz0=bz0, nbz=n_layers, nby=self.nby, nbx=self.nbx,
+            cz_first=bz0 * BLOCK - 1, level=level, pad=-1.0,  # only the pad's sign is used (engine.isosurface.mc33)
+            closed=int(bool(closed)), tau=TIE_TAU, sz=sz, sy=sy, sx=sx,
+        )  # fmt: skip
 
     def classify(self, sub: Any, g: Any, nblocks: int, is_float: bool) -> tuple[Any, Any, int]:
-        """The blocks whose samples straddle the level: ``(active, their exclusive scan, how many)`` (a sync point);
-        NaN in a float slab raises a flag."""
-        import warp as wp
+        """The blocks whose samples straddle the level, compacted: ``(active list, every block's place in it or -1,
+        how many)`` (a sync point); NaN in a float slab raises a flag."""
+        from engine.volume.gaussian import sample_dtype
 
-        k = self.k
+        be = self.be
+        self.dtype = sample_dtype(sub)
         if is_float:
-            wp.launch(k.nan_kernel, dim=sub.shape, inputs=[sub, self.flags])
-        active = wp.empty(nblocks, dtype=wp.int32)
-        wp.launch(k.block_kernel, dim=nblocks, inputs=[sub, g, active, self.flags])
-        bpos = wp.empty(nblocks, dtype=wp.int32)
-        wp.utils.array_scan(active, bpos, inclusive=False)
-        n_active = int(bpos[nblocks - 1 : nblocks].numpy()[0] + active[nblocks - 1 : nblocks].numpy()[0])  # sync point
-        return active, bpos, n_active
-
-    def compact_blocks(self, active: Any, bpos: Any, n_active: int) -> tuple[Any, Any]:
-        """The active blocks' list and every block's place in it."""
-        import warp as wp
-
-        alist = wp.empty(max(n_active, 1), dtype=wp.int32)
-        bmap = wp.empty(len(active), dtype=wp.int32)
-        wp.launch(self.k.compact_blocks_kernel, dim=len(active), inputs=[active, bpos, alist, bmap])
-        return alist, bmap
+            be.launch(NAN, tuple(sub.shape), [sub, self.flags], dtype=self.dtype)
+        active = be.empty(nblocks, np.int32)
+        be.launch(BLOCKS, nblocks, [sub, g, active, self.flags], dtype=self.dtype)
+        return be.compact(active)
 
     def count(self, sub: Any, g: Any, alist: Any, nslots: int) -> tuple[Any, Any, Any, int, int]:
         """Each active cell's vertices and triangles, scanned: ``(voff, toff, code, nv, nt)`` (a sync point)."""
-        import warp as wp
-
-        k, t = self.k, self.tables
-        vcount = wp.empty(nslots, dtype=wp.int32)
-        tcount = wp.empty(nslots, dtype=wp.int32)
-        code = wp.empty(nslots, dtype=wp.int32)
+        be, t = self.be, self.tables
+        vcount = be.empty(nslots, np.int32)
+        tcount = be.empty(nslots, np.int32)
+        code = be.empty(nslots, np.int32)
         inputs = [sub, g, alist, t["face_cyc"], t["key_map"], t["tri_count"], t["ivert_count"], vcount, tcount, code]
-        wp.launch(k.count_kernel, dim=nslots, inputs=[*inputs, self.flags])
+        be.launch(COUNT, nslots, [*inputs, self.flags], dtype=self.dtype)
         self.timer.lap("count")
-        voff = wp.empty(nslots, dtype=wp.int32)
-        toff = wp.empty(nslots, dtype=wp.int32)
-        wp.utils.array_scan(vcount, voff, inclusive=False)
-        wp.utils.array_scan(tcount, toff, inclusive=False)
-        nv = int(voff[nslots - 1 : nslots].numpy()[0] + vcount[nslots - 1 : nslots].numpy()[0])  # sync point
-        nt = int(toff[nslots - 1 : nslots].numpy()[0] + tcount[nslots - 1 : nslots].numpy()[0])  # sync point
+        voff = be.empty(nslots, np.int32)
+        toff = be.empty(nslots, np.int32)
+        nv = be.exclusive_scan(vcount, voff)  # sync point
+        nt = be.exclusive_scan(tcount, toff)  # sync point
         return voff, toff, code, nv, nt
 
     def emit(
@@ -202,19 +174,17 @@ class _SlabPass:
         cz_last: int,
     ) -> tuple[Any, Any, Any]:
         """The slab's vertices (ids from ``vstart``) and faces, and the vertex ids on its top planes."""
-        import warp as wp
-
-        k, t = self.k, self.tables
+        be, t = self.be, self.tables
         alist, bmap = blocks
         voff, toff, code, nv, nt = counted
         _, ny, nx = self.shape
-        verts = wp.empty(max(nv, 1), dtype=wp.vec3)
-        faces = wp.empty(max(nt, 1), dtype=wp.vec3i)
+        verts = be.empty(max(nv, 1), VEC3F)
+        faces = be.empty(max(nt, 1), VEC3I)
         inputs = [sub, g, alist, bmap, voff, toff, code, plane_prev, vstart, t["tri_offset"], t["tri_count"]]
         inputs += [t["tri_local"], t["ivert_offset"], t["ivert_count"], t["ivert_weights"], verts, faces]
-        wp.launch(k.emit_kernel, dim=len(code), inputs=inputs)
-        plane_next = wp.empty((2, ny + 1, nx + 1), dtype=wp.int32)
-        wp.launch(k.plane_kernel, dim=(ny + 1, nx + 1), inputs=[g, bmap, voff, code, vstart, cz_last, plane_next])
+        be.launch(EMIT, len(code), inputs, dtype=self.dtype)
+        plane_next = be.empty((2, ny + 1, nx + 1), np.int32)
+        be.launch(PLANE, (ny + 1, nx + 1), [g, bmap, voff, code, vstart, cz_last, plane_next])
         return verts, faces, plane_next
 
     def smaller(self, n_layers: int) -> None:
@@ -224,7 +194,7 @@ class _SlabPass:
 
     def finish(self) -> None:
         """The flags of the whole pass: NaN raises; the level's range and the table misses go to the stats."""
-        fl = self.flags.numpy()  # sync point
+        fl = self.be.to_host(self.flags)  # sync point
         if fl[2]:
             raise ValueError("Expected a volume without NaN, got NaN values in the float volume")
         self.st.table_misses = int(fl[3])
@@ -244,18 +214,20 @@ def run_slabs(
 ) -> Iterator[SlabMesh]:
     """Yield each slab's mesh (``SlabMesh``); check NaN and the level's range at the end.
 
-    ``get_slab(zlo, zhi)`` returns the (zhi - zlo + 1, ny, nx) samples of planes zlo..zhi on ``dev``. Slabs start
+    ``dev`` is the backend (``engine.backend.Backend``, or a Warp device for Warp's);
+    ``get_slab(zlo, zhi)`` returns the (zhi - zlo + 1, ny, nx) samples of planes zlo..zhi on it. Slabs start
     at the worst-case size for ``plan.budget`` and adapt to the active blocks and faces of the slab before; a slab
     found over the budget (or over ``plan.max_faces``) after its blocks are classified or counted is redone with
     half the layers, so the result never depends on the slabbing. Per slab, the phases of ``_SlabPass``: classify
     the blocks, compact the active ones, count, emit.
     """
-    import warp as wp
+    from engine.backend.select import get_backend
 
-    p = _SlabPass(shape, plan, dev, st)
+    be = get_backend(dev)
+    p = _SlabPass(shape, plan, be, st)
     nz, ny, nx = shape
-    B = p.k.BLOCK
-    plane_prev = wp.full((2, ny + 1, nx + 1), -1, dtype=wp.int32, device=dev)
+    B = BLOCK
+    plane_prev = be.full((2, ny + 1, nx + 1), -1, np.int32)
     vstart = 0
     bz0 = 0
     active_per_layer = faces_per_layer = 0.0  # the last slab's (with any), for sizing the next slab
@@ -269,20 +241,20 @@ def run_slabs(
         p.timer.lap("upload")
         g = p.grid(zlo, bz0, n_layers, level, spacing, closed)
         nblocks = n_layers * p.nby * p.nbx
-        active, bpos, n_active = p.classify(sub, g, nblocks, is_float)
+        alist, bmap, n_active = p.classify(sub, g, nblocks, is_float)
         need = p.fixed * n_layers + p.halo + n_active * p.per_block
         if need > plan.budget and n_layers > 1:
             p.smaller(n_layers)
             continue
         # (one layer over a strict budget goes on to the count, so the error can name the whole need)
-        blocks = p.compact_blocks(active, bpos, n_active)
-        del active, bpos
+        blocks = (alist, bmap)
+        del alist, bmap
         p.timer.lap("classify blocks")
-        nslots = n_active * p.k.BLOCK_CELLS
-        slab_bytes = (sub.capacity if sub.is_contiguous else 0) + nblocks * 12 + nslots * 20
+        nslots = n_active * BLOCK_CELLS
+        slab_bytes = be.nbytes(sub) + nblocks * 12 + nslots * 20
         if nslots == 0:
             _accept(st, nblocks, n_active, cz_last - cz_first + 1, slab_bytes)
-            plane_prev.fill_(-1)
+            be.fill(plane_prev, -1)
             bz0 = bz1
             p.layers = _next_layers(plan, p, active_per_layer, faces_per_layer, p.layers)
             continue
@@ -349,17 +321,18 @@ def _too_small(need: int, what: str) -> Exception:
     return BudgetError(f"the device memory budget is too small for {what}", needed=int(need))
 
 
-def join_parts(parts: list[SlabMesh]) -> tuple[Any, Any]:
-    """The slabs' meshes as one device mesh (vertex ids already run on across slabs)."""
-    import warp as wp
+def join_parts(parts: list[SlabMesh], be: Backend | None = None) -> tuple[Any, Any]:
+    """The slabs' meshes as one device mesh (vertex ids already run on across slabs), on their backend."""
+    from engine.backend.select import backend_of
 
+    be = be if be is not None else backend_of(parts[0].verts)
     if len(parts) == 1:
-        return parts[0].verts[: parts[0].nv], parts[0].faces[: parts[0].nt]
-    verts = wp.empty(sum(p.nv for p in parts), dtype=wp.vec3)
-    faces = wp.empty(sum(p.nt for p in parts), dtype=wp.vec3i)
+        return be.view(parts[0].verts, 0, parts[0].nv), be.view(parts[0].faces, 0, parts[0].nt)
+    verts = be.empty(sum(p.nv for p in parts), VEC3F)
+    faces = be.empty(sum(p.nt for p in parts), VEC3I)
     ov = of = 0
     for p in parts:
-        wp.copy(verts, p.verts, dest_offset=ov, count=p.nv)
-        wp.copy(faces, p.faces, dest_offset=of, count=p.nt)
+        be.copy(verts, p.verts, dst_offset=ov, count=p.nv)
+        be.copy(faces, p.faces, dst_offset=of, count=p.nt)
         ov, of = ov + p.nv, of + p.nt
     return verts, faces

@@ -28,15 +28,16 @@ class Timer:
     """Per-stage wall times, synchronising the device only when profiling (``stats.profile``)."""
 
     def __init__(self, st: IsosurfaceStats, dev: Any) -> None:
+        """``dev``: an ``engine.backend.Backend`` or a Warp device."""
         self.st, self.dev = st, dev
         self.t = time.perf_counter()
 
     def lap(self, name: str) -> None:
         if not self.st.profile:
             return
-        import warp as wp
+        from engine.backend.select import get_backend
 
-        wp.synchronize_device(self.dev)  # sync point (profiling only)
+        get_backend(self.dev).synchronize()  # sync point (profiling only)
         now = time.perf_counter()
         self.st.timings[name] = self.st.timings.get(name, 0.0) + now - self.t
         self.t = now

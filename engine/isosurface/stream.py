@@ -54,6 +54,7 @@ def slab_getter(volume: np.ndarray, gaussian: GaussianParams | None, upload: Any
     """``(get_slab, plane_bytes, halo_planes)`` for ``run_slabs``: planes zlo..zhi uploaded by ``upload(lo, hi)``
     (``engine.isosurface.feed.plane_feed``) and smoothed, with a plane of halo on each side so the result equals the
     whole volume's Gaussian."""
+    from engine.backend.select import backend_of
     from engine.volume.gaussian import smooth_volume
 
     nz = volume.shape[0]
@@ -63,7 +64,7 @@ def slab_getter(volume: np.ndarray, gaussian: GaussianParams | None, upload: Any
     def smoothed(zlo: int, zhi: int) -> Any:
         lo, hi = max(zlo - 1, 0), min(zhi + 1, nz - 1)
         field_ = smooth_volume(upload(lo, hi), gaussian)
-        return field_[zlo - lo : zhi - lo + 1]
+        return backend_of(field_).view(field_, zlo - lo, zhi - lo + 1)
 
     return smoothed, plane_bytes(volume, gaussian), 2
 

@@ -1,8 +1,9 @@
 """The mesh after decimation: its topology and compaction on the device (``devmesh``), its checks (``meshcheck``
 on the host, ``mesh_stats_device`` on the device), speck removal (``islands``), the paper's step 4,
-surface-preserving Laplacian smoothing (``smooth``), and vertex normals (``normals``); Warp kernels in
-``engine.surface.kernels``. The other packages (decimation, the exporters' print check, the pipeline) use these
-public functions.
+surface-preserving Laplacian smoothing (``smooth``), and vertex normals (``normals``). The host code is written once
+over ``engine.backend`` (the backend the arrays live on: Warp, or OpenCL through PyOpenCL); the kernels, named in
+``engine.surface.kernel_specs``, are in ``engine.surface.kernels``: Warp (``*.py``) with OpenCL C twins (``*.cl``).
+The other packages (decimation, the exporters' print check, the pipeline) use these public functions.
 
 Public names load lazily (``engine._lazy``).
 """

@@ -9,6 +9,8 @@ import numpy.typing as npt
 
 from engine.surface.meshcheck import component_labels, face_volumes, validate_mesh
 
+PIECE_RUN = 32  # faces per thread when the pieces' volumes are summed (one atomic per change of piece)
+
 
 def compact_mesh(
     verts: npt.NDArray[Any], faces: npt.NDArray[Any]
@@ -116,21 +118,20 @@ def measure_pieces(pos: Any, faces: Any) -> tuple[Any, np.ndarray, np.ndarray, n
     """The pieces of a device mesh: ``(label, roots, faces, volume)``, the device label of every vertex (its piece's
     root vertex), and on the host the roots in vertex order, the face count per vertex slot and each root's piece
     volume (mm^3). One sync: V ints and doubles come back, no mesh."""
-    import warp as wp
-
+    from engine.surface import kernel_specs as k
     from engine.surface.devmesh import component_labels_device
-    from engine.surface.kernels import measures as kmeasure
+    from engine.surface.ops import backend_of
 
+    bk = backend_of(pos)
     nv, nf = len(pos), len(faces)
-    with wp.ScopedDevice(pos.device):
-        label = component_labels_device(faces, nv)
-        vol = wp.zeros(nv, dtype=wp.float64)
-        nfaces = wp.zeros(nv, dtype=wp.int32)
-        if nf:
-            wp.launch(kmeasure.piece_volumes, dim=nf, inputs=[pos, faces, label, vol, nfaces])
-        counts = nfaces.numpy()  # sync point
-        roots = np.flatnonzero(counts)
-        return label, roots, counts, np.abs(vol.numpy()[roots])
+    label = component_labels_device(faces, nv)
+    vol = bk.zeros(nv, np.float64)
+    nfaces = bk.zeros(nv, np.int32)
+    runs = -(-nf // PIECE_RUN)
+    bk.launch(k.PIECE_VOLUMES, runs, [pos, faces, label, nf, PIECE_RUN, vol, nfaces])
+    counts = bk.to_host(nfaces)  # sync point
+    roots = np.flatnonzero(counts)
+    return label, roots, counts, np.abs(bk.to_host(vol)[roots])
 
 
 def remove_islands_device(
@@ -141,29 +142,29 @@ def remove_islands_device(
     keep_largest: int | None = None,
     consume: bool = False,
 ) -> tuple[Any, Any, dict[str, Any]]:
-    """:func:`remove_islands` on a device mesh (``wp.array`` vec3 / vec3i): pieces found and measured on the device;
-    only one volume and face count per piece come to the host to choose the kept ones. Pieces are ordered by their
-    smallest vertex index (ties of ``keep_largest`` keep the earlier piece). Returns new device arrays and the same
-    ``info`` as :func:`remove_islands`. ``consume``: the caller drops ``faces`` afterwards, so the removed pieces
-    are marked in them rather than in a copy (a model's finishing within a memory budget)."""
-    import warp as wp
-
+    """:func:`remove_islands` on a device mesh (packed (z, y, x) positions and faces on one ``engine.backend``):
+    pieces found and measured on the device; only one volume and face count per piece come to the host to choose
+    the kept ones. Pieces are ordered by their smallest vertex index (ties of ``keep_largest`` keep the earlier
+    piece). Returns new device arrays and the same ``info`` as :func:`remove_islands`. ``consume``: the caller
+    drops ``faces`` afterwards, so the removed pieces are marked in them rather than in a copy (a model's finishing
+    within a memory budget)."""
+    from engine.surface import kernel_specs as k
     from engine.surface.devmesh import compact_faces, compact_vertices
-    from engine.surface.kernels import measures as kmeasure
+    from engine.surface.ops import backend_of, clone
 
     _check_limits(min_volume_mm3, keep_largest)
+    bk = backend_of(pos)
     nv, nf = len(pos), len(faces)
-    with wp.ScopedDevice(pos.device):
-        label, roots, counts, volume = measure_pieces(pos, faces)
-        keep = _kept_pieces(volume, min_volume_mm3, keep_largest)
-        info = _report(volume, keep, int(counts[roots[~keep]].sum()))
-        if info["removed_pieces"] == 0:
-            return pos, faces, info
-        flag = np.zeros(nv, np.int32)
-        flag[roots[keep]] = 1
-        faces = faces if consume else wp.clone(faces)
-        wp.launch(kmeasure.drop_pieces, dim=nf, inputs=[faces, label, wp.array(flag)])
-        del label
-        faces = compact_faces(faces, nf - info["removed_faces"])
-        pos, faces = compact_vertices(pos, faces)
+    label, roots, counts, volume = measure_pieces(pos, faces)
+    keep = _kept_pieces(volume, min_volume_mm3, keep_largest)
+    info = _report(volume, keep, int(counts[roots[~keep]].sum()))
+    if info["removed_pieces"] == 0:
+        return pos, faces, info
+    flag = np.zeros(nv, np.int32)
+    flag[roots[keep]] = 1
+    faces = faces if consume else clone(bk, faces)
+    bk.launch(k.DROP_PIECES, nf, [faces, label, bk.from_host(flag)])
+    del label
+    faces = compact_faces(faces, nf - info["removed_faces"])
+    pos, faces = compact_vertices(pos, faces)
     return pos, faces, info

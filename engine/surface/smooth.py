@@ -26,43 +26,43 @@ def unique_edges(faces: npt.NDArray[np.int32]) -> tuple[npt.NDArray[np.int32], n
 
 
 def smooth_device(pos: Any, faces: Any, params: SmoothParams, inc: Any = None) -> tuple[Any, dict[str, Any]]:
-    """Smooth a device mesh in place (``pos`` ``wp.array(dtype=wp.vec3)``, ``faces`` ``wp.array(dtype=wp.vec3i)``);
-    returns ``pos`` and a summary (moves per iteration). Only vertices with one closed fan of faces move (border
-    and non-manifold vertices stay). ``inc``: the mesh's ``devmesh.Incidence`` if already built."""
-    import warp as wp
-
+    """Smooth a device mesh in place (packed (z, y, x) positions and faces on one ``engine.backend``); returns
+    ``pos`` and a summary (moves per iteration). Only vertices with one closed fan of faces move (border and
+    non-manifold vertices stay). ``inc``: the mesh's ``devmesh.Incidence`` if already built."""
+    from engine.backend.base import VEC3F
+    from engine.surface import kernel_specs as k
     from engine.surface.devmesh import Incidence, vertex_classes
-    from engine.surface.kernels import smoothing as ksmooth
+    from engine.surface.ops import backend_of
 
-    n = len(pos)
-    if len(faces) == 0 or n == 0:
+    n, nf = len(pos), len(faces)
+    if nf == 0 or n == 0:
         return pos, {"moved_per_iteration": []}
+    bk = backend_of(pos)
     cos_max = math.cos(math.radians(params.angle_deg))
-    with wp.ScopedDevice(pos.device):
-        if inc is None:
-            inc = Incidence(n).build(faces, len(faces))
-        fixed = wp.empty(n, dtype=wp.int32)
-        wp.launch(ksmooth.fixed_from_classes, dim=n, inputs=[vertex_classes(faces, inc), fixed])
-        new = wp.empty(n, dtype=wp.vec3)  # the candidates, then the moved positions (``pos`` keeps the old ones)
-        flag = wp.empty(n, dtype=wp.int32)
-        counter = wp.zeros(1, dtype=wp.int32)
-        viol = wp.zeros(1, dtype=wp.int32)
-        moved: list[int] = []
-        for _ in range(params.iterations):
-            flag.zero_()
-            counter.zero_()
-            wp.launch(ksmooth.star_neighbour_mean_kernel, dim=n, inputs=[pos, faces, *inc.inputs, new])
-            wp.launch(ksmooth.reject_kernel, dim=len(faces), inputs=[pos, new, faces, cos_max, flag])
-            wp.launch(ksmooth.accept_kernel, dim=n, inputs=[pos, new, flag, fixed, counter])
-            flag.zero_()
-            for _pass in range(50):
-                viol.zero_()
-                wp.launch(ksmooth.violation_kernel, dim=len(faces), inputs=[pos, new, faces, cos_max, flag, viol])
-                if int(viol.numpy()[0]) == 0:  # sync point
-                    break
-                wp.launch(ksmooth.revert_kernel, dim=n, inputs=[pos, new, flag])
-            wp.copy(pos, new)
-            moved.append(int(counter.numpy()[0]))  # sync point
+    if inc is None:
+        inc = Incidence(n).build(faces, nf)
+    fixed = bk.empty(n, np.int32)
+    bk.launch(k.FIXED, n, [vertex_classes(faces, inc), fixed])
+    new = bk.empty(n, VEC3F)  # the candidates, then the moved positions (``pos`` keeps the old ones)
+    flag = bk.empty(n, np.int32)
+    counter = bk.zeros(1, np.int32)
+    viol = bk.zeros(1, np.int32)
+    moved: list[int] = []
+    for _ in range(params.iterations):
+        bk.fill(flag, 0)
+        bk.fill(counter, 0)
+        bk.launch(k.NEIGHBOUR_MEAN, n, [pos, faces, *inc.inputs, new])
+        bk.launch(k.REJECT, nf, [pos, new, faces, cos_max, flag])
+        bk.launch(k.ACCEPT, n, [pos, new, flag, fixed, counter])
+        bk.fill(flag, 0)
+        for _pass in range(50):
+            bk.fill(viol, 0)
+            bk.launch(k.VIOLATIONS, nf, [pos, new, faces, cos_max, flag, viol])
+            if int(bk.to_host(viol)[0]) == 0:  # sync point
+                break
+            bk.launch(k.REVERT, n, [pos, new, flag])
+        bk.copy(pos, new)
+        moved.append(int(bk.to_host(counter)[0]))  # sync point
     return pos, {"moved_per_iteration": moved}
 
 
@@ -75,12 +75,13 @@ def smooth_mesh(
         verts: (V, 3) float32 (z, y, x) mm.
         faces: (F, 3) int32.
         params: iterations and angle threshold.
-        device: a Warp device.
+        device: a Warp device, a device spec ("cpu", "cuda:N", "opencl[:N]") or an ``engine.backend.Backend``.
     """
-    import warp as wp
+    from engine.backend.base import VEC3F, VEC3I
+    from engine.surface.ops import get_backend
 
     if len(faces) == 0:
         return verts.copy(), {"moved_per_iteration": []}
-    with wp.ScopedDevice(device):
-        pos, info = smooth_device(wp.array(verts, dtype=wp.vec3), wp.array(faces, dtype=wp.vec3i), params)
-        return pos.numpy().astype(np.float32), info  # sync point
+    bk = get_backend(device)
+    pos, info = smooth_device(bk.from_host(verts, VEC3F), bk.from_host(faces, VEC3I), params)
+    return bk.to_host(pos).astype(np.float32), info  # sync point

@@ -1,6 +1,6 @@
 """The volume stages of the paper (before the isosurface): the optional per-slice preprocessing and crop
 (``preprocess``, host), the body mask that keeps the bone of the body only (``bodymask``, host), and the 3x3x3
-Gaussian (``gaussian``, device; kernels in ``engine.volume.kernels``).
+Gaussian (``gaussian``, device, on any ``engine.backend``; kernels in ``engine.volume.kernels``: Warp and OpenCL C).
 
 Public names load lazily (``engine._lazy``): importing this package imports neither its modules nor Warp.
 """

@@ -1,11 +1,22 @@
-"""Stage: 3x3x3 Gaussian smoothing of the volume on the device (separable, replicated borders)."""
+"""Stage: 3x3x3 Gaussian smoothing of the volume on the device (separable, replicated borders), on any backend
+(``engine.backend``: the Warp kernel of ``kernels/gaussian.py`` or the OpenCL C of ``kernels/gaussian.cl``)."""
 
 from __future__ import annotations
 
 import math
 from typing import Any
 
+import numpy as np
+
+from engine.backend.base import Kernel
 from engine.params import GaussianParams
+
+GAUSS3_AXIS = Kernel(
+    "gaussian.axis",
+    warp="engine.volume.kernels.gaussian:gauss3_axis_kernel",
+    opencl="engine.volume.kernels:gaussian.cl:gauss3_axis",
+)
+_SAMPLE_TYPES = (np.uint8, np.uint16, np.int16, np.float32)
 
 
 def gaussian_weights(sigma_voxels: float) -> tuple[float, float]:
@@ -15,24 +26,39 @@ def gaussian_weights(sigma_voxels: float) -> tuple[float, float]:
     return side / total, 1.0 / total
 
 
+def sample_dtype(field: Any) -> np.dtype[Any]:
+    """The numpy sample type of a device volume (a ``wp.array3d`` or an OpenCL ``CLArray``)."""
+    dt = field.dtype
+    if isinstance(dt, np.dtype):
+        return dt
+    import warp as wp
+
+    out: np.dtype[Any] = np.dtype(wp.dtype_to_numpy(dt))
+    return out
+
+
 def smooth_volume(field: Any, params: GaussianParams) -> Any:
-    """Smooth a device volume with a 3x3x3 Gaussian.
+    """Smooth a device volume with a 3x3x3 Gaussian, on the backend the field lives on.
 
     Args:
-        field: ``wp.array3d`` (z, y, x) of uint8, uint16, int16 or float32 on any device.
+        field: a (z, y, x) device volume of uint8, uint16, int16 or float32 (``wp.array3d`` on any Warp device, or
+            an ``engine.backend`` OpenCL array).
         params: the Gaussian's sigma in voxels.
 
     Returns:
-        A new float32 ``wp.array3d`` on the same device.
+        A new float32 device volume on the same backend (bit for bit the same values on every backend).
     """
-    import warp as wp
+    from engine.backend.select import backend_of
 
-    from engine.volume.kernels.gaussian import gauss3_axis_kernel
-
+    be = backend_of(field)
+    dtype = sample_dtype(field)
+    if dtype.type not in _SAMPLE_TYPES:
+        raise ValueError(f"Expected a volume of uint8, uint16, int16 or float32, got {dtype}")
     side, centre = gaussian_weights(params.sigma_voxels)
-    a = wp.empty(field.shape, dtype=wp.float32, device=field.device)
-    b = wp.empty(field.shape, dtype=wp.float32, device=field.device)
-    wp.launch(gauss3_axis_kernel, dim=field.shape, inputs=[field, a, 0, side, centre], device=field.device)
-    wp.launch(gauss3_axis_kernel, dim=field.shape, inputs=[a, b, 1, side, centre], device=field.device)
-    wp.launch(gauss3_axis_kernel, dim=field.shape, inputs=[b, a, 2, side, centre], device=field.device)
+    shape = tuple(field.shape)
+    a = be.empty(shape, np.float32)
+    b = be.empty(shape, np.float32)
+    be.launch(GAUSS3_AXIS, shape, [field, a, 0, side, centre, *shape], dtype=dtype)
+    be.launch(GAUSS3_AXIS, shape, [a, b, 1, side, centre, *shape], dtype=np.float32)
+    be.launch(GAUSS3_AXIS, shape, [b, a, 2, side, centre, *shape], dtype=np.float32)
     return a

@@ -19,6 +19,8 @@ from engine.surface.meshcheck import mesh_stats
 from tests.conftest import shared_file
 from tests.engine.meshutil import assert_closed_manifold, signed_volume, topology
 
+pytestmark = pytest.mark.both_backends  # device tests run on Warp's CPU and on OpenCL (tests/conftest.py)
+
 
 @pytest.fixture(scope="module")
 def ball() -> tuple[np.ndarray, np.ndarray]:
@@ -39,7 +41,7 @@ def _key(keys: dict[tuple[int, int], int], a: int, b: int) -> int:
 def test_ball(ball, device) -> None:
     v, f = ball
     ov, of, info = decimate_mesh(v, f, reduction=0.2, device=device)
-    assert info["method"].startswith("warp")
+    assert info["method"].startswith("opencl" if device.startswith("opencl") else "warp"), info["method"]
     assert abs(len(of) / (0.2 * len(f)) - 1) <= 0.02, info
     assert_closed_manifold(ov, of)
     assert info["closed_output"] and info["folds_after"] == 0
@@ -68,18 +70,18 @@ def test_deterministic(ball, device) -> None:
 def test_targets_a_few_collapses_away_are_met_exactly(radius, device) -> None:
     """The last pass keeps no more winners than collapses are left, and at least one: a hashed share of a cost bin
     can keep none (then the cheapest winner collapses) or too many (then another share is taken)."""
-    import warp as wp
-
+    from engine.backend.base import VEC3F, VEC3I
     from engine.decimation.passes import decimate_device
+    from engine.device import resolve_backend
 
     z, y, x = np.mgrid[:24, :24, :24].astype(np.float32)
     field = radius - np.sqrt((z - 11.3) ** 2 + (y - 11.6) ** 2 + (x - 11.5) ** 2)
     v, f = marching_cubes_33(field, 0.0, spacing=(0.5, 0.5, 0.5), device="cpu", closed=True)
-    with wp.ScopedDevice(device):
-        pos, faces = wp.array(v, dtype=wp.vec3), wp.array(f, dtype=wp.vec3i)
-        for collapses in (1, 2, 3):
-            _, out, stats = decimate_device(pos, faces, len(f) - 2 * collapses, max_passes=8)
-            assert (len(out), stats.stopped) == (len(f) - 2 * collapses, "target reached"), stats.to_dict()
+    be = resolve_backend(device)
+    pos, faces = be.from_host(v, VEC3F), be.from_host(f, VEC3I)
+    for collapses in (1, 2, 3):
+        _, out, stats = decimate_device(pos, faces, len(f) - 2 * collapses, max_passes=8)
+        assert (len(out), stats.stopped) == (len(f) - 2 * collapses, "target reached"), stats.to_dict()
 
 
 def test_torus_keeps_its_handle_down_to_the_guards(device) -> None:

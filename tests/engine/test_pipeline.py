@@ -18,6 +18,8 @@ from engine.types import Volume
 from tests.engine.meshutil import assert_closed_manifold, signed_volume
 from tests.engine.scans import scan_file
 
+pytestmark = pytest.mark.both_backends  # device tests run on Warp's CPU and on OpenCL (tests/conftest.py)
+
 HEADSQ_PARAMS = ReconParams(iso=IsoParams(iso=1150.0))
 
 

@@ -58,14 +58,15 @@ def seam_flags(
     pos: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.vec3i),
     borders: wp.array(dtype=wp.float32),
+    n_borders: int,
     width: float,
     flag: wp.array(dtype=wp.int32),
 ):
-    """1 for a face whose first vertex lies within ``width`` (mm, in z) of a border, else 0."""
+    """1 for a face whose first vertex lies within ``width`` (mm, in z) of one of the ``n_borders`` borders, else 0."""
     f = wp.tid()
     z = pos[faces[f][0]][0]
     near = wp.int32(0)
-    for i in range(borders.shape[0]):
+    for i in range(n_borders):
         if wp.abs(z - borders[i]) <= width:
             near = wp.int32(1)
     flag[f] = near

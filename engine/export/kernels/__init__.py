@@ -1,2 +1,2 @@
-"""Warp kernels that lay a finished mesh out for its files and rasterise its preview (``layout``). No host logic
-lives here."""
+"""Warp kernels that lay a finished mesh out for its files and rasterise its preview (``layout``), and the layout's
+OpenCL C twins (``layout.cl``, named in ``engine.export.kernel_specs``). No host logic lives here."""

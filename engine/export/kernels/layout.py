@@ -3,7 +3,7 @@
 
 Arithmetic is float64 where the host exporters use float64, so the files match theirs: positions are mapped in
 float64 and stored as float32; the STL facet normal is taken in float32 from the float32 corners, as
-``engine.export.stl`` does.
+``engine.export.stl`` does. OpenCL C twins (but ``rasterize_nearest``, the preview's, Warp only): ``layout.cl``.
 """
 
 from __future__ import annotations
@@ -23,19 +23,34 @@ def zyx32(x: wp.vec3d) -> wp.vec3:
     return wp.vec3(wp.float32(x[2]), wp.float32(x[1]), wp.float32(x[0]))
 
 
-@wp.kernel
-def affine_points(pos: wp.array(dtype=wp.vec3), m: wp.mat33d, offset: wp.vec3d, out: wp.array(dtype=wp.vec3)):
-    """``out = m @ p + offset`` on (x, y, z), for (z, y, x) float32 positions (the grid -> patient map, or a shift
-    with ``m`` the identity)."""
-    v = wp.tid()
-    out[v] = zyx32(m @ xyz64(pos[v]) + offset)
+@wp.func
+def mapped(m: wp.array(dtype=wp.float64), p: wp.vec3d, shift: wp.float64) -> wp.vec3:
+    """``m[:9]`` (a 3 x 3 map, row-major) times ``p``, plus ``shift`` times the offset ``m[9:12]``, on (x, y, z);
+    returned (z, y, x) float32 (each row summed left to right, as ``engine.export.kernels.layout.cl``)."""
+    r = wp.vec3d()
+    for i in range(3):
+        s = m[3 * i] * p[0]
+        s = s + m[3 * i + 1] * p[1]
+        s = s + m[3 * i + 2] * p[2]
+        if shift != wp.float64(0.0):
+            s = s + m[9 + i]
+        r[i] = s
+    return zyx32(r)
 
 
 @wp.kernel
-def rotate_vectors(vec: wp.array(dtype=wp.vec3), m: wp.mat33d, out: wp.array(dtype=wp.vec3)):
-    """``out = m @ n`` on (x, y, z), for (z, y, x) float32 vectors (normals under the patient map)."""
+def affine_points(pos: wp.array(dtype=wp.vec3), m: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.vec3)):
+    """``out = M @ p + offset`` on (x, y, z), for (z, y, x) float32 positions (the grid -> patient map, or a shift
+    with ``M`` the identity); ``m``: M row-major, then the offset (12 values)."""
     v = wp.tid()
-    out[v] = zyx32(m @ xyz64(vec[v]))
+    out[v] = mapped(m, xyz64(pos[v]), wp.float64(1.0))
+
+
+@wp.kernel
+def rotate_vectors(vec: wp.array(dtype=wp.vec3), m: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.vec3)):
+    """``out = M @ n`` on (x, y, z), for (z, y, x) float32 vectors (normals under the patient map)."""
+    v = wp.tid()
+    out[v] = mapped(m, xyz64(vec[v]), wp.float64(0.0))
 
 
 @wp.kernel
@@ -86,13 +101,14 @@ def stl_facets(
 def gltf_vertices(
     pos: wp.array(dtype=wp.vec3),
     normals: wp.array(dtype=wp.vec3),
-    scale: wp.float64,
+    scales: wp.array(dtype=wp.float64),
     out_pos: wp.array(dtype=wp.vec3),
     out_normals: wp.array(dtype=wp.vec3),
 ):
     """glTF POSITION and NORMAL from (z, y, x) patient mm: (X, Y, Z) = (x, z, -y), positions times ``scale``
-    (mm -> m); normals made unit, +Y where a normal has no direction (glTF requires unit normals)."""
+    (mm -> m, ``scales[0]``); normals made unit, +Y where a normal has no direction (glTF requires unit normals)."""
     v = wp.tid()
+    scale = scales[0]
     p = xyz64(pos[v])
     out_pos[v] = wp.vec3(wp.float32(p[0] * scale), wp.float32(p[2] * scale), wp.float32(-p[1] * scale))
     n = xyz64(normals[v])

@@ -1,7 +1,8 @@
 """Warp kernels of Marching Cubes 33: block classification, per-cell counting and emission.
 
-No host logic lives here (see ``engine.isosurface.mc33``). Conventions for corners, edges, faces and cell keys
-are those of ``engine.isosurface._make_mc33_tables``.
+No host logic lives here (see ``engine.isosurface.mc33``); ``mc33.cl`` holds the same kernels in OpenCL C, the
+same arithmetic (named in ``engine.isosurface.kernel_specs``; the blocks' compaction is the backend's). Conventions
+for corners, edges, faces and cell keys are those of ``engine.isosurface._make_mc33_tables``.
 
 Grid bookkeeping: cells are indexed by their lowest corner (``origin``), from -1 to ``n - 1`` along every axis,
 so that with ``closed=True`` the cells half outside the array close the surface. Samples outside the array have
@@ -297,21 +298,6 @@ def nan_kernel(vol: wp.array3d(dtype=wp.float32), flags: wp.array(dtype=wp.int32
     z, y, x = wp.tid()
     if wp.isnan(vol[z, y, x]):
         flags[2] = 1
-
-
-@wp.kernel
-def compact_blocks_kernel(
-    active: wp.array(dtype=wp.int32),
-    pos: wp.array(dtype=wp.int32),
-    alist: wp.array(dtype=wp.int32),
-    bmap: wp.array(dtype=wp.int32),
-):
-    b = wp.tid()
-    if active[b] != 0:
-        alist[pos[b]] = b
-        bmap[b] = pos[b]
-    else:
-        bmap[b] = -1
 
 
 @wp.func

@@ -1,5 +1,5 @@
 """Warp kernels that compact a device mesh: drop removed faces and unused vertices, keeping the order of the rest
-(host side: ``engine.surface.devmesh``); and its bounding box.
+(host side: ``engine.surface.devmesh``); and its bounding box. OpenCL C twins: ``compaction.cl``.
 """
 
 from __future__ import annotations

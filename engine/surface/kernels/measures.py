@@ -1,6 +1,6 @@
 """Warp kernels that measure a device mesh (host side: ``engine.surface.devmesh``, ``engine.surface.islands``):
 the edge census (borders, non-manifold and inconsistently wound edges), face volumes and areas, and connected
-pieces (min-label hooking with pointer jumping), their volumes and their removal.
+pieces (min-label hooking with pointer jumping), their volumes and their removal. OpenCL C twins: ``measures.cl``.
 """
 
 from __future__ import annotations
@@ -78,7 +78,7 @@ def face_measures(
     first: int,
     volume: wp.array(dtype=wp.float64),
     area: wp.array(dtype=wp.float64),
-    degenerate: wp.array(dtype=wp.float32),
+    degenerate: wp.array(dtype=wp.float64),
 ):
     """Per face ``first + f``, into slot ``f``: signed volume a.(b x c)/6 with vertices in (x, y, z) order, area,
     and whether a vertex repeats."""
@@ -89,9 +89,22 @@ def face_measures(
     c = xyz64(pos[t[2]])
     volume[f] = wp.dot(a, wp.cross(b, c)) / wp.float64(6.0)
     area[f] = wp.float64(0.5) * wp.length(wp.cross(b - a, c - a))
-    degenerate[f] = 0.0
+    degenerate[f] = wp.float64(0.0)
     if t[0] == t[1] or t[1] == t[2] or t[0] == t[2]:
-        degenerate[f] = 1.0
+        degenerate[f] = wp.float64(1.0)
+
+
+@wp.kernel
+def run_sums(values: wp.array(dtype=wp.float64), n: int, run: int, out: wp.array(dtype=wp.float64)):
+    """The sum of every run ``[r * run, min((r + 1) * run, n))`` of ``values``, in order, into ``out[r]`` (a
+    deterministic reduction: the host adds the runs in order)."""
+    r = wp.tid()
+    lo = r * run
+    hi = wp.min(lo + run, n)
+    s = wp.float64(0.0)
+    for k in range(lo, hi):
+        s = s + values[k]
+    out[r] = s
 
 
 @wp.kernel
@@ -129,16 +142,36 @@ def piece_volumes(
     pos: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.vec3i),
     label: wp.array(dtype=wp.int32),
+    n_faces: int,
+    run: int,
     volume: wp.array(dtype=wp.float64),
     nfaces: wp.array(dtype=wp.int32),
 ):
-    """Signed volume (vertices in (x, y, z) order) and face count of every piece, at its root vertex."""
-    f = wp.tid()
-    t = faces[f]
-    root = label[t[0]]
-    a = xyz64(pos[t[0]])
-    wp.atomic_add(volume, root, wp.dot(a, wp.cross(xyz64(pos[t[1]]), xyz64(pos[t[2]]))) / wp.float64(6.0))
-    wp.atomic_add(nfaces, root, 1)
+    """Signed volume (vertices in (x, y, z) order) and face count of every piece, at its root vertex: each thread
+    takes a run of ``run`` faces and adds once per change of piece (neighbouring faces mostly share one: few
+    atomics on the big pieces' roots)."""
+    r = wp.tid()
+    lo = r * run
+    hi = wp.min(lo + run, n_faces)
+    cur = int(-1)
+    acc = wp.float64(0.0)
+    cnt = int(0)
+    for f in range(lo, hi):
+        t = faces[f]
+        root = label[t[0]]
+        if root != cur:
+            if cur >= 0:
+                wp.atomic_add(volume, cur, acc)
+                wp.atomic_add(nfaces, cur, cnt)
+            cur = root
+            acc = wp.float64(0.0)
+            cnt = 0
+        a = xyz64(pos[t[0]])
+        acc = acc + wp.dot(a, wp.cross(xyz64(pos[t[1]]), xyz64(pos[t[2]]))) / wp.float64(6.0)
+        cnt = cnt + 1
+    if cur >= 0:
+        wp.atomic_add(volume, cur, acc)
+        wp.atomic_add(nfaces, cur, cnt)
 
 
 @wp.kernel

@@ -1,7 +1,8 @@
 """Warp kernels on triangle meshes: vertex normals and surface-preserving Laplacian smoothing.
 
 Positions are ``wp.vec3`` in (z, y, x) mm; face normals are taken with vertices in (x, y, z) order, i.e. the
-cross product of (z, y, x) edge vectors is negated (a reflection swaps handedness).
+cross product of (z, y, x) edge vectors is negated (a reflection swaps handedness). OpenCL C twins, the same
+arithmetic in the same order: ``smoothing.cl``.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Warp kernels of a device mesh's topology: every vertex's star (the faces around it) as sorted CSR, and each
-vertex's class (host side: ``engine.surface.devmesh``).
+vertex's class (host side: ``engine.surface.devmesh``). OpenCL C twins: ``topology.cl``.
 
 The mesh lives on the device as ``pos`` (V) ``vec3`` (z, y, x) mm and ``faces`` (F) ``vec3i``; a removed face is
 ``(-1, -1, -1)``. Stars are sorted per vertex, so that every later sum over a star runs in a fixed order (the

@@ -1,4 +1,5 @@
-"""Warp kernels on volumes: separable 3-tap Gaussian smoothing (replicated borders)."""
+"""Warp kernels on volumes: separable 3-tap Gaussian smoothing (replicated borders); ``gaussian.cl`` is the OpenCL C
+version, the same arithmetic."""
 
 from __future__ import annotations
 
@@ -14,12 +15,13 @@ def gauss3_axis_kernel(
     axis: int,
     w_side: float,
     w_centre: float,
+    nz: int,
+    ny: int,
+    nx: int,
 ):
-    """dst = w_side * (src[i-1] + src[i+1]) + w_centre * src[i] along ``axis``, borders replicated."""
+    """dst = w_side * (src[i-1] + src[i+1]) + w_centre * src[i] along ``axis``, borders replicated; ``nz, ny, nx``
+    is the shape (as the OpenCL kernel of ``gaussian.cl`` takes it)."""
     z, y, x = wp.tid()
-    nz = src.shape[0]
-    ny = src.shape[1]
-    nx = src.shape[2]
     c = float(src[z, y, x])
     lo = c
     hi = c
