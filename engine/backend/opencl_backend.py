@@ -11,6 +11,7 @@ same bits as Warp's: ``#pragma OPENCL FP_CONTRACT OFF`` in every file (no fused 
 from __future__ import annotations
 
 import importlib.resources
+import re
 import threading
 import warnings
 import weakref
@@ -37,6 +38,39 @@ _C_TYPES = {
 # uploads of at least this many bytes to a GPU go through page-locked staging buffers of STAGE_BYTES each
 PINNED_FROM_BYTES = 32 << 20
 STAGE_BYTES = 32 << 20
+
+
+_INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*(/\*.*\*/|//.*)?\s*$')  # a trailing comment allowed
+_COMMON = "engine.backend.kernels"  # where an include not found beside the including file is looked for
+
+
+def kernel_source(package: str, name: str, seen: set[str] | None = None) -> str:
+    """The OpenCL C of ``package``'s ``name`` with every ``#include "file.cl"`` line replaced by that file's text
+    (itself resolved the same way), found beside the including file or else in ``engine/backend/kernels``; a file
+    is inlined once per program (a second include of it is dropped). The driver gets one self-contained source (no
+    include path: PoCL's cache and NVIDIA's build see the whole text)."""
+    seen = set() if seen is None else seen
+    path = importlib.resources.files(package).joinpath(name)
+    seen.add(f"{package}:{name}")
+    out = []
+    for line in path.read_text().splitlines():
+        match = _INCLUDE.match(line)
+        if match is None:
+            out.append(line)
+            continue
+        where = _include_package(package, match.group(1), f"{package}:{name}")
+        key = f"{where}:{match.group(1)}"
+        out.append(f"// include {key}{' (already included)' if key in seen else ''}")
+        if key not in seen:
+            out.append(kernel_source(where, match.group(1), seen))
+    return "\n".join(out) + "\n"
+
+
+def _include_package(package: str, name: str, including: str) -> str:
+    for where in (package, _COMMON):
+        if importlib.resources.files(where).joinpath(name).is_file():
+            return where
+    raise ValueError(f'OpenCL source {including}: #include "{name}" is neither in {package} nor in {_COMMON}')
 
 
 class CLArray:
@@ -245,8 +279,7 @@ class OpenCLBackend(Backend):
         key = (source, vol_t)
         if key not in self.programs:
             package, _, name = source.partition(":")
-            text = importlib.resources.files(package).joinpath(name).read_text()
-            prg = self.cl.Program(self.context, text)
+            prg = self.cl.Program(self.context, kernel_source(package, name))
             with warnings.catch_warnings():  # a driver's build log (informational) is not the engine's warning
                 warnings.simplefilter("ignore", self.cl.CompilerWarning)
                 self.programs[key] = prg.build(options=[*self.options, f"-DVOL_T={vol_t}"])

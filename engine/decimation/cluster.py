@@ -30,6 +30,7 @@ from engine.backend.base import VEC3F, VEC3I
 from engine.backend.select import backend_of
 from engine.decimation import kernel_specs as K
 from engine.decimation import meshops
+from engine.surface import devmesh
 
 SEARCH_STEPS = 14  # trial cell sizes at most
 CLOSE_ENOUGH = 0.95  # a trial keeping between this share of the budget and the budget ends the search
@@ -167,7 +168,7 @@ class Clustering:
         cell_pos = be.empty(max(n_cells, 1), VEC3F)
         inputs = [self.pos, quad, order, start, len(self.pos), n_cells, origin, cell_pos]
         be.launch(K.CELL_POSITIONS, n_cells, inputs)
-        out_pos, out_faces = meshops.compact_vertices(be, be.view(cell_pos, 0, n_cells), out_faces)
+        out_pos, out_faces = devmesh.compact_vertices(be.view(cell_pos, 0, n_cells), out_faces)
         info = {
             "cell_mm": h,
             "faces": kept,

@@ -1,19 +1,19 @@
 """The named kernels of the decimation (``engine.backend.Kernel``), each written twice: the Warp kernels of this
-package's modules (and of ``engine.surface.kernels`` for the device mesh's stars and compaction) and their OpenCL C
-twins in ``kernels/*.cl``: ``price.cl`` and ``claims.cl`` (the pass), ``mesh.cl`` (stars, classes, compaction,
-bounds), ``cluster.cl`` and ``tiles.cl``; launched with the same arguments by the one host code
-(``engine.decimation.phases`` and the modules beside it). Importing this module loads neither Warp nor PyOpenCL."""
+package's modules and their OpenCL C twins in ``kernels/*.cl``: ``price.cl`` and ``claims.cl`` (the pass, sharing
+``pass.cl``), ``mesh.cl`` (the quadrics' compaction, locked vertices), ``cluster.cl`` and ``tiles.cl``; launched with
+the same arguments by the one host code (``engine.decimation.phases`` and the modules beside it). The device mesh's
+stars, vertex classes, compaction and bounds are the surface package's kernels (``engine.surface.kernel_specs``,
+both backends). Importing this module loads neither Warp nor PyOpenCL."""
 
 from __future__ import annotations
 
 from engine.backend.base import Kernel
+from engine.surface import kernel_specs as surface
 
 _K = "engine.decimation.kernels"
 _PRICE = f"{_K}:price.cl"
 _CLAIMS = f"{_K}:claims.cl"
 _MESH = f"{_K}:mesh.cl"
-_TOPO = "engine.surface.kernels.topology"
-_COMPACT = "engine.surface.kernels.compaction"
 
 
 def _k(name: str, warp: str, cl_file: str) -> Kernel:
@@ -21,17 +21,17 @@ def _k(name: str, warp: str, cl_file: str) -> Kernel:
     return Kernel(f"decimation.{name}", warp, f"{cl_file}:{attr}")
 
 
-# the device mesh (stars, vertex classes, compaction, bounds)
-COUNT_INCIDENCE = _k("count_incidence", f"{_TOPO}:count_incidence", _MESH)
-FILL_INCIDENCE = _k("fill_incidence", f"{_TOPO}:fill_incidence", _MESH)
-SORT_INCIDENCE = _k("sort_incidence", f"{_TOPO}:sort_incidence", _MESH)
-CLASSIFY = _k("classify_vertices", f"{_TOPO}:classify_vertices", _MESH)
-ALIVE_FLAGS = _k("alive_flags", f"{_COMPACT}:alive_flags", _MESH)
-SCATTER_FACES = _k("scatter_faces", f"{_COMPACT}:scatter_faces", _MESH)
-USED_FLAGS = _k("used_flags", f"{_COMPACT}:used_flags", _MESH)
-SCATTER_VERTICES = _k("scatter_vertices", f"{_COMPACT}:scatter_vertices", _MESH)
-REMAP_FACES = _k("remap_faces", f"{_COMPACT}:remap_faces", _MESH)
-BOUNDS = _k("bounds", f"{_COMPACT}:bounds_kernel", _MESH)
+# the device mesh (stars, vertex classes, compaction, bounds): the surface package's kernels
+COUNT_INCIDENCE = surface.COUNT_INCIDENCE
+FILL_INCIDENCE = surface.FILL_INCIDENCE
+SORT_INCIDENCE = surface.SORT_INCIDENCE
+CLASSIFY = surface.CLASSIFY
+ALIVE_FLAGS = surface.ALIVE_FLAGS
+SCATTER_FACES = surface.SCATTER_FACES
+USED_FLAGS = surface.USED_FLAGS
+SCATTER_VERTICES = surface.SCATTER_VERTICES
+REMAP_FACES = surface.REMAP_FACES
+BOUNDS = surface.BOUNDS
 SCATTER_KEPT = _k("scatter_kept", f"{_K}.quadrics:scatter_kept", _MESH)
 LOCK_VERTICES = _k("lock_vertices", f"{_K}.collapse:lock_vertices", _MESH)
 

@@ -2,9 +2,10 @@
 (``Stars``, sorted CSR), the vertex classes, compaction, the bounding box, quadric arrays and the kernel arguments
 the two backends spell differently (a float64, an int64, a vec3, the quadrics' origin).
 
-The same work as ``engine.surface.devmesh`` (whose Warp kernels the Warp backend runs here too; the OpenCL twins
-are ``kernels/mesh.cl``), written once over the backend interface for the decimation's host loop. A few helpers
-branch on ``backend.kind`` where the interface has no word yet (each a candidate ``Backend`` method):
+The same work as ``engine.surface.devmesh`` (the same kernels on both backends; ``used_slots`` and
+``compact_vertices`` are devmesh's own), written over the backend interface for the decimation's host loop, which
+avoids devmesh's sync points where it can (``Stars`` and ``compact_faces`` scan without reading the total back). A
+few helpers branch on ``backend.kind`` where the interface has no word yet (each a candidate ``Backend`` method):
 ``quadrics`` / ``quadrics_from_host`` / ``copy_quadrics`` (arrays of 10-double quadrics), ``clone``, ``scan`` (a
 scan whose total is not read back: no sync point), ``sort_pairs`` (a stable key-value sort; on the host for
 OpenCL), ``recorded`` (a launch packed once and replayed, Warp's ``record_cmd``) and ``f64`` / ``i64`` (the
@@ -20,6 +21,7 @@ import numpy as np
 
 from engine.backend.base import VEC3F, VEC3I, Backend, Kernel
 from engine.decimation import kernel_specs as K
+from engine.surface import devmesh
 
 ORIGIN_DTYPE = np.dtype([("x", np.float64), ("y", np.float64), ("z", np.float64)])  # OpenCL's ``origin_t``
 
@@ -210,32 +212,10 @@ def compact_faces(be: Backend, faces: Any, n_alive: int) -> Any:
     return out
 
 
-def used_slots(be: Backend, pos: Any, faces: Any) -> tuple[Any, Any, int]:
-    """Per vertex its face count and its slot among the used vertices; the number used (a sync point)."""
-    count = be.zeros(len(pos), np.int32)
-    be.launch(K.COUNT_INCIDENCE, len(faces), [faces, count])
-    flag = be.empty(len(pos), np.int32)
-    be.launch(K.USED_FLAGS, len(pos), [count, flag])
-    slot = be.empty(len(pos), np.int32)
-    n_used = be.exclusive_scan(flag, slot)
-    return count, slot, n_used
-
-
-def compact_vertices(be: Backend, pos: Any, faces: Any) -> tuple[Any, Any]:
-    """Drop the vertices no face uses (the kept ones keep their order); ``faces`` is remapped in place."""
-    count, slot, n_used = used_slots(be, pos, faces)
-    if n_used == len(pos):
-        return pos, faces
-    out = be.empty(n_used, VEC3F)
-    be.launch(K.SCATTER_VERTICES, len(pos), [pos, count, slot, out])
-    be.launch(K.REMAP_FACES, len(faces), [faces, slot])
-    return out, faces
-
-
 def compact_carrying(be: Backend, pos: Any, faces: Any, quad: Any) -> tuple[Any, Any, Any, Any]:
-    """``compact_vertices`` that also carries the quadrics and says where each kept vertex was:
-    ``(pos, faces, quad, kept)`` with ``kept[i]`` the input index of output vertex ``i``."""
-    count, slot, n_used = used_slots(be, pos, faces)
+    """``engine.surface.devmesh.compact_vertices`` that also carries the quadrics and says where each kept vertex
+    was: ``(pos, faces, quad, kept)`` with ``kept[i]`` the input index of output vertex ``i``."""
+    count, slot, n_used = devmesh.used_slots(pos, faces)
     out = be.empty(n_used, VEC3F)
     kept = be.empty(n_used, np.int32)
     out_quad = quadrics(be, n_used)

@@ -31,6 +31,7 @@ from engine.backend.select import backend_of
 from engine.decimation import kernel_specs as K
 from engine.decimation import meshops
 from engine.decimation.meshops import Stars
+from engine.surface import devmesh
 from engine.surface.devmesh import CLASS_NAMES
 
 OVERSHOOT = 4  # near the target, this many candidates per collapse still needed (the surplus winners are trimmed)
@@ -271,5 +272,5 @@ def finish(c: Collapsing, carry: bool) -> tuple[Any, Any, Any, Any]:
     faces = meshops.compact_faces(c.be, c.faces, c.alive) if c.alive < len(c.faces) else c.faces
     if carry:
         return meshops.compact_carrying(c.be, c.pos, faces, c.quad)
-    out_pos, out_faces = meshops.compact_vertices(c.be, c.pos, faces)
+    out_pos, out_faces = devmesh.compact_vertices(c.pos, faces)
     return out_pos, out_faces, None, None

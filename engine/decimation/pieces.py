@@ -49,8 +49,8 @@ def decimate_piece_device(
     from engine.backend.base import VEC3F, VEC3I
     from engine.backend.select import backend_of
     from engine.decimation import kernel_specs as K
-    from engine.decimation import meshops
     from engine.decimation.passes import decimate_carrying
+    from engine.surface import devmesh
 
     t0 = time.perf_counter()
     be = backend_of(pos)
@@ -90,7 +90,7 @@ def decimate_piece_device(
     be.copy(joined, rest, count=len(rest))
     be.copy(joined, res.faces, dst_offset=len(rest), count=len(res.faces))
     del rest, pos, faces
-    out_pos, out_faces = meshops.compact_vertices(be, joined_pos, joined)  # drops the seam's replaced vertices
+    out_pos, out_faces = devmesh.compact_vertices(joined_pos, joined)  # drops the seam's replaced vertices
     pinned = res.stats.vertex_classes.get("locked")
     info = {"faces_in": n_faces, "seam_faces_in": n_seam, "seam_faces_out": len(res.faces), "pinned": pinned}
     info.update(faces_out=len(out_faces), passes=res.stats.passes, seconds=time.perf_counter() - t0, on="device")

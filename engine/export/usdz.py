@@ -8,6 +8,8 @@ and one ``UsdPreviewSurface`` material in the bone colour. The stage is a binary
 
 from __future__ import annotations
 
+import struct
+
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -80,4 +82,29 @@ def to_usdz(
         package = str(Path(folder) / f"{name}.usdz")
         if not UsdUtils.CreateNewARKitUsdzPackage(Sdf.AssetPath(layer), package):
             raise RuntimeError("usd-core could not write the USDZ package")
-        return Path(package).read_bytes()
+        return fixed_zip_times(Path(package).read_bytes())
+
+
+DOS_EPOCH = (0, 0x21)  # the zip format's time and date fields for 1980-01-01 00:00
+
+
+def fixed_zip_times(data: bytes) -> bytes:
+    """The package with every member's modification time set to ``DOS_EPOCH``, in place (same lengths, so the
+    64-byte alignment of USDZ members stays): the same mesh gives the same bytes whenever it is written (the clock
+    changed them at 2 s resolution)."""
+    out = bytearray(data)
+    end = out.rfind(b"PK\x05\x06")
+    if end < 0:
+        return data
+    count, _size, cd = struct.unpack_from("<HII", out, end + 10)
+    at = cd
+    for _ in range(count):
+        if out[at : at + 4] != b"PK\x01\x02":
+            return data
+        struct.pack_into("<HH", out, at + 12, *DOS_EPOCH)
+        name_len, extra_len, comment_len = struct.unpack_from("<HHH", out, at + 28)
+        (local,) = struct.unpack_from("<I", out, at + 42)
+        if out[local : local + 4] == b"PK\x03\x04":
+            struct.pack_into("<HH", out, local + 10, *DOS_EPOCH)
+        at += 46 + name_len + extra_len + comment_len
+    return bytes(out)

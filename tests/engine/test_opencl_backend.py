@@ -141,3 +141,23 @@ def test_large_uploads_to_a_gpu_go_through_pinned_staging_with_the_same_values(o
     dst = opencl.empty(data.shape, np.uint16)
     opencl.upload_pinned(dst, data)
     assert np.array_equal(opencl.to_host(dst), data)
+
+
+def test_kernel_sources_inline_their_includes_once():
+    """``#include "x.cl"`` (engine.backend.opencl_backend.kernel_source): found beside the file or in the backend's
+    kernels, each file once per program, so a driver gets one self-contained source."""
+    from engine.backend.opencl_backend import kernel_source
+
+    text = kernel_source("engine.decimation.kernels", "price.cl")
+    assert not any(line.lstrip().startswith("#include") for line in text.splitlines())
+    included = [line for line in text.splitlines() if line.startswith("// include")]
+    assert included == [  # pass.cl includes the backend's common.cl; each file once
+        "// include engine.decimation.kernels:pass.cl",
+        "// include engine.backend.kernels:common.cl",
+        "// include engine.decimation.kernels:linalg.cl",
+    ]
+    assert text.count("#define FREE") <= 1
+    with pytest.raises(ValueError, match='#include "nowhere.cl"'):
+        from engine.backend import opencl_backend
+
+        opencl_backend._include_package("engine.decimation.kernels", "nowhere.cl", "test")

@@ -1,49 +1,18 @@
 /* OpenCL C twins of the Warp kernels of a decimation pass's claims and collapses: claims.py and collapse.py (read
  * their docstrings); price.cl prices the edges. Host side: engine.decimation.phases. Integer logic and 64-bit
  * atomics (cl_khr_int64_extended_atomics): the winners do not depend on the order work items run in. mix32,
- * listed and edge_ends are price.cl's, word for word. Layouts: vec3 arrays are packed float triples, vec3i packed
- * int triples, a quadric 10 doubles. */
+ * listed and edge_ends are in pass.cl (price.cl includes it too). Layouts: vec3 arrays are packed float triples,
+ * vec3i packed int triples, a quadric 10 doubles. */
 #pragma OPENCL FP_CONTRACT OFF
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
 #pragma OPENCL EXTENSION cl_khr_int64_extended_atomics : enable
 
-#define FREE 0
-#define BORDER 1
-#define DEAD 3
-#define HIST_SHIFT 15
+#include "pass.cl" /* FREE, BORDER, DEAD, face, has_vertex, HIST_SHIFT, mix32, listed, edge_ends */
+
 #define CLAIM_FREE 0x7FFFFFFFFFFFFFFFL
 #define CLAIM_TAKEN (-1L)
 #define TRIMMED 5
-
-static int3 face(__global const int *faces, const int f) { return vload3(f, faces); }
-static int has_vertex(const int3 t, const int v) { return t.x == v || t.y == v || t.z == v; }
-
-static long mix32(const int x)
-{
-    uint h = (uint)x;
-    h = h ^ (h >> 16);
-    h = h * 0x7FEB352Du;
-    h = h ^ (h >> 15);
-    h = h * 0x846CA68Bu;
-    h = h ^ (h >> 16);
-    return (long)h;
-}
-
-static int listed(__global const int *listing, __global const int *n_listed, __global const int *cand, const int want,
-                  const int i)
-{
-    int h = -1;
-    if (i < n_listed[0] && cand[listing[i]] == want) h = listing[i];
-    return h;
-}
-
-static int2 edge_ends(__global const int *faces, const int h)
-{
-    const int f = h / 3;
-    const int k = h - 3 * f;
-    return (int2)(faces[3 * f + k], faces[3 * f + (k + 1) % 3]);
-}
 
 /* ---- claims -------------------------------------------------------------------------------------------------- */
 static long priority(const int code, const int h) { return ((long)code << 32) | mix32(h); }

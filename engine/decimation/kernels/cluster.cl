@@ -1,6 +1,6 @@
 /* OpenCL C twins of cluster.py's Warp kernels (quadric vertex clustering and the piece census; read that file's
  * docstrings). Host side: engine.decimation.cluster. The same arithmetic in the same order as the Warp kernels on
- * the CPU (no fused multiply-adds; the determinant and inverse written out as Warp's native code computes them).
+ * the CPU (no fused multiply-adds; the determinant and inverse of linalg.cl, as Warp's native code computes them).
  * Layouts: vec3 arrays are packed float triples, vec3i packed int triples, a quadric 10 doubles; `lo` a struct of
  * 3 floats, the origin a struct of 3 doubles. */
 #pragma OPENCL FP_CONTRACT OFF
@@ -13,18 +13,8 @@ typedef struct {
     float x, y, z;
 } lo_t;
 
-typedef struct {
-    double x, y, z;
-} origin_t;
+#include "linalg.cl" /* origin_t, d3, dot3, cross3, dmin, dmax, det3, solve3 */
 
-static double3 d3(const double x, const double y, const double z) { return (double3)(x, y, z); }
-static double dot3(const double3 a, const double3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
-static double3 cross3(const double3 a, const double3 b)
-{
-    return d3(a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x);
-}
-static double dmin(const double a, const double b) { return a < b ? a : b; }
-static double dmax(const double a, const double b) { return a > b ? a : b; }
 static int imin(const int a, const int b) { return a < b ? a : b; }
 static int imax(const int a, const int b) { return a > b ? a : b; }
 
@@ -109,24 +99,9 @@ __kernel void cell_positions(__global const float *pos, __global const double *q
     double3 best = mean;
     const double m[9] = {q[0], q[1], q[2], q[1], q[4], q[5], q[2], q[5], q[7]};
     const double scale = (q[0] + q[4] + q[7]) / 3.0;
-    const double det = dot3(d3(m[0], m[1], m[2]), cross3(d3(m[3], m[4], m[5]), d3(m[6], m[7], m[8])));
+    const double det = det3(m);
     if (scale > 0.0 && fabs(det) > 1.0e-6 * scale * scale * scale) {
-        double b[9];
-        b[0] = m[4] * m[8] - m[5] * m[7];
-        b[3] = m[5] * m[6] - m[3] * m[8];
-        b[6] = m[3] * m[7] - m[4] * m[6];
-        b[1] = m[2] * m[7] - m[1] * m[8];
-        b[4] = m[0] * m[8] - m[2] * m[6];
-        b[7] = m[1] * m[6] - m[0] * m[7];
-        b[2] = m[1] * m[5] - m[2] * m[4];
-        b[5] = m[2] * m[3] - m[0] * m[5];
-        b[8] = m[0] * m[4] - m[1] * m[3];
-        const double rcp = 1.0 / det;
-        for (int k = 0; k < 9; k++) b[k] = b[k] * rcp;
-        double3 r = d3(b[0] * q[3], b[3] * q[3], b[6] * q[3]);
-        r = r + d3(b[1] * q[6], b[4] * q[6], b[7] * q[6]);
-        r = r + d3(b[2] * q[8], b[5] * q[8], b[8] * q[8]);
-        double3 x = -r;
+        double3 x = solve3(m, det, d3(q[3], q[6], q[8]));
         x = d3(dmin(dmax(x.x, bmin.x), bmax.x), dmin(dmax(x.y, bmin.y), bmax.y), dmin(dmax(x.z, bmin.z), bmax.z));
         if (q_eval(q, x) <= q_eval(q, mean)) best = x;
     }

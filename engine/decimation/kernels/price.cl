@@ -9,40 +9,20 @@
 #pragma OPENCL FP_CONTRACT OFF
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 
-#define FREE 0
-#define BORDER 1
+#include "pass.cl"   /* FREE, BORDER, face, has_vertex, next_of, HIST_SHIFT, mix32, listed, edge_ends */
+#include "linalg.cl" /* origin_t, d3, dot3, cross3, dmin, dmax, det3, solve3 */
+
 #define NO_KEY 0x7FFFFFFF
-#define HIST_SHIFT 15
 #define QUALITY_MIN 1.0e-3
 #define QUALITY_SOFT 0.3
-
-typedef struct {
-    double x, y, z;
-} origin_t;
 
 typedef struct {
     double q[10];
 } quadric;
 
 /* ---- vectors as Warp computes them ------------------------------------------------------------------------- */
-static double3 d3(const double x, const double y, const double z) { return (double3)(x, y, z); }
-static double dot3(const double3 a, const double3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
 static double len_sq(const double3 a) { return a.x * a.x + a.y * a.y + a.z * a.z; }
 static double len3(const double3 a) { return sqrt(a.x * a.x + a.y * a.y + a.z * a.z); }
-static double3 cross3(const double3 a, const double3 b)
-{
-    return d3(a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x);
-}
-
-static int3 face(__global const int *faces, const int f) { return vload3(f, faces); }
-static int has_vertex(const int3 t, const int v) { return t.x == v || t.y == v || t.z == v; }
-static int next_of(const int3 t, const int v)
-{
-    int r = t.x;
-    if (t.x == v) r = t.y;
-    else if (t.y == v) r = t.z;
-    return r;
-}
 
 static double3 lcl(__global const float *pos, const int v, const origin_t o)
 {
@@ -107,28 +87,6 @@ __kernel void vertex_quadrics(__global const float *pos, __global const int *fac
 }
 
 /* ---- costs --------------------------------------------------------------------------------------------------- */
-static long mix32(const int x)
-{
-    uint h = (uint)x;
-    h = h ^ (h >> 16);
-    h = h * 0x7FEB352Du;
-    h = h ^ (h >> 15);
-    h = h * 0x846CA68Bu;
-    h = h ^ (h >> 16);
-    return (long)h;
-}
-
-static int listed(__global const int *listing, __global const int *n_listed, __global const int *cand, const int want,
-                  const int i)
-{
-    int h = -1;
-    if (i < n_listed[0] && cand[listing[i]] == want) h = listing[i];
-    return h;
-}
-
-static double dmax(const double a, const double b) { return a > b ? a : b; }
-static double dmin(const double a, const double b) { return a < b ? a : b; }
-
 static int cost_code(const double cost)
 {
     int c = 0;
@@ -138,33 +96,6 @@ static int cost_code(const double cost)
         c = (int)x + 1;
     }
     return c;
-}
-
-static double det3(const double m[9])
-{
-    const double3 r0 = d3(m[0], m[1], m[2]), r1 = d3(m[3], m[4], m[5]), r2 = d3(m[6], m[7], m[8]);
-    return dot3(r0, cross3(r1, r2));
-}
-
-/* -(inverse(m) @ v), as Warp: the adjugate times 1 / det, then columns times the vector's components. */
-static double3 solve3(const double m[9], const double det, const double3 v)
-{
-    double b[9];
-    b[0] = m[4] * m[8] - m[5] * m[7];
-    b[3] = m[5] * m[6] - m[3] * m[8];
-    b[6] = m[3] * m[7] - m[4] * m[6];
-    b[1] = m[2] * m[7] - m[1] * m[8];
-    b[4] = m[0] * m[8] - m[2] * m[6];
-    b[7] = m[1] * m[6] - m[0] * m[7];
-    b[2] = m[1] * m[5] - m[2] * m[4];
-    b[5] = m[2] * m[3] - m[0] * m[5];
-    b[8] = m[0] * m[4] - m[1] * m[3];
-    const double rcp = 1.0 / det;
-    for (int k = 0; k < 9; k++) b[k] = b[k] * rcp;
-    double3 r = d3(b[0] * v.x, b[3] * v.x, b[6] * v.x);
-    r = r + d3(b[1] * v.y, b[4] * v.y, b[7] * v.y);
-    r = r + d3(b[2] * v.z, b[5] * v.z, b[8] * v.z);
-    return -r;
 }
 
 static double3 placement(const quadric *Q, const double3 pa, const double3 pb)
@@ -189,13 +120,6 @@ static double3 placement(const quadric *Q, const double3 pa, const double3 pb)
         else if (cb < cm) best = pb;
     }
     return best;
-}
-
-static int2 edge_ends(__global const int *faces, const int h)
-{
-    const int f = h / 3;
-    const int k = h - 3 * f;
-    return (int2)(faces[3 * f + k], faces[3 * f + (k + 1) % 3]);
 }
 
 /* (s, r): r, the removed vertex, is always FREE; (-1, -1) when the classes forbid the collapse. */

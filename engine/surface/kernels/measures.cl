@@ -5,23 +5,7 @@
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
 
-static int next_of(int3 t, int v)
-{
-    int r = t.x;
-    if (t.x == v) r = t.y;
-    else if (t.y == v) r = t.z;
-    return r;
-}
-
-static int prev_of(int3 t, int v)
-{
-    int r = t.y;
-    if (t.x == v) r = t.z;
-    else if (t.y == v) r = t.x;
-    return r;
-}
-
-static bool has_vertex(int3 t, int v) { return t.x == v || t.y == v || t.z == v; }
+#include "common.cl" /* next_of, prev_of, has_vertex (engine/backend/kernels) */
 
 /* a (z, y, x) float32 position as float64 (x, y, z) */
 static double3 xyz64(__global const float *pos, int v)

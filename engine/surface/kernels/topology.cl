@@ -3,26 +3,7 @@
  * as the Warp kernels. */
 #pragma OPENCL FP_CONTRACT OFF
 
-#define FREE 0
-#define BORDER 1
-#define LOCKED 2
-#define DEAD 3
-
-static int next_of(int3 t, int v)
-{
-    int r = t.x;
-    if (t.x == v) r = t.y;
-    else if (t.y == v) r = t.z;
-    return r;
-}
-
-static int prev_of(int3 t, int v)
-{
-    int r = t.y;
-    if (t.x == v) r = t.z;
-    else if (t.y == v) r = t.x;
-    return r;
-}
+#include "common.cl" /* FREE, BORDER, LOCKED, DEAD; next_of, prev_of (engine/backend/kernels) */
 
 __kernel void count_incidence(__global const int *faces, __global int *count)
 {
