@@ -4,6 +4,10 @@ only carries wake-up calls; a job whose message is lost is re-enqueued from here
 A worker *claims* a job with one conditional UPDATE (queued, or running with a stale heartbeat), so a duplicate
 message never runs a job twice at once, and writes progress, heartbeat and the result only while its claim holds.
 
+Each claim also writes a row of ``job_attempts``: which worker (its name and host) ran the attempt, when, and how
+it ended (``running`` until then; ``lost`` when its worker stopped and the job was taken over or re-queued). Direct
+uploads not yet completed (``direct_uploads``, ``service.direct``) wait in a table of their own.
+
 Opening the database brings its schema to this release's (``core.schema``: versioned upgrade steps). Sizes and
 counts are 64-bit (``BigInteger``): uploads reach 4 GiB, past PostgreSQL's 32-bit ``INTEGER``.
 """
@@ -23,6 +27,7 @@ from sqlalchemy import (
     BigInteger,
     DateTime,
     Float,
+    Integer,
     String,
     Text,
     create_engine,
@@ -33,13 +38,15 @@ from sqlalchemy import (
     update,
 )
 from sqlalchemy.engine import Engine
-from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
+from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship, sessionmaker
 
 from core import schema
 
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 ACTIVE = ("queued", "running")
 TERMINAL = ("succeeded", "failed", "cancelled")
+OPEN = "running"  # the outcome of an attempt not ended yet
+LOST = "lost"  # the outcome of an attempt whose worker stopped (killed, or silent past the staleness limit)
 ORIENTING = "orienting"  # the stage of a succeeded job whose outputs are being re-oriented (worker.tasks.orient_job)
 
 
@@ -88,6 +95,60 @@ class Job(Base):
     webhook_state: Mapped[str | None] = mapped_column(String(16), default=None, index=True)
     webhook_next_at: Mapped[dt.datetime | None] = mapped_column(DateTime, default=None)
     webhook_attempts: Mapped[list[dict[str, Any]] | None] = mapped_column(JSON, default=None)
+    # each attempt's worker and host, oldest first (loaded with the job: one more query for a whole list)
+    runs: Mapped[list[Attempt]] = relationship(
+        "Attempt",
+        primaryjoin="Job.id == foreign(Attempt.job_id)",
+        order_by="Attempt.number",
+        lazy="selectin",
+        viewonly=True,
+    )
+
+
+class Attempt(Base):
+    """One attempt at a job: the worker that claimed it (``claim``: the job's ``worker`` token while it held it),
+    the worker's name and host, and how it ended."""
+
+    __tablename__ = "job_attempts"
+
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True, autoincrement=True)
+    job_id: Mapped[str] = mapped_column(String(32), index=True)
+    number: Mapped[int] = mapped_column(BigInteger)
+    claim: Mapped[str] = mapped_column(String(128))
+    worker: Mapped[str] = mapped_column(String(255))
+    host: Mapped[str] = mapped_column(String(255))
+    started_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
+    finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime, default=None)
+    outcome: Mapped[str] = mapped_column(String(16), default=OPEN)
+
+
+class PendingUpload(Base):
+    """A direct upload begun (``POST /v1/uploads``) and not yet completed or aborted: the job it becomes (its id is
+    the job's), the store's multipart upload, and what the client declared (validated once, at the start)."""
+
+    __tablename__ = "direct_uploads"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    owner: Mapped[str] = mapped_column(String(64), index=True)
+    store_upload_id: Mapped[str] = mapped_column(String(1024))
+    state: Mapped[str] = mapped_column(String(16), default="open")  # open, then completing
+    upload_name: Mapped[str] = mapped_column(String(255))
+    upload_bytes: Mapped[int] = mapped_column(BigInteger)
+    part_bytes: Mapped[int] = mapped_column(BigInteger)
+    params: Mapped[dict[str, Any]] = mapped_column(JSON)
+    engine_params: Mapped[dict[str, Any]] = mapped_column(JSON)
+    callback_url: Mapped[str | None] = mapped_column(String(2048), default=None)
+    base_url: Mapped[str | None] = mapped_column(String(2048), default=None)
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
+    expires_at: Mapped[dt.datetime] = mapped_column(DateTime, index=True)
+
+
+def _end_attempts(s: Session, job_id: str, outcome: str, claim: str | None = None) -> None:
+    """Close the job's open attempts (only ``claim``'s when given) with ``outcome``."""
+    cond = [Attempt.job_id == job_id, Attempt.finished_at.is_(None)]
+    if claim is not None:
+        cond.append(Attempt.claim == claim)
+    s.execute(update(Attempt).where(*cond).values(outcome=outcome, finished_at=utcnow()))
 
 
 class Database:
@@ -181,11 +242,14 @@ class Database:
                 .where(Job.id == job_id, Job.state.in_(ACTIVE))
                 .values(state="cancelled", finished_at=utcnow(), outputs=None)
             )
+            if res.rowcount == 1:
+                _end_attempts(s, job_id, "cancelled")
             return res.rowcount == 1
 
     def delete(self, job_id: str) -> bool:
         """Remove a job's record (a running job's worker notices at its next heartbeat). True if it existed."""
         with self.session() as s:
+            s.execute(delete(Attempt).where(Attempt.job_id == job_id))
             return s.execute(delete(Job).where(Job.id == job_id)).rowcount == 1
 
     def lost_jobs(self, queued_before: dt.datetime, stale_before: dt.datetime) -> tuple[list[str], list[str]]:
@@ -210,6 +274,8 @@ class Database:
                 .where(Job.id == job_id, Job.state == "running", Job.heartbeat_at < stale_before)
                 .values(state="queued", stage="queued", worker=None)
             )
+            if res.rowcount == 1:
+                _end_attempts(s, job_id, LOST)
             return res.rowcount == 1
 
     def start_orient(self, job_id: str, stale_before: dt.datetime) -> bool:
@@ -228,9 +294,13 @@ class Database:
             return res.rowcount == 1
 
     # --- worker side --------------------------------------------------------------------------------------------
-    def claim(self, job_id: str, worker: str, stale_before: dt.datetime) -> Job | None:
-        """Take a job for ``worker``: it must be queued, or running with a heartbeat older than ``stale_before``.
-        Counts an attempt. None when another worker holds it or it is finished or cancelled."""
+    def claim(
+        self, job_id: str, worker: str, stale_before: dt.datetime, *, name: str | None = None, host: str | None = None
+    ) -> Job | None:
+        """Take a job for ``worker`` (a token unique to this run): it must be queued, or running with a heartbeat
+        older than ``stale_before``. Counts an attempt and records it with the worker's ``name`` and ``host``
+        (default: the token, and its part before the first ``:``); an attempt left open by a silent worker ends as
+        ``lost``. None when another worker holds it or it is finished or cancelled."""
         now = utcnow()
         with self.session() as s:
             res = s.execute(
@@ -253,6 +323,19 @@ class Database:
             )
             if res.rowcount != 1:
                 return None
+            _end_attempts(s, job_id, LOST)
+            number = s.scalar(select(Job.attempts).where(Job.id == job_id)) or 1
+            s.add(
+                Attempt(
+                    job_id=job_id,
+                    number=number,
+                    claim=worker,
+                    worker=name or worker,
+                    host=host or worker.split(":", 1)[0],
+                    started_at=now,
+                )
+            )
+            s.flush()
             return s.get(Job, job_id)
 
     def beat(self, job_id: str, worker: str, stage: str | None = None, progress: float | None = None) -> bool:
@@ -286,6 +369,8 @@ class Database:
             cond += [Job.worker == worker, Job.state == "running"]
         with self.session() as s:
             res = s.execute(update(Job).where(*cond).values(state=state, finished_at=utcnow(), **values))
+            if res.rowcount == 1:
+                _end_attempts(s, job_id, state, worker)
             return res.rowcount == 1
 
     # --- webhooks (API side) -------------------------------------------------------------------------------------

@@ -2,8 +2,10 @@
 
 Most parameters are flat; the engine's optional steps are objects: ``orient`` (how an image stack lies),
 ``preprocess`` (the paper's slice preprocessing, off unless given), ``defect`` (the one-sided defect and its
-mirrored template, off unless given), and ``body`` and ``islands`` (bone inside the body outline, speck removal: on
-unless sent as ``null``). Left out, every step keeps the engine's default
+mirrored template, off unless given), ``roi`` (a box the scan or label map is cropped to first), and ``body`` and
+``islands`` (bone inside the body outline, speck removal: on unless sent as ``null``). ``labels`` (the upload is a
+label map) and ``pieces`` (a CT's N largest bone pieces as parts) make a label job (``engine.labels``); the worker
+reads them, with ``roi``, through ``JobParams.label_options``. Left out, every step keeps the engine's default
 (``engine.params.ReconParams()``).
 
 Part of the job's contract, so shared: the API validates a request with it and stores both forms, a PACS routing
@@ -29,8 +31,10 @@ from engine.params import (
     IslandParams,
     IsoParams,
     OrientParams,
+    PiecesParams,
     PreprocessParams,
     ReconParams,
+    RoiParams,
     SmoothParams,
     check_spacing_zyx_mm,
     spacing_order_warning,
@@ -132,6 +136,30 @@ class DefectJobParams(_Group):
         return DefectParams(**data)
 
 
+class RoiJobParams(_Group):
+    """A region of interest: the scan (or label map) is cropped to this box before anything runs."""
+
+    box: list[list[float]] = Field(
+        min_length=3,
+        max_length=3,
+        description="three [lo, hi] ranges: voxel indices [z, y, x] (lo inclusive, hi exclusive) with units "
+        '"voxels", or patient-frame (LPS) [x, y, z] in mm with units "mm"',
+    )
+    units: Literal["voxels", "mm"] = Field(default="voxels", description="what the box's numbers are")
+
+    @model_validator(mode="after")
+    def _engine(self) -> RoiJobParams:
+        self.engine()  # the engine's own checks (ValueError: 422 naming roi)
+        return self
+
+    def engine(self) -> RoiParams:
+        """The engine's form."""
+        if any(len(r) != 2 for r in self.box):
+            raise ValueError(f"each range of box is [lo, hi], got {self.box}")
+        (z0, z1), (y0, y1), (x0, x1) = self.box
+        return RoiParams(((z0, z1), (y0, y1), (x0, x1)), units=self.units)
+
+
 class JobParams(BaseModel):
     """Reconstruction parameters of a job (all optional; defaults are the paper's best combination).
 
@@ -182,6 +210,15 @@ class JobParams(BaseModel):
     defect: DefectJobParams | None = Field(
         default=None, description="the one-sided defect and its mirrored fill template (default off; {} turns it on)"
     )
+    labels: bool | None = Field(
+        default=None,
+        description="true: the upload is a label map (an integer NIfTI, NRRD/.seg.nrrd, or a zip of one, or of a "
+        "DICOM SEG with its CT series): one model per label. Label maps are found by their content without it",
+    )
+    pieces: int | None = Field(
+        default=None, ge=1, le=1000, description="keep the N largest bone pieces of a CT as separately named parts"
+    )
+    roi: RoiJobParams | None = Field(default=None, description="crop to this box before anything runs")
     phone_max_triangles: int = Field(
         default=_EXPORT.phone_max_triangles, ge=100, le=2_000_000, description="phone.glb budget"
     )
@@ -202,7 +239,20 @@ class JobParams(BaseModel):
             raise ValueError("give reduction or max_triangles, not both")
         if self.islands is None and self.min_island_mm3 is not None:
             raise ValueError('give min_island_mm3 or "islands": null (keep pieces of any size), not both')
+        if self.pieces is not None and self.labels:
+            raise ValueError("give pieces (a CT's bone pieces) or labels (a label map), not both")
+        if self.defect is not None and (self.pieces is not None or self.labels):
+            raise ValueError("the defect is found on a CT's model, not on pieces or labels: give one or the other")
         return self
+
+    def label_options(self) -> dict[str, Any]:
+        """What the worker needs beyond ``engine_params``: ``labels`` (forced), ``pieces`` and ``roi`` (the
+        engine's ``PiecesParams`` / ``RoiParams``, or None)."""
+        return {
+            "labels": bool(self.labels),
+            "pieces": None if self.pieces is None else PiecesParams(count=self.pieces),
+            "roi": None if self.roi is None else self.roi.engine(),
+        }
 
     def warnings(self) -> list[dict[str, Any]]:
         """What a person should check in these parameters, in the API's words: a ``spacing`` whose order looks

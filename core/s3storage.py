@@ -26,6 +26,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from core.s3direct import S3DirectUploads
 from core.storage import (
     Storage,
     StoredFile,
@@ -41,7 +42,7 @@ PARTS_IN_FLIGHT = 4  # parts uploaded at once by one upload: memory stays under 
 CHUNK = 1 << 20
 
 
-def make_client(endpoint_url: str | None) -> Any:
+def make_client(endpoint_url: str | None, *, presigning: bool = False) -> Any:
     """A boto3 S3 client: SigV4, standard retries, payloads not hashed into the signature (over HTTPS that is
     boto3's default already; over a plain-HTTP endpoint hashing each part halved the upload rate,
     benchmarks/storage_clients.py); path-style addressing and checksums only when required where an endpoint is
@@ -56,6 +57,8 @@ def make_client(endpoint_url: str | None) -> Any:
             "request_checksum_calculation": "when_required",
             "response_checksum_validation": "when_required",
         }
+    if presigning:  # links for other clients (direct uploads): no checksum they would have to send
+        extra["request_checksum_calculation"] = "when_required"
     config = Config(signature_version="s3v4", retries={"max_attempts": 5, "mode": "standard"}, **extra)
     region = os.environ.get("AWS_REGION") or os.environ.get("AWS_DEFAULT_REGION") or "us-east-1"
     return boto3.client("s3", endpoint_url=endpoint_url or None, region_name=region, config=config)
@@ -77,6 +80,7 @@ class S3Storage(Storage):
         self.endpoint_url = endpoint_url
         self.client = make_client(endpoint_url)
         self.scratch = Path(scratch)
+        self.direct = S3DirectUploads(self.client, make_client(endpoint_url, presigning=True), bucket, self.prefix)
 
     # -- keys -------------------------------------------------------------------------------------------------
     def _key(self, *parts: str) -> str:

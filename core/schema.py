@@ -87,9 +87,44 @@ def _v2_bigint(conn: Connection) -> None:
         conn.execute(text(f"ALTER TABLE {table} ALTER COLUMN {column} TYPE BIGINT"))
 
 
+def _v3_attempts(conn: Connection) -> None:
+    """The tables ``job_attempts`` and ``direct_uploads`` are new (made by ``create_all`` before the steps run):
+    each job that has been claimed gets one attempt row from what its record knew, its last worker and times (the
+    host is the worker token's part before the first ``:``), unless it has rows already."""
+    done = set(conn.execute(text("SELECT DISTINCT job_id FROM job_attempts")).scalars())
+    rows = conn.execute(
+        text(
+            "SELECT id, worker, attempts, state, COALESCE(started_at, created_at), finished_at FROM jobs "
+            "WHERE worker IS NOT NULL"
+        )
+    ).all()
+    insert = text(
+        "INSERT INTO job_attempts (job_id, number, claim, worker, host, started_at, finished_at, outcome) "
+        "VALUES (:job_id, :number, :claim, :worker, :host, :started_at, :finished_at, :outcome)"
+    )
+    for job_id, worker, attempts, state, started_at, finished_at in rows:
+        if job_id in done:
+            continue
+        ended = state in ("succeeded", "failed", "cancelled")
+        conn.execute(
+            insert,
+            {
+                "job_id": job_id,
+                "number": max(int(attempts or 1), 1),
+                "claim": worker,
+                "worker": worker,
+                "host": str(worker).split(":", 1)[0],
+                "started_at": started_at,
+                "finished_at": finished_at if ended else None,
+                "outcome": state if ended else "running",
+            },
+        )
+
+
 STEPS = (
     Step(1, "job columns added after the first release (engine parameters, webhooks)", _v1_job_columns),
     Step(2, "64-bit sizes and counts (jobs.upload_bytes, jobs.attempts, pacs_jobs.delivery_attempts)", _v2_bigint),
+    Step(3, "the worker and host of each attempt (job_attempts), and pending direct uploads", _v3_attempts),
 )
 VERSION = STEPS[-1].version  # this release's schema
 

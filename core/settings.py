@@ -55,6 +55,12 @@ class Settings(BaseSettings):
         default=4, ge=1, description="upload bodies read at once; more wait unread, so status reads stay fast"
     )
     url_ttl_seconds: int = 3600
+    upload_ttl_seconds: int = Field(
+        default=86400,
+        ge=1,
+        le=7 * 86400,
+        description="direct uploads (S3): how long the part links work; an upload not completed by then is aborted",
+    )
     queue: str = "bonemesh"
     stale_seconds: float = 60.0
     reconcile_seconds: float = 15.0

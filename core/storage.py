@@ -110,11 +110,63 @@ def scrub_paths(message: str, labels: dict[str, str] | None = None) -> str:
     return _JOB_PATH.sub("the job's files", message)
 
 
+@dataclass(frozen=True)
+class PartLink:
+    """Where to send one part of a direct upload: ``PUT url`` with exactly ``headers`` (the only headers signed
+    besides Host; any other header the client's library adds, Content-Type included, is not signed and harmless)."""
+
+    number: int
+    url: str
+    headers: dict[str, str]
+
+
+@dataclass(frozen=True)
+class StoredPart:
+    """A part the store holds of a direct upload not yet completed."""
+
+    number: int
+    etag: str
+    size: int
+
+
+class DirectUploads(ABC):
+    """Uploads sent by the client straight to the store (``Storage.direct``; S3 only): a multipart upload of a
+    job's upload key whose parts the client PUTs through presigned links; completing it makes it the job's upload,
+    aborting it keeps nothing."""
+
+    @abstractmethod
+    def begin(self, job_id: str) -> str:
+        """Start the multipart upload of the job's upload; returns the store's upload id."""
+
+    @abstractmethod
+    def part_links(self, job_id: str, upload_id: str, count: int, ttl_seconds: int) -> list[PartLink]:
+        """Presigned (SigV4) ``UploadPart`` links of parts 1..count, valid ``ttl_seconds``."""
+
+    @abstractmethod
+    def parts(self, job_id: str, upload_id: str) -> list[StoredPart]:
+        """The parts received so far, by number (FileNotFoundError when the upload is gone)."""
+
+    @abstractmethod
+    def complete(self, job_id: str, upload_id: str, parts: list[tuple[int, str]]) -> None:
+        """Join the parts (number, ETag) into the job's upload (ValueError when the store refuses them)."""
+
+    @abstractmethod
+    def abort(self, job_id: str, upload_id: str) -> None:
+        """Drop the upload and every part received (no error when it is gone already)."""
+
+    @abstractmethod
+    def pending(self, started_before: Any) -> list[tuple[str, str]]:
+        """(job id, upload id) of the multipart uploads of job uploads begun before ``started_before`` (an aware
+        datetime), neither completed nor aborted, and with no part received since."""
+
+
 class Storage(ABC):
     """Job files: one upload and a set of outputs per job."""
 
     #: the store's own presigned download links are available (``output_url``)
     presigns = False
+    #: clients may upload straight to the store (S3); None on local disk (the upload goes through the API)
+    direct: DirectUploads | None = None
 
     @abstractmethod
     def upload_writer(self, job_id: str, max_bytes: int) -> UploadWriter:

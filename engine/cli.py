@@ -91,6 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec = sub.add_parser("reconstruct", help="the EMC33 pipeline: model.stl, model.glb, phone.glb, ar.glb, report")
     add_input_args(rec, "output folder")
     add_recon_args(rec)
+    from engine.labels.cli import add_label_args
+
+    add_label_args(rec)  # --labels, --pieces N, --roi (engine.labels.cli)
     rec.add_argument("--demo", action="store_true", help="use the bundled VTK headsq CT head")
     rec.add_argument("--quiet", action="store_true", help="no progress bar")
     add_sweep_parser(sub)
@@ -197,6 +200,7 @@ def _isosurface(args: argparse.Namespace) -> int:
 
 
 def _reconstruct(args: argparse.Namespace) -> int:
+    from engine.labels.cli import apply_roi, run_labels, summary, wants_labels
     from engine.outputs import write_outputs
     from engine.pipeline import reconstruct
     from engine.progress import span
@@ -204,8 +208,13 @@ def _reconstruct(args: argparse.Namespace) -> int:
     params = recon_params(args)
     out = output_folder(args.output)
     _warn_voxel_size(args)
+    if wants_labels(args):  # a model per label: a label map, or --pieces N of a CT (engine.labels.cli)
+        with _removed_unless_finished(out):
+            summary(run_labels(args, params, out))
+        return 0
     bar = _Bar(args.quiet)
     volume, demo_level = load_input(args, on_progress=span(bar, "loading", 0.0, LOAD_SHARE))
+    volume = apply_roi(args, volume, params.orient)  # --roi: cropped before anything runs
     if args.demo:
         from engine.data import HEADSQ_FIRST_SLICE
         from engine.params import OrientParams

@@ -10,7 +10,12 @@ EngineError
 │   ├── BudgetError         the device memory budget is too small for this scan (``needed``: one that works)
 │   ├── NoSymmetryError     the bone has no mirror plane: a defect template cannot be mirrored (``engine.defect``)
 │   ├── NoDefectError       mirroring finds no one-sided defect (an intact bone, or one too small to fill)
-│   └── MidlineDefectError  the defect crosses the symmetry plane: the mirror image lacks the bone too
+│   ├── MidlineDefectError  the defect crosses the symmetry plane: the mirror image lacks the bone too
+│   └── LabelError          a label map cannot give models (``engine.io.labelmaps``, ``engine.labels``)
+│       ├── NotLabelsError      the file holds no integer labels (a float NIfTI asked for as labels)
+│       ├── EmptyLabelError     a label (segment) has no voxels, or the map has no label at all
+│       ├── LabelsOutsideScanError  the labels do not overlap the referenced CT's grid
+│       └── MissingReferenceError   a DICOM SEG whose referenced series is not there
 ├── PrintCheckError         the print model is not printable (not watertight, not manifold, ...): nothing written
 └── StageError              a pipeline stage failed for a reason that is not the input's fault (``stage`` names it)
 
@@ -105,3 +110,27 @@ class MidlineDefectError(InputError):
 
 
 __all__ += ["MidlineDefectError", "NoDefectError", "NoSymmetryError"]
+
+
+class LabelError(InputError):
+    """A label map (segmentation) cannot give one model per label (``engine.io.labelmaps``, ``engine.labels``)."""
+
+
+class NotLabelsError(LabelError):
+    """The file holds no integer labels: a float (or scaled) NIfTI asked for as a label map, an unknown segment
+    encoding."""
+
+
+class EmptyLabelError(LabelError):
+    """A label (a segment the file names, or one asked for) has no voxels, or the map holds no label at all."""
+
+
+class LabelsOutsideScanError(LabelError):
+    """The labels do not overlap the referenced CT: a segmentation of another scan or another frame of reference."""
+
+
+class MissingReferenceError(LabelError):
+    """A DICOM SEG whose referenced series (its CT) is not there to place its frames."""
+
+
+__all__ += ["EmptyLabelError", "LabelError", "LabelsOutsideScanError", "MissingReferenceError", "NotLabelsError"]

@@ -384,6 +384,53 @@ class BodyMaskParams:
         )
 
 
+@dataclass(frozen=True)
+class RoiParams:
+    """A region of interest cropped before anything runs (``engine.labels.pieces.crop_roi``).
+
+    Args:
+        box: three (lo, hi) ranges, lo < hi: voxel indices (z, y, x; lo inclusive, hi exclusive, as a slice) with
+            ``units="voxels"``, or patient-frame (LPS) x, y, z in mm with ``units="mm"`` (the box's corners are
+            taken into the grid; the samples inside are kept).
+        units: "voxels" or "mm".
+    """
+
+    box: tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
+    units: str = "voxels"
+
+    def __post_init__(self) -> None:
+        _check(self.units in ("voxels", "mm"), f"roi units must be 'voxels' or 'mm', got {self.units!r}")
+        ok = len(self.box) == 3 and all(len(r) == 2 for r in self.box)
+        _check(ok, f"roi must be three (lo, hi) ranges, got {self.box}")
+        for lo, hi in self.box:
+            _finite(lo, "roi")
+            _finite(hi, "roi")
+            _check(lo < hi, f"roi ranges need lo < hi, got ({lo}, {hi})")
+            if self.units == "voxels":
+                _check(float(lo).is_integer() and float(hi).is_integer() and lo >= 0, f"roi voxel indices must be "
+                       f"whole numbers >= 0, got ({lo}, {hi})")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class PiecesParams:
+    """Keep the ``count`` largest bone pieces of a CT as separate parts (``engine.labels.pieces.bone_pieces``).
+
+    Args:
+        count: pieces kept (1..1000), largest first.
+        connectivity: 6 (faces), 18 (faces and edges) or 26 (also corners): which voxels touch.
+        min_voxels: pieces smaller than this are never kept (specks).
+    """
+
+    count: int = 2
+    connectivity: int = 26
+    min_voxels: int = 4
+
+    def __post_init__(self) -> None:
+        _integer(self.count, "pieces count", 1, 1000)
+        _check(self.connectivity in (6, 18, 26), f"connectivity must be 6, 18 or 26, got {self.connectivity}")
+        _integer(self.min_voxels, "min_voxels", 1)
+
+
 _NESTED = {
     "preprocess": PreprocessParams,
     "gaussian": GaussianParams,

@@ -1,6 +1,7 @@
 """The API process's background threads: the reconciler (re-enqueue jobs whose broker message is gone, or whose
-worker stopped sending heartbeats: the job records are the truth) and the webhook sender (:mod:`service.webhooks`).
-Both are plain threads (their work is blocking database and network calls), stopped with the app."""
+worker stopped sending heartbeats: the job records are the truth), the webhook sender (:mod:`service.webhooks`)
+and, with S3 storage, the sweep of direct uploads not completed in time (:func:`service.direct.sweep`). All are
+plain threads (their work is blocking database and network calls), stopped with the app."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from collections.abc import Callable
 
 from core.db import utcnow
 from core.logsafe import safe_logger
+from service.direct import sweep
 from service.services import Services
 from service.webhooks import deliver_due
 
@@ -54,12 +56,18 @@ class Background:
             threading.Thread(target=self._loop, args=("reconciler", s.reconcile_seconds, self._reconcile), daemon=True),
             threading.Thread(target=self._loop, args=("webhooks", s.webhook_poll_seconds, self._webhooks), daemon=True),
         ]
+        if svc.storage.direct is not None:  # as often as the reconciler: one listing of the store's uploads a round
+            loop = ("uploads", s.reconcile_seconds, self._uploads)
+            self._threads.append(threading.Thread(target=self._loop, args=loop, daemon=True))
 
     def _reconcile(self) -> None:
         reconcile(self.svc)
 
     def _webhooks(self) -> None:
         deliver_due(self.svc)
+
+    def _uploads(self) -> None:
+        sweep(self.svc)
 
     def _loop(self, name: str, every: float, step: Callable[[], None]) -> None:
         while not self._stop.wait(every):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import datetime as dt
 from typing import Any, Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from core.params import JobParams
 from engine.export.files import FILES
@@ -62,6 +62,20 @@ class WebhookSecret(BaseModel):
     secret: str
 
 
+class AttemptOut(BaseModel):
+    """One attempt at a job: the worker that ran it, on which host, and how it ended."""
+
+    number: int = Field(description="1 for the first attempt; a job re-run after its worker stopped has more")
+    worker: str = Field(description="the worker's name (its Celery node name, unique per worker process)")
+    host: str = Field(description="the host the worker ran on")
+    started_at: dt.datetime
+    finished_at: dt.datetime | None
+    outcome: Literal["running", "succeeded", "failed", "cancelled", "lost"] = Field(
+        description="running (not ended yet), succeeded, failed, cancelled, or lost (its worker stopped, killed or "
+        "silent, and the job went to another attempt)"
+    )
+
+
 class JobOut(BaseModel):
     """A job: its state, progress, parameters and, once succeeded, its outputs."""
 
@@ -73,6 +87,9 @@ class JobOut(BaseModel):
     upload_bytes: int
     params: dict[str, Any]
     attempts: int
+    runs: list[AttemptOut] = Field(
+        default_factory=list, description="each attempt (``attempts`` counts them), oldest first: worker, host, times"
+    )
     created_at: dt.datetime
     started_at: dt.datetime | None
     finished_at: dt.datetime | None
@@ -92,6 +109,68 @@ class JobList(BaseModel):
     total: int
     limit: int
     offset: int
+
+
+class UploadOptions(BaseModel):
+    """How this service takes uploads (``GET /v1/upload-options``): whether the client may send the scan straight
+    to the store (S3 storage) or must upload it through ``POST /v1/jobs``."""
+
+    direct: bool = Field(description="true: POST /v1/uploads hands out links to the store; false: use POST /v1/jobs")
+    reason: str | None = Field(description="why direct uploads are off, when they are")
+    max_upload_bytes: int = Field(description="the largest scan accepted, either way")
+    parallel_parts: int = Field(description="how many parts a client should send at once (the page sends 4)")
+
+
+class DirectUploadCreate(BaseModel):
+    """A scan the client is about to send straight to the store, and the job it is for."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    filename: str = Field(min_length=1, max_length=1024, description="the archive's name (zip, tar, tar.gz, ...)")
+    size: int = Field(ge=1, le=2**53, description="its exact size in bytes")
+    params: JobParams = Field(default_factory=JobParams, description="the job's parameters, as for POST /v1/jobs")
+    callback_url: str | None = Field(
+        default=None, max_length=2048, description="https or http URL POSTed the job when it ends (as for /v1/jobs)"
+    )
+
+
+class UploadPart(BaseModel):
+    """Where to send one part: ``PUT url`` with the part's bytes (``offset`` to ``offset + bytes``) and exactly
+    ``headers`` (SigV4-presigned; Content-Type is not signed, so any the client adds is fine)."""
+
+    number: int
+    offset: int
+    bytes: int
+    method: Literal["PUT"] = "PUT"
+    url: str
+    headers: dict[str, str] = Field(description="every header the store needs besides those HTTP sends itself")
+
+
+class DirectUploadOut(BaseModel):
+    """A direct upload begun: send each part, keep each answer's ETag, then POST the complete link."""
+
+    id: str = Field(description="the upload's id; also the id of the job it becomes")
+    part_bytes: int = Field(description="every part is this long but the last")
+    parts: list[UploadPart]
+    expires_at: dt.datetime = Field(description="the links stop working then, and an incomplete upload is aborted")
+    complete_url: str
+    abort_url: str
+
+
+class CompletedPart(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    number: int = Field(ge=1, le=10_000)
+    etag: str = Field(min_length=1, max_length=256, description="the ETag header of the part's PUT answer")
+
+
+class DirectUploadComplete(BaseModel):
+    """The parts sent; ``parts`` may be left out (a browser may not read the store's ETag header): the API then
+    takes the parts the store holds, after checking they add up to the declared size."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    parts: list[CompletedPart] | None = Field(default=None, max_length=10_000)
 
 
 class Readiness(BaseModel):

@@ -17,7 +17,7 @@ from core.storage import Storage, storage_from_settings, version_of
 from engine.export.files import FILES
 from service import tokens
 from service.pacs import api as pacs_api
-from service.schemas import JobError, JobOut, OutputFile, WebhookAttempt, WebhookOut
+from service.schemas import AttemptOut, JobError, JobOut, OutputFile, WebhookAttempt, WebhookOut
 
 log = safe_logger("bonemesh.api")
 UPLOAD_THREADS = 4  # threads for the blocking parts of all uploads together
@@ -127,6 +127,7 @@ class Services:
             upload_bytes=job.upload_bytes,
             params=job.params,
             attempts=job.attempts,
+            runs=[runs_out(a) for a in getattr(job, "runs", None) or []],
             created_at=utc(job.created_at),
             started_at=utc(job.started_at),
             finished_at=utc(job.finished_at),
@@ -135,6 +136,18 @@ class Services:
             webhook=webhook,
             **pacs_api.job_view(self.db, job),  # PACS jobs: source and delivery
         )
+
+
+def runs_out(attempt: Any) -> AttemptOut:
+    """An attempt's row (``core.db.Attempt``) as clients see it."""
+    return AttemptOut(
+        number=attempt.number,
+        worker=attempt.worker,
+        host=attempt.host,
+        started_at=utc(attempt.started_at),  # type: ignore[arg-type]
+        finished_at=utc(attempt.finished_at),
+        outcome=attempt.outcome,
+    )
 
 
 def utc(value: dt.datetime | None) -> dt.datetime | None:

@@ -1,10 +1,13 @@
 """What can be refused about an upload before it is queued: not an archive, unsafe names, too many members, a bomb
 (by the declared sizes: member and whole-archive ratios, total expanded size), nothing to build from, or an image
-stack that certainly needs a voxel size and was sent without one. Loading checks the rest (actual bytes, shapes).
+stack that certainly needs a voxel size and was sent without one. A label map (NIfTI, NRRD/.seg.nrrd, or a zip of
+one or of a DICOM SEG with its CT: ``engine.labels.uploads``) is taken by its content; a float NIfTI, or an upload
+without a label map sent with ``"labels": true``, is refused. Loading checks the rest (actual bytes, shapes).
 """
 
 from __future__ import annotations
 
+import zipfile
 from pathlib import Path
 
 from core.logsafe import relabel
@@ -27,6 +30,9 @@ def inspect_upload(path: Path, filename: str | None, params: JobParams) -> str:
     from engine.io.archive import open_members
     from engine.io.stack import image_kind
 
+    labels = _label_map(path, filename, params)
+    if labels is not None:
+        return labels
     try:
         summary = inspect_input(path)
     except NotAScanError as exc:  # not a container bonemesh reads (by type: engine.errors)
@@ -45,3 +51,30 @@ def inspect_upload(path: Path, filename: str | None, params: JobParams) -> str:
                 "tags carry it)",
             )
     return f"{summary.kind}, {summary.files} files, {summary.images} images, {summary.dicom} DICOM"
+
+
+def _label_map(path: Path, filename: str | None, params: JobParams) -> str | None:
+    """The summary of a label-map upload, None for another upload (a CT).
+
+    Raises:
+        UploadError: 422 for a float NIfTI, a zip of several label maps, ``"labels": true`` without a label map,
+            or a label map sent with ``pieces`` or ``defect`` (which work on a CT).
+    """
+    from engine.errors import InputError
+    from engine.io.archive import InputLimits, open_members
+    from engine.labels.uploads import find_label_upload
+
+    shown = relabel("upload", filename)
+    try:
+        if path.is_file() and zipfile.is_zipfile(path):  # names, counts and declared sizes first, as for any zip
+            open_members(path, InputLimits(), heads_only=True).close()
+        found = find_label_upload(path, shown, force=bool(params.labels))
+    except InputError as exc:
+        raise UploadError(422, relabel(str(exc), filename)) from None
+    if found is None:
+        return None
+    if params.pieces is not None or params.defect is not None:
+        raise UploadError(
+            422, f"{shown} is a label map: pieces and defect work on a CT's model; send the CT, or leave them out"
+        )
+    return found.describe()

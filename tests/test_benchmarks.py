@@ -136,6 +136,19 @@ def test_budget(tmp_path: Path) -> None:
         assert "stream" in volume["runs"]["2MiB"], f"{name}: the 2 MiB budget did not stream"
 
 
+def test_labels_speed(tmp_path: Path) -> None:
+    from benchmarks.labels_speed import main
+
+    out = tmp_path / "labels_speed.json"
+    assert main(["--device", "cpu", "--size", "16,32,32", "--labels", "4", "--repeat", "1", "--out", str(out)]) == 0
+    report = load(out)
+    has_keys(report, "benchmark", "device", "size_zyx", "labels_present", "warmup", "runs", "seconds_min")
+    assert "error" not in report and report["labels_present"] == 4
+    (run,) = report["runs"]
+    assert finite(run["seconds"]) and all(finite(v) for v in run["stage_seconds"].values())
+    assert run["parts"] == run["watertight_parts"] == 4 and run["faces"] > 0
+
+
 def test_determinism(tmp_path: Path) -> None:
     from benchmarks.determinism import main
 
@@ -181,7 +194,6 @@ def test_viewing_copies(tmp_path: Path) -> None:
         assert finite(r[name]["distance_to_print_model"]["mean_mm"]), name
 
 
-
 def test_opencl_stages(tmp_path: Path) -> None:
     from tests.engine.conftest import opencl_missing
 
@@ -199,7 +211,6 @@ def test_opencl_stages(tmp_path: Path) -> None:
         for key in ("warp", "opencl"):
             assert entry[key]["faces"] > 0 and finite(entry[key]["seconds"]["total"]), (name, key)
         assert all(finite(v) for v in entry["ratios_warp_over_opencl"].values()), name
-
 
 
 def test_backends(tmp_path: Path) -> None:

@@ -20,7 +20,7 @@ from core.db import Database, utcnow
 from core.logsafe import escape_control, relabel, safe_logger
 from core.settings import Settings, get_settings
 from core.storage import is_storage_full, scrub_exception, scrub_paths, storage_from_settings, version_of
-from engine.export.files import FILES, triangle_count
+from engine.export.files import FILES, LABELS_ZIP, triangle_count
 from worker.app import app
 from worker.pacs import SourceIncomplete, SourceUnavailable, UncheckedSource, fetch_source, write_dicom_model
 
@@ -76,9 +76,11 @@ def reconstruct_job(self: Any, job_id: str) -> str:
     settings = get_settings()
     db = database(settings.db_url)
     storage = storage_from_settings(settings)
-    worker = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
+    host = socket.gethostname()
+    worker = f"{host}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
     stale_before = utcnow() - dt.timedelta(seconds=settings.stale_seconds)
-    job = db.claim(job_id, worker, stale_before)
+    name = getattr(self.request, "hostname", None) or worker  # the Celery node name: the job shows who ran it
+    job = db.claim(job_id, worker, stale_before, name=name, host=host)
     if job is None:
         log.info("job %s: already taken, finished or cancelled; message dropped", job_id)
         return "skipped"
@@ -154,14 +156,24 @@ def _run(
     descriptions (``engine.export.files``: kind, media type and triangles of each)."""
     from engine.budget import Budget
     from engine.io import codecs, load_volume
+    from engine.labels.job import label_job
+    from engine.labels.pieces import crop_roi
+    from engine.labels.uploads import find_label_upload
     from engine.outputs import write_outputs
     from engine.params import ReconParams
     from engine.pipeline import reconstruct
 
     recon_dict, spacing = engine_params_of(job)
     params = ReconParams.from_dict(recon_dict)
+    options = label_options_of(job)  # a label map (forced), pieces, a region of interest (engine.labels)
     holder.progress("loading", 1.0)
     fetch_source(db, job.id, upload)  # a DICOMweb job's series (worker.pacs)
+    device, budget = settings.device, Budget.of(settings.max_device_bytes)
+    found = find_label_upload(upload, "upload", force=options["labels"])
+    on_stage = functools.partial(_label_stage, holder)
+    if found is not None:  # a segmentation: a model per label (engine.labels.job)
+        written = label_job(upload, staged, params, found=found, roi=options["roi"], device=device, on_stage=on_stage)
+        return _described(*written)
     codecs.USE_IMAGECODECS = settings.png_decoder == "auto"
     volume = load_volume(
         upload,
@@ -169,26 +181,48 @@ def _run(
         threads=settings.decode_threads,
         processes=settings.decode_processes,
     )
+    if options["roi"] is not None:  # cropped before anything runs
+        volume = crop_roi(volume, options["roi"], params.orient)
     holder.progress("loading", LOAD_END)
+    if options["pieces"] is not None:  # the N largest bone pieces, each its own part
+        written = label_job(volume, staged, params, pieces=options["pieces"], device=device, on_stage=on_stage)
+        return _described(*written)
 
     def on_progress(stage: str, fraction: float) -> None:
         holder.progress(stage, LOAD_END + (PIPELINE_END - LOAD_END) * fraction)
 
-    device, budget = settings.device, Budget.of(settings.max_device_bytes)
     recon = reconstruct(volume, params, device=device, on_progress=on_progress, max_device_bytes=budget)
     holder.progress("writing", PIPELINE_END)
     paths = write_outputs(recon, staged, params, device=device, max_device_bytes=budget)
     paths.update(write_dicom_model(db, job.id, upload, staged, volume))  # PACS jobs: Encapsulated STL (worker.pacs)
+    return _described(paths, recon.report)
+
+
+def _label_stage(holder: _Holder, stage: str) -> None:
+    """A label job's progress: meshing the labels as the pipeline, writing the files at its end."""
+    holder.progress(stage, LOAD_END if stage == "labels" else PIPELINE_END)
+
+
+def _described(paths: dict[str, Path], report: Any) -> list[dict[str, Any]]:
+    """The outputs' descriptions (``engine.export.files``: kind, media type and triangles of each)."""
     return [
         {
             "name": name,
             "kind": FILES[name].kind,
             "media_type": FILES[name].media_type,
             "bytes": path.stat().st_size,
-            "triangles": triangle_count(name, recon.report),
+            "triangles": triangle_count(name, report),
         }
         for name, path in paths.items()
     ]
+
+
+def label_options_of(job: Any) -> dict[str, Any]:
+    """The job's label options (``core.params.JobParams.label_options``: forced labels, pieces, roi), validated by
+    the API when the job was made."""
+    from core.params import JobParams
+
+    return JobParams.model_validate(getattr(job, "params", None) or {}).label_options()
 
 
 @app.task(name="bonemesh.orient")
@@ -214,6 +248,8 @@ def orient_job(job_id: str, orient: dict[str, Any]) -> str:
         return "skipped"
     staged = storage.staging_dir(job_id)
     try:
+        if any(o["name"] == LABELS_ZIP for o in job.outputs or []):  # a label job (engine.labels): no print model
+            raise InputError("a label job's models are placed by its label map (or are a CT's pieces): not re-oriented")
         storage.copy_outputs(job_id, version, staged)
         wanted = OrientParams(**orient)
         paths = reorient(staged, wanted, device=settings.device, max_device_bytes=settings.max_device_bytes)

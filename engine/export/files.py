@@ -30,6 +30,7 @@ __all__ = [
     "EXPORTERS",
     "FILES",
     "IMPLANT_STL",
+    "LABELS_ZIP",
     "MODEL_DCM",
     "MODEL_GLB",
     "OPEN_STL",
@@ -47,7 +48,7 @@ __all__ = [
 ]
 
 MeshSource = Literal["print", "phone", "ar", "implant"]
-When = Literal["always", "closed", "open", "pacs", "defect"]
+When = Literal["always", "closed", "open", "pacs", "defect", "labels"]
 Exporter = Callable[..., bytes]
 
 PRINT_STL = "model.stl"
@@ -57,6 +58,7 @@ REPORT_JSON = "report.json"
 MODEL_DCM = "model.dcm"
 IMPLANT_STL = "implant.stl"
 DEFECT_JSON = "defect.json"
+LABELS_ZIP = "labels.zip"
 
 
 @dataclass(frozen=True)
@@ -78,9 +80,12 @@ class OutputFile:
         when: which jobs have it: every job (``"always"``), a closed surface, the default (``"closed"``), an open
             surface (``"open"``, ``IsoParams.closed=False``), a PACS job (``"pacs"``: written by ``worker.pacs``,
             every other file by ``engine.outputs.write_outputs``), a job that asked for the defect (``"defect"``:
-            ``ReconParams.defect``).
+            ``ReconParams.defect``), a label job (``"labels"``: a segmentation, or a CT's bone ``pieces``;
+            ``engine.labels.outputs.write_label_outputs``).
         parts: whether the exporter shows named parts beside the model (``engine.export.glb.Part``: the defect
             template as its own coloured node).
+        labels: whether a label job has it too (its model.glb, phone.glb and ar.glb hold one named, coloured node
+            per label; ``engine_files(labels=True)``).
     """
 
     name: str
@@ -92,6 +97,7 @@ class OutputFile:
     exporter: str | None
     when: When = "always"
     parts: bool = False
+    labels: bool = False
 
     @property
     def format(self) -> str | None:
@@ -130,6 +136,7 @@ _FILES = (
         triangles=True,
         exporter="engine.export.glb:to_glb",
         parts=True,
+        labels=True,
     ),
     OutputFile(
         name="phone.glb",
@@ -140,6 +147,7 @@ _FILES = (
         triangles=True,
         exporter="engine.export.draco:to_draco_glb",
         parts=True,
+        labels=True,
     ),
     OutputFile(
         name="ar.glb",
@@ -150,6 +158,7 @@ _FILES = (
         triangles=True,
         exporter="engine.export.glb:to_glb",
         parts=True,
+        labels=True,
     ),
     OutputFile(
         name="phone_meshopt.glb",
@@ -177,6 +186,7 @@ _FILES = (
         made_from="phone",
         triangles=False,
         exporter="engine.export.preview:to_preview_png",
+        labels=True,
     ),
     OutputFile(
         name=REPORT_JSON,
@@ -186,6 +196,7 @@ _FILES = (
         made_from=None,
         triangles=False,
         exporter=None,
+        labels=True,
     ),
     OutputFile(
         name=MODEL_DCM,
@@ -217,16 +228,29 @@ _FILES = (
         exporter=None,
         when="defect",
     ),
+    OutputFile(
+        name=LABELS_ZIP,
+        kind="labels",
+        media_type="application/zip",
+        purpose="one watertight STL per label (labels/<name>.stl, patient LPS mm): printers, CAD",
+        made_from="print",
+        triangles=True,
+        exporter=None,
+        when="labels",
+    ),
 )
 FILES: Mapping[str, OutputFile] = MappingProxyType({f.name: f for f in _FILES})
 # where the report keeps the account of each viewing copy (``exports``), and so its triangle count
 VIEWING_ENTRY: Mapping[MeshSource, str] = MappingProxyType({"phone": "phone.glb", "ar": "ar.glb"})
 
 
-def engine_files(closed: bool = True, defect: bool = False) -> tuple[str, ...]:
+def engine_files(closed: bool = True, defect: bool = False, labels: bool = False) -> tuple[str, ...]:
     """The files ``engine.outputs.write_outputs`` writes, in order, for a closed surface (the print model
     ``model.stl``) or an open one (``surface_open.stl``), with the defect's (``defect.json``; ``implant.stl``
-    when a template was made) when asked."""
+    when a template was made) when asked; with ``labels``, those of a label job instead
+    (``engine.labels.outputs.write_label_outputs``: the files marked ``labels`` and ``labels.zip``)."""
+    if labels:
+        return tuple(f.name for f in _FILES if f.labels or f.when == "labels")
     wanted = ("always", "closed" if closed else "open", *(("defect",) if defect else ()))
     return tuple(f.name for f in _FILES if f.when in wanted)
 
@@ -281,7 +305,8 @@ EXPORTERS: Mapping[str, Exporter] = _Exporters(_FILES)
 
 def triangle_count(name: str, report: Report) -> int | None:
     """The triangles of output file ``name`` by the report: the print model's (``mesh.n_faces``) or its viewing
-    copy's (``exports["phone.glb" | "ar.glb"].faces``); None for a file without triangles or not in the registry."""
+    copy's (``exports["phone.glb" | "ar.glb"].faces``; a label job's print model is all its labels: model.glb
+    and labels.zip); None for a file without triangles or not in the registry."""
     entry = FILES.get(name)
     if entry is None or not entry.triangles or entry.made_from is None:
         return None

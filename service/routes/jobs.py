@@ -151,7 +151,7 @@ def delete_job(job_id: str, who: OwnerDep, svc: ServicesDep) -> Response:
             503,
             d400="the body is not valid JSON",
             d409="the job has not succeeded, is being re-oriented, is a DICOM series (placed by its headers) or has a "
-            "defect template (its side and measures belong to the orientation it was made in)",
+            "defect template (its side and measures belong to the orientation it was made in) or is a model per label",
             d422="invalid orientation fields",
             d503="the queue is unreachable; nothing changed",
         ),
@@ -161,6 +161,8 @@ def orient_job(job_id: str, body: OrientJobParams, who: OwnerDep, svc: ServicesD
     job = _job(svc, job_id, who)
     if job.state != "succeeded":
         raise Problem(409, f"job {job_id} has not succeeded ({job.state}); only a finished model can be re-oriented")
+    if any(o.get("name") == "labels.zip" for o in job.outputs or []):
+        raise Problem(409, f"job {job_id} is a model per label, placed by its label map: it is not re-oriented")
     report = svc.storage.read_output(job_id, "report.json", version_of(job))
     frame = json.loads(report).get("frame") or {} if report is not None else {}
     if str(frame.get("placed_by", "")).startswith("DICOM"):

@@ -20,7 +20,7 @@ function human(bytes) {
 async function api(path, options = {}) {
   const resp = await fetch(path, { ...options, headers: { ...headers(), ...(options.headers || {}) } });
   const body = resp.status === 204 ? null : await resp.json().catch(() => null);
-  if (!resp.ok) throw new Error((body && body.detail) || `${resp.status} ${resp.statusText}`);
+  if (!resp.ok) throw Object.assign(new Error((body && body.detail) || `${resp.status} ${resp.statusText}`), { status: resp.status });
   return body;
 }
 
@@ -110,33 +110,115 @@ function params() {
   p.orient = orientOf();
   if ($("reduction").value) p.reduction = Number($("reduction").value);
   if ($("defect").checked) p.defect = $("defect-side").value ? { side: $("defect-side").value } : {};
+  Object.assign(p, partsParams());
   return p;
 }
-function upload() {
+// pieces (the N largest bone pieces of a CT as parts) and a region of interest (cropped before anything runs):
+// "z0:z1, y0:y1, x0:x1" voxel indices, or "x0:x1, y0:y1, z0:z1" mm in the patient frame; refused naming the field
+function partsParams() {
+  const p = {};
+  const pieces = $("pieces").value.trim();
+  if (pieces) {
+    const n = Number(pieces);
+    if (!Number.isInteger(n) || n < 1 || n > 1000) throw new Error(`Pieces: give a whole number from 1 to 1000; got "${pieces}"`);
+    p.pieces = n;
+  }
+  const text = $("roi").value.trim();
+  if (text) {
+    const box = text.split(",").map((r) => r.split(":").map((v) => Number(v.trim())));
+    if (box.length !== 3 || box.some((r) => r.length !== 2 || r.some((v) => !Number.isFinite(v)) || r[0] >= r[1])) {
+      throw new Error(`Region: give three ranges lo:hi separated by commas (e.g. 0:60, 0:256, 0:256); got "${text}"`);
+    }
+    p.roi = { box, units: $("roi-units").value };
+  }
+  return p;
+}
+// the scan goes straight to the store when the API says it can (S3 storage: GET /v1/upload-options), in parts sent
+// 4 at a time; otherwise, or when the store cannot be reached from this page (e.g. no CORS rule), through the API
+async function upload() {
   if (!key()) { alert("Enter your API key first."); return; }
   if (!picked) { alert("Choose a scan first."); return; }
   $("upload-progress").hidden = false;
   reveal($("upload-progress"));
   let fields;
   try { fields = params(); } catch (e) { $("upload-bar").value = 0; $("upload-text").textContent = e.message; $("spacing").focus(); return; }
+  $("start").disabled = true;
+  const options = await api("/v1/upload-options").catch(() => ({ direct: false }));
+  if (options.direct) {
+    try { uploaded(await directUpload(fields, options.parallel_parts || 4)); return; } catch (e) {
+      if (e.status && e.status !== 409) { refused(e.message); return; } // the API's answer: the same through it
+      console.warn("direct upload failed, uploading through the API", e);
+    }
+  }
+  formUpload(fields);
+}
+function uploaded(job) {
+  $("start").disabled = false;
+  $("upload-bar").value = 100; $("upload-text").textContent = "uploaded";
+  follow(job.id); loadJobs();
+}
+function refused(detail) {
+  $("start").disabled = false;
+  $("upload-text").textContent = `refused: ${detail}`; reveal($("upload-progress"));
+}
+function uploading(loaded, total, where) {
+  $("upload-bar").value = (100 * loaded) / total;
+  $("upload-text").textContent = `uploading ${human(loaded)} of ${human(total)}${where}`;
+}
+function formUpload(fields) {
+  $("upload-progress").dataset.via = "api";
   const form = new FormData();
   form.append("file", picked.blob, picked.name);
   form.append("params", JSON.stringify(fields));
   const xhr = new XMLHttpRequest();
   xhr.open("POST", "/v1/jobs");
   xhr.setRequestHeader("X-API-Key", key());
-  $("upload-progress").hidden = false; $("start").disabled = true;
-  xhr.upload.onprogress = (e) => { if (e.lengthComputable) {
-    $("upload-bar").value = (100 * e.loaded) / e.total; $("upload-text").textContent = `uploading ${human(e.loaded)} of ${human(e.total)}`; } };
+  xhr.upload.onprogress = (e) => { if (e.lengthComputable) uploading(e.loaded, e.total, ""); };
   xhr.onload = () => {
-    $("start").disabled = false;
     let body = null; try { body = JSON.parse(xhr.responseText); } catch (e) { /* not JSON */ }
-    if (xhr.status !== 202) { $("upload-text").textContent = `refused: ${(body && body.detail) || xhr.status}`; reveal($("upload-progress")); return; }
-    $("upload-bar").value = 100; $("upload-text").textContent = "uploaded";
-    follow(body.id); loadJobs();
+    if (xhr.status !== 202) { refused((body && body.detail) || xhr.status); return; }
+    uploaded(body);
   };
   xhr.onerror = () => { $("start").disabled = false; $("upload-text").textContent = "the upload failed (network)"; };
   xhr.send(form);
+}
+// one part: PUT to its presigned link with exactly the headers the API listed; resolves to its ETag (null when the
+// store's CORS rule does not expose it: the API then takes the parts the store holds)
+function putPart(part, blob, onProgress) {
+  return new Promise((resolve, reject) => {
+    const xhr = new XMLHttpRequest();
+    xhr.open(part.method || "PUT", part.url);
+    for (const [name, value] of Object.entries(part.headers || {})) xhr.setRequestHeader(name, value);
+    xhr.upload.onprogress = (e) => onProgress(e.loaded);
+    xhr.onload = () => (xhr.status >= 200 && xhr.status < 300 ? resolve(xhr.getResponseHeader("ETag"))
+      : reject(new Error(`the store answered ${xhr.status} to part ${part.number}`)));
+    xhr.onerror = () => reject(new Error(`the store could not be reached for part ${part.number}`));
+    xhr.send(blob.slice(part.offset, part.offset + part.bytes));
+  });
+}
+async function directUpload(fields, parallel) {
+  const json = { "Content-Type": "application/json" };
+  const body = { filename: picked.name, size: picked.blob.size, params: fields };
+  const up = await api("/v1/uploads", { method: "POST", headers: json, body: JSON.stringify(body) });
+  $("upload-progress").dataset.via = "store";
+  const sent = up.parts.map(() => 0), etags = up.parts.map(() => null);
+  let next = 0;
+  const sender = async () => {
+    while (next < up.parts.length) {
+      const part = up.parts[next++];
+      etags[part.number - 1] = await putPart(part, picked.blob, (n) => {
+        sent[part.number - 1] = n; uploading(sent.reduce((a, b) => a + b, 0), picked.blob.size, " (straight to the store)");
+      });
+      sent[part.number - 1] = part.bytes;
+    }
+  };
+  try { await Promise.all(Array.from({ length: Math.min(parallel, up.parts.length) }, sender)); } catch (e) {
+    api(up.abort_url, { method: "DELETE" }).catch(() => null); // the store keeps nothing of it
+    throw e;
+  }
+  $("upload-text").textContent = "checking the scan…";
+  const parts = etags.every(Boolean) ? { parts: etags.map((etag, i) => ({ number: i + 1, etag })) } : {};
+  return api(up.complete_url, { method: "POST", headers: json, body: JSON.stringify(parts) });
 }
 // a phone shows what happens after a press: the element scrolled into view (no jump when it is already there)
 function reveal(el) { if (el && el.scrollIntoView) el.scrollIntoView({ block: "nearest", behavior: "auto" }); }
@@ -195,6 +277,7 @@ function result(job) {
     viewer.setAttribute("src", (outs.phone || outs.model).url);
     showFrame(job, outs.report);
     showDefect(job, outs.defect);
+    showLabels(outs.labels ? outs.report : null);
   }
   const rows = job.outputs.map((o) => `<tr><td>${o.name}</td><td>${o.purpose || o.kind}</td>
     <td>${o.triangles == null ? "" : o.triangles.toLocaleString("en")}</td><td>${human(o.bytes)}</td>
@@ -236,7 +319,7 @@ async function showFrame(job, report) {
   box.hidden = warnings.length === 0;
   const dicom = frame && String(frame.placed_by || "").startsWith("DICOM");
   // a DICOM series is placed by its headers; a defect template's side and measures belong to its orientation
-  const fixed = dicom || !!(job.params && job.params.defect);
+  const fixed = dicom || !!(job.params && job.params.defect) || isLabelJob(job);
   for (const b of ["turn-over", "face-front", "mirror"]) $(b).hidden = fixed;
   $("frame-text").textContent = frame
     ? `S/I: head/feet, A/P: front/back, L/R: the patient's left/right. Placed by ${frame.placed_by}.`
@@ -257,6 +340,43 @@ async function showDefect(job, defect) {
   box.textContent = `Defect template (blue): the patient's ${f.side}, ${mm(f.volume_mm3)} mm³, ` +
     `${f.extent_lps_mm.size.map((v) => v.toFixed(0)).join(" × ")} mm, rim gap ${f.rim.gap_mm.toFixed(1)} mm. ` +
     "Download implant.stl to print it (same frame as model.stl).";
+}
+// --- a label job (a segmentation, or a CT's pieces): one node per label, each with a checkbox -----------------
+// a label job is placed by its label map (or is a CT's pieces): it has labels.zip (kind "labels") and is not turned
+function isLabelJob(job) { return (job.outputs || []).some((o) => o.kind === "labels"); }
+// the labels from report.json (name, colour, volume, faces), each a checkbox that shows or hides its node: the
+// node's material (named as the label) is cut away (alpha mask) when unticked, opaque in its colour when ticked
+async function showLabels(report) {
+  const box = $("labels-box"), list = $("labels-list");
+  box.hidden = !report; list.replaceChildren(); box.dataset.count = "";
+  if (!report) return;
+  let rows = [];
+  try { rows = (await (await fetch(report.url)).json()).labels || []; } catch (e) { return; }
+  list.replaceChildren(...rows.map(labelRow));
+  box.dataset.count = String(rows.length);
+}
+function labelRow(row) {
+  const li = document.createElement("li");
+  const check = document.createElement("input");
+  check.type = "checkbox"; check.checked = true; check.dataset.label = row.name;
+  check.onchange = () => setLabelVisible(row.name, row.color, check.checked);
+  const swatch = document.createElement("span");
+  swatch.className = "swatch";
+  swatch.style.background = `rgb(${row.color.map((c) => Math.round(c * 255)).join(",")})`;
+  const text = document.createElement("span");
+  text.textContent = ` ${row.name}: ${Math.round(row.volume_mm3).toLocaleString("en")} mm³, ${row.faces.toLocaleString("en")} triangles`;
+  const label = document.createElement("label");
+  label.className = "check"; label.append(check, swatch, text); li.append(label);
+  return li;
+}
+function setLabelVisible(name, color, visible) {
+  const model = $("viewer").model;
+  const material = model && model.getMaterialByName ? model.getMaterialByName(name) : null;
+  if (!material) return false;
+  material.pbrMetallicRoughness.setBaseColorFactor([...color, visible ? 1 : 0]);
+  material.setAlphaMode(visible ? "OPAQUE" : "MASK"); // OPAQUE drops the cutoff (model-viewer 4.4)
+  if (!visible) material.setAlphaCutoff(0.5);
+  return true;
 }
 // a half turn about left-right (turn over), about head-feet (face front), or a mirror: the new stack orientation
 const TURNS = {

@@ -62,6 +62,7 @@ def test_the_registry_names_each_file_once_with_its_own_kind():
         "model.dcm",
         "implant.stl",
         "defect.json",
+        "labels.zip",
     ]
     kinds = [f.kind for f in FILES.values()]
     assert len(set(kinds)) == len(kinds), kinds
@@ -73,6 +74,10 @@ def test_the_registry_names_each_file_once_with_its_own_kind():
     # a job that asked for the defect also has its answer (defect.json) and, when one was made, the template
     assert engine_files(closed=True, defect=True) == (*DEFAULT_FILES, "implant.stl", "defect.json")
     assert [f.name for f in FILES.values() if f.parts] == ["model.glb", "phone.glb", "ar.glb"]
+    # a label job (a segmentation, a CT's pieces): a node per label in the GLB files, an STL per label in a zip
+    assert engine_files(labels=True) == ("model.glb", "phone.glb", "ar.glb", "preview.png", "report.json", "labels.zip")
+    assert all(FILES[n].parts for n in engine_files(labels=True) if n.endswith(".glb"))
+    assert "labels.zip" not in engine_files(True) + engine_files(False) + engine_files(True, defect=True)
     viewing = ["phone.glb", "ar.glb", "phone_meshopt.glb", "model.usdz", "preview.png"]
     assert [f.name for f in viewing_files()] == viewing
 

@@ -1,0 +1,191 @@
+"""A model per label as named, coloured parts in the patient frame (``label_models``), and their files
+(``write_label_stls``: ``labels/<name>.stl`` and ``labels.zip``).
+
+A part is what a multi-node ``model.glb`` takes: a name, an sRGB colour (0-1), vertices (LPS x, y, z in mm) and
+outward faces (in that vertex order), with its stats (volume mm3, area mm2, faces, watertight).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from engine.io.labelmaps import LabelVolume
+from engine.params import OrientParams, ReconParams
+from engine.types import Mesh
+
+__all__ = ["LabelModels", "LabelPart", "file_names", "label_models", "write_label_stls"]
+
+
+@dataclass
+class LabelPart:
+    """One label's watertight model: ``vertices_xyz`` (V, 3) float32 LPS mm, ``faces`` (F, 3) int32 outward."""
+
+    name: str
+    value: int
+    color: tuple[float, float, float]
+    vertices_xyz: npt.NDArray[np.float32]
+    faces: npt.NDArray[np.int32]
+    stats: dict[str, Any] = field(default_factory=dict)
+
+    def mesh(self) -> Mesh:
+        """The part in the engine's ``Mesh`` layout ((z, y, x) order) in the patient frame."""
+        return Mesh(np.ascontiguousarray(self.vertices_xyz[:, ::-1]), self.faces)
+
+
+@dataclass
+class LabelModels:
+    """The parts, in the label map's segment order, and a JSON-able report (``labels``: one entry per part)."""
+
+    parts: list[LabelPart]
+    report: dict[str, Any]
+
+
+def _split(vertices: np.ndarray, faces: np.ndarray, slot: np.ndarray, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The joined mesh split by label slot (a label's vertices are its own): per slot (vertices, faces), in one
+    sort of the vertices and one of the faces."""
+    fslot = slot[faces[:, 0]] if len(faces) else np.zeros(0, np.int32)
+    vorder = np.argsort(slot, kind="stable")
+    forder = np.argsort(fslot, kind="stable")
+    new_index = np.empty(len(slot), dtype=np.int64)
+    new_index[vorder] = np.arange(len(slot))
+    vb = np.searchsorted(slot[vorder], np.arange(n + 1))
+    fb = np.searchsorted(fslot[forder], np.arange(n + 1))
+    v_sorted, f_sorted = vertices[vorder], new_index[faces[forder]]
+    return [(v_sorted[vb[s] : vb[s + 1]], (f_sorted[fb[s] : fb[s + 1]] - vb[s]).astype(np.int32)) for s in range(n)]
+
+
+def _measures(vertices: np.ndarray, faces: np.ndarray, slot: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Volume (mm3) and area (mm2) per label slot, over all faces at once."""
+    p = vertices[:, ::-1].astype(np.float64)
+    a, b, c = p[faces[:, 0]], p[faces[:, 1]], p[faces[:, 2]]
+    fslot = slot[faces[:, 0]]
+    volume = np.bincount(fslot, np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0, minlength=n)
+    area = np.bincount(fslot, 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1), minlength=n)
+    return volume, area
+
+
+def _closed(f: np.ndarray, n_vertices: int, joined_closed: bool) -> bool:
+    """Watertight: every label is when the joined mesh is (labels share no vertex, so no edge); else checked."""
+    if joined_closed or len(f) == 0:
+        return joined_closed and len(f) > 0
+    from engine.surface.meshcheck import edge_report
+
+    edges = edge_report(f, n_vertices)
+    return bool(edges["boundary_edges"] == 0 and edges["nonmanifold_edges"] == 0)
+
+
+def label_models(
+    lv: LabelVolume,
+    params: ReconParams | None = None,
+    *,
+    device: Any = "auto",
+    orient: OrientParams | None = None,
+) -> LabelModels:
+    """Every segment of ``lv`` meshed in one batch (``engine.labels.extract.mesh_labels``) and placed in the patient
+    frame (``engine.orient.patient_frame``: the map's own geometry, or ``orient`` for a grid without one).
+
+    Raises:
+        EmptyLabelError: a segment has no voxels; StageError: the device work failed otherwise.
+    """
+    from engine.labels.extract import mesh_labels
+    from engine.orient import patient_frame, to_patient
+
+    params = params or ReconParams()
+    values = [s.value for s in lv.segments]
+    joined = mesh_labels(lv.labels, values, lv.spacing_zyx_mm, params, device=device)
+    frame = patient_frame(lv.as_volume(), orient or params.orient)
+    voxel_mm3 = float(np.prod(lv.spacing_zyx_mm))
+    counts = np.bincount(lv.labels.reshape(-1)) if lv.labels.dtype.itemsize <= 2 else None
+    parts, rows, dropped = [], [], []
+    n = len(values)
+    volumes, areas = _measures(joined.vertices, joined.faces, joined.slot, n)
+    closed = bool(joined.info.get("watertight", False))
+    pieces = _split(joined.vertices, joined.faces, joined.slot, n)
+    for i, (seg, name, (v, f)) in enumerate(zip(lv.segments, file_names(lv), pieces, strict=True)):
+        if len(f) == 0:  # voxels, but thinner than the smoothed level keeps (one voxel wide): no model
+            dropped.append(seg.to_dict())
+            continue
+        stats = {
+            "faces": len(f),
+            "vertices": len(v),
+            "volume_mm3": float(volumes[i]),
+            "area_mm2": float(areas[i]),
+            "watertight": _closed(f, len(v), closed),
+        }
+        if counts is not None:
+            stats["voxels"] = int(counts[seg.value])
+            stats["voxel_volume_mm3"] = int(counts[seg.value]) * voxel_mm3
+        placed = to_patient(Mesh(v.astype(np.float32), f), frame)
+        xyz = np.ascontiguousarray(placed.vertices[:, ::-1])
+        parts.append(LabelPart(seg.name, seg.value, seg.color, xyz, placed.faces, stats))
+        rows.append({**seg.to_dict(), "file": f"labels/{name}.stl", **stats})
+    if not parts:
+        from engine.errors import EmptySurfaceError
+
+        raise EmptySurfaceError("no label gives a surface (each is thinner than a voxel after smoothing)")
+    report = {
+        "labels": rows,
+        "labels_without_surface": dropped,
+        "frame": frame.to_dict(),
+        "labels_mesh": joined.info,
+        "source": lv.source,
+    }
+    return LabelModels(parts, report)
+
+
+def file_names(lv: LabelVolume) -> list[str]:
+    """A file-safe, unique name per segment (``label_<value>`` when its name has no usable character)."""
+    names: list[str] = []
+    for s in lv.segments:
+        base = re.sub(r"[^A-Za-z0-9._-]+", "_", s.name).strip("._") or f"label_{s.value}"
+        name, n = base, 2
+        while name.lower() in (m.lower() for m in names):
+            name, n = f"{base}_{n}", n + 1
+        names.append(name)
+    return names
+
+
+def write_label_stls(models: LabelModels, folder: str | Path) -> dict[str, Path]:
+    """``labels/<name>.stl`` per part (binary, LPS mm) and ``labels.zip`` of them in ``folder``; each written to a
+    temporary name first and renamed, so no partial file is left. Returns {relative name: path}."""
+    from engine.export.stl import to_stl
+
+    root = Path(folder)
+    (root / "labels").mkdir(parents=True, exist_ok=True)
+    paths: dict[str, Path] = {}
+    for row, part in zip(models.report["labels"], models.parts, strict=True):
+        data = to_stl(part.mesh().vertices, part.faces, header=f"bonemesh label {part.name}, patient LPS frame, mm")
+        paths[row["file"]] = _atomic_write(root / row["file"], data)
+    fd, tmp = tempfile.mkstemp(dir=root, prefix=".labels.zip.", suffix=".part")
+    os.close(fd)
+    try:
+        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as zf:
+            for rel, path in paths.items():
+                zf.write(path, rel)
+        os.replace(tmp, root / "labels.zip")
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    paths["labels.zip"] = root / "labels.zip"
+    return paths
+
+
+def _atomic_write(path: Path, data: bytes) -> Path:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
