@@ -60,3 +60,19 @@ def start_chromium(browser: str, driver: str, downloads: Path, width: int = 1280
     )
     options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
     return webdriver.Chrome(service=Service(executable_path=driver), options=options)
+
+
+def open_page_with_file(driver: Any, base_url: str, path: Path, key: str = "key-a") -> None:
+    """The page at ``base_url`` with the API key saved and ``path`` chosen in its file picker (shown by its name)."""
+    from selenium.webdriver.common.by import By
+
+    from tests.service.procs import wait_until
+
+    driver.get(base_url + "/")
+    driver.find_element(By.ID, "api-key").send_keys(key)
+    driver.find_element(By.ID, "key-save").click()
+    file_input = driver.find_element(By.ID, "file-input")
+    driver.execute_script("arguments[0].hidden = false", file_input)
+    file_input.send_keys(str(path))
+    name = path.name.split(".")[0]
+    wait_until(lambda: name in driver.find_element(By.ID, "picked").text, 10, "the file to be picked")

@@ -95,7 +95,7 @@ def test_the_page_asks_for_the_defect_and_shows_its_template(
     the 3D view), its size, and no turn buttons."""
     from selenium.webdriver.common.by import By
 
-    from tests.service.browser import find_chromium, start_chromium
+    from tests.service.browser import find_chromium, open_page_with_file, start_chromium
     from tests.service.procs import wait_until
 
     paths = find_chromium()
@@ -105,13 +105,7 @@ def test_the_page_asks_for_the_defect_and_shows_its_template(
     scan.write_bytes(trephined)
     driver = start_chromium(*paths, tmp_path)
     try:
-        driver.get(stack.base_url + "/")
-        driver.find_element(By.ID, "api-key").send_keys("key-a")
-        driver.find_element(By.ID, "key-save").click()
-        file_input = driver.find_element(By.ID, "file-input")
-        driver.execute_script("arguments[0].hidden = false", file_input)
-        file_input.send_keys(str(scan))
-        wait_until(lambda: "trephined" in driver.find_element(By.ID, "picked").text, 10, "the file to be picked")
+        open_page_with_file(driver, stack.base_url, scan)
         driver.execute_script(
             "document.getElementById('level-kind').value = 'iso';"
             "document.getElementById('iso').value = arguments[0];"

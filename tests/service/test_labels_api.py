@@ -129,7 +129,7 @@ def test_the_page_lists_the_labels_and_hides_one(stack: ServiceStack, client_a: 
     shows it again. A malformed region is refused on the page, naming the field."""
     from selenium.webdriver.common.by import By
 
-    from tests.service.browser import find_chromium, start_chromium
+    from tests.service.browser import find_chromium, open_page_with_file, start_chromium
     from tests.service.procs import wait_until
 
     paths = find_chromium()
@@ -139,13 +139,7 @@ def test_the_page_lists_the_labels_and_hides_one(stack: ServiceStack, client_a: 
     seg.write_bytes(nifti_bytes(headsq_labels()))
     driver = start_chromium(*paths, tmp_path)
     try:
-        driver.get(stack.base_url + "/")
-        driver.find_element(By.ID, "api-key").send_keys("key-a")
-        driver.find_element(By.ID, "key-save").click()
-        file_input = driver.find_element(By.ID, "file-input")
-        driver.execute_script("arguments[0].hidden = false", file_input)
-        file_input.send_keys(str(seg))
-        wait_until(lambda: "halves" in driver.find_element(By.ID, "picked").text, 10, "the file to be picked")
+        open_page_with_file(driver, stack.base_url, seg)
         driver.find_element(By.ID, "roi").send_keys("0:60, 0:64")
         driver.find_element(By.ID, "start").click()
         assert "Region: give three ranges" in driver.find_element(By.ID, "upload-text").text
