@@ -11,13 +11,12 @@ the scan at the model's own level and keeps its answer, a template or a refusal,
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from typing import Any
 
 from engine.defect.params import DefectParams
-from engine.defect.template import FORMAT, DefectResult, finite
+from engine.defect.template import FORMAT, DefectResult, defect_json, implant_stl
 from engine.errors import MidlineDefectError, NoDefectError, NoSymmetryError
 from engine.export.files import DEFECT_JSON, IMPLANT_STL
 
@@ -52,20 +51,9 @@ class DefectOutcome:
 
     def files(self) -> dict[str, bytes]:
         """The step's files by name: ``defect.json`` always, ``implant.stl`` with a template."""
-        from engine.defect.template import _json_default
-        from engine.export.stl import to_stl
-
         if self.result is None:
-            doc: dict[str, Any] = {"format": FORMAT, "found": False, **(self.refusal or {})}
-        else:
-            doc = {"found": True, **self.result.to_json()}
-        text = json.dumps(finite(doc), indent=2, allow_nan=False, default=_json_default) + "\n"
-        out = {DEFECT_JSON: text.encode()}
-        if self.result is not None:
-            mesh = self.result.mesh
-            header = "bonemesh defect template, patient LPS frame, mm"
-            out[IMPLANT_STL] = to_stl(mesh.vertices, mesh.faces, header=header)
-        return out
+            return {DEFECT_JSON: defect_json({"format": FORMAT, "found": False, **(self.refusal or {})})}
+        return {DEFECT_JSON: defect_json(self.result.to_json()), IMPLANT_STL: implant_stl(self.result)}
 
     def part(self, centre_zyx_mm: Any, max_faces: int | None, device: Any = "auto") -> Any:
         """The template as a glTF ``Part`` centred as the model's glTF files are (``centre_zyx_mm`` subtracted),

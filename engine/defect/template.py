@@ -98,6 +98,7 @@ class DefectResult:
         voxel_gap = rim["gap_voxels"]
         return {
             "format": FORMAT,
+            "found": True,
             "frame": PATIENT_FRAME,
             "placed_by": self.placed_by,
             "level": {"value": self.level, "units": self.units},
@@ -245,16 +246,24 @@ def run(
 def write_defect(result: DefectResult, out_dir: str | Path) -> dict[str, Path]:
     """Write ``implant.stl`` (binary, patient frame, mm) and ``defect.json`` into ``out_dir``, each atomically
     (written beside, then renamed). Returns their paths."""
-    from engine.export.stl import to_stl
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    stl = to_stl(result.mesh.vertices, result.mesh.faces, header="bonemesh defect template, patient LPS frame, mm")
-    text = json.dumps(finite(result.to_json()), indent=2, allow_nan=False, default=_json_default) + "\n"
-    paths = {"implant.stl": out / IMPLANT_STL, "defect.json": out / DEFECT_JSON}
-    _atomic(paths["implant.stl"], stl)
-    _atomic(paths["defect.json"], text.encode())
+    paths = {IMPLANT_STL: out / IMPLANT_STL, DEFECT_JSON: out / DEFECT_JSON}
+    _atomic(paths[IMPLANT_STL], implant_stl(result))
+    _atomic(paths[DEFECT_JSON], defect_json(result.to_json()))
     return paths
+
+
+def implant_stl(result: DefectResult) -> bytes:
+    """``implant.stl``'s bytes: binary STL, patient frame, mm."""
+    from engine.export.stl import to_stl
+
+    return to_stl(result.mesh.vertices, result.mesh.faces, header="bonemesh defect template, patient LPS frame, mm")
+
+
+def defect_json(doc: dict[str, Any]) -> bytes:
+    """``defect.json``'s bytes: the document indented, NaN and infinities as null."""
+    return (json.dumps(finite(doc), indent=2, allow_nan=False, default=_json_default) + "\n").encode()
 
 
 def finite(obj: Any) -> Any:
