@@ -22,6 +22,12 @@ mask) and the BLAS/OpenMP pools (``OMP_NUM_THREADS`` etc. set to the share) use 
 Input: ``--input`` (a scan archive, with ``--params``), ``--phantom Z,Y,X`` (the bone phantom as 16-bit PNG slices,
 ``benchmarks.phantom_zip``), or by default the bundled CT head (``engine.data``).
 
+Where the time goes, per phase: ``jobs_detail`` (per job: its worker, the client's POST seconds, start and end from
+the first POST, the worker's seconds per step from its ``job <id> timings`` log line (``worker.tasks``: claim, load,
+reconstruct, write_files, publish, queue_wait, ...) and the engine's per stage from the job's report.json),
+``stage_medians`` (the median of each), ``first_start_seconds``, ``last_upload_done_seconds`` and the host's
+``load_average_at_end``.
+
 The JSON is rewritten after each phase, and SIGTERM (``timeout``) stops the processes and keeps what was measured.
 """
 
@@ -32,6 +38,8 @@ import datetime as dt
 import json
 import os
 import platform
+import re
+import statistics
 import sys
 import tempfile
 import time
@@ -43,6 +51,7 @@ from benchmarks.report import stop_on_sigterm, write_json
 from tests.service.procs import Proc, RedisServer, ServiceStack, bonemesh_argv, submit, wait_for_job, wait_until
 
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+TIMINGS = re.compile(r"job (\S+) timings (\{.*\})")  # the worker's line per attempt (worker.tasks._Timings)
 
 
 def cpu_shares(workers: int) -> list[list[int]]:
@@ -99,16 +108,18 @@ def run_phase(
         warm = _warms_up(stack, dev)
         wait_until(lambda w=w, warm=warm: _ready(w, warm), 300, f"{w.name} to be ready", interval=0.2)
 
-    def post(_: int) -> str:
+    def post(_: int) -> tuple[str, float, float]:
         with stack.client(timeout=600) as client:
+            start = time.time()
             resp = submit(client, archive, params)
             assert resp.status_code == 202, resp.text
-            return resp.json()["id"]
+            return resp.json()["id"], start, time.time()
 
     try:
         t0 = time.time()
         with ThreadPoolExecutor(uploaders) as pool:  # clients upload side by side, as many users would
-            ids = list(pool.map(post, range(jobs)))
+            posts = list(pool.map(post, range(jobs)))
+        ids = [i for i, _, _ in posts]
         with stack.client(timeout=600) as client:
             done = [wait_for_job(client, i, stack=stack, timeout=3600, interval=0.2) for i in ids]
             wall_end = time.time()
@@ -121,6 +132,7 @@ def run_phase(
         raise RuntimeError(f"{len(failed)} job(s) did not succeed: {json.dumps(failed[0])[:2000]}")
     end = max(_ts(j, "finished_at") for j in done)
     job_seconds = [_ts(j, "finished_at") - _ts(j, "started_at") for j in done]
+    detail = _jobs_detail(stack, done, posts, workers, t0)
     return {
         "workers": len(devices),
         "devices": devices,
@@ -133,7 +145,72 @@ def run_phase(
         "job_seconds": job_seconds,
         "mean_job_seconds": sum(job_seconds) / len(job_seconds),
         "most_jobs_running_at_once": _most_at_once(done),
+        "first_start_seconds": min(_ts(j, "started_at") for j in done) - t0,
+        "last_upload_done_seconds": max(e for _, _, e in posts) - t0,
+        "jobs_detail": detail,
+        "stage_medians": _stage_medians(detail),
+        "load_average_at_end": list(os.getloadavg()),
     }
+
+
+def _worker_timings(workers: list[Proc]) -> dict[str, tuple[int, dict[str, float]]]:
+    """The worker's ``job <id> timings {json}`` lines (``worker.tasks``) by job id: (worker index, seconds per step);
+    a job run twice keeps its last attempt."""
+    found: dict[str, tuple[int, dict[str, float]]] = {}
+    for index, w in enumerate(workers):
+        for match in TIMINGS.finditer(w.log.read_text(errors="replace")):
+            found[match.group(1)] = (index, json.loads(match.group(2)))
+    return found
+
+
+def _report_seconds(client: Any, job: dict[str, Any]) -> dict[str, float]:
+    """The engine's own seconds from the job's ``report.json``: each pipeline stage (``stage_seconds``) and the
+    files' writing (``write_seconds``' totals), keyed ``pipeline.<stage>`` and ``files.<part>``; empty if absent."""
+    url = next((o["url"] for o in job.get("outputs") or [] if o["name"] == "report.json"), None)
+    resp = client.get(url) if url else None
+    if resp is None or resp.status_code != 200:
+        return {}
+    report = resp.json()
+    seconds = {f"pipeline.{k}": v for k, v in (report.get("stage_seconds") or {}).items()}
+    seconds.update({f"files.{k}": v for k, v in (report.get("write_seconds") or {}).items() if _is_number(v)})
+    return seconds
+
+
+def _is_number(value: Any) -> bool:
+    """A number (``write_seconds`` also holds a dict per file)."""
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _jobs_detail(
+    stack: ServiceStack,
+    done: list[dict[str, Any]],
+    posts: list[tuple[str, float, float]],
+    workers: list[Proc],
+    t0: float,
+) -> list[dict[str, Any]]:
+    """One row per job, in the order they started: its worker (index in the phase), the client's POST time, when
+    it started and ended (seconds from the first POST, server clock), the worker's seconds per step (``timings``,
+    ``worker.tasks``) and the engine's per stage (``engine``, from the job's report.json)."""
+    uploads = {i: (s, e) for i, s, e in posts}
+    timings = _worker_timings(workers)
+    rows = []
+    with stack.client(timeout=60) as client:
+        for j in sorted(done, key=lambda j: _ts(j, "started_at")):
+            index, steps = timings.get(j["id"], (None, {}))
+            start, end = uploads[j["id"]]
+            row = {"id": j["id"], "worker": index, "upload_seconds": end - start, "upload_done_at": end - t0}
+            row.update(started_at=_ts(j, "started_at") - t0, finished_at=_ts(j, "finished_at") - t0)
+            rows.append({**row, "timings": steps, "engine": _report_seconds(client, j)})
+    return rows
+
+
+def _stage_medians(detail: list[dict[str, Any]]) -> dict[str, float]:
+    """The median seconds of each step over the jobs (the client's upload, the worker's and the engine's)."""
+    values: dict[str, list[float]] = {"upload": [r["upload_seconds"] for r in detail]}
+    for row in detail:
+        for step, seconds in {**row["timings"], **row["engine"]}.items():
+            values.setdefault(step, []).append(seconds)
+    return {step: statistics.median(v) for step, v in values.items()}
 
 
 def _most_at_once(jobs: list[dict[str, Any]]) -> int:
@@ -220,6 +297,8 @@ def main(argv: list[str] | None = None) -> int:
                     f"{phase['mean_job_seconds']:.1f} s, at most {phase['most_jobs_running_at_once']} at once",
                     flush=True,
                 )
+                medians = ", ".join(f"{k} {v:.2f}" for k, v in phase["stage_medians"].items())
+                print(f"  median seconds: {medians}", flush=True)
                 report[key] = phase
                 write()
         except BaseException:

@@ -293,6 +293,19 @@ def test_throughput(tmp_path: Path, redis_executable: str) -> None:
         phase = report[key]
         assert phase["workers"] == workers and phase["jobs"] == 2, key
         assert finite(phase["seconds"]) and finite(phase["jobs_per_minute"]), key
+        assert 0 <= phase["first_start_seconds"] <= phase["seconds"], key
+        assert 0 < phase["last_upload_done_seconds"] <= phase["client_seconds"], key
+        rows = phase["jobs_detail"]  # one per job, each with the worker's timing line (worker.tasks) parsed
+        assert len(rows) == 2 and {r["worker"] for r in rows} <= set(range(workers)), rows
+        for row in rows:
+            steps = row["timings"]
+            assert {"claim", "load", "reconstruct", "write_files", "publish", "finish", "total"} <= set(steps), row
+            assert all(finite(v) and v >= 0 for v in steps.values()), row
+            assert sum(v for k, v in steps.items() if k not in ("total", "queue_wait")) <= steps["total"] + 1e-3, row
+            assert finite(row["upload_seconds"]) and "pipeline.isosurface" in row["engine"], row
+        medians = phase["stage_medians"]
+        assert finite(medians["reconstruct"]) and finite(medians["upload"]) and finite(medians["queue_wait"]), key
+        assert len(phase["load_average_at_end"]) == 3, key
     assert finite(report["speedup"])
 
 
