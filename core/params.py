@@ -14,7 +14,7 @@ rule carries one (``core.pacs.routing``), and the worker converts a job recorded
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -219,6 +219,15 @@ class JobParams(BaseModel):
         default=None, ge=1, le=1000, description="keep the N largest bone pieces of a CT as separately named parts"
     )
     roi: RoiJobParams | None = Field(default=None, description="crop to this box before anything runs")
+    segments: (
+        list[Annotated[int, Field(ge=1, le=65535)] | Annotated[str, Field(min_length=1, max_length=64)]] | None
+    ) = Field(
+        default=None,
+        min_length=1,
+        max_length=1000,
+        description="a label job: only these segments (numbers or names), each its own model (and, from the PACS, "
+        "its own Encapsulated STL)",
+    )
     phone_max_triangles: int = Field(
         default=_EXPORT.phone_max_triangles, ge=100, le=2_000_000, description="phone.glb budget"
     )
@@ -241,17 +250,18 @@ class JobParams(BaseModel):
             raise ValueError('give min_island_mm3 or "islands": null (keep pieces of any size), not both')
         if self.pieces is not None and self.labels:
             raise ValueError("give pieces (a CT's bone pieces) or labels (a label map), not both")
-        if self.defect is not None and (self.pieces is not None or self.labels):
+        if self.defect is not None and (self.pieces is not None or self.labels or self.segments):
             raise ValueError("the defect is found on a CT's model, not on pieces or labels: give one or the other")
         return self
 
     def label_options(self) -> dict[str, Any]:
         """What the worker needs beyond ``engine_params``: ``labels`` (forced), ``pieces`` and ``roi`` (the
-        engine's ``PiecesParams`` / ``RoiParams``, or None)."""
+        engine's ``PiecesParams`` / ``RoiParams``, or None), ``segments`` (numbers or names, or None)."""
         return {
             "labels": bool(self.labels),
             "pieces": None if self.pieces is None else PiecesParams(count=self.pieces),
             "roi": None if self.roi is None else self.roi.engine(),
+            "segments": self.segments,
         }
 
     def warnings(self) -> list[dict[str, Any]]:

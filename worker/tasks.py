@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import datetime as dt
 import functools
+import json
 import os
 import socket
 import threading
+import time
 import uuid
 from pathlib import Path
 from typing import Any
@@ -22,7 +24,14 @@ from core.settings import Settings, get_settings
 from core.storage import is_storage_full, scrub_exception, scrub_paths, storage_from_settings, version_of
 from engine.export.files import FILES, LABELS_ZIP, triangle_count
 from worker.app import app
-from worker.pacs import SourceIncomplete, SourceUnavailable, UncheckedSource, fetch_source, write_dicom_model
+from worker.pacs import (
+    SourceIncomplete,
+    SourceUnavailable,
+    UncheckedSource,
+    fetch_source,
+    write_dicom_labels,
+    write_dicom_model,
+)
 
 log = safe_logger("bonemesh.worker")  # job ids and engine messages only: never the upload's name
 # job progress (percent) at each point: loading 0-5, pipeline 5-90, writing the files 90-100
@@ -64,6 +73,26 @@ class _Holder:
             raise Cancelled(self.job_id)
 
 
+class _Timings:
+    """Seconds per step of one attempt, each from the end of the step before (they add up to ``total``), logged
+    as one line ``job <id> timings {json}`` when the attempt ends (``benchmarks/throughput.py`` reads it)."""
+
+    def __init__(self) -> None:
+        self.start = self.last = time.perf_counter()
+        self.seconds: dict[str, float] = {}
+
+    def lap(self, step: str) -> None:
+        now = time.perf_counter()
+        self.seconds[step] = self.seconds.get(step, 0.0) + now - self.last
+        self.last = now
+
+    def log(self, job: Any) -> None:
+        seconds = {**self.seconds, "total": time.perf_counter() - self.start}
+        if getattr(job, "created_at", None) and getattr(job, "started_at", None):  # upload recorded -> claimed
+            seconds["queue_wait"] = (job.started_at - job.created_at).total_seconds()
+        log.info("job %s timings %s", job.id, json.dumps({k: round(v, 4) for k, v in seconds.items()}))
+
+
 @functools.cache
 def database(url: str) -> Database:
     """One :class:`Database` (one connection pool, schema checked once) per URL for the worker process."""
@@ -80,7 +109,9 @@ def reconstruct_job(self: Any, job_id: str) -> str:
     worker = f"{host}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
     stale_before = utcnow() - dt.timedelta(seconds=settings.stale_seconds)
     name = getattr(self.request, "hostname", None) or worker  # the Celery node name: the job shows who ran it
+    timer = _Timings()
     job = db.claim(job_id, worker, stale_before, name=name, host=host)
+    timer.lap("claim")
     if job is None:
         log.info("job %s: already taken, finished or cancelled; message dropped", job_id)
         return "skipped"
@@ -103,17 +134,23 @@ def reconstruct_job(self: Any, job_id: str) -> str:
                 log.info("job %s: removed %d folder(s) left by an earlier attempt", job_id, left)
             staged = storage.staging_dir(job_id)
             labels[str(staged)] = "the job's outputs"
+            timer.lap("staging")
             with storage.local_upload(job_id) as upload:  # a scratch copy where the store is not local
+                timer.lap("upload_copy")
                 labels[str(upload)] = "upload"
-                outputs = _run(job, upload, staged, holder, settings, db)
+                outputs = _run(job, upload, staged, holder, settings, db, timer)
+            timer.lap("release")
             if holder.lost.is_set():
                 raise Cancelled(job_id)
             version = storage.publish(job_id, staged)  # invisible until the commit below records it
+            timer.lap("publish")
             staged = None
             outputs = [{**o, "version": version} for o in outputs]
             if not db.finish(job_id, worker, "succeeded", outputs=outputs, stage="done", progress=100.0):
                 raise Cancelled(job_id)
+            timer.lap("finish")
             storage.retire(job_id, keep=version)
+            timer.lap("retire")
         return "succeeded"
     except Cancelled:
         log.info("job %s: cancelled, deleted or taken over while running; its files are dropped", job_id)
@@ -146,15 +183,23 @@ def reconstruct_job(self: Any, job_id: str) -> str:
     finally:
         if staged is not None:
             storage.drop_staging(staged)
+        timer.log(job)
 
 
 def _run(
-    job: Any, upload: Path, staged: Path, holder: _Holder, settings: Settings, db: Database
+    job: Any,
+    upload: Path,
+    staged: Path,
+    holder: _Holder,
+    settings: Settings,
+    db: Database,
+    timer: _Timings | None = None,
 ) -> list[dict[str, Any]]:
     """Load, reconstruct and write the files into ``staged`` (on ``settings.device``, within
     ``settings.max_device_bytes``: one ``Budget`` for the pipeline and the files, as the CLI's); returns the output
     descriptions (``engine.export.files``: kind, media type and triangles of each)."""
     from engine.budget import Budget
+    from engine.errors import InputError
     from engine.io import codecs, load_volume
     from engine.labels.job import label_job
     from engine.labels.pieces import crop_roi
@@ -163,17 +208,27 @@ def _run(
     from engine.params import ReconParams
     from engine.pipeline import reconstruct
 
+    timer = timer or _Timings()  # the attempt's (reconstruct_job), or one of its own
     recon_dict, spacing = engine_params_of(job)
     params = ReconParams.from_dict(recon_dict)
     options = label_options_of(job)  # a label map (forced), pieces, a region of interest (engine.labels)
     holder.progress("loading", 1.0)
+    timer.lap("prepare")  # the imports above (a new worker's first job), the params, the first beat
     fetch_source(db, job.id, upload)  # a DICOMweb job's series (worker.pacs)
+    timer.lap("fetch_source")
     device, budget = settings.device, Budget.of(settings.max_device_bytes)
     found = find_label_upload(upload, "upload", force=options["labels"])
     on_stage = functools.partial(_label_stage, holder)
+    segments = options["segments"]
     if found is not None:  # a segmentation: a model per label (engine.labels.job)
-        written = label_job(upload, staged, params, found=found, roi=options["roi"], device=device, on_stage=on_stage)
-        return _described(*written)
+        paths, report = label_job(
+            upload, staged, params, found=found, roi=options["roi"], segments=segments, device=device, on_stage=on_stage
+        )
+        timer.lap("label_job")
+        paths.update(write_dicom_labels(db, job.id, upload, staged, report))  # PACS: one Encapsulated STL per label
+        return _described(paths, report)
+    if segments and options["pieces"] is None:
+        raise InputError("segments picks among a label map's segments (or a CT's pieces); this upload is a CT scan")
     codecs.USE_IMAGECODECS = settings.png_decoder == "auto"
     volume = load_volume(
         upload,
@@ -183,18 +238,25 @@ def _run(
     )
     if options["roi"] is not None:  # cropped before anything runs
         volume = crop_roi(volume, options["roi"], params.orient)
+    timer.lap("load")
     holder.progress("loading", LOAD_END)
     if options["pieces"] is not None:  # the N largest bone pieces, each its own part
-        written = label_job(volume, staged, params, pieces=options["pieces"], device=device, on_stage=on_stage)
-        return _described(*written)
+        paths, report = label_job(
+            volume, staged, params, pieces=options["pieces"], segments=segments, device=device, on_stage=on_stage
+        )
+        timer.lap("label_job")
+        paths.update(write_dicom_labels(db, job.id, upload, staged, report, volume))
+        return _described(paths, report)
 
     def on_progress(stage: str, fraction: float) -> None:
         holder.progress(stage, LOAD_END + (PIPELINE_END - LOAD_END) * fraction)
 
     recon = reconstruct(volume, params, device=device, on_progress=on_progress, max_device_bytes=budget)
+    timer.lap("reconstruct")
     holder.progress("writing", PIPELINE_END)
     paths = write_outputs(recon, staged, params, device=device, max_device_bytes=budget)
     paths.update(write_dicom_model(db, job.id, upload, staged, volume))  # PACS jobs: Encapsulated STL (worker.pacs)
+    timer.lap("write_files")
     return _described(paths, recon.report)
 
 

@@ -91,6 +91,12 @@ class PacsSettings(BaseSettings):
         default_factory=list, description="calling AE titles allowed to store, comma-separated, each AE or AE@address"
     )
     stable_seconds: float = Field(default=60.0, gt=0, description="a series is complete this long after its last image")
+    reference_wait_seconds: float = Field(
+        default=600.0,
+        ge=0,
+        description="how long a received SEG waits for the CT series it references to arrive (then its job fails "
+        "saying the series is missing)",
+    )
     routes: list[Rule] = Field(default_factory=lambda: list(DEFAULT_RULES))
     destination: DicomNode | DicomwebTarget | None = Field(
         default=None, discriminator="kind", description="where models of C-STORE jobs go (none: not sent back)"

@@ -21,7 +21,7 @@ import io
 import time
 import warnings
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -396,18 +396,20 @@ def _instance_pass(
                 return
 
 
-def store_file(server: DicomwebServer, path: Path) -> None:
-    """Store one DICOM file with STOW-RS.
+def store_files(server: DicomwebServer, paths: Sequence[Path]) -> None:
+    """Store DICOM files with one STOW-RS request (a label job's models: one instance per label).
 
     Raises:
         requests.HTTPError, requests.ConnectionError: the server refused or could not be reached.
-        RuntimeError: the server answered but lists the instance as failed.
+        RuntimeError: the server answered but lists an instance as failed.
     """
     import pydicom
 
-    ds = pydicom.dcmread(path)
-    response = client_for(server).store_instances([ds])
+    datasets = [pydicom.dcmread(path) for path in paths]
+    response = client_for(server).store_instances(datasets)
     failed = response.get("FailedSOPSequence") if response is not None else None
     if failed:
         reason = failed[0].get("FailureReason", "?")
-        raise RuntimeError(f"STOW-RS: the server refused the instance (failure reason {reason})")
+        raise RuntimeError(
+            f"STOW-RS: the server refused {len(failed)} of {len(datasets)} instance(s) (failure reason {reason})"
+        )

@@ -11,12 +11,14 @@ destination). A job that failed or was cancelled shows ``skipped``.
 from __future__ import annotations
 
 import datetime as dt
+import uuid
 from typing import Any
 
 from sqlalchemy import JSON, BigInteger, DateTime, String, Text, select, update
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from core.db import Database, Job, create_tables, utcnow
+from engine.export.files import LABELS_DCM
 
 SENDING_STALE = dt.timedelta(minutes=5)  # a claim older than this was lost with its dispatcher
 UID_ROOT = "2.25."  # UUID-derived UIDs (PS3.5 B.2): no registered root needed
@@ -52,6 +54,11 @@ def result_uids(job_id: str) -> tuple[str, str]:
     return f"{UID_ROOT}{n}", f"{UID_ROOT}{(n + 1) % (1 << 128)}"
 
 
+def label_sop_uid(job_id: str, value: int) -> str:
+    """The SOP Instance UID of a label job's model of label ``value`` (fixed per job and label, as ``result_uids``)."""
+    return f"{UID_ROOT}{uuid.uuid5(uuid.UUID(hex=job_id), f'label-{value}').int}"
+
+
 class PacsRecords:
     """PACS records in the job database."""
 
@@ -84,6 +91,17 @@ class PacsRecords:
     def get(self, job_id: str) -> PacsJob | None:
         with self.db.session() as s:
             return s.get(PacsJob, job_id)
+
+    def latest_of_series(self, series_uid: str) -> str | None:
+        """The newest job made from series ``series_uid`` (received or fetched), or None."""
+        with self.db.session() as s:
+            return s.scalars(
+                select(PacsJob.job_id)
+                .join(Job, Job.id == PacsJob.job_id)
+                .where(PacsJob.source["series_uid"].as_string() == series_uid)
+                .order_by(Job.created_at.desc())
+                .limit(1)
+            ).first()
 
     def due(self, now: dt.datetime, limit: int = 20) -> list[str]:
         """Jobs whose model is ready to send now: succeeded, waiting or retrying and due, or a lost claim."""
@@ -177,9 +195,14 @@ class PacsRecords:
             "next_attempt_at": _utc(rec.next_attempt_at),
             "delivered_at": _utc(rec.delivered_at),
             "series_instance_uid": rec.result_series_uid,
-            "sop_instance_uid": rec.result_sop_uid,
+            # a label job sends one object per label (labels.dcm.zip), all in the series: no one SOP instance
+            "sop_instance_uid": None if _has_output(job, LABELS_DCM) else rec.result_sop_uid,
         }
         return {"source": {**rec.source, "rule": rec.rule}, "delivery": delivery}
+
+
+def _has_output(job: Job, name: str) -> bool:
+    return any(o.get("name") == name for o in job.outputs or [])
 
 
 def _utc(value: dt.datetime | None) -> dt.datetime | None:

@@ -7,7 +7,11 @@ parameters. A series that no rule takes is ignored, and the log names it by its 
 Rules (``BONEMESH_PACS_ROUTES``, a JSON list), e.g.::
 
     [{"name": "hips", "body_part": "PELVIS|HIP", "min_slices": 40, "params": {"preset": "bone", "reduction": 0.1}},
-     {"name": "bone", "modality": "CT", "min_slices": 16}]
+     {"name": "bone", "modality": "CT", "min_slices": 16},
+     {"name": "segments", "modality": "SEG", "min_slices": 2, "params": {"segments": ["femur_left", "femur_right"]}}]
+
+A SEG series (``modality: SEG``; its frames counted as images) becomes a label job on the CT series it references
+(``service.pacs.gateway``): a model per segment, or per segment named in ``params.segments``.
 """
 
 from __future__ import annotations
@@ -96,7 +100,9 @@ class Rule(BaseModel):
         return None
 
 
-DEFAULT_RULES = (Rule(name="bone"),)
+REFERENCE_FOLDER = "reference"  # a SEG's CT series, in the SEG job's upload (received: the gateway; fetched: worker)
+# a CT becomes a bone model; a segmentation (SEG) of a CT received or already run becomes a model per segment
+DEFAULT_RULES = (Rule(name="bone"), Rule(name="segments", modality="SEG", min_slices=2))
 
 
 def not_a_volume(series: SeriesSummary) -> str | None:

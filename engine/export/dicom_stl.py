@@ -82,6 +82,8 @@ def to_encapsulated_stl(
     device_serial_number: str = "bonemesh",
     source_instances: Sequence[tuple[str, str]] = (),
     source_series_uid: str | None = None,
+    document_title: str = "bone surface model",
+    instance_number: int = 1,
 ) -> bytes:
     """Encode a print model as an Encapsulated STL DICOM file (Part 10, Explicit VR Little Endian).
 
@@ -99,6 +101,8 @@ def to_encapsulated_stl(
         device_serial_number: Device Serial Number (type 1 in Enhanced General Equipment).
         source_instances: (SOP Class UID, SOP Instance UID) of the images the model was built from (each once).
         source_series_uid: their series (default: the ``source`` header's Series Instance UID).
+        document_title: Document Title (a label job's segment name, so the archive lists each model by it).
+        instance_number: the object's number in its series (a label job's models: 1, 2, ...).
 
     Returns:
         The DICOM file's bytes.
@@ -143,11 +147,11 @@ def to_encapsulated_stl(
     ds.SoftwareVersions = software_version
     # Encapsulated Document
     stamp_date, stamp_time = created.strftime("%Y%m%d"), created.strftime("%H%M%S")
-    ds.InstanceNumber = 1
+    ds.InstanceNumber = instance_number
     ds.ContentDate, ds.ContentTime = stamp_date, stamp_time
     ds.AcquisitionDateTime = created.strftime("%Y%m%d%H%M%S")
     ds.BurnedInAnnotation = "NO"
-    ds.DocumentTitle = "bone surface model"
+    ds.DocumentTitle = document_title[:64]
     ds.ConceptNameCodeSequence = DicomSequence()
     ds.MIMETypeOfEncapsulatedDocument = STL_MIME
     if source_instances:

@@ -30,6 +30,7 @@ __all__ = [
     "EXPORTERS",
     "FILES",
     "IMPLANT_STL",
+    "LABELS_DCM",
     "LABELS_ZIP",
     "MODEL_DCM",
     "MODEL_GLB",
@@ -59,6 +60,7 @@ MODEL_DCM = "model.dcm"
 IMPLANT_STL = "implant.stl"
 DEFECT_JSON = "defect.json"
 LABELS_ZIP = "labels.zip"
+LABELS_DCM = "labels.dcm.zip"
 
 
 @dataclass(frozen=True)
@@ -237,6 +239,16 @@ _FILES = (
         triangles=True,
         exporter=None,
         when="labels",
+    ),
+    OutputFile(
+        name=LABELS_DCM,
+        kind="labels_dicom",
+        media_type="application/zip",
+        purpose="the hospital's PACS: one Encapsulated STL per label (a label job from the PACS)",
+        made_from="print",
+        triangles=True,
+        exporter=None,
+        when="pacs",
     ),
 )
 FILES: Mapping[str, OutputFile] = MappingProxyType({f.name: f for f in _FILES})

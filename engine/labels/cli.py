@@ -5,6 +5,7 @@
                                                                       file (own grid) or a folder of SEG + its CT
     bonemesh reconstruct CT --pieces N -o OUT                          the N largest bone pieces as parts
     ... --roi Z0:Z1,Y0:Y1,X0:X1 [--roi-units voxels|mm]               crop first (mm: x, y, z in the patient frame)
+    ... --segments 1,femur                                             only these segments (numbers or names)
 
 Writes ``labels/<name>.stl`` per label (binary, LPS mm, watertight), ``labels.zip`` of them, ``model.glb`` /
 ``phone.glb`` / ``ar.glb`` with a named, coloured node per label, ``preview.png`` and ``report.json`` (``labels``:
@@ -38,6 +39,7 @@ def add_label_args(parser: argparse.ArgumentParser) -> None:
         default="voxels",
         help="voxels: z,y,x indices (end exclusive); mm: x,y,z in the patient (LPS) frame",
     )
+    group.add_argument("--segments", metavar="S1,S2", help="only these segments (numbers or names, commas between)")
 
 
 def roi_params(args: argparse.Namespace) -> RoiParams | None:
@@ -104,6 +106,10 @@ def run_labels(args: argparse.Namespace, params: Any, out: Path) -> dict[str, An
     from engine.labels.parts import label_models
 
     lv = _label_volume(args, params)
+    if getattr(args, "segments", None):
+        from engine.labels.pieces import select_segments
+
+        lv = select_segments(lv, [w.strip() for w in args.segments.split(",") if w.strip()])
     models = label_models(lv, params, device=args.device, orient=params.orient)
     paths = write_label_outputs(models, out, params, device=args.device, extra={"input": _input(lv)}, stl_folder=True)
     report: dict[str, Any] = json.loads(paths["report.json"].read_text())

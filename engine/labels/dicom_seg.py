@@ -223,6 +223,8 @@ def read_dicom_seg(path: str | Path, *, reference: Volume | None = None) -> Labe
 def read_seg_folder(folder: str | Path) -> LabelVolume:
     """The SEG of a folder placed on its referenced CT series in the same folder (``engine.io.load_volume``).
 
+    ``source["reference"]`` says what the CT's completeness checks found (``engine.io.completeness``).
+
     Raises:
         MissingReferenceError: the folder lacks the series the SEG references (or the SEG names none).
     """
@@ -250,4 +252,7 @@ def read_seg_folder(folder: str | Path) -> LabelVolume:
         raise MissingReferenceError(
             f"{path.name}: its referenced series {wanted} is not in {root.name} ({exc})"
         ) from None
-    return read_dicom_seg(path, reference=ct)
+    lv = read_dicom_seg(path, reference=ct)
+    # what the CT's checks found: a model for the PACS is made only on a CT checked whole (``worker.pacs``)
+    lv.source["reference"] = {"images": int(ct.data.shape[0]), "completeness": ct.source.get("completeness")}
+    return lv

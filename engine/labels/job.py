@@ -6,7 +6,7 @@ region of interest when asked, meshed per label (``label_models``) and written a
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,13 +24,15 @@ def label_job(
     found: Any = None,
     pieces: PiecesParams | None = None,
     roi: RoiParams | None = None,
+    segments: Sequence[int | str] | None = None,
     device: Any = "auto",
     label: str = "the upload",
     on_stage: Callable[[str], None] | None = None,
 ) -> tuple[dict[str, Path], dict[str, Any]]:
     """Mesh every label and write the files into ``outdir``: ``source`` is the upload's path when ``found`` (a
     ``LabelUpload``) says it holds a label map, else a loaded scan (an ``engine.types.Volume``, cropped already)
-    whose ``pieces`` largest bone pieces become the labels; ``roi`` crops a label map before meshing.
+    whose ``pieces`` largest bone pieces become the labels; ``roi`` crops a label map before meshing; ``segments``
+    keeps only those segments (numbers or names; ``engine.labels.pieces.select_segments``).
     ``on_stage`` is told each stage as it begins (``"labels"``: meshing, ``"writing"``: the files).
 
     Returns:
@@ -41,7 +43,7 @@ def label_job(
     """
     from engine.labels.outputs import write_label_outputs
     from engine.labels.parts import label_models
-    from engine.labels.pieces import bone_pieces, crop_roi
+    from engine.labels.pieces import bone_pieces, crop_roi, select_segments
     from engine.labels.uploads import read_label_upload
 
     if found is not None:
@@ -50,6 +52,8 @@ def label_job(
             lv = crop_roi(lv, roi, params.orient)
     else:
         lv = bone_pieces(source, params, pieces or PiecesParams())
+    if segments:
+        lv = select_segments(lv, segments)
     stage = on_stage or (lambda name: None)
     stage("labels")
     models = label_models(lv, params, device=device, orient=params.orient)

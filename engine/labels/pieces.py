@@ -1,12 +1,14 @@
-"""From a CT alone: a region of interest cropped before anything runs (``crop_roi``), and the N largest bone pieces
-as a label map of separately named parts (``bone_pieces``: fragments of a fracture, the two femurs of a pelvis
-scan), meshed like any label map (``engine.labels.parts.label_models``).
+"""What a label job keeps: a region of interest cropped before anything runs (``crop_roi``), the segments asked for
+(``select_segments``: by number or name), and, from a CT alone, the N largest bone pieces as a label map of
+separately named parts (``bone_pieces``: fragments of a fracture, the two femurs of a pelvis scan), meshed like any
+label map (``engine.labels.parts.label_models``).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from typing import TypeVar
 
 import numpy as np
@@ -16,7 +18,7 @@ from engine.io.labelmaps import LabelVolume, Segment, palette
 from engine.params import OrientParams, PiecesParams, ReconParams, RoiParams
 from engine.types import Volume
 
-__all__ = ["bone_pieces", "crop_roi", "roi_slices"]
+__all__ = ["bone_pieces", "crop_roi", "roi_slices", "select_segments"]
 
 Grid = TypeVar("Grid", Volume, LabelVolume)
 
@@ -83,6 +85,34 @@ def crop_roi(grid: Grid, roi: RoiParams, orient: OrientParams | None = None) -> 
         out: Grid = dataclasses.replace(grid, labels=labels, origin_mm=origin, segments=segments, source=source)  # type: ignore[call-arg]
         return out
     return dataclasses.replace(grid, data=np.ascontiguousarray(grid.data[sl]), origin_mm=origin, source=source)
+
+
+def select_segments(lv: LabelVolume, wanted: Sequence[int | str]) -> LabelVolume:
+    """Only the segments ``wanted`` (a segment number, or its name, case-insensitive), the others' voxels cleared.
+
+    Raises:
+        InputError: a wanted segment is not in the map (the message lists those it has).
+    """
+    by_value = {s.value: s for s in lv.segments}
+    by_name = {s.name.casefold(): s for s in lv.segments}
+    chosen: dict[int, Segment] = {}
+    missing = []
+    for want in wanted:
+        seg = by_value.get(want) if isinstance(want, int) else by_name.get(str(want).casefold())
+        if seg is None and isinstance(want, str) and want.strip().isdigit():
+            seg = by_value.get(int(want))
+        if seg is None:
+            missing.append(want)
+        else:
+            chosen[seg.value] = seg
+    if missing:
+        have = ", ".join(f"{s.value} {s.name!r}" for s in lv.segments[:20]) + (", ..." if len(lv.segments) > 20 else "")
+        raise InputError(f"the label map has no segment {', '.join(map(repr, missing))}; it has {have}")
+    values = np.array(sorted(chosen), dtype=lv.labels.dtype)
+    labels = np.where(np.isin(lv.labels, values), lv.labels, 0).astype(lv.labels.dtype, copy=False)
+    segments = tuple(s for s in lv.segments if s.value in chosen)
+    source = {**lv.source, "segments_selected": [int(v) for v in values]}
+    return dataclasses.replace(lv, labels=labels, segments=segments, source=source)
 
 
 def _structure(connectivity: int) -> np.ndarray:

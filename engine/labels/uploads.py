@@ -7,7 +7,9 @@ A label upload is one of:
   or scaled NIfTI is an image, not labels: ``NotLabelsError``, also before the job is queued);
 * an NRRD or Slicer ``.seg.nrrd`` (``NRRD000`` magic; attached data);
 * a zip holding exactly one of those (other members ignored), or a zip of a DICOM SEG with its referenced CT
-  series (``engine.labels.dicom_seg.read_seg_folder``), or a DICOM SEG file alone (placed on its own grid).
+  series (``engine.labels.dicom_seg.read_seg_folder``), or a DICOM SEG file alone (placed on its own grid);
+* a folder of DICOM files holding a SEG and its referenced CT series (a PACS job's upload: a SEG received by
+  C-STORE or fetched by DICOMweb, with its CT beside it).
 
 Nothing here loads Warp: the API imports this module to check uploads.
 """
@@ -27,7 +29,7 @@ from typing import IO, Any
 
 from engine.errors import InputError, NotLabelsError
 
-__all__ = ["LabelUpload", "find_label_upload", "read_label_upload", "sniff"]
+__all__ = ["LabelUpload", "find_label_upload", "is_seg_file", "read_label_upload", "sniff"]
 
 # Segmentation Storage (.66.4) and Label Map Segmentation Storage (.66.7), as a file's meta names its SOP class
 SEG_SOP_CLASS = re.compile(rb"1\.2\.840\.10008\.5\.1\.4\.1\.1\.66\.[47](?![0-9.])")
@@ -129,7 +131,9 @@ def find_label_upload(path: str | Path, label: str = "the upload", *, force: boo
     """
     p = Path(path)
     found: LabelUpload | None = None
-    if p.is_file() and zipfile.is_zipfile(p):
+    if p.is_dir():
+        found = _in_folder(p, label)
+    elif p.is_file() and zipfile.is_zipfile(p):
         found = _in_zip(p, label)
     elif p.is_file():
         with p.open("rb") as fh:
@@ -167,13 +171,44 @@ def _in_zip(path: Path, label: str) -> LabelUpload | None:
         raise InputError(f"{label} holds {len(maps)} label maps ({shown}); send one per job")
     if maps:
         return LabelUpload(maps[0][1], maps[0][0])
+    return _seg_found(
+        seg,
+        other_dicom,
+        f"{label} holds a DICOM SEG but no other DICOM file: zip the SEG with the CT series it was drawn on",
+    )
+
+
+def is_seg_file(path: Path) -> bool:
+    """Whether the file at ``path`` is a DICOM SEG (by its first bytes)."""
+    with path.open("rb") as fh:
+        return is_seg(fh.read(_SNIFF_BYTES))
+
+
+def _seg_found(seg: int, other_dicom: int, missing: str) -> LabelUpload | None:
+    """A SEG upload when there is a SEG; ``MissingReferenceError(missing)`` when nothing else is DICOM."""
     if seg and not other_dicom:
         from engine.errors import MissingReferenceError
 
-        raise MissingReferenceError(
-            f"{label} holds a DICOM SEG but no other DICOM file: zip the SEG with the CT series it was drawn on"
-        )
+        raise MissingReferenceError(missing)
     return LabelUpload("dicom-seg") if seg else None
+
+
+def _in_folder(path: Path, label: str) -> LabelUpload | None:
+    """A folder of DICOM files (a PACS job's upload) holding a SEG: its first bytes name the SOP class."""
+    seg = other_dicom = 0
+    for f in sorted(q for q in path.rglob("*") if q.is_file()):
+        with f.open("rb") as fh:
+            head = fh.read(_SNIFF_BYTES)
+        if is_seg(head):  # (is_seg_file, with the head kept for the next test)
+            seg += 1
+        elif head[128:132] == b"DICM":
+            other_dicom += 1
+    return _seg_found(
+        seg,
+        other_dicom,
+        f"{label} holds a DICOM SEG without the CT series it was drawn on (its "
+        "referenced series was not received or could not be fetched)",
+    )
 
 
 def _copy(src: IO[bytes], dest: Path, limit: int, label: str) -> None:
@@ -194,8 +229,8 @@ def _unpacked(path: Path, found: LabelUpload, label: str) -> Iterator[Path]:
     limits = InputLimits()
     tmp = Path(tempfile.mkdtemp(prefix="bonemesh-labels-"))
     try:
-        if found.kind == "dicom-seg" and not zipfile.is_zipfile(path):  # one SEG file: placed on its own grid
-            yield path
+        if found.kind == "dicom-seg" and not zipfile.is_zipfile(path):  # a folder with its CT, or one SEG file
+            yield path  # (placed on its own grid)
             return
         if found.kind == "dicom-seg":
             folder = tmp / "seg"

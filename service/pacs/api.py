@@ -16,7 +16,7 @@ from core.db import Database, Job
 from core.pacs.config import get_pacs_settings
 from core.pacs.records import PacsRecords
 from core.storage import version_of
-from engine.export.files import MODEL_DCM
+from engine.export.files import LABELS_DCM, MODEL_DCM
 from service.pacs.models import SourceJobCreate
 from service.problems import Problem
 
@@ -47,9 +47,12 @@ def redeliver(svc: Any, job: Job) -> None:
     """
     if job.state != "succeeded":
         raise Problem(409, f"job {job.id} is {job.state}: only a succeeded job's model can be delivered")
-    if svc.storage.output(job.id, MODEL_DCM, version_of(job)) is None:
-        raise Problem(409, f"job {job.id} has no {MODEL_DCM} to deliver (it came from an upload, or its source had "
-                      "no Frame of Reference)")
+    if all(svc.storage.output(job.id, name, version_of(job)) is None for name in (MODEL_DCM, LABELS_DCM)):
+        raise Problem(
+            409,
+            f"job {job.id} has no {MODEL_DCM} or {LABELS_DCM} to deliver (it came from an upload, or its source had "
+            "no Frame of Reference)",
+        )
     if not records_of(svc.db).redeliver(job.id):
         raise Problem(409, f"job {job.id} has no PACS destination to deliver to")
 

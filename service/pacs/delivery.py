@@ -1,5 +1,6 @@
-"""Sending the model back: the job's ``model.dcm`` (Encapsulated STL, written by the worker) by C-STORE to a DICOM
-node or STOW-RS to a DICOMweb server.
+"""Sending the model back: the job's ``model.dcm`` (Encapsulated STL, written by the worker), or a label job's
+``labels.dcm.zip`` (one Encapsulated STL per label, all sent), by C-STORE to a DICOM node (one association) or
+STOW-RS to a DICOMweb server (one request).
 
 The ``pacs_jobs`` rows are the outbox: the dispatcher picks up succeeded jobs whose delivery is waiting or due for
 a retry, claims each with one conditional update, sends, and records the outcome. A failure is retried with
@@ -12,6 +13,9 @@ a repeated send stores the same object again at the PACS, never a second one.
 from __future__ import annotations
 
 import datetime as dt
+import tempfile
+import zipfile
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +24,7 @@ from core.logsafe import escape_control, safe_logger
 from core.pacs.config import DicomNode, DicomwebTarget, PacsSettings
 from core.pacs.records import PacsJob, PacsRecords
 from core.storage import Storage
-from engine.export.files import MODEL_DCM
+from engine.export.files import LABELS_DCM, MODEL_DCM
 
 log = safe_logger("bonemesh.pacs")
 _C_STORE_OK = frozenset({0x0000, 0xB000, 0xB006, 0xB007})  # success, or stored with coercion / elements discarded
@@ -30,18 +34,19 @@ class DeliveryError(Exception):
     """A delivery attempt failed; the message says where and why (no patient data)."""
 
 
-def send_c_store(node: DicomNode, calling_ae: str, path: Path) -> None:
-    """C-STORE one file to ``node``.
+def send_c_store(node: DicomNode, calling_ae: str, paths: Sequence[Path]) -> None:
+    """C-STORE files to ``node`` in one association.
 
     Raises:
-        DeliveryError: no association, or a failure status.
+        DeliveryError: no association, or a failure status (naming how many were stored before it).
     """
     import pydicom
     from pynetdicom import AE
 
-    ds = pydicom.dcmread(path)
+    datasets = [pydicom.dcmread(path) for path in paths]
     ae = AE(ae_title=calling_ae)
-    ae.add_requested_context(ds.SOPClassUID, ds.file_meta.TransferSyntaxUID)
+    for context in dict.fromkeys((ds.SOPClassUID, ds.file_meta.TransferSyntaxUID) for ds in datasets):
+        ae.add_requested_context(*context)
     ae.acse_timeout = ae.dimse_timeout = ae.network_timeout = 30
     where = f"{node.ae_title}@{node.host}:{node.port}"
     assoc = ae.associate(node.host, node.port, ae_title=node.ae_title)
@@ -49,12 +54,15 @@ def send_c_store(node: DicomNode, calling_ae: str, path: Path) -> None:
         how = "rejected" if assoc.is_rejected else "aborted" if assoc.is_aborted else "not established"
         raise DeliveryError(f"C-STORE to {where}: association {how}")
     try:
-        status = assoc.send_c_store(ds)
+        for n, ds in enumerate(datasets):
+            status = assoc.send_c_store(ds)
+            code = int(status.Status) if status is not None and "Status" in status else None
+            if code not in _C_STORE_OK:
+                what = "no response" if code is None else f"status 0x{code:04X}"
+                of = f" (object {n + 1} of {len(datasets)})" if len(datasets) > 1 else ""
+                raise DeliveryError(f"C-STORE to {where}: {what}{of}")
     finally:
         assoc.release()
-    code = int(status.Status) if status is not None and "Status" in status else None
-    if code not in _C_STORE_OK:
-        raise DeliveryError(f"C-STORE to {where}: " + ("no response" if code is None else f"status 0x{code:04X}"))
 
 
 class Dispatcher:
@@ -86,17 +94,22 @@ class Dispatcher:
 
     def _deliver(self, rec: PacsJob) -> bool:
         with self.storage.local_output(rec.job_id, MODEL_DCM) as path:  # a scratch copy off local disk
-            return self._deliver_file(rec, path)
+            if path is not None:
+                return self._deliver_files(rec, [path])
+        with self.storage.local_output(rec.job_id, LABELS_DCM) as zipped, tempfile.TemporaryDirectory() as tmp:
+            return self._deliver_files(rec, None if zipped is None else _unzipped(zipped, Path(tmp)))
 
-    def _deliver_file(self, rec: PacsJob, path: Path | None) -> bool:
+    def _deliver_files(self, rec: PacsJob, paths: list[Path] | None) -> bool:
         job_id, dest = rec.job_id, rec.destination or {}
         try:
-            if path is None:
-                raise DeliveryError("the job has no model.dcm (its source lacked a Frame of Reference UID?)")
-            self._send(dest, path)
+            if not paths:
+                raise DeliveryError(
+                    f"the job has no {MODEL_DCM} or {LABELS_DCM} (its source lacked a Frame of Reference UID?)"
+                )
+            self._send(dest, paths)
         except Exception as exc:
             message = escape_control(str(exc) or type(exc).__name__)
-            final = path is None or rec.delivery_attempts >= self.pacs.delivery_max_attempts
+            final = not paths or rec.delivery_attempts >= self.pacs.delivery_max_attempts
             delay = None if final else self.backoff(rec.delivery_attempts)
             next_at = None if delay is None else utcnow() + dt.timedelta(seconds=delay)
             self.records.failed_attempt(job_id, message, next_at)
@@ -112,20 +125,31 @@ class Dispatcher:
         log.info("job %s: model delivered (%s) after %d attempt(s)", job_id, _describe(dest), rec.delivery_attempts)
         return True
 
-    def _send(self, dest: dict[str, Any], path: Path) -> None:
+    def _send(self, dest: dict[str, Any], paths: list[Path]) -> None:
         kind = dest.get("kind")
         if kind == "dicom":
-            send_c_store(DicomNode.model_validate(dest), self.pacs.ae_title, path)
+            send_c_store(DicomNode.model_validate(dest), self.pacs.ae_title, paths)
         elif kind == "dicomweb":
-            from core.pacs.dicomweb import store_file
+            from core.pacs.dicomweb import store_files
 
             target = DicomwebTarget.model_validate(dest)
             server = self.pacs.dicomweb_servers.get(target.server)
             if server is None:
                 raise DeliveryError(f"DICOMweb server {target.server!r} is not configured here")
-            store_file(server, path)
+            store_files(server, paths)
         else:
             raise DeliveryError(f"unknown destination kind {kind!r}")
+
+
+def _unzipped(zipped: Path, into: Path) -> list[Path]:
+    """The DICOM files of a label job's ``labels.dcm.zip``, extracted into ``into``, in the zip's order."""
+    paths = []
+    with zipfile.ZipFile(zipped) as zf:
+        for n, info in enumerate(i for i in zf.infolist() if not i.is_dir()):
+            path = into / f"{n:04d}.dcm"  # our own names: nothing of the member's name reaches the disk
+            path.write_bytes(zf.read(info))
+            paths.append(path)
+    return paths
 
 
 def _describe(dest: dict[str, Any]) -> str:

@@ -5,7 +5,10 @@ in one process.
 
 A stable series is routed (:mod:`core.pacs.routing`); a taken one is moved whole into the job's upload folder
 (``jobs/<id>/upload/``) and recorded in the same job table, with the same queue message, as an uploaded scan: the
-worker cannot tell them apart. Settings: :mod:`core.pacs.config` (``BONEMESH_PACS_*``) and
+worker cannot tell them apart. A segmentation (SEG) takes the CT series it references along (``reference/`` in its
+upload, copied from the job that series became): it waits while that series is still arriving, and for
+``reference_wait_seconds`` for one not received yet; after that its job fails, saying the series is missing.
+Settings: :mod:`core.pacs.config` (``BONEMESH_PACS_*``) and
 :mod:`core.settings` (``BONEMESH_*``: database, data folder, broker).
 """
 
@@ -13,15 +16,18 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import shutil
 import signal
 import threading
+import time
 from typing import Any
 
 from core.db import Database, Job, owner_of
 from core.logsafe import safe_logger
 from core.pacs.config import PacsSettings, get_pacs_settings
 from core.pacs.records import PacsRecords
-from core.pacs.routing import SeriesSummary, choose_rule
+from core.pacs.routing import REFERENCE_FOLDER, SeriesSummary, choose_rule
 from core.queue import Queue
 from core.settings import Settings, get_settings
 from core.storage import storage_from_settings
@@ -48,6 +54,14 @@ def summarize(series: ClaimedSeries) -> SeriesSummary:
         body_part=str(ds.get("BodyPartExamined", "")),
         image_type=tuple(str(v) for v in (ds.get("ImageType") or ())),
     )
+
+
+def _is_seg(series: ClaimedSeries) -> bool:
+    """Whether a claimed series is a segmentation (by its first file's SOP class)."""
+    from engine.labels.uploads import is_seg_file
+
+    files = series.files()
+    return bool(files) and is_seg_file(files[0])
 
 
 class Gateway:
@@ -77,7 +91,9 @@ class Gateway:
     def sweep_once(self) -> list[str]:
         """Turn every stable series into a job or drop it; returns the new job ids."""
         made = []
-        for series in self.inbox.claim_stable():
+        claimed = self.inbox.claim_stable()
+        claimed.sort(key=_is_seg)  # a CT before the SEGs, which may reference it
+        for series in claimed:
             try:
                 job_id = self.make_job(series)
             except Exception:
@@ -111,6 +127,8 @@ class Gateway:
             log.info("series %s of study %s ignored: %s", series.series_uid, series.study_uid, why)
             self.inbox.drop(series)
             return None
+        if summary.modality.upper() == "SEG" and not self._attach_reference(series):
+            return None  # kept claimed: the CT it references may still come
         job_id = Database.new_id()
         for extra in (SENDER, ".uids"):
             (series.folder / extra).unlink(missing_ok=True)
@@ -150,6 +168,42 @@ class Gateway:
         except Exception as exc:  # the API's reconciler sends it later
             log.warning("job %s: could not enqueue (%s); it stays queued and is re-sent later", job_id, exc)
         return job_id
+
+    def _attach_reference(self, series: ClaimedSeries) -> bool:
+        """Copy the CT series a SEG references into its folder (``reference/``) from the job that series became.
+        True when attached, or when waiting is over (the job then fails, naming the missing series); False to wait:
+        the series is still arriving, or has not come yet and ``reference_wait_seconds`` have not passed."""
+        target = series.folder / REFERENCE_FOLDER
+        if target.is_dir():
+            return True  # an earlier sweep attached it
+        import pydicom
+
+        from engine.labels.dicom_seg import referenced_series
+
+        wanted = referenced_series(pydicom.dcmread(series.files()[0], stop_before_pixels=True, force=True))
+        if not wanted:
+            return True  # nothing to wait for: the worker says so
+        if any(self.inbox.incoming.glob(f"*/{wanted}")):
+            return False
+        ct_job = self.records.latest_of_series(wanted)
+        if ct_job is not None and self.storage.has_upload(ct_job):
+            part = series.folder / ".reference.part"
+            shutil.rmtree(part, ignore_errors=True)
+            with self.storage.local_upload(ct_job) as src:
+                shutil.copytree(src, part, ignore=shutil.ignore_patterns(REFERENCE_FOLDER))
+            os.replace(part, target)
+            log.info("SEG series %s: its referenced series %s taken from job %s", series.series_uid, wanted, ct_job)
+            return True
+        waited = time.time() - series.folder.stat().st_mtime
+        if waited < self.pacs.reference_wait_seconds:
+            return False
+        log.warning(
+            "SEG series %s: its referenced series %s was not received within %g s; its job fails saying so",
+            series.series_uid,
+            wanted,
+            self.pacs.reference_wait_seconds,
+        )
+        return True
 
     # -- the process ------------------------------------------------------------------------------------------
     def _loop(self, name: str, step: Any) -> None:

@@ -60,4 +60,7 @@ class Delivery(BaseModel):
     next_attempt_at: dt.datetime | None
     delivered_at: dt.datetime | None
     series_instance_uid: str = Field(description="the model's series, in the source study")
-    sop_instance_uid: str
+    sop_instance_uid: str | None = Field(
+        description="the model's object; null for a label job, which sends one object per label (labels.dcm.zip), "
+        "all in series_instance_uid"
+    )

@@ -1,5 +1,5 @@
-"""The storage SCP (pynetdicom): accepts CT and Enhanced CT images from allow-listed calling AEs and puts them in
-the inbox.
+"""The storage SCP (pynetdicom): accepts CT and Enhanced CT images, and segmentations (SEG) of them, from
+allow-listed calling AEs and puts them in the inbox.
 
 Associations are checked at request time (``EVT_REQUESTED``): a calling AE title (and address, where the entry
 names one) that is not on the allow-list gets an A-ASSOCIATE-RJ, rejected-permanent, "calling AE title not
@@ -22,7 +22,10 @@ log = safe_logger("bonemesh.pacs")
 CT_IMAGE = "1.2.840.10008.5.1.4.1.1.2"
 ENHANCED_CT_IMAGE = "1.2.840.10008.5.1.4.1.1.2.1"
 LEGACY_ENHANCED_CT_IMAGE = "1.2.840.10008.5.1.4.1.1.2.2"
-STORAGE_CLASSES = (CT_IMAGE, ENHANCED_CT_IMAGE, LEGACY_ENHANCED_CT_IMAGE)
+SEGMENTATION = "1.2.840.10008.5.1.4.1.1.66.4"
+LABEL_MAP_SEGMENTATION = "1.2.840.10008.5.1.4.1.1.66.7"
+# CT images become bone models; a segmentation of a CT becomes a model per segment (``core.pacs.routing``)
+STORAGE_CLASSES = (CT_IMAGE, ENHANCED_CT_IMAGE, LEGACY_ENHANCED_CT_IMAGE, SEGMENTATION, LABEL_MAP_SEGMENTATION)
 TRANSFER_SYNTAXES = (
     "1.2.840.10008.1.2.1",  # Explicit VR Little Endian
     "1.2.840.10008.1.2",  # Implicit VR Little Endian

@@ -189,3 +189,37 @@ def test_seg_nrrd_and_dicom_seg_uploads(tmp_path: Path) -> None:
     (tmp_path / "alone.zip").write_bytes(seg_zip(with_ct=False))
     with pytest.raises(MissingReferenceError, match="the CT series it was drawn on"):
         find_label_upload(tmp_path / "alone.zip")
+
+
+def test_a_pacs_folder_of_seg_and_ct_and_the_segments_asked(tmp_path: Path) -> None:
+    """A folder as a PACS job leaves it (the SEG, its CT under ``reference/``) is a SEG upload read on its CT, whose
+    completeness the label map carries; ``select_segments`` keeps the segments asked by number or name, and refuses
+    one the map lacks, naming those it has; a folder with the SEG alone is refused."""
+    from engine.errors import MissingReferenceError
+    from engine.labels.pieces import select_segments
+    from engine.labels.uploads import find_label_upload, read_label_upload
+
+    with zipfile.ZipFile(io.BytesIO(seg_zip())) as zf:
+        for name in zf.namelist():
+            target = tmp_path / "upload" / ("reference" if "/ct/" in name else "") / Path(name).name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(zf.read(name))
+    found = find_label_upload(tmp_path / "upload")
+    assert found.kind == "dicom-seg"
+    lv = read_label_upload(tmp_path / "upload", found)
+    reference = lv.source["reference"]
+    assert reference["images"] == lv.labels.shape[0]
+    assert reference["completeness"]["checked"] and reference["completeness"]["complete"]
+
+    left = select_segments(lv, ["LEFT HALF"])
+    assert [s.name for s in left.segments] == ["left half"]
+    assert set(np.unique(left.labels).tolist()) == {0, 2}
+    np.testing.assert_array_equal(left.labels == 2, lv.labels == 2)
+    assert [s.value for s in select_segments(lv, [1, "2"]).segments] == [1, 2]
+    with pytest.raises(InputError, match=r"no segment 'femur'; it has 1 'right half', 2 'left half'"):
+        select_segments(lv, ["femur"])
+
+    for f in (tmp_path / "upload" / "reference").iterdir():
+        f.unlink()
+    with pytest.raises(MissingReferenceError, match="without the CT series it was drawn on"):
+        find_label_upload(tmp_path / "upload")

@@ -63,6 +63,7 @@ def test_the_registry_names_each_file_once_with_its_own_kind():
         "implant.stl",
         "defect.json",
         "labels.zip",
+        "labels.dcm.zip",
     ]
     kinds = [f.kind for f in FILES.values()]
     assert len(set(kinds)) == len(kinds), kinds
@@ -78,6 +79,8 @@ def test_the_registry_names_each_file_once_with_its_own_kind():
     assert engine_files(labels=True) == ("model.glb", "phone.glb", "ar.glb", "preview.png", "report.json", "labels.zip")
     assert all(FILES[n].parts for n in engine_files(labels=True) if n.endswith(".glb"))
     assert "labels.zip" not in engine_files(True) + engine_files(False) + engine_files(True, defect=True)
+    # a PACS label job: one Encapsulated STL per label (worker.pacs), never written by the engine
+    assert FILES["labels.dcm.zip"].when == "pacs" and "labels.dcm.zip" not in engine_files(labels=True)
     viewing = ["phone.glb", "ar.glb", "phone_meshopt.glb", "model.usdz", "preview.png"]
     assert [f.name for f in viewing_files()] == viewing
 

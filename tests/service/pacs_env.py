@@ -64,7 +64,13 @@ class Pacs:
             "BONEMESH_PACS_PORT": str(self.port),
             "BONEMESH_PACS_ALLOW": f"{SCU_AE},{ORTHANC_AE}@127.0.0.1",
             "BONEMESH_PACS_STABLE_SECONDS": str(STABLE_SECONDS),
-            "BONEMESH_PACS_ROUTES": json.dumps([{"name": "bone", "min_slices": 10, "params": {"preset": "bone"}}]),
+            "BONEMESH_PACS_ROUTES": json.dumps(
+                [
+                    {"name": "bone", "min_slices": 10, "params": {"preset": "bone"}},
+                    {"name": "segments", "modality": "SEG", "min_slices": 2},
+                ]
+            ),
+            "BONEMESH_PACS_REFERENCE_WAIT_SECONDS": "4",  # a received SEG's wait for its CT series
             "BONEMESH_PACS_DESTINATION": json.dumps(
                 {"kind": "dicom", "ae_title": ORTHANC_AE, "host": "127.0.0.1", "port": self.orthanc.dicom_port}
             ),

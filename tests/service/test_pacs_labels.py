@@ -1,0 +1,171 @@
+"""Segmentations from the PACS against a real Orthanc (issue 30): a DICOM SEG sent by C-STORE after its CT series,
+and one pulled over DICOMweb with the CT it references, become label jobs (a model per segment) whose models go back
+into the study as one Encapsulated STL per segment (or per segment asked for); a SEG whose CT never comes fails
+saying so, and nothing is delivered.
+
+Shares the PACS environment of ``tests.service.pacs_env`` (Orthanc, redis, API, worker, ``bonemesh pacs``).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from collections.abc import Iterator
+from typing import Any
+
+import httpx
+import numpy as np
+import pydicom
+import pytest
+
+from engine.export.dicom_stl import ENCAPSULATED_STL_STORAGE, stl_of
+from engine.export.stl import from_stl
+from tests.engine.dicom_factory import FRAME_OF_REFERENCE_UID, PATIENT
+from tests.service.pacs_env import (
+    ORIGIN,
+    SHAPE,
+    SPACING,
+    Pacs,
+    assert_no_patient_data,
+    c_store,
+    download,
+    generated_series,
+    jobs_of_series,
+    shared_pacs,
+    wait_delivered,
+)
+from tests.service.procs import API_KEYS, wait_for_job, wait_until
+
+pytest.importorskip("pynetdicom", reason="the PACS tests need pynetdicom (pip install 'bonemesh[pacs]')")
+pytest.importorskip("highdicom", reason="the SEG tests make their SEG with highdicom")
+
+NAMES = ("right half", "left half")  # the segments of tests.engine.test_labels_io._seg, numbers 1 and 2
+
+
+@pytest.fixture(scope="module")
+def pacs(request: pytest.FixtureRequest) -> Pacs:
+    return shared_pacs(request)
+
+
+@pytest.fixture(scope="module")
+def client(pacs: Pacs) -> Iterator[httpx.Client]:
+    with pacs.stack.client(API_KEYS[0]) as c:
+        yield c
+
+
+def ball_halves() -> np.ndarray:
+    """The generated series' bone ball split at its centre along x: 1 on the right (-x), 2 on the left."""
+    nz, ny, nx = SHAPE
+    dz, dy, dx = SPACING
+    kk, jj, ii = np.mgrid[0:nz, 0:ny, 0:nx]
+    xyz = ORIGIN + np.stack([ii * dx, jj * dy, kk * dz], axis=-1)
+    centre = ORIGIN + np.array([(nx - 1) * dx, (ny - 1) * dy, (nz - 1) * dz]) / 2
+    ball = np.linalg.norm(xyz - centre, axis=-1) < 7.0
+    return np.where(ball, np.where(xyz[..., 0] < centre[0], 1, 2), 0).astype(np.uint8)
+
+
+def ct_and_seg() -> tuple[list[bytes], bytes, str, str, str]:
+    """A generated CT series and a SEG (binary, highdicom) of its ball's halves: CT files, SEG file, study, CT
+    series, SEG series."""
+    from tests.engine.test_labels_io import _seg
+
+    files, study, series_uid = generated_series()
+    seg = _seg({f"IM{k}": f for k, f in enumerate(files)}, ball_halves(), "BINARY")
+    return files, seg, study, series_uid, pydicom.dcmread(io.BytesIO(seg)).SeriesInstanceUID
+
+
+def label_models_in_orthanc(pacs: Pacs, job: dict[str, Any], study: str) -> dict[str, pydicom.Dataset]:
+    """The job's Encapsulated STL objects in Orthanc, by Document Title; each decodes to its labels.zip STL."""
+    found = [pydicom.dcmread(io.BytesIO(b)) for b in pacs.orthanc.instances_of(study, "M3D")]
+    mine = [ds for ds in found if ds.SeriesInstanceUID == job["delivery"]["series_instance_uid"]]
+    stls = zipfile.ZipFile(io.BytesIO(download(job, "labels.zip")))
+    report = json.loads(download(job, "report.json"))
+    by_title = {}
+    for ds in mine:
+        assert ds.SOPClassUID == ENCAPSULATED_STL_STORAGE and ds.Modality == "M3D" and ds.StudyInstanceUID == study
+        assert ds.FrameOfReferenceUID == FRAME_OF_REFERENCE_UID
+        assert ds.MeasurementUnitsCodeSequence[0].CodeValue == "mm"
+        (row,) = [r for r in report["labels"] if r["name"] == ds.DocumentTitle]
+        got_v, got_f = from_stl(stl_of(_bytes(ds)))
+        want_v, want_f = from_stl(stls.read(row["file"]))
+        np.testing.assert_allclose(got_v, want_v, rtol=0, atol=1e-6)
+        np.testing.assert_array_equal(got_f, want_f)
+        by_title[str(ds.DocumentTitle)] = ds
+    assert len(by_title) == len(mine)  # one object per segment
+    return by_title
+
+
+def _bytes(ds: pydicom.Dataset) -> bytes:
+    buf = io.BytesIO()
+    ds.save_as(buf, enforce_file_format=True)
+    return buf.getvalue()
+
+
+def test_a_seg_after_its_ct_comes_back_as_a_model_per_segment(pacs: Pacs, client: httpx.Client) -> None:
+    files, seg, study, ct_uid, seg_uid = ct_and_seg()
+    assert c_store(files, pacs.port) == [0] * len(files)
+    (ct_job,) = wait_until(lambda: jobs_of_series(client, ct_uid), 60, "the CT's job")
+    assert c_store([seg], pacs.port) == [0]
+    (job,) = wait_until(lambda: jobs_of_series(client, seg_uid), 60, "the SEG's job")
+    assert job["source"]["rule"] == "segments"
+    job = wait_delivered(pacs, client, job["id"])
+    names = {o["name"] for o in job["outputs"]}
+    assert {"labels.zip", "labels.dcm.zip", "model.glb", "report.json"} <= names and "model.dcm" not in names
+    assert job["delivery"]["sop_instance_uid"] is None
+    models = label_models_in_orthanc(pacs, job, study)
+    assert sorted(models) == sorted(NAMES)
+    seg_ds = pydicom.dcmread(io.BytesIO(seg))
+    for ds in models.values():  # each refers to the SEG it was made from, with the SEG's patient
+        ref = ds.SourceInstanceSequence[0]
+        assert (ref.ReferencedSOPClassUID, ref.ReferencedSOPInstanceUID) == (seg_ds.SOPClassUID, seg_ds.SOPInstanceUID)
+        assert str(ds.PatientName) == PATIENT["PatientName"]
+    report = json.loads(download(job, "report.json"))
+    assert report["source"]["reference"]["completeness"]["complete"] is True
+    assert_no_patient_data(pacs, job, PATIENT)
+    wait_delivered(pacs, client, ct_job["id"])  # the CT's own bone model went back too
+
+
+def test_a_seg_pulled_over_dicomweb_brings_its_ct_and_only_the_segment_asked(pacs: Pacs, client: httpx.Client) -> None:
+    from dicomweb_client.api import DICOMwebClient
+
+    files, seg, study, _, seg_uid = ct_and_seg()
+    DICOMwebClient(pacs.orthanc.dicomweb_url).store_instances([pydicom.dcmread(io.BytesIO(f)) for f in [*files, seg]])
+    source = {"dicomweb": {"server": "orthanc", "study_uid": study, "series_uid": seg_uid}}
+    resp = client.post("/v1/jobs", json={"source": source, "params": {"segments": ["Left Half"]}})
+    assert resp.status_code == 202, resp.text
+    job = wait_delivered(pacs, client, resp.json()["id"])
+    models = label_models_in_orthanc(pacs, job, study)
+    assert list(models) == ["left half"]
+    report = json.loads(download(job, "report.json"))
+    assert [r["name"] for r in report["labels"]] == ["left half"]
+
+    resp = client.post("/v1/jobs", json={"source": source, "params": {"segments": ["femur"]}})
+    job = wait_for_job(client, resp.json()["id"], stack=pacs.stack, timeout=300)
+    assert job["state"] == "failed" and job["error"]["code"] == "bad_input", json.dumps(job)
+    assert "no segment 'femur'" in job["error"]["message"] and "'left half'" in job["error"]["message"]
+    assert job["delivery"]["state"] == "skipped"
+
+
+def test_a_seg_whose_ct_is_not_on_the_server_fails_and_delivers_nothing(pacs: Pacs, client: httpx.Client) -> None:
+    from dicomweb_client.api import DICOMwebClient
+
+    _, seg, study, ct_uid, seg_uid = ct_and_seg()  # the CT is never stored
+    DICOMwebClient(pacs.orthanc.dicomweb_url).store_instances([pydicom.dcmread(io.BytesIO(seg))])
+    source = {"dicomweb": {"server": "orthanc", "study_uid": study, "series_uid": seg_uid}}
+    resp = client.post("/v1/jobs", json={"source": source})
+    job = wait_for_job(client, resp.json()["id"], stack=pacs.stack, timeout=300)
+    assert job["state"] == "failed" and job["error"]["code"] == "source_unavailable", json.dumps(job)
+    assert f"referenced series {ct_uid}" in job["error"]["message"]
+    assert job["delivery"]["state"] == "skipped" and not job["outputs"]
+
+
+def test_a_received_seg_whose_ct_never_comes_fails_saying_so(pacs: Pacs, client: httpx.Client) -> None:
+    _, seg, _, ct_uid, seg_uid = ct_and_seg()
+    assert c_store([seg], pacs.port) == [0]
+    (job,) = wait_until(lambda: jobs_of_series(client, seg_uid), 60, "the SEG's job (after the wait for its CT)")
+    job = wait_for_job(client, job["id"], stack=pacs.stack, timeout=300)
+    assert job["state"] == "failed" and job["error"]["code"] == "bad_input", json.dumps(job)
+    assert "without the CT series it was drawn on" in job["error"]["message"]
+    assert f"referenced series {ct_uid} was not received" in pacs.gateway.tail(20000)
+    assert job["delivery"]["state"] == "skipped"
