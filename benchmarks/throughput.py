@@ -14,10 +14,13 @@ warmed up (``BONEMESH_WARMUP``) before the first POST, as long-running workers a
 scaling (the issue asks >= 1.8x for 2 GPUs). A warm-up job first fills the shared Warp kernel cache (a fresh one
 under the work folder, or ``--warp-cache``: an existing cache skips the compilation), so no phase pays for it.
 
-Each worker is pinned with ``taskset`` to its own share of the CPUs (all CPUs split evenly between the workers of
-the larger phase; the single worker of the first phase gets the same share), so on a CPU-only host the two phases
-compare like with like: Warp's CPU kernels, the ingest threads (``engine.io.decode_threads`` reads the affinity
-mask) and the BLAS/OpenMP pools (``OMP_NUM_THREADS`` etc. set to the share) use only the worker's own cores.
+Each worker is pinned with ``taskset`` to its own share of the CPUs (the workers' CPUs split evenly between the
+workers of the larger phase; the single worker of the first phase gets the same share), so on a CPU-only host the
+two phases compare like with like: Warp's CPU kernels, the ingest threads (``engine.io.decode_threads`` reads the
+affinity mask) and the BLAS/OpenMP pools (``OMP_NUM_THREADS`` etc. set to the share) use only the worker's own
+cores. ``--front-cpus`` keeps CPUs for the API processes, Redis and the upload clients (4 on a host of 16 or more):
+on the 2 x H200 host, the API parsing 570 MB uploads on the workers' cores slowed the launch-bound GPU stages of
+the jobs running meanwhile (decimation 0.8 s instead of 0.27 s), as a deployment that shares cores would.
 
 Input: ``--input`` (a scan archive, with ``--params``), ``--phantom Z,Y,X`` (the bone phantom as 16-bit PNG slices,
 ``benchmarks.phantom_zip``), or by default the bundled CT head (``engine.data``).
@@ -54,9 +57,19 @@ THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NU
 TIMINGS = re.compile(r"job (\S+) timings (\{.*\})")  # the worker's line per attempt (worker.tasks._Timings)
 
 
-def cpu_shares(workers: int) -> list[list[int]]:
-    """The CPUs of this process split into ``workers`` equal, disjoint shares (a remainder is left unused)."""
+def split_front(front: str) -> tuple[list[int], list[int]]:
+    """This process's CPUs as (the front's: API, Redis and the upload clients; the workers'): ``front`` CPUs off the
+    end ("auto": 4 on a host of 16 or more, else none, sharing every CPU as before)."""
     cpus = sorted(os.sched_getaffinity(0))
+    n = (4 if len(cpus) >= 16 else 0) if front == "auto" else int(front)
+    if not 0 <= n < len(cpus):
+        raise SystemExit(f"--front-cpus {front}: expected 0 to {len(cpus) - 1}")
+    return (cpus[-n:], cpus[:-n]) if n else ([], cpus)
+
+
+def cpu_shares(workers: int, cpus: list[int] | None = None) -> list[list[int]]:
+    """``cpus`` (default this process's) split into ``workers`` equal, disjoint shares (a remainder is left unused)."""
+    cpus = sorted(os.sched_getaffinity(0)) if cpus is None else cpus
     per = max(1, len(cpus) // workers)
     return [cpus[(i * per) % len(cpus) : (i * per) % len(cpus) + per] for i in range(workers)]
 
@@ -232,6 +245,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--phantom", default=None, help="instead of --input: the bone phantom of this shape Z,Y,X")
     parser.add_argument("--uploaders", type=int, default=4, help="clients uploading the jobs side by side")
     parser.add_argument("--api-workers", type=int, default=2, help="API processes (bonemesh serve --workers)")
+    parser.add_argument(
+        "--front-cpus",
+        default="auto",
+        help="CPUs kept for the API, Redis and the upload clients, off the workers' (auto: 4 on 16+ CPUs, else 0)",
+    )
     parser.add_argument("--redis-server", default=None)
     parser.add_argument("--workdir", type=Path, default=None)
     parser.add_argument("--warp-cache", type=Path, default=None, help="the workers' Warp kernel cache (default: new)")
@@ -256,7 +274,10 @@ def main(argv: list[str] | None = None) -> int:
         archive = workdir / f"phantom_{'x'.join(map(str, shape))}.zip"
         prep = write_phantom_zip(shape, archive)  # type: ignore[arg-type]
         params = {"iso": prep["iso"], "spacing": PHANTOM_SPACING_MM}
-    shares = cpu_shares(len(devices))
+    front, back = split_front(args.front_cpus)
+    shares = cpu_shares(len(devices), back)
+    if front:  # the API processes and Redis (started below) and the upload threads inherit it; workers use taskset
+        os.sched_setaffinity(0, front)
     extra = {"WARP_CACHE_PATH": str(args.warp_cache or workdir / "warp-cache")}  # shared, filled by the warm-up
     report: dict[str, Any] = {
         "benchmark": "throughput",
@@ -267,6 +288,7 @@ def main(argv: list[str] | None = None) -> int:
         "timing": "first POST to the last job's finished_at (server clock), all jobs posted at once by --uploaders "
         "clients, after a warm-up job and with each phase's workers warmed up",
         "ideal": len(devices),
+        "front_cpus": front,
     }
 
     def write() -> None:
