@@ -9,7 +9,7 @@ It starts a redis-server on a free loopback port and ``bonemesh serve`` (``tests
 two phases on the same input, each with fresh workers: first one worker (the first device), then one worker per
 entry of ``--devices``. A phase POSTs the N jobs at once and ends when the last one has succeeded; its time is from
 the first POST to the last job's ``finished_at``; the jobs are uploaded by ``--uploaders`` clients side by side
-(default 4) to ``--api-workers`` API processes (default 2), and each phase's workers are ready and, on a GPU,
+(default 2) to ``--api-workers`` API processes (default 2), and each phase's workers are ready and, on a GPU,
 warmed up (``BONEMESH_WARMUP``) before the first POST, as long-running workers are. The ratio of the two is the
 scaling (the issue asks >= 1.8x for 2 GPUs). A warm-up job first fills the shared Warp kernel cache (a fresh one
 under the work folder, or ``--warp-cache``: an existing cache skips the compilation), so no phase pays for it.
@@ -18,9 +18,10 @@ Each worker is pinned with ``taskset`` to its own share of the CPUs (the workers
 workers of the larger phase; the single worker of the first phase gets the same share), so on a CPU-only host the
 two phases compare like with like: Warp's CPU kernels, the ingest threads (``engine.io.decode_threads`` reads the
 affinity mask) and the BLAS/OpenMP pools (``OMP_NUM_THREADS`` etc. set to the share) use only the worker's own
-cores. ``--front-cpus`` keeps CPUs for the API processes, Redis and the upload clients (4 on a host of 16 or more):
-on the 2 x H200 host, the API parsing 570 MB uploads on the workers' cores slowed the launch-bound GPU stages of
-the jobs running meanwhile (decimation 0.8 s instead of 0.27 s), as a deployment that shares cores would.
+cores. ``--front-cpus N`` keeps N CPUs for the API processes, Redis and the upload clients (default 0: they share
+every CPU). On the 2 x H200 host it made no difference with 2 uploaders (1.76x with 4 kept, 1.77x without, 12 jobs);
+what did was the number of uploads at once: 4 uploaders made each 570 MB upload take 3.6 s and slowed the jobs
+running meanwhile (decimation 0.8 s instead of 0.27 s): 1.51x against 1.66-1.77x with 2 (docs/benchmarks.md).
 
 Input: ``--input`` (a scan archive, with ``--params``), ``--phantom Z,Y,X`` (the bone phantom as 16-bit PNG slices,
 ``benchmarks.phantom_zip``), or by default the bundled CT head (``engine.data``).
@@ -59,7 +60,7 @@ TIMINGS = re.compile(r"job (\S+) timings (\{.*\})")  # the worker's line per att
 
 def split_front(front: str) -> tuple[list[int], list[int]]:
     """This process's CPUs as (the front's: API, Redis and the upload clients; the workers'): ``front`` CPUs off the
-    end ("auto": 4 on a host of 16 or more, else none, sharing every CPU as before)."""
+    end ("auto": 4 on a host of 16 or more, else none; "0": none, every CPU shared)."""
     cpus = sorted(os.sched_getaffinity(0))
     n = (4 if len(cpus) >= 16 else 0) if front == "auto" else int(front)
     if not 0 <= n < len(cpus):
@@ -243,12 +244,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--input", type=Path, default=None, help="scan archive (default: the bundled CT head)")
     parser.add_argument("--params", default=None, help="job params JSON for --input")
     parser.add_argument("--phantom", default=None, help="instead of --input: the bone phantom of this shape Z,Y,X")
-    parser.add_argument("--uploaders", type=int, default=4, help="clients uploading the jobs side by side")
+    parser.add_argument("--uploaders", type=int, default=2, help="clients uploading the jobs side by side (default 2)")
     parser.add_argument("--api-workers", type=int, default=2, help="API processes (bonemesh serve --workers)")
     parser.add_argument(
         "--front-cpus",
-        default="auto",
-        help="CPUs kept for the API, Redis and the upload clients, off the workers' (auto: 4 on 16+ CPUs, else 0)",
+        default="0",
+        help="CPUs kept for the API, Redis and the upload clients, off the workers' (auto: 4 on 16+ CPUs; 0: none)",
     )
     parser.add_argument("--redis-server", default=None)
     parser.add_argument("--workdir", type=Path, default=None)

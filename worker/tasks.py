@@ -7,11 +7,9 @@ from __future__ import annotations
 
 import datetime as dt
 import functools
-import json
 import os
 import socket
 import threading
-import time
 import uuid
 from pathlib import Path
 from typing import Any
@@ -32,6 +30,7 @@ from worker.pacs import (
     write_dicom_labels,
     write_dicom_model,
 )
+from worker.timings import Timings
 
 log = safe_logger("bonemesh.worker")  # job ids and engine messages only: never the upload's name
 # job progress (percent) at each point: loading 0-5, pipeline 5-90, writing the files 90-100
@@ -73,26 +72,6 @@ class _Holder:
             raise Cancelled(self.job_id)
 
 
-class _Timings:
-    """Seconds per step of one attempt, each from the end of the step before (they add up to ``total``), logged
-    as one line ``job <id> timings {json}`` when the attempt ends (``benchmarks/throughput.py`` reads it)."""
-
-    def __init__(self) -> None:
-        self.start = self.last = time.perf_counter()
-        self.seconds: dict[str, float] = {}
-
-    def lap(self, step: str) -> None:
-        now = time.perf_counter()
-        self.seconds[step] = self.seconds.get(step, 0.0) + now - self.last
-        self.last = now
-
-    def log(self, job: Any) -> None:
-        seconds = {**self.seconds, "total": time.perf_counter() - self.start}
-        if getattr(job, "created_at", None) and getattr(job, "started_at", None):  # upload recorded -> claimed
-            seconds["queue_wait"] = (job.started_at - job.created_at).total_seconds()
-        log.info("job %s timings %s", job.id, json.dumps({k: round(v, 4) for k, v in seconds.items()}))
-
-
 @functools.cache
 def database(url: str) -> Database:
     """One :class:`Database` (one connection pool, schema checked once) per URL for the worker process."""
@@ -109,7 +88,7 @@ def reconstruct_job(self: Any, job_id: str) -> str:
     worker = f"{host}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
     stale_before = utcnow() - dt.timedelta(seconds=settings.stale_seconds)
     name = getattr(self.request, "hostname", None) or worker  # the Celery node name: the job shows who ran it
-    timer = _Timings()
+    timer = Timings()
     job = db.claim(job_id, worker, stale_before, name=name, host=host)
     timer.lap("claim")
     if job is None:
@@ -193,7 +172,7 @@ def _run(
     holder: _Holder,
     settings: Settings,
     db: Database,
-    timer: _Timings | None = None,
+    timer: Timings | None = None,
 ) -> list[dict[str, Any]]:
     """Load, reconstruct and write the files into ``staged`` (on ``settings.device``, within
     ``settings.max_device_bytes``: one ``Budget`` for the pipeline and the files, as the CLI's); returns the output
@@ -208,7 +187,7 @@ def _run(
     from engine.params import ReconParams
     from engine.pipeline import reconstruct
 
-    timer = timer or _Timings()  # the attempt's (reconstruct_job), or one of its own
+    timer = timer or Timings()  # the attempt's (reconstruct_job), or one of its own
     recon_dict, spacing = engine_params_of(job)
     params = ReconParams.from_dict(recon_dict)
     options = label_options_of(job)  # a label map (forced), pieces, a region of interest (engine.labels)
