@@ -97,6 +97,12 @@ class PacsSettings(BaseSettings):
         description="how long a received SEG waits for the CT series it references to arrive (then its job fails "
         "saying the series is missing)",
     )
+    keep_unrouted_seconds: float = Field(
+        default=86400.0,
+        ge=0,
+        description="how long a received CT series that no rule takes is kept for a SEG drawn on it (0: dropped at "
+        "once)",
+    )
     routes: list[Rule] = Field(default_factory=lambda: list(DEFAULT_RULES))
     destination: DicomNode | DicomwebTarget | None = Field(
         default=None, discriminator="kind", description="where models of C-STORE jobs go (none: not sent back)"

@@ -6,8 +6,9 @@ in one process.
 A stable series is routed (:mod:`core.pacs.routing`); a taken one is moved whole into the job's upload folder
 (``jobs/<id>/upload/``) and recorded in the same job table, with the same queue message, as an uploaded scan: the
 worker cannot tell them apart. A segmentation (SEG) takes the CT series it references along (``reference/`` in its
-upload, copied from the job that series became): it waits while that series is still arriving, and for
-``reference_wait_seconds`` for one not received yet; after that its job fails, saying the series is missing.
+upload, copied from the job that series became, or from the CT series kept when no rule took it, for
+``keep_unrouted_seconds``): it waits while that series is still arriving, and for ``reference_wait_seconds`` for one
+not received yet; after that its job fails, saying the series is missing.
 Settings: :mod:`core.pacs.config` (``BONEMESH_PACS_*``) and
 :mod:`core.settings` (``BONEMESH_*``: database, data folder, broker).
 """
@@ -21,13 +22,14 @@ import shutil
 import signal
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from core.db import Database, Job, owner_of
 from core.logsafe import safe_logger
 from core.pacs.config import PacsSettings, get_pacs_settings
 from core.pacs.records import PacsRecords
-from core.pacs.routing import REFERENCE_FOLDER, SeriesSummary, choose_rule
+from core.pacs.routing import REFERENCE_FOLDER, SeriesSummary, choose_rule, not_a_volume
 from core.queue import Queue
 from core.settings import Settings, get_settings
 from core.storage import storage_from_settings
@@ -54,6 +56,14 @@ def summarize(series: ClaimedSeries) -> SeriesSummary:
         body_part=str(ds.get("BodyPartExamined", "")),
         image_type=tuple(str(v) for v in (ds.get("ImageType") or ())),
     )
+
+
+def _copy_series(src: Path, target: Path) -> None:
+    """Copy a series' DICOM files into ``target`` whole or not at all (a temporary name, renamed)."""
+    part = target.with_name(f".{target.name}.part")
+    shutil.rmtree(part, ignore_errors=True)
+    shutil.copytree(src, part, ignore=shutil.ignore_patterns(REFERENCE_FOLDER, ".*"))
+    os.replace(part, target)
 
 
 def _is_seg(series: ClaimedSeries) -> bool:
@@ -91,6 +101,7 @@ class Gateway:
     def sweep_once(self) -> list[str]:
         """Turn every stable series into a job or drop it; returns the new job ids."""
         made = []
+        self.inbox.expire_kept(self.pacs.keep_unrouted_seconds)
         claimed = self.inbox.claim_stable()
         claimed.sort(key=_is_seg)  # a CT before the SEGs, which may reference it
         for series in claimed:
@@ -124,8 +135,16 @@ class Gateway:
             return None
         rule, why = choose_rule(summary, self.pacs.routes)
         if rule is None:
-            log.info("series %s of study %s ignored: %s", series.series_uid, series.study_uid, why)
-            self.inbox.drop(series)
+            is_ct = summary.modality.upper() == "CT" and not not_a_volume(summary)
+            keep = is_ct and self.pacs.keep_unrouted_seconds > 0
+            log.info(
+                "series %s of study %s ignored: %s%s",
+                series.series_uid,
+                series.study_uid,
+                why,
+                f"; kept {self.pacs.keep_unrouted_seconds:g} s for a SEG drawn on it" if keep else "",
+            )
+            (self.inbox.keep if keep else self.inbox.drop)(series)
             return None
         if summary.modality.upper() == "SEG" and not self._attach_reference(series):
             return None  # kept claimed: the CT it references may still come
@@ -187,12 +206,14 @@ class Gateway:
             return False
         ct_job = self.records.latest_of_series(wanted)
         if ct_job is not None and self.storage.has_upload(ct_job):
-            part = series.folder / ".reference.part"
-            shutil.rmtree(part, ignore_errors=True)
             with self.storage.local_upload(ct_job) as src:
-                shutil.copytree(src, part, ignore=shutil.ignore_patterns(REFERENCE_FOLDER))
-            os.replace(part, target)
+                _copy_series(src, target)
             log.info("SEG series %s: its referenced series %s taken from job %s", series.series_uid, wanted, ct_job)
+            return True
+        kept = self.inbox.kept_series(wanted)  # a CT no rule took
+        if kept is not None:
+            _copy_series(kept, target)
+            log.info("SEG series %s: its referenced series %s taken from the kept series", series.series_uid, wanted)
             return True
         waited = time.time() - series.folder.stat().st_mtime
         if waited < self.pacs.reference_wait_seconds:

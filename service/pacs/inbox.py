@@ -5,6 +5,7 @@ Layout under ``<data_dir>/pacs``::
     incoming/<StudyInstanceUID>/<SeriesInstanceUID>/<SOPInstanceUID>.dcm   as they arrive
     incoming/<study>/<series>/.sender.json                                 who sent it (AE title, address)
     claimed/<random>/                                                      a stable series being turned into a job
+    kept/<SeriesInstanceUID>/                                              a CT no rule took, kept for a later SEG
 
 An instance is written to a temporary file first and renamed into its series folder under a lock, so the sweep
 that claims a stable series (one rename, under the same lock) never takes a half-written file, and an instance
@@ -63,8 +64,9 @@ class Inbox:
         self.root = Path(root)
         self.incoming = self.root / "incoming"
         self.claimed = self.root / "claimed"
+        self.kept = self.root / "kept"
         self.tmp = self.root / "tmp"
-        for folder in (self.incoming, self.claimed, self.tmp):
+        for folder in (self.incoming, self.claimed, self.kept, self.tmp):
             folder.mkdir(parents=True, exist_ok=True)
         self.stable_seconds = stable_seconds
         self._lock = threading.Lock()
@@ -148,3 +150,30 @@ class Inbox:
     def drop(self, series: ClaimedSeries) -> None:
         """Remove a claimed series that is not made into a job."""
         shutil.rmtree(series.folder, ignore_errors=True)
+
+    def keep(self, series: ClaimedSeries) -> None:
+        """Keep a claimed series that is not made into a job under ``kept/<series UID>`` (a newer copy replaces an
+        older one), where a SEG drawn on it later finds it (``kept_series``) until ``expire_kept`` removes it."""
+        if not is_uid(series.series_uid):
+            self.drop(series)
+            return
+        target = self.kept / series.series_uid
+        with self._lock:
+            shutil.rmtree(target, ignore_errors=True)
+            os.replace(series.folder, target)
+            os.utime(target)  # kept from now
+
+    def kept_series(self, series_uid: str) -> Path | None:
+        """The kept folder of series ``series_uid``, or None."""
+        folder = self.kept / series_uid
+        return folder if is_uid(series_uid) and folder.is_dir() else None
+
+    def expire_kept(self, max_age: float) -> int:
+        """Remove the kept series older than ``max_age`` seconds; returns how many."""
+        now, removed = time.time(), 0
+        for folder in list(self.kept.iterdir()):
+            with contextlib.suppress(FileNotFoundError):
+                if now - folder.stat().st_mtime > max_age:
+                    shutil.rmtree(folder, ignore_errors=True)
+                    removed += 1
+        return removed

@@ -445,3 +445,20 @@ def app_client(data_dir: Path, max_upload_bytes: int = 8 << 20) -> Iterator[Test
 def client(tmp_path: Path) -> Iterator[TestClient]:
     with app_client(tmp_path) as c:
         yield c
+
+
+# -- the PACS environment (tests.service.pacs_env), one for the PACS test modules --------------------------------
+@pytest.fixture(scope="module")
+def pacs(request: pytest.FixtureRequest) -> Any:
+    """The shared PACS environment (``tests.service.pacs_env.shared_pacs``: started by the first module using it,
+    stopped after the last)."""
+    from tests.service.pacs_env import shared_pacs
+
+    return shared_pacs(request)
+
+
+@pytest.fixture(scope="module")
+def pacs_client(pacs: Any) -> Iterator[httpx.Client]:
+    """A client of the PACS environment's API with the first API key."""
+    with pacs.stack.client(API_KEYS[0]) as c:
+        yield c

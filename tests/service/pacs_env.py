@@ -66,7 +66,8 @@ class Pacs:
             "BONEMESH_PACS_STABLE_SECONDS": str(STABLE_SECONDS),
             "BONEMESH_PACS_ROUTES": json.dumps(
                 [
-                    {"name": "bone", "min_slices": 10, "params": {"preset": "bone"}},
+                    # a series described "no model" is taken by no rule (a CT kept for a SEG drawn on it)
+                    {"name": "bone", "min_slices": 10, "series_description": "^(?!.*no model)", "params": {}},
                     {"name": "segments", "modality": "SEG", "min_slices": 2},
                 ]
             ),

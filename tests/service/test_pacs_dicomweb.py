@@ -40,10 +40,9 @@ from tests.service.pacs_env import (
     check_model_in_orthanc,
     download,
     generated_series,
-    shared_pacs,
     wait_delivered,
 )
-from tests.service.procs import API_KEYS, wait_for_job
+from tests.service.procs import wait_for_job
 
 pytest.importorskip("dicomweb_client", reason="DICOMweb needs dicomweb-client (pip install 'bonemesh[pacs]')")
 pytest.importorskip("pynetdicom", reason="the PACS tests need pynetdicom (pip install 'bonemesh[pacs]')")
@@ -55,14 +54,8 @@ FAST = {"attempts": 3, "backoff_seconds": 0.01}
 
 
 @pytest.fixture(scope="module")
-def pacs(request: pytest.FixtureRequest) -> Pacs:
-    return shared_pacs(request)
-
-
-@pytest.fixture(scope="module")
-def client(pacs: Pacs) -> Iterator[httpx.Client]:
-    with pacs.stack.client(API_KEYS[0]) as c:
-        yield c
+def client(pacs_client: httpx.Client) -> httpx.Client:
+    return pacs_client
 
 
 @pytest.fixture

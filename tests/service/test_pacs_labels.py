@@ -1,7 +1,7 @@
-"""Segmentations from the PACS against a real Orthanc (issue 30): a DICOM SEG sent by C-STORE after its CT series,
-and one pulled over DICOMweb with the CT it references, become label jobs (a model per segment) whose models go back
-into the study as one Encapsulated STL per segment (or per segment asked for); a SEG whose CT never comes fails
-saying so, and nothing is delivered.
+"""Segmentations from the PACS against a real Orthanc (issue 30): a DICOM SEG sent by C-STORE after its CT series
+(made a job, or kept when no rule takes it), and one pulled over DICOMweb with the CT it references, become label
+jobs (a model per segment) whose models go back into the study as one Encapsulated STL per segment (or per segment
+asked for); a SEG whose CT never comes fails saying so, and nothing is delivered.
 
 Shares the PACS environment of ``tests.service.pacs_env`` (Orthanc, redis, API, worker, ``bonemesh pacs``).
 """
@@ -11,7 +11,6 @@ from __future__ import annotations
 import io
 import json
 import zipfile
-from collections.abc import Iterator
 from typing import Any
 
 import httpx
@@ -32,10 +31,9 @@ from tests.service.pacs_env import (
     download,
     generated_series,
     jobs_of_series,
-    shared_pacs,
     wait_delivered,
 )
-from tests.service.procs import API_KEYS, wait_for_job, wait_until
+from tests.service.procs import wait_for_job, wait_until
 
 pytest.importorskip("pynetdicom", reason="the PACS tests need pynetdicom (pip install 'bonemesh[pacs]')")
 pytest.importorskip("highdicom", reason="the SEG tests make their SEG with highdicom")
@@ -44,14 +42,8 @@ NAMES = ("right half", "left half")  # the segments of tests.engine.test_labels_
 
 
 @pytest.fixture(scope="module")
-def pacs(request: pytest.FixtureRequest) -> Pacs:
-    return shared_pacs(request)
-
-
-@pytest.fixture(scope="module")
-def client(pacs: Pacs) -> Iterator[httpx.Client]:
-    with pacs.stack.client(API_KEYS[0]) as c:
-        yield c
+def client(pacs_client: httpx.Client) -> httpx.Client:
+    return pacs_client
 
 
 def ball_halves() -> np.ndarray:
@@ -65,12 +57,12 @@ def ball_halves() -> np.ndarray:
     return np.where(ball, np.where(xyz[..., 0] < centre[0], 1, 2), 0).astype(np.uint8)
 
 
-def ct_and_seg() -> tuple[list[bytes], bytes, str, str, str]:
-    """A generated CT series and a SEG (binary, highdicom) of its ball's halves: CT files, SEG file, study, CT
-    series, SEG series."""
+def ct_and_seg(**kwargs: Any) -> tuple[list[bytes], bytes, str, str, str]:
+    """A generated CT series (``kwargs``: ``generated_series``'s) and a SEG (binary, highdicom) of its ball's halves:
+    CT files, SEG file, study, CT series, SEG series."""
     from tests.engine.test_labels_io import _seg
 
-    files, study, series_uid = generated_series()
+    files, study, series_uid = generated_series(**kwargs)
     seg = _seg({f"IM{k}": f for k, f in enumerate(files)}, ball_halves(), "BINARY")
     return files, seg, study, series_uid, pydicom.dcmread(io.BytesIO(seg)).SeriesInstanceUID
 
@@ -124,6 +116,18 @@ def test_a_seg_after_its_ct_comes_back_as_a_model_per_segment(pacs: Pacs, client
     assert report["source"]["reference"]["completeness"]["complete"] is True
     assert_no_patient_data(pacs, job, PATIENT)
     wait_delivered(pacs, client, ct_job["id"])  # the CT's own bone model went back too
+
+
+def test_a_seg_on_a_ct_no_rule_takes_finds_the_kept_series(pacs: Pacs, client: httpx.Client) -> None:
+    files, seg, study, ct_uid, seg_uid = ct_and_seg(description="planning CT, no model")
+    assert c_store(files, pacs.port) == [0] * len(files)
+    wait_until(lambda: f"series {ct_uid} of study" in pacs.gateway.tail(20000), 60, "the CT's routing")
+    assert "for a SEG drawn on it" in pacs.gateway.tail(20000) and jobs_of_series(client, ct_uid) == []
+    assert c_store([seg], pacs.port) == [0]
+    (job,) = wait_until(lambda: jobs_of_series(client, seg_uid), 60, "the SEG's job")
+    job = wait_delivered(pacs, client, job["id"])
+    assert sorted(label_models_in_orthanc(pacs, job, study)) == sorted(NAMES)
+    assert f"its referenced series {ct_uid} taken from the kept series" in pacs.gateway.tail(20000)
 
 
 def test_a_seg_pulled_over_dicomweb_brings_its_ct_and_only_the_segment_asked(pacs: Pacs, client: httpx.Client) -> None:

@@ -13,7 +13,6 @@ import io
 import json
 import time
 import zipfile
-from collections.abc import Iterator
 from typing import Any
 
 import httpx
@@ -37,10 +36,9 @@ from tests.service.pacs_env import (
     download,
     generated_series,
     jobs_of_series,
-    shared_pacs,
     wait_delivered,
 )
-from tests.service.procs import API_KEYS, wait_for_job, wait_until
+from tests.service.procs import wait_for_job, wait_until
 
 pytest.importorskip("pynetdicom", reason="the PACS tests need pynetdicom (pip install 'bonemesh[pacs]')")
 
@@ -48,14 +46,8 @@ HEAD_PHANTOM = SHARED_DATA / "head_phantom_dicom" / "head_phantom_dicom.zip"
 
 
 @pytest.fixture(scope="module")
-def pacs(request: pytest.FixtureRequest) -> Pacs:
-    return shared_pacs(request)
-
-
-@pytest.fixture(scope="module")
-def client(pacs: Pacs) -> Iterator[httpx.Client]:
-    with pacs.stack.client(API_KEYS[0]) as c:
-        yield c
+def client(pacs_client: httpx.Client) -> httpx.Client:
+    return pacs_client
 
 
 # -- tests ------------------------------------------------------------------------------------------------------

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import io
 import json
-from collections.abc import Iterator
 from typing import Any
 
 import httpx
@@ -22,10 +21,9 @@ from tests.service.pacs_env import (
     download,
     generated_series,
     jobs_of_series,
-    shared_pacs,
     wait_delivered,
 )
-from tests.service.procs import API_KEYS, wait_for_job, wait_until
+from tests.service.procs import wait_for_job, wait_until
 
 pytest.importorskip("pynetdicom", reason="the PACS tests need pynetdicom (pip install 'bonemesh[pacs]')")
 pytest.importorskip("dicomweb_client", reason="DICOMweb needs dicomweb-client (pip install 'bonemesh[pacs]')")
@@ -34,14 +32,8 @@ REMOVED = 11  # the slice left out (of 24)
 
 
 @pytest.fixture(scope="module")
-def pacs(request: pytest.FixtureRequest) -> Pacs:
-    return shared_pacs(request)
-
-
-@pytest.fixture(scope="module")
-def client(pacs: Pacs) -> Iterator[httpx.Client]:
-    with pacs.stack.client(API_KEYS[0]) as c:
-        yield c
+def client(pacs_client: httpx.Client) -> httpx.Client:
+    return pacs_client
 
 
 def _failed(pacs: Pacs, client: httpx.Client, job_id: str) -> dict[str, Any]:

@@ -105,6 +105,22 @@ def test_inbox_groups_dedupes_and_waits_for_the_stable_age(tmp_path: Path) -> No
         inbox.store("1.2", "../../etc", "1.2.3.1", sender, _write(b"x"))
 
 
+def test_inbox_keeps_a_series_for_a_later_seg_until_it_expires(tmp_path: Path) -> None:
+    inbox = Inbox(tmp_path, stable_seconds=0.05)
+    sender = {"ae_title": "X", "address": "127.0.0.1"}
+    for data in (b"old", b"new"):  # sent twice: the newer copy replaces the kept one
+        inbox.store("1.2", "1.2.5", "1.2.5.1", sender, _write(data))
+        time.sleep(0.1)
+        (series,) = inbox.claim_stable()
+        inbox.keep(series)
+    kept = inbox.kept_series("1.2.5")
+    assert kept is not None and (kept / "1.2.5.1.dcm").read_bytes() == b"new" and not series.folder.exists()
+    assert inbox.kept_series("1.2.6") is None and inbox.kept_series("../1.2.5") is None
+    assert inbox.expire_kept(3600) == 0 and inbox.kept_series("1.2.5") is not None
+    time.sleep(0.05)
+    assert inbox.expire_kept(0.01) == 1 and inbox.kept_series("1.2.5") is None
+
+
 def test_scp_statuses(tmp_path: Path) -> None:
     from pynetdicom import AE
 
