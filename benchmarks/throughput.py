@@ -186,6 +186,8 @@ def _report_seconds(client: Any, job: dict[str, Any]) -> dict[str, float]:
         return {}
     report = resp.json()
     seconds = {f"pipeline.{k}": v for k, v in (report.get("stage_seconds") or {}).items()}
+    if _is_number(report.get("finish_seconds")):  # the mesh's counts: the sync point after the stages
+        seconds["pipeline.finish"] = report["finish_seconds"]
     seconds.update({f"files.{k}": v for k, v in (report.get("write_seconds") or {}).items() if _is_number(v)})
     return seconds
 

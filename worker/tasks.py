@@ -42,12 +42,20 @@ class Cancelled(Exception):
 
 
 class _Holder:
-    """The claim of one run: heartbeats in a thread, progress from the pipeline, cancellation noticed."""
+    """The claim of one run: heartbeats and progress written by a thread, cancellation noticed.
+
+    ``progress`` never waits for the database: it leaves the newest (stage, percent) for the thread, which writes it
+    at once (coalescing what came meanwhile) and beats every ``every`` seconds otherwise. The pipeline reports each
+    decimation pass; written in line, each commit held the GPU work behind the database's disk (on the 2 x H200
+    host, with uploads being written, decimation took 0.8 s instead of 0.27 s).
+    """
 
     def __init__(self, db: Database, job_id: str, worker: str, every: float) -> None:
         self.db, self.job_id, self.worker, self.every = db, job_id, worker, every
         self.lost = threading.Event()
         self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._pending: tuple[str, float] | None = None
         self._thread = threading.Thread(target=self._run, name=f"heartbeat-{job_id[:8]}", daemon=True)
 
     def __enter__(self) -> _Holder:
@@ -56,20 +64,29 @@ class _Holder:
 
     def __exit__(self, *exc: object) -> None:
         self._stop.set()
+        self._wake.set()
         self._thread.join(timeout=5)
 
     def _run(self) -> None:
-        while not self._stop.wait(self.every):
+        while not self._stop.is_set():
+            self._wake.wait(self.every)
+            self._wake.clear()
+            if self._stop.is_set():
+                return
+            pending, self._pending = self._pending, None
+            values: dict[str, Any] = {} if pending is None else {"stage": pending[0], "progress": pending[1]}
             try:
-                if not self.db.beat(self.job_id, self.worker):
+                if not self.db.beat(self.job_id, self.worker, **values):
                     self.lost.set()
             except Exception as exc:  # the database busy for a moment
                 log.warning("heartbeat of %s: %s", self.job_id, exc)
 
     def progress(self, stage: str, percent: float) -> None:
-        if self.lost.is_set() or not self.db.beat(self.job_id, self.worker, stage=stage, progress=percent):
-            self.lost.set()
+        """Record the job's stage and percent (written by the thread); raises Cancelled once the claim is lost."""
+        if self.lost.is_set():
             raise Cancelled(self.job_id)
+        self._pending = (stage, percent)
+        self._wake.set()
 
 
 @functools.cache
