@@ -201,7 +201,8 @@ class Storage(ABC):
 
     @abstractmethod
     def clean_staging(self, job_id: str) -> int:
-        """Remove what earlier attempts at a job left (staging folders, replaced outputs); returns how many."""
+        """Remove what earlier attempts at a job left (staging folders, replaced outputs, a killed fetch's partial
+        series); returns how many."""
 
     @abstractmethod
     def publish(self, job_id: str, staged: Path) -> str:
@@ -315,7 +316,8 @@ class LocalStorage(Storage):
         folder = self._job(job_id)
         if not folder.is_dir():
             return 0
-        left = [p for p in folder.iterdir() if p.name.startswith((".staging-", ".old-")) and p.is_dir()]
+        # staging folders, replaced outputs, and the partial series of a DICOMweb fetch killed midway (worker.pacs)
+        left = [p for p in folder.iterdir() if p.name.startswith((".staging-", ".old-", ".fetch-")) and p.is_dir()]
         for path in left:
             shutil.rmtree(path, ignore_errors=True)
         return len(left)

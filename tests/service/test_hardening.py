@@ -341,10 +341,12 @@ def test_staging_left_by_earlier_attempts_is_cleaned(tmp_path: Path) -> None:
     w.write(b"x")
     w.commit()
     left = [store.staging_dir(job), store.staging_dir(job), tmp_path / "jobs" / job / ".old-0123"]
-    left[-1].mkdir()
+    left.append(tmp_path / "jobs" / job / ".fetch-4567")  # a worker killed while fetching a DICOMweb series
+    for folder in left[2:]:
+        folder.mkdir()
     for folder in left:
         (folder / "model.stl").write_bytes(b"partial")
-    assert store.clean_staging(job) == 3
+    assert store.clean_staging(job) == 4
     assert sorted(p.name for p in (tmp_path / "jobs" / job).iterdir()) == ["upload"]
 
 
