@@ -18,7 +18,7 @@ from typing import Any
 
 from core.db import Database
 from core.logsafe import safe_logger
-from core.pacs.records import PacsRecords, label_sop_uid
+from core.pacs.records import PacsRecords, is_uid, label_sop_uid
 from core.pacs.routing import REFERENCE_FOLDER
 from engine.export.files import LABELS_DCM, LABELS_ZIP, MODEL_DCM, PRINT_STL
 from engine.types import Volume
@@ -117,8 +117,10 @@ def _seg_reference(folder: Path) -> str | None:
     from engine.labels.dicom_seg import referenced_series
 
     wanted = referenced_series(seg)
-    if not wanted:
-        raise SourceUnavailable("the SEG names no referenced series (ReferencedSeriesSequence) to place it on")
+    if not wanted or not is_uid(wanted):
+        raise SourceUnavailable(
+            "the SEG names no well-formed referenced series (ReferencedSeriesSequence) to place it on"
+        )
     return wanted
 
 

@@ -11,6 +11,7 @@ destination). A job that failed or was cancelled shows ``skipped``.
 from __future__ import annotations
 
 import datetime as dt
+import re
 import uuid
 from typing import Any
 
@@ -52,6 +53,14 @@ def result_uids(job_id: str) -> tuple[str, str]:
     instance again (idempotent at the PACS), never a second copy."""
     n = int(job_id, 16)
     return f"{UID_ROOT}{n}", f"{UID_ROOT}{(n + 1) % (1 << 128)}"
+
+
+UID = re.compile(r"^[0-9]+(\.[0-9]+)*$")
+
+
+def is_uid(value: str) -> bool:
+    """Whether ``value`` is a well-formed DICOM UID (digits and dots, at most 64 characters)."""
+    return 0 < len(value) <= 64 and bool(UID.match(value))
 
 
 def label_sop_uid(job_id: str, value: int) -> str:

@@ -28,7 +28,7 @@ from typing import Any
 from core.db import Database, Job, owner_of
 from core.logsafe import safe_logger
 from core.pacs.config import PacsSettings, get_pacs_settings
-from core.pacs.records import PacsRecords
+from core.pacs.records import PacsRecords, is_uid
 from core.pacs.routing import REFERENCE_FOLDER, SeriesSummary, choose_rule, not_a_volume
 from core.queue import Queue
 from core.settings import Settings, get_settings
@@ -200,7 +200,7 @@ class Gateway:
         from engine.labels.dicom_seg import referenced_series
 
         wanted = referenced_series(pydicom.dcmread(series.files()[0], stop_before_pixels=True, force=True))
-        if not wanted:
+        if not wanted or not is_uid(wanted):
             return True  # nothing to wait for: the worker says so
         if any(self.inbox.incoming.glob(f"*/{wanted}")):
             return False

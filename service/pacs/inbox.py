@@ -19,7 +19,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import re
 import shutil
 import threading
 import time
@@ -29,13 +28,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
-UID = re.compile(r"^[0-9]+(\.[0-9]+)*$")
+from core.pacs.records import is_uid
+
 SENDER = ".sender.json"
-
-
-def is_uid(value: str) -> bool:
-    """Whether ``value`` is a well-formed DICOM UID (digits and dots, at most 64 characters)."""
-    return 0 < len(value) <= 64 and bool(UID.match(value))
 
 
 @dataclass(frozen=True)

@@ -7,8 +7,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from core.pacs.records import is_uid
 from core.params import JobParams
-from service.pacs.inbox import is_uid
 
 
 class DicomwebSource(BaseModel):
