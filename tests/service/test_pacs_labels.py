@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import json
+import warnings
 import zipfile
 from typing import Any
 
@@ -20,6 +21,7 @@ import pytest
 
 from engine.export.dicom_stl import ENCAPSULATED_STL_STORAGE, stl_of
 from engine.export.stl import from_stl
+from tests.conftest import SHARED_DATA
 from tests.engine.dicom_factory import FRAME_OF_REFERENCE_UID, PATIENT
 from tests.service.pacs_env import (
     ORIGIN,
@@ -39,6 +41,7 @@ pytest.importorskip("pynetdicom", reason="the PACS tests need pynetdicom (pip in
 pytest.importorskip("highdicom", reason="the SEG tests make their SEG with highdicom")
 
 NAMES = ("right half", "left half")  # the segments of tests.engine.test_labels_io._seg, numbers 1 and 2
+HEAD_PHANTOM = SHARED_DATA / "head_phantom_dicom" / "head_phantom_dicom.zip"
 
 
 @pytest.fixture(scope="module")
@@ -67,8 +70,11 @@ def ct_and_seg(**kwargs: Any) -> tuple[list[bytes], bytes, str, str, str]:
     return files, seg, study, series_uid, pydicom.dcmread(io.BytesIO(seg)).SeriesInstanceUID
 
 
-def label_models_in_orthanc(pacs: Pacs, job: dict[str, Any], study: str) -> dict[str, pydicom.Dataset]:
-    """The job's Encapsulated STL objects in Orthanc, by Document Title; each decodes to its labels.zip STL."""
+def label_models_in_orthanc(
+    pacs: Pacs, job: dict[str, Any], study: str, frame: str = FRAME_OF_REFERENCE_UID
+) -> dict[str, pydicom.Dataset]:
+    """The job's Encapsulated STL objects in Orthanc, by Document Title; each in the CT's Frame of Reference
+    (``frame``) and decoding to its labels.zip STL."""
     found = [pydicom.dcmread(io.BytesIO(b)) for b in pacs.orthanc.instances_of(study, "M3D")]
     mine = [ds for ds in found if ds.SeriesInstanceUID == job["delivery"]["series_instance_uid"]]
     stls = zipfile.ZipFile(io.BytesIO(download(job, "labels.zip")))
@@ -76,7 +82,7 @@ def label_models_in_orthanc(pacs: Pacs, job: dict[str, Any], study: str) -> dict
     by_title = {}
     for ds in mine:
         assert ds.SOPClassUID == ENCAPSULATED_STL_STORAGE and ds.Modality == "M3D" and ds.StudyInstanceUID == study
-        assert ds.FrameOfReferenceUID == FRAME_OF_REFERENCE_UID
+        assert ds.FrameOfReferenceUID == frame
         assert ds.MeasurementUnitsCodeSequence[0].CodeValue == "mm"
         (row,) = [r for r in report["labels"] if r["name"] == ds.DocumentTitle]
         got_v, got_f = from_stl(stl_of(_bytes(ds)))
@@ -173,3 +179,39 @@ def test_a_received_seg_whose_ct_never_comes_fails_saying_so(pacs: Pacs, client:
     assert "without the CT series it was drawn on" in job["error"]["message"]
     assert f"referenced series {ct_uid} was not received" in pacs.gateway.tail(20000)
     assert job["delivery"]["state"] == "skipped"
+
+
+@pytest.mark.skipif(not HEAD_PHANTOM.exists(), reason="../shared/data/head_phantom_dicom is absent")
+def test_a_seg_of_a_real_skull_split_at_the_midline_comes_back_per_half(pacs: Pacs, client: httpx.Client) -> None:
+    """The head phantom (28 x 512 x 512 CT) and a SEG of its bone (300 HU) split at the bone's mid-sagittal plane,
+    both stored in Orthanc: the job pulls the SEG and its CT, and each half comes back as its own model, watertight,
+    with the volume of its voxels (the halves touch along the midline and stay apart)."""
+    from dicomweb_client.api import DICOMwebClient
+
+    from tests.engine.test_labels_io import _seg
+
+    with zipfile.ZipFile(HEAD_PHANTOM) as zf:
+        files = [zf.read(n) for n in zf.namelist() if not n.endswith(("/", "DIRFILE"))]
+    slices = [(pydicom.dcmread(io.BytesIO(f)), f) for f in files if f[128:132] == b"DICM"]
+    ordered = sorted(slices, key=lambda pair: float(pair[0].ImagePositionPatient[2]))
+    stored = np.stack([ds.pixel_array for ds, _ in ordered])
+    bone = stored >= 1324  # 300 HU (stored = HU + 1024), the scan's README
+    centre = np.nonzero(bone)[2].mean()
+    labels = np.where(bone, np.where(np.arange(stored.shape[2]) < centre, 1, 2), 0).astype(np.uint8)
+    with warnings.catch_warnings():  # the phantom's patient name "HEAD" has one component: highdicom warns
+        warnings.filterwarnings("ignore", "The string .* is unlikely to represent the intended person name")
+        seg = _seg({f"CT{k}": f for k, (_, f) in enumerate(ordered)}, labels, "BINARY")
+    first, seg_ds = ordered[0][0], pydicom.dcmread(io.BytesIO(seg))
+    DICOMwebClient(pacs.orthanc.dicomweb_url).store_instances([ds for ds, _ in ordered] + [seg_ds])
+    source = {"server": "orthanc", "study_uid": first.StudyInstanceUID, "series_uid": seg_ds.SeriesInstanceUID}
+    resp = client.post("/v1/jobs", json={"source": {"dicomweb": source}})
+    assert resp.status_code == 202, resp.text
+    job = wait_delivered(pacs, client, resp.json()["id"], timeout=600)
+    models = label_models_in_orthanc(pacs, job, first.StudyInstanceUID, first.FrameOfReferenceUID)
+    assert sorted(models) == sorted(NAMES)
+    step = float(ordered[1][0].ImagePositionPatient[2]) - float(first.ImagePositionPatient[2])
+    voxel_mm3 = float(first.PixelSpacing[0]) * float(first.PixelSpacing[1]) * abs(step)
+    for row in json.loads(download(job, "report.json"))["labels"]:
+        assert row["watertight"], row
+        voxels = np.count_nonzero(labels == row["value"]) * voxel_mm3
+        assert 0.7 < row["volume_mm3"] / voxels < 1.3, (row, voxels)
