@@ -24,7 +24,7 @@ from fastapi_offline import FastAPIOffline
 from core.settings import Settings, get_settings
 from service import problems
 from service.background import Background
-from service.routes import direct, files, health, jobs, page
+from service.routes import direct, files, health, jobs, labels, page
 from service.schemas import add_job_params
 from service.services import Services
 
@@ -66,7 +66,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             expose_headers=CORS_EXPOSED,
             max_age=600,
         )
-    routers = (page.router, health.router, jobs.router, jobs.webhooks_router, direct.router, files.router)
+    routers = (
+        page.router,
+        health.router,
+        jobs.router,
+        labels.router,
+        jobs.webhooks_router,
+        direct.router,
+        files.router,
+    )
     for router in routers:
         app.include_router(router)
 

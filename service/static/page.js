@@ -366,8 +366,28 @@ function labelRow(row) {
   const text = document.createElement("span");
   text.textContent = ` ${row.name}: ${Math.round(row.volume_mm3).toLocaleString("en")} mm³, ${row.faces.toLocaleString("en")} triangles`;
   const label = document.createElement("label");
-  label.className = "check"; label.append(check, swatch, text); li.append(label);
+  label.className = "check"; label.append(check, swatch, text);
+  const stl = document.createElement("a"); // this label's STL alone (GET /v1/jobs/{id}/labels/{value}.stl)
+  stl.href = "#"; stl.textContent = "STL"; stl.className = "label-stl"; stl.dataset.stl = String(row.value);
+  stl.title = `download ${row.file.split("/").pop()} (watertight, mm)`;
+  stl.onclick = async (event) => {
+    event.preventDefault();
+    try { save(await labelStl($("job-id").textContent, row.value), row.file.split("/").pop()); }
+    catch (e) { stl.textContent = `STL: ${e.message}`; }
+  };
+  li.append(label, " ", stl);
   return li;
+}
+// one label's STL of a label job, fetched with the key (the API serves it out of labels.zip)
+async function labelStl(jobId, value) {
+  const resp = await fetch(`/v1/jobs/${jobId}/labels/${value}.stl`, { headers: headers() });
+  if (!resp.ok) throw new Error(((await resp.json().catch(() => null)) || {}).detail || `${resp.status}`);
+  return resp.blob();
+}
+function save(blob, name) {
+  const a = document.createElement("a");
+  a.href = URL.createObjectURL(blob); a.download = name; a.click();
+  setTimeout(() => URL.revokeObjectURL(a.href), 60000);
 }
 function setLabelVisible(name, color, visible) {
   const model = $("viewer").model;

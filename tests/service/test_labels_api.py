@@ -50,6 +50,15 @@ def test_a_label_map_gets_a_model_per_label(stack: ServiceStack, client_a: httpx
             mesh = trimesh.load(io.BytesIO(zf.read(row["file"])), file_type="stl")
             assert mesh.is_watertight and mesh.volume == pytest.approx(row["volume_mm3"], rel=1e-3)
             assert row["volume_mm3"] > 1000 and row["faces"] == len(mesh.faces)
+            one = client_a.get(f"/v1/jobs/{job['id']}/labels/{row['value']}.stl")  # one label, out of the zip
+            assert one.status_code == 200 and one.content == zf.read(row["file"]), one.text
+            assert (
+                one.headers["content-type"] == "model/stl"
+                and f'"{row["name"]}.stl"' in one.headers["content-disposition"]
+            )
+    missing = client_a.get(f"/v1/jobs/{job['id']}/labels/7.stl")
+    assert missing.status_code == 404 and "1 'label_1', 2 'label_2'" in missing.json()["detail"], missing.text
+    assert anon.get(f"/v1/jobs/{job['id']}/labels/1.stl").status_code == 401
     # placed by its label map: a turn is refused at once (409, the worker would refuse it too), the files unchanged
     resp = client_a.post(f"/v1/jobs/{job['id']}/orient", json={"first_slice": "inferior"})
     assert resp.status_code == 409 and "label" in resp.json()["detail"], resp.text
@@ -159,6 +168,15 @@ def test_the_page_lists_the_labels_and_hides_one(stack: ServiceStack, client_a: 
         assert driver.execute_script(alpha) == 0 and driver.execute_script(mode) == "MASK"
         checks[1].click()
         assert driver.execute_script(alpha) == 1 and driver.execute_script(mode) == "OPAQUE"
+        # each label has its own STL download (the API's labels/{value}.stl, fetched with the key)
+        links = box.find_elements(By.CSS_SELECTOR, "a[data-stl]")
+        assert [a.get_attribute("data-stl") for a in links] == ["1", "2"]
+        got = driver.execute_async_script(
+            "const done = arguments[arguments.length - 1];"
+            "labelStl(document.getElementById('job-id').textContent, 2).then((b) => b.arrayBuffer())"
+            ".then((a) => done(a.byteLength), (e) => done(String(e)));"
+        )
+        assert isinstance(got, int) and got > 84 and (got - 84) % 50 == 0, got  # a binary STL: header + 50 B a face
         assert not driver.find_element(By.ID, "turn-over").is_displayed()  # placed by its label map
         job = client_a.get(f"/v1/jobs/{driver.find_element(By.ID, 'job-id').text}").json()
         assert job["params"]["roi"] == {"box": [[0, 60], [0, 64], [0, 64]], "units": "voxels"}
