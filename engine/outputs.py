@@ -14,7 +14,6 @@ failure leaves no partial model.
 
 from __future__ import annotations
 
-import os
 import shutil
 import tempfile
 import time
@@ -27,7 +26,7 @@ import numpy as np
 
 from engine.budget import LAYOUT_CHUNK_FACES, Budget, BudgetSpec
 from engine.decimation.viewing import viewing_copies
-from engine.export.files import MODEL_GLB, REPORT_JSON, VIEWING_ENTRY, engine_files
+from engine.export.files import MODEL_GLB, REPORT_JSON, VIEWING_ENTRY, engine_files, move_files
 from engine.params import ReconParams
 from engine.report import ExportInfo, MeshStats, Report, report_json
 from engine.types import Mesh
@@ -352,13 +351,8 @@ def write_outputs(
         seconds["total"] = time.perf_counter() - t0
         report["write_seconds"] = seconds
         (tmp / REPORT_JSON).write_text(report_json(report))
-        paths = {}
-        for name in engine_files(closed=params.iso.closed, defect=recon.defect is not None):
-            if name not in sizes and name != REPORT_JSON:  # implant.stl when no template was made
-                continue
-            os.replace(tmp / name, out / name)
-            paths[name] = out / name
-        return paths
+        names = engine_files(closed=params.iso.closed, defect=recon.defect is not None)
+        return move_files(tmp, out, [n for n in names if n in sizes or n == REPORT_JSON])  # no implant.stl: none made
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

@@ -16,8 +16,10 @@ and imported when asked for (``exporter_of``, ``EXPORTERS``), so the API and ``c
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable, Iterator, Mapping
+import os
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Literal
 
@@ -44,6 +46,7 @@ __all__ = [
     "When",
     "engine_files",
     "exporter_of",
+    "move_files",
     "triangle_count",
     "viewing_files",
 ]
@@ -268,6 +271,16 @@ def engine_files(closed: bool = True, defect: bool = False, labels: bool = False
 
 
 DEFAULT_FILES = engine_files(closed=True)  # a default job's files: the README's table "Which file for which viewer"
+
+
+def move_files(src: Path, dest: Path, names: Iterable[str]) -> dict[str, Path]:
+    """Rename each file of ``names`` from the writer's temporary folder ``src`` into ``dest`` (one rename each: a
+    reader sees a whole file or none); returns {name: its path in ``dest``}, in ``names``' order."""
+    paths = {}
+    for name in names:
+        os.replace(src / name, dest / name)
+        paths[name] = dest / name
+    return paths
 
 
 def viewing_files() -> tuple[OutputFile, ...]:

@@ -9,7 +9,6 @@ and one ``UsdPreviewSurface`` material in the bone colour. The stage is a binary
 from __future__ import annotations
 
 import struct
-
 import tempfile
 from pathlib import Path
 from typing import Any

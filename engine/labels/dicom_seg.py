@@ -231,19 +231,14 @@ def read_seg_folder(folder: str | Path) -> LabelVolume:
     import pydicom
 
     from engine.io import load_volume
+    from engine.labels.uploads import is_seg_file
 
     root = Path(folder)
-    segs = []
-    for f in sorted(q for q in root.rglob("*") if q.is_file()):
-        try:
-            head = pydicom.dcmread(str(f), stop_before_pixels=True)
-        except Exception:  # not DICOM: the loader ignores it too
-            continue
-        if head.get("Modality") == "SEG":
-            segs.append((f, referenced_series(head)))
+    segs = [f for f in sorted(q for q in root.rglob("*") if q.is_file()) if is_seg_file(f)]  # by the file meta
     if len(segs) != 1:
         raise InputError(f"{root.name}: expected one DICOM SEG in the folder, found {len(segs)}")
-    path, wanted = segs[0]
+    path = segs[0]
+    wanted = referenced_series(pydicom.dcmread(str(path), stop_before_pixels=True))
     if not wanted:
         raise MissingReferenceError(f"{path.name}: the SEG names no referenced series to place it on")
     try:

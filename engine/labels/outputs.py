@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from engine.export.files import LABELS_ZIP, MODEL_GLB, REPORT_JSON, engine_files
+from engine.export.files import LABELS_ZIP, MODEL_GLB, REPORT_JSON, engine_files, move_files
 from engine.labels.parts import LabelModels, LabelPart, write_label_stls
 from engine.params import ReconParams
 
@@ -181,15 +181,11 @@ def write_label_outputs(
         seconds["total"] = time.perf_counter() - t0
         report = _report(models, params, accounts, seconds, extra)
         (tmp / REPORT_JSON).write_text(report_json(report))  # type: ignore[arg-type]  # a label job's report
-        paths = {}
         if stl_folder:
             if (out / "labels").exists():
                 shutil.rmtree(out / "labels")
             os.replace(tmp / "labels", out / "labels")
-        for name in engine_files(labels=True):
-            os.replace(tmp / name, out / name)
-            paths[name] = out / name
-        return paths
+        return move_files(tmp, out, engine_files(labels=True))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
