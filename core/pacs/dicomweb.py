@@ -396,16 +396,13 @@ def _instance_pass(
                 return
 
 
-def store_files(server: DicomwebServer, paths: Sequence[Path]) -> None:
-    """Store DICOM files with one STOW-RS request (a label job's models: one instance per label).
+def store_datasets(server: DicomwebServer, datasets: Sequence[Any]) -> None:
+    """Store DICOM data sets with one STOW-RS request (a label job's models: one instance per label).
 
     Raises:
         requests.HTTPError, requests.ConnectionError: the server refused or could not be reached.
         RuntimeError: the server answered but lists an instance as failed.
     """
-    import pydicom
-
-    datasets = [pydicom.dcmread(path) for path in paths]
     response = client_for(server).store_instances(datasets)
     failed = response.get("FailedSOPSequence") if response is not None else None
     if failed:

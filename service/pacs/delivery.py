@@ -13,10 +13,9 @@ a repeated send stores the same object again at the PACS, never a second one.
 from __future__ import annotations
 
 import datetime as dt
-import tempfile
+import io
 import zipfile
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 from core.db import utcnow
@@ -34,16 +33,14 @@ class DeliveryError(Exception):
     """A delivery attempt failed; the message says where and why (no patient data)."""
 
 
-def send_c_store(node: DicomNode, calling_ae: str, paths: Sequence[Path]) -> None:
-    """C-STORE files to ``node`` in one association.
+def send_c_store(node: DicomNode, calling_ae: str, datasets: Sequence[Any]) -> None:
+    """C-STORE data sets (read with their file meta) to ``node`` in one association.
 
     Raises:
         DeliveryError: no association, or a failure status (naming how many were stored before it).
     """
-    import pydicom
     from pynetdicom import AE
 
-    datasets = [pydicom.dcmread(path) for path in paths]
     ae = AE(ae_title=calling_ae)
     for context in dict.fromkeys((ds.SOPClassUID, ds.file_meta.TransferSyntaxUID) for ds in datasets):
         ae.add_requested_context(*context)
@@ -92,24 +89,34 @@ class Dispatcher:
         base = self.pacs.delivery_backoff_seconds
         return float(min(base * 2 ** max(attempts - 1, 0), self.pacs.delivery_max_backoff_seconds))
 
-    def _deliver(self, rec: PacsJob) -> bool:
-        with self.storage.local_output(rec.job_id, MODEL_DCM) as path:  # a scratch copy off local disk
-            if path is not None:
-                return self._deliver_files(rec, [path])
-        with self.storage.local_output(rec.job_id, LABELS_DCM) as zipped, tempfile.TemporaryDirectory() as tmp:
-            return self._deliver_files(rec, None if zipped is None else _unzipped(zipped, Path(tmp)))
+    def _objects(self, job_id: str) -> list[Any] | None:
+        """The job's DICOM objects: ``model.dcm``, or each member of a label job's ``labels.dcm.zip``; None when
+        it has neither (read from a scratch copy off local disk)."""
+        import pydicom
 
-    def _deliver_files(self, rec: PacsJob, paths: list[Path] | None) -> bool:
+        with self.storage.local_output(job_id, MODEL_DCM) as path:
+            if path is not None:
+                return [pydicom.dcmread(path)]
+        with self.storage.local_output(job_id, LABELS_DCM) as zipped:
+            if zipped is None:
+                return None
+            with zipfile.ZipFile(zipped) as zf:
+                return [pydicom.dcmread(io.BytesIO(zf.read(i))) for i in zf.infolist() if not i.is_dir()]
+
+    def _deliver(self, rec: PacsJob) -> bool:
         job_id, dest = rec.job_id, rec.destination or {}
+        missing = False
         try:
-            if not paths:
+            objects = self._objects(job_id)
+            if not objects:
+                missing = True
                 raise DeliveryError(
                     f"the job has no {MODEL_DCM} or {LABELS_DCM} (its source lacked a Frame of Reference UID?)"
                 )
-            self._send(dest, paths)
+            self._send(dest, objects)
         except Exception as exc:
             message = escape_control(str(exc) or type(exc).__name__)
-            final = not paths or rec.delivery_attempts >= self.pacs.delivery_max_attempts
+            final = missing or rec.delivery_attempts >= self.pacs.delivery_max_attempts
             delay = None if final else self.backoff(rec.delivery_attempts)
             next_at = None if delay is None else utcnow() + dt.timedelta(seconds=delay)
             self.records.failed_attempt(job_id, message, next_at)
@@ -125,31 +132,20 @@ class Dispatcher:
         log.info("job %s: model delivered (%s) after %d attempt(s)", job_id, _describe(dest), rec.delivery_attempts)
         return True
 
-    def _send(self, dest: dict[str, Any], paths: list[Path]) -> None:
+    def _send(self, dest: dict[str, Any], objects: list[Any]) -> None:
         kind = dest.get("kind")
         if kind == "dicom":
-            send_c_store(DicomNode.model_validate(dest), self.pacs.ae_title, paths)
+            send_c_store(DicomNode.model_validate(dest), self.pacs.ae_title, objects)
         elif kind == "dicomweb":
-            from core.pacs.dicomweb import store_files
+            from core.pacs.dicomweb import store_datasets
 
             target = DicomwebTarget.model_validate(dest)
             server = self.pacs.dicomweb_servers.get(target.server)
             if server is None:
                 raise DeliveryError(f"DICOMweb server {target.server!r} is not configured here")
-            store_files(server, paths)
+            store_datasets(server, objects)
         else:
             raise DeliveryError(f"unknown destination kind {kind!r}")
-
-
-def _unzipped(zipped: Path, into: Path) -> list[Path]:
-    """The DICOM files of a label job's ``labels.dcm.zip``, extracted into ``into``, in the zip's order."""
-    paths = []
-    with zipfile.ZipFile(zipped) as zf:
-        for n, info in enumerate(i for i in zf.infolist() if not i.is_dir()):
-            path = into / f"{n:04d}.dcm"  # our own names: nothing of the member's name reaches the disk
-            path.write_bytes(zf.read(info))
-            paths.append(path)
-    return paths
 
 
 def _describe(dest: dict[str, Any]) -> str:
