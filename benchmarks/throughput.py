@@ -43,6 +43,7 @@ import json
 import os
 import platform
 import re
+import signal
 import statistics
 import sys
 import tempfile
@@ -102,6 +103,15 @@ def _warms_up(stack: ServiceStack, device: str) -> bool:
     return warms_up(Settings(device=device, warmup=stack.env.get("BONEMESH_WARMUP", "auto")))
 
 
+def _phases(mode: str, devices: list[str]) -> list[tuple[str, list[str], bool]]:
+    """The phases of a run: (report key, its devices, queued), one worker first, then all, per mode."""
+    out = []
+    for queued in {"uploading": (False,), "queued": (True,), "both": (False, True)}[mode]:
+        prefix = "queued_" if queued else ""
+        out += [(f"{prefix}one_worker", devices[:1], queued), (f"{prefix}all_workers", devices, queued)]
+    return out
+
+
 def _ts(job: dict[str, Any], key: str) -> float:
     return dt.datetime.fromisoformat(job[key].replace("Z", "+00:00")).timestamp()
 
@@ -114,13 +124,21 @@ def run_phase(
     params: dict[str, Any],
     jobs: int,
     uploaders: int = 1,
+    queued: bool = False,
 ) -> dict[str, Any]:
     """Start one worker per device (each warmed up, on a GPU), push ``jobs`` jobs from ``uploaders`` clients at
-    once, wait for all; stop the workers. The phase's timings."""
+    once, wait for all; stop the workers. The phase's timings.
+
+    ``queued``: the workers are paused (SIGSTOP to each worker's process group) while the jobs are uploaded and
+    resumed together once all are queued; the phase's time runs from the resume, so it measures the workers alone,
+    without the uploads sharing the host's CPUs (``uploads_seconds`` says how long those took)."""
     workers = [start_worker(stack, i, dev, shares[i]) for i, dev in enumerate(devices)]
     for w, dev in zip(workers, devices, strict=True):
         warm = _warms_up(stack, dev)
         wait_until(lambda w=w, warm=warm: _ready(w, warm), 300, f"{w.name} to be ready", interval=0.2)
+    if queued:
+        for w in workers:
+            w.signal_group(signal.SIGSTOP)
 
     def post(_: int) -> tuple[str, float, float]:
         with stack.client(timeout=600) as client:
@@ -130,15 +148,20 @@ def run_phase(
             return resp.json()["id"], start, time.time()
 
     try:
-        t0 = time.time()
+        t0 = posting = time.time()
         with ThreadPoolExecutor(uploaders) as pool:  # clients upload side by side, as many users would
             posts = list(pool.map(post, range(jobs)))
+        if queued:
+            t0 = time.time()
+            for w in workers:
+                w.signal_group(signal.SIGCONT)
         ids = [i for i, _, _ in posts]
         with stack.client(timeout=600) as client:
             done = [wait_for_job(client, i, stack=stack, timeout=3600, interval=0.2) for i in ids]
             wall_end = time.time()
     finally:
         for w in workers:
+            w.signal_group(signal.SIGCONT)  # a paused worker would not see the SIGTERM
             w.stop(grace=10)
         stack.workers = [w for w in stack.workers if w not in workers]
     failed = [j for j in done if j["state"] != "succeeded"]
@@ -161,6 +184,8 @@ def run_phase(
         "most_jobs_running_at_once": _most_at_once(done),
         "first_start_seconds": min(_ts(j, "started_at") for j in done) - t0,
         "last_upload_done_seconds": max(e for _, _, e in posts) - t0,
+        "queued": queued,
+        "uploads_seconds": max(e for _, _, e in posts) - posting,
         "jobs_detail": detail,
         "stage_medians": _stage_medians(detail),
         "load_average_at_end": list(os.getloadavg()),
@@ -253,6 +278,13 @@ def main(argv: list[str] | None = None) -> int:
         default="0",
         help="CPUs kept for the API, Redis and the upload clients, off the workers' (auto: 4 on 16+ CPUs; 0: none)",
     )
+    parser.add_argument(
+        "--mode",
+        default="uploading",
+        choices=("uploading", "queued", "both"),
+        help="uploading: the jobs are uploaded while the workers run (end to end on one host); queued: all are "
+        "queued first, the workers paused, and timed from their resume (the workers alone); both: one then the other",
+    )
     parser.add_argument("--redis-server", default=None)
     parser.add_argument("--workdir", type=Path, default=None)
     parser.add_argument("--warp-cache", type=Path, default=None, help="the workers' Warp kernel cache (default: new)")
@@ -288,8 +320,8 @@ def main(argv: list[str] | None = None) -> int:
         "machine": args.machine,
         "host": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
         "input": {"archive": archive.name, "bytes": archive.stat().st_size, "params": params, "preparation": prep},
-        "timing": "first POST to the last job's finished_at (server clock), all jobs posted at once by --uploaders "
-        "clients, after a warm-up job and with each phase's workers warmed up",
+        "timing": "first POST (queued phases: the workers' resume) to the last job's finished_at (server clock), "
+        "all jobs posted at once by --uploaders clients, after a warm-up job and with each phase's workers warmed up",
         "ideal": len(devices),
         "front_cpus": front,
     }
@@ -314,9 +346,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"[throughput] warm-up on {devices[0]} (kernel compilation)", flush=True)
             report["warmup"] = run_phase(stack, devices[:1], shares, archive, params, 1)
             print(f"  {report['warmup']['seconds']:.1f} s", flush=True)
-            for key, devs in (("one_worker", devices[:1]), ("all_workers", devices)):
-                print(f"[throughput] {args.jobs} jobs on {len(devs)} worker(s): {devs}, CPUs {shares}", flush=True)
-                phase = run_phase(stack, devs, shares, archive, params, args.jobs, args.uploaders)
+            for key, devs, queued in _phases(args.mode, devices):
+                how = "queued" if queued else "uploading"
+                where = f"{len(devs)} worker(s): {devs}, CPUs {shares}"
+                print(f"[throughput] {args.jobs} jobs ({how}) on {where}", flush=True)
+                phase = run_phase(stack, devs, shares, archive, params, args.jobs, args.uploaders, queued)
                 print(
                     f"  {phase['seconds']:.1f} s, {phase['jobs_per_minute']:.2f} jobs/min, mean job "
                     f"{phase['mean_job_seconds']:.1f} s, at most {phase['most_jobs_running_at_once']} at once",
@@ -330,8 +364,11 @@ def main(argv: list[str] | None = None) -> int:
             print(stack.logs(8000), file=sys.stderr)
             write()
             raise
-    report["speedup"] = report["one_worker"]["seconds"] / report["all_workers"]["seconds"]
-    print(f"[throughput] speedup {report['speedup']:.2f}x with {len(devices)} workers", flush=True)
+    for prefix in ("", "queued_"):
+        if f"{prefix}one_worker" in report:
+            ratio = report[f"{prefix}one_worker"]["seconds"] / report[f"{prefix}all_workers"]["seconds"]
+            report[f"{prefix}speedup"] = ratio
+            print(f"[throughput] {prefix}speedup {ratio:.2f}x with {len(devices)} workers", flush=True)
     write()
     print(f"[throughput] wrote {args.out}", flush=True)
     return 0
