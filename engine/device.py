@@ -15,9 +15,6 @@ if TYPE_CHECKING:  # pragma: no cover
 DeviceSpec: TypeAlias = "str | wp.Device"  # "auto", "cpu", "cuda", "cuda:N", "opencl", "opencl:N", or a Warp device
 _SPEC = re.compile(r"^(auto|cpu|cuda(:\d+)?|opencl(:\d+)?)$")
 _initialized = False
-POOL_KEEP_ENV = "BONEMESH_DEVICE_POOL_KEEP"
-DEFAULT_POOL_KEEP = 0.5  # of the device's memory
-_pools_set: set[int] = set()
 
 
 def init_runtime(kernel_cache_dir: str | None = None) -> None:
@@ -64,7 +61,7 @@ def resolve_device(spec: Any = "auto") -> wp.Device:
         import warp as wp
 
         if isinstance(spec, wp.Device):  # Warp's public name (``warp.context`` is gone from Warp 1.19's namespace)
-            return keep_pool(spec)
+            return spec
     if not isinstance(spec, str) or not _SPEC.match(spec):
         raise ValueError(f"Expected device 'auto', 'cpu', 'cuda', 'cuda:N', 'opencl' or 'opencl:N', got {spec!r}")
     if spec == "auto" and _auto_is_opencl():
@@ -77,52 +74,15 @@ def resolve_device(spec: Any = "auto") -> wp.Device:
     init_runtime(os.environ.get("WARP_CACHE_PATH"))
     import warp as wp
 
+    if spec == "auto":
+        return wp.get_device("cuda:0" if wp.get_cuda_device_count() > 0 else "cpu")
     if spec.startswith("cuda"):
         n = wp.get_cuda_device_count()
         index = int(spec.split(":")[1]) if ":" in spec else 0
         if index >= n:
             raise ValueError(f"Expected an available CUDA device ({n} present), got {spec!r}")
-        return keep_pool(wp.get_device(f"cuda:{index}"))
-    dev = wp.get_device("cpu" if spec != "auto" or wp.get_cuda_device_count() == 0 else "cuda:0")
-    return keep_pool(dev) if dev.is_cuda else dev
-
-
-def pool_keep_bytes(total: int, text: str | None = None) -> int:
-    """How many bytes of freed device memory a process keeps reserved in the device's memory pool for its next
-    allocations (the pool's release threshold): ``BONEMESH_DEVICE_POOL_KEEP`` (``text``) as a fraction of the
-    device's ``total`` memory (``0.5``) or a byte count (``8GiB``), default half the device; ``0`` gives every freed
-    block back at the next synchronisation (CUDA's default).
-
-    Without it the arrays a job frees are returned to the driver at the next synchronisation (the stages synchronise
-    to read counts back) and mapped again by the next allocation, so every job pays for mapping its memory anew.
-
-    Raises:
-        ValueError: a negative value, or text that is neither a fraction nor a byte count.
-    """
-    from engine.budget import parse_bytes
-
-    raw = (os.environ.get(POOL_KEEP_ENV) if text is None else text) or ""
-    raw = raw.strip() or str(DEFAULT_POOL_KEEP)
-    try:
-        value = float(raw)
-    except ValueError:
-        return parse_bytes(raw) or 0
-    if value < 0:
-        raise ValueError(f"{POOL_KEEP_ENV} must be a fraction of the device's memory or a byte count, got {raw!r}")
-    return int(value * total) if value <= 1 else int(value)
-
-
-def keep_pool(dev: wp.Device) -> wp.Device:
-    """Set ``dev``'s memory pool release threshold (``pool_keep_bytes``) once per process; returns ``dev``. A device
-    without a memory pool is left as it is."""
-    import warp as wp
-
-    if not dev.is_cuda or dev.ordinal in _pools_set:
-        return dev
-    _pools_set.add(dev.ordinal)
-    if dev.is_mempool_supported and dev.is_mempool_enabled:
-        wp.set_mempool_release_threshold(dev, pool_keep_bytes(int(dev.total_memory)))
-    return dev
+        return wp.get_device(f"cuda:{index}")
+    return wp.get_device("cpu")
 
 
 def _auto_is_opencl() -> bool:
