@@ -233,6 +233,9 @@ def hu_offset(volume: Volume, params: ReconParams) -> float | None:
     return resolve_level(volume, params).hu_offset
 
 
+SKIN_SAMPLE_VOXELS = 2_000_000  # the skin check's strided sample: its labelling is single-threaded host work per job
+
+
 def _subsample(data: npt.NDArray[Any], most: int = 8_000_000) -> npt.NDArray[Any]:
     step = max(1, int(np.ceil((data.size / most) ** (1 / 3))))
     return data[::step, ::step, ::step]
@@ -247,7 +250,7 @@ def skin_warning(volume: Volume, level: float, offset: float | None) -> dict[str
     lies below it). With unknown units: the voxels at or above the level hold two well separated classes, the
     brighter one a minority (soft tissue with bone inside). Binary and segmented stacks are never flagged.
     """
-    data = _subsample(volume.data)
+    data = _subsample(volume.data, SKIN_SAMPLE_VOXELS)
     model = data >= level
     n_model = int(np.count_nonzero(model))
     if n_model == 0:
