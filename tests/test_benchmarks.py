@@ -229,12 +229,13 @@ def test_backends(tmp_path: Path) -> None:
     assert entry["identical_topology"]["opencl"] and entry["identical_mesh"]["opencl"]
     assert finite(entry["ratio_first_over"]["opencl"]) and entry["cpu"]["topology"]["watertight"]
 
+
 # -- benchmarks that start processes of their own: python -m benchmarks.X --------------------------------------
 def test_ingest(tmp_path: Path) -> None:
     out = tmp_path / "ingest.json"
     # two threads (and, for DICOM, two decode processes) whatever this machine's CPUs
     args = ["--shape", PHANTOM, "--repeat", "1", "--threads", "2", "--workdir", str(tmp_path / "work")]
-    run_module("ingest", [*args, "--out", str(out)], tmp_path)
+    run_module("ingest", [*args, "--png-device", "cpu", "--out", str(out)], tmp_path)  # the GPU path's kernels on CPU
     report = load(out)
     has_keys(report, "benchmark", "machine", "host", "shape", "timing", "results")
     assert sorted(report["results"]) == ["dicom", "png"]
@@ -242,6 +243,8 @@ def test_ingest(tmp_path: Path) -> None:
         assert r["same_volume"], fmt
         assert finite(r["serial_seconds"]) and finite(r["threaded_seconds"]) and finite(r["speedup"]), fmt
     assert finite(report["results"]["png"]["threaded_pillow_seconds"])
+    assert finite(report["results"]["png"]["threaded_device_seconds"])  # same_volume above: equal to libpng's
+    assert report["results"]["png"]["runs"]["threaded_device"][0]["png_device_fell_back"] == []
     assert finite(report["results"]["dicom"]["processes_seconds"])
     assert report["results"]["dicom"]["runs"]["processes"][0]["decode_processes_ran"] > 0
 
@@ -342,3 +345,15 @@ def test_storage_clients(tmp_path: Path) -> None:
         assert r["size_mib"] == 9, r
         for key in ("upload_s", "download_s", "publish_s", "sign_s", "client_s", "upload_mib_s", "sign_us_each"):
             assert finite(r[key]) and r[key] > 0, (key, r)
+
+
+def test_cpu_contention(tmp_path: Path) -> None:
+    out = tmp_path / "cpu_contention.json"
+    run_module("cpu_contention", ["--seconds", "0.05", "--out", str(out)], tmp_path)
+    report = load(out)
+    has_keys(report, "benchmark", "host", "solo_calls_per_second", "pair_with_first", "pools")
+    assert finite(report["solo_calls_per_second"]) and report["pair_with_first"], report
+    assert all(finite(v) and v > 0 for v in report["pair_with_first"].values()), report
+    for name, runs in report["pools"].items():
+        assert len(runs["alone"]) == 1 and len(runs["together"]) == 2, name
+        assert all(r["calls_per_second"] > 0 for r in runs["alone"] + runs["together"]), name
