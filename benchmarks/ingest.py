@@ -64,27 +64,14 @@ def _peak_rss() -> int:
 
 
 def _child(
-    archive: Path,
-    threads: int,
-    spacing: list[float] | None,
-    device: str | None,
-    codec: str,
-    processes: bool,
-    png_device: str | None = None,
+    archive: Path, threads: int, spacing: list[float] | None, device: str | None, codec: str, processes: bool
 ) -> dict[str, Any]:
     """One load in this (fresh) process: seconds, peak RSS, a checksum of the array; optionally the upload."""
-    import logging
-
     import numpy as np
 
     from engine.io import codecs, dicom, load_volume, procs
 
-    codecs.USE_IMAGECODECS = codec != "pillow"
-    codecs.UNFILTER_DEVICE = png_device if codec == "device" else None
-    fell_back: list[str] = []  # engine.io.stack's warning when the device path failed and the host decoded
-    handler = logging.Handler()
-    handler.emit = lambda record: fell_back.append(record.getMessage())  # type: ignore[method-assign]
-    logging.getLogger("engine.io.stack").addHandler(handler)
+    codecs.USE_IMAGECODECS = codec == "auto"
     ran: list[int] = []  # worker processes of each decode pool that ran (one given up at start is not closed)
     close = procs.DecodePool.close
 
@@ -115,8 +102,6 @@ def _child(
         "seconds": seconds,
         "threads": threads,
         "codec": codec,
-        "png_device": codecs.UNFILTER_DEVICE,
-        "png_device_fell_back": fell_back,
         "processes_asked": processes,
         "decode_processes_ran": sum(ran),
         "decode_pool_start_seconds": sum(started),
@@ -213,13 +198,7 @@ def _upload_report(
 
 
 def _measure(
-    archive: Path,
-    threads: int,
-    spacing: list[float] | None,
-    device: str | None,
-    codec: str,
-    processes: bool,
-    png_device: str | None = None,
+    archive: Path, threads: int, spacing: list[float] | None, device: str | None, codec: str, processes: bool
 ) -> dict[str, Any]:
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p)}
     argv = [sys.executable, "-m", "benchmarks.ingest", "--child", str(archive), "--threads", str(threads)]
@@ -228,16 +207,10 @@ def _measure(
         argv += ["--spacing", ",".join(map(str, spacing))]
     if device:
         argv += ["--device", device]
-    if png_device:
-        argv += ["--png-device", png_device]
     proc = subprocess.run(argv, capture_output=True, text=True, env=env, cwd=REPO, check=False)
     if proc.returncode != 0:
         raise RuntimeError(f"child failed ({proc.returncode}):\n{proc.stderr[-4000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
-
-
-def _ratio(med: dict[str, float], over: str, under: str) -> float | None:
-    return med[over] / med[under] if under in med else None
 
 
 def write_dicom_zip(shape: tuple[int, int, int], path: Path, spacing_mm: list[float]) -> dict[str, Any]:
@@ -264,11 +237,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=None, help="threaded run's threads (default: every CPU)")
     parser.add_argument("--formats", default="png,dicom", help="comma list of png, dicom")
     parser.add_argument("--device", default=None, help="also time the upload to this Warp device (cuda:0)")
-    parser.add_argument(
-        "--png-device",
-        default=None,
-        help="PNG also with the rows unfiltered on this Warp device (engine.io.pngdevice; cuda:0, or cpu to test)",
-    )
     parser.add_argument("--repeat", type=int, default=3, help="processes per measurement (median reported)")
     parser.add_argument("--machine", default=platform.node(), help="label of this machine in the JSON")
     parser.add_argument("--workdir", type=Path, default=None, help="where the archives go (default: a temp dir)")
@@ -280,9 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     spacing_arg = [float(v) for v in args.spacing.split(",")] if args.spacing else None
     if args.child is not None:
-        child = _child(
-            args.child, args.threads or 1, spacing_arg, args.device, args.codec, args.processes, args.png_device
-        )
+        child = _child(args.child, args.threads or 1, spacing_arg, args.device, args.codec, args.processes)
         print(json.dumps(child))
         return 0
     if args.out is None:
@@ -311,15 +277,12 @@ def main(argv: list[str] | None = None) -> int:
         modes = [("serial", 1, "pillow", False), ("threaded", threads, "auto", False)]
         if fmt == "png":  # the general (Pillow) decoder on threads too: what the fast PNG path adds
             modes.insert(1, ("threaded_pillow", threads, "pillow", False))
-            if args.png_device:  # inflated on the threads, unfiltered on the device
-                modes.append(("threaded_device", threads, "device", False))
         elif threads > 1:  # pydicom's parse holds the GIL: processes
             modes.append(("processes", threads, "auto", True))
         runs: dict[str, list[dict[str, Any]]] = {mode: [] for mode, *_ in modes}
         for i in range(args.repeat):
             for mode, n, codec, in_procs in modes:
-                upload_to = args.device if mode == "threaded" else None
-                run = _measure(archive, n, spacing, upload_to, codec, in_procs, args.png_device)
+                run = _measure(archive, n, spacing, args.device if mode == "threaded" else None, codec, in_procs)
                 runs[mode].append(run)
                 print(
                     f"  {fmt} {mode:15s} #{i + 1}: {run['seconds']:.3f} s ({n} {'processes' if in_procs else 'threads'}"
@@ -336,8 +299,6 @@ def main(argv: list[str] | None = None) -> int:
             "threaded_seconds": med["threaded"],
             "threaded_pillow_seconds": med.get("threaded_pillow"),
             "processes_seconds": med.get("processes"),
-            "threaded_device_seconds": med.get("threaded_device"),
-            "device_speedup_over_threaded": _ratio(med, "threaded", "threaded_device"),
             "speedup": med["serial"] / med["threaded"],
             "processes_speedup": med["serial"] / med["processes"] if "processes" in med else None,
             "threads": threads,

@@ -75,10 +75,8 @@ class Settings(BaseSettings):
         default="auto",
         description="the worker warms its device up with one small job before taking any (auto: on a GPU)",
     )
-    png_decoder: Literal["auto", "host", "pillow"] = Field(
-        default="auto",
-        description="auto: plain grayscale PNG inflated on the host and unfiltered on the worker's CUDA device (libpng "
-        "on the host without one, or with a device budget under 1 GiB); host: libpng; pillow: every PNG through Pillow",
+    png_decoder: Literal["auto", "pillow"] = Field(
+        default="auto", description="auto: libpng for plain grayscale PNG; pillow: every PNG through Pillow (slower)"
     )
     job_soft_time_limit: int = 3600
     job_time_limit: int = 3900

@@ -34,26 +34,4 @@ def warm_up(device: str = "auto", max_device_bytes: int | str | None = None) -> 
     recon = reconstruct(volume, ReconParams(), device=spec, max_device_bytes=max_device_bytes)
     with tempfile.TemporaryDirectory(prefix="bonemesh-warmup-") as out:
         write_outputs(recon, out, device=spec, max_device_bytes=max_device_bytes)
-    if dev.is_cuda:  # the PNG slices' kernels (engine.io.pngdevice), loaded before the first upload needs them
-        _png_slices(dev, hu)
     return {"device": recon.report["device"]["name"], "seconds": time.perf_counter() - t0}
-
-
-def _png_slices(dev: Any, volume: np.ndarray) -> None:
-    """Two 16-bit PNG slices of ``volume`` decoded through ``dev`` (``engine.io.pngdevice``)."""
-    import io
-
-    from PIL import Image
-
-    from engine.io.pngdevice import unfilter_on_device
-
-    planes = (volume[:2] + np.int16(1024)).astype(np.uint16)
-    pngs = []
-    for plane in planes:
-        buf = io.BytesIO()
-        Image.fromarray(plane).save(buf, format="PNG")
-        pngs.append(buf.getvalue())
-    out = np.empty_like(planes)
-    left = unfilter_on_device(lambda k: pngs[k], out, dev, threads=1)
-    if left or not np.array_equal(out, planes):  # "warm-up failed" in the log, loud
-        raise RuntimeError(f"PNG slices decoded on {dev} differ from their values (slices left: {left})")

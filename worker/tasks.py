@@ -225,8 +225,7 @@ def _run(
         return _described(paths, report)
     if segments and options["pieces"] is None:
         raise InputError("segments picks among a label map's segments (or a CT's pieces); this upload is a CT scan")
-    codecs.USE_IMAGECODECS = settings.png_decoder != "pillow"
-    codecs.UNFILTER_DEVICE = png_device(settings, budget)  # a CUDA worker undoes PNG filters on its GPU
+    codecs.USE_IMAGECODECS = settings.png_decoder == "auto"
     volume = load_volume(
         upload,
         spacing_zyx_mm=tuple(spacing) if spacing else None,
@@ -255,21 +254,6 @@ def _run(
     paths.update(write_dicom_model(db, job.id, upload, staged, volume))  # PACS jobs: Encapsulated STL (worker.pacs)
     timer.lap("write_files")
     return _described(paths, recon.report)
-
-
-def png_device(settings: Settings, budget: Any) -> str | None:
-    """The CUDA device that undoes the row filters of a PNG stack's slices (``engine.io.pngdevice``): the worker's,
-    when ``png_decoder`` is "auto", it is a CUDA device and its budget (if any) leaves room; else None (the host)."""
-    if settings.png_decoder != "auto":
-        return None
-    from engine.device import resolve_device
-    from engine.io.pngdevice import wanted
-
-    try:
-        dev = resolve_device(settings.device)
-    except ValueError:
-        return None  # the pipeline reports a device that is not there
-    return str(dev) if wanted(dev, budget.bytes) else None
 
 
 def _label_stage(holder: _Holder, stage: str) -> None:

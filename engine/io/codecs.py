@@ -12,9 +12,6 @@ from __future__ import annotations
 import numpy as np
 
 USE_IMAGECODECS = True  # benchmarks switch it off to time the general path
-# a CUDA device that undoes the row filters of whole PNG stacks (engine.io.pngdevice); None: the host decodes them.
-# Set by the worker per job (Settings.png_decoder "auto" on a GPU), like USE_IMAGECODECS.
-UNFILTER_DEVICE: object | None = None
 
 
 def _imagecodecs() -> object | None:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import logging
 import math
 import re
 import warnings
@@ -16,15 +15,12 @@ import numpy as np
 import numpy.typing as npt
 
 from engine.errors import InputError, NoSpacingError
-from engine.io import codecs
 from engine.io.archive import InputLimits, Member, Members, open_members
 from engine.io.codecs import decode_png_fast
 from engine.io.completeness import Completeness, check_count, check_numbering
 from engine.io.parallel import decode_threads, ordered_map
 from engine.params import check_spacing_zyx_mm
 from engine.types import Volume
-
-_log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
 _SIGNATURES = (
@@ -154,12 +150,9 @@ def _read_slices(
             out[k] = s
         return s.shape, s.dtype, "colour" in g
 
-    todo = list(range(1, len(images)))
-    if codecs.UNFILTER_DEVICE is not None and kinds == ["png"] and not coloured:
-        todo = _png_on_device(images, out, threads, on_progress)  # the slices it could not take stay for the host
     # closed on the way out, also when this loop raises: no pool thread outlives the call
-    with contextlib.closing(ordered_map(decode_into, todo, threads)) as decoded:
-        for k, (shape, dtype, colour) in zip(todo, decoded, strict=False):
+    with contextlib.closing(ordered_map(decode_into, range(1, len(images)), threads)) as decoded:
+        for k, (shape, dtype, colour) in enumerate(decoded, start=1):
             if colour:
                 coloured.append(images[k].name)
             if shape != out.shape[1:] or dtype != out.dtype:
@@ -171,35 +164,6 @@ def _read_slices(
                 on_progress((k + 1) / len(images))
     _warn_colour(label, coloured, geo)
     return _narrow(out), "+".join(kinds), geo
-
-
-def _png_on_device(
-    images: list[Member], out: np.ndarray, threads: int, on_progress: Callable[[float], None] | None
-) -> list[int]:
-    """Slices 1.. of a PNG stack inflated here and unfiltered on ``codecs.UNFILTER_DEVICE`` straight into ``out``
-    (``engine.io.pngdevice``); the indices left for the host decoder: those it did not take, or all of them where
-    the device failed (the host then decodes every slice again, so a device error never leaves a wrong plane)."""
-    from engine.io.pngdevice import unfilter_on_device
-
-    n = len(images)
-    if out.dtype not in (np.uint8, np.uint16) or n < 2:
-        return list(range(1, n))
-
-    def progress(k: int) -> None:
-        if on_progress is not None:
-            on_progress((k + 2) / n)
-
-    try:
-        left = unfilter_on_device(lambda k: images[k + 1].read(), out[1:], codecs.UNFILTER_DEVICE, threads, progress)
-    except Exception as exc:
-        _log.warning(
-            "PNG slices not decoded on %s (%s: %s); decoding them on the host",
-            codecs.UNFILTER_DEVICE,
-            type(exc).__name__,
-            exc,
-        )
-        return list(range(1, n))
-    return [k + 1 for k in left]
 
 
 def _warn_colour(label: str, names: list[str], geo: dict[str, Any]) -> None:

@@ -1,1 +1,0 @@
-"""Warp kernels of ``engine.io`` (imported only where a device decodes: they import Warp)."""
