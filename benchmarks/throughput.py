@@ -69,10 +69,15 @@ def split_front(front: str) -> tuple[list[int], list[int]]:
     return (cpus[-n:], cpus[:-n]) if n else ([], cpus)
 
 
-def cpu_shares(workers: int, cpus: list[int] | None = None) -> list[list[int]]:
-    """``cpus`` (default this process's) split into ``workers`` equal, disjoint shares (a remainder is left unused)."""
+def cpu_shares(workers: int, cpus: list[int] | None = None, layout: str = "blocks") -> list[list[int]]:
+    """``cpus`` (default this process's) split into ``workers`` equal, disjoint shares (a remainder is left unused):
+    "blocks", one run of CPUs each; "halves", each share half from the first half of the CPUs and half from the
+    second (where a host numbers hyper-thread siblings i and i + n/2, each worker then owns whole cores)."""
     cpus = sorted(os.sched_getaffinity(0)) if cpus is None else cpus
     per = max(1, len(cpus) // workers)
+    if layout == "halves" and per >= 2 and len(cpus) >= 2 * workers:
+        half, part = len(cpus) // 2, per // 2
+        return [cpus[i * part : (i + 1) * part] + cpus[half + i * part : half + (i + 1) * part] for i in range(workers)]
     return [cpus[(i * per) % len(cpus) : (i * per) % len(cpus) + per] for i in range(workers)]
 
 
@@ -285,6 +290,12 @@ def main(argv: list[str] | None = None) -> int:
         help="uploading: the jobs are uploaded while the workers run (end to end on one host); queued: all are "
         "queued first, the workers paused, and timed from their resume (the workers alone); both: one then the other",
     )
+    parser.add_argument(
+        "--cpu-layout",
+        default="blocks",
+        choices=("blocks", "halves"),
+        help="workers' CPU shares: blocks (0-15, 16-31) or halves (0-7+16-23, 8-15+24-31)",
+    )
     parser.add_argument("--redis-server", default=None)
     parser.add_argument("--workdir", type=Path, default=None)
     parser.add_argument("--warp-cache", type=Path, default=None, help="the workers' Warp kernel cache (default: new)")
@@ -310,7 +321,7 @@ def main(argv: list[str] | None = None) -> int:
         prep = write_phantom_zip(shape, archive)  # type: ignore[arg-type]
         params = {"iso": prep["iso"], "spacing": PHANTOM_SPACING_MM}
     front, back = split_front(args.front_cpus)
-    shares = cpu_shares(len(devices), back)
+    shares = cpu_shares(len(devices), back, args.cpu_layout)
     if front:  # the API processes and Redis (started below) and the upload threads inherit it; workers use taskset
         os.sched_setaffinity(0, front)
     extra = {"WARP_CACHE_PATH": str(args.warp_cache or workdir / "warp-cache")}  # shared, filled by the warm-up
@@ -324,6 +335,7 @@ def main(argv: list[str] | None = None) -> int:
         "all jobs posted at once by --uploaders clients, after a warm-up job and with each phase's workers warmed up",
         "ideal": len(devices),
         "front_cpus": front,
+        "cpu_layout": args.cpu_layout,
     }
 
     def write() -> None:
