@@ -38,16 +38,21 @@ def _loop(cpu: int, seconds: float, queue: Any) -> None:
     queue.put((cpu, n / (time.perf_counter() - t0)))
 
 
-def rates(cpus: list[int], seconds: float) -> dict[int, float]:
-    """Calls per second of one single-threaded loop per CPU in ``cpus``, all running at once."""
+def _at_once(target: Any, firsts: list[Any], seconds: float) -> dict[Any, float]:
+    """``target(first, seconds, queue)`` in one process per entry of ``firsts``, all at once: what each put."""
     queue: Any = mp.Queue()
-    procs = [mp.Process(target=_loop, args=(c, seconds, queue)) for c in cpus]
+    procs = [mp.Process(target=target, args=(first, seconds, queue)) for first in firsts]
     for p in procs:
         p.start()
     out = dict(queue.get() for _ in procs)
     for p in procs:
         p.join()
     return out
+
+
+def rates(cpus: list[int], seconds: float) -> dict[int, float]:
+    """Calls per second of one single-threaded loop per CPU in ``cpus``, all running at once."""
+    return _at_once(_loop, cpus, seconds)
 
 
 def _pool(cpuset: list[int], seconds: float, queue: Any) -> None:
@@ -70,13 +75,7 @@ def _pool(cpuset: list[int], seconds: float, queue: Any) -> None:
 
 def pools(*cpusets: list[int], seconds: float) -> list[dict[str, Any]]:
     """Inflate calls per second of one process per CPU set (a thread per CPU), all at once."""
-    queue: Any = mp.Queue()
-    procs = [mp.Process(target=_pool, args=(s, seconds, queue)) for s in cpusets]
-    for p in procs:
-        p.start()
-    found = dict(queue.get() for _ in procs)
-    for p in procs:
-        p.join()
+    found = _at_once(_pool, list(cpusets), seconds)
     return [{"cpus": list(s), "calls_per_second": round(found[tuple(s)], 1)} for s in cpusets]
 
 

@@ -23,6 +23,12 @@ every CPU). On the 2 x H200 host it made no difference with 2 uploaders (1.76x w
 what did was the number of uploads at once: 4 uploaders made each 570 MB upload take 3.6 s and slowed the jobs
 running meanwhile (decimation 0.8 s instead of 0.27 s): 1.51x against 1.66-1.77x with 2 (docs/benchmarks.md).
 
+``--mode queued`` (or ``both``: uploading, then queued) uploads every job while the phase's workers are paused
+(SIGSTOP to each worker's process group) and times the phase from their resume: the workers' own scaling, without
+the uploads sharing the host's CPUs. ``--cpu-layout halves`` gives each worker half of its CPUs from each half of
+the host's (whole cores where hyper-thread siblings are numbered i and i + n/2; on the 2 x H100 host it made no
+difference: 1.81x against 1.80x).
+
 Input: ``--input`` (a scan archive, with ``--params``), ``--phantom Z,Y,X`` (the bone phantom as 16-bit PNG slices,
 ``benchmarks.phantom_zip``), or by default the bundled CT head (``engine.data``).
 

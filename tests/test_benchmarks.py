@@ -286,16 +286,22 @@ def test_throughput(tmp_path: Path, redis_executable: str) -> None:
     cache = cache.parent if cache.name == wp.config.version else cache
     out = tmp_path / "throughput.json"
     args = ["--devices", "cpu,cpu", "--jobs", "2", "--phantom", PHANTOM, "--uploaders", "2", "--api-workers", "1"]
+    args += ["--mode", "both", "--cpu-layout", "halves"]  # uploading, then queued (workers paused while uploading)
     args += ["--redis-server", redis_executable, "--warp-cache", str(cache), "--workdir", str(tmp_path / "work")]
     run_module("throughput", [*args, "--out", str(out)], tmp_path)
     report = load(out)
     has_keys(report, "benchmark", "machine", "host", "input", "timing", "warmup", "one_worker", "all_workers")
-    for key, workers in (("one_worker", 1), ("all_workers", 2)):
+    phases = (("one_worker", 1), ("all_workers", 2), ("queued_one_worker", 1), ("queued_all_workers", 2))
+    for key, workers in phases:
         phase = report[key]
         assert phase["workers"] == workers and phase["jobs"] == 2, key
+        assert phase["queued"] is key.startswith("queued_") and finite(phase["uploads_seconds"]), key
         assert finite(phase["seconds"]) and finite(phase["jobs_per_minute"]), key
         assert 0 <= phase["first_start_seconds"] <= phase["seconds"], key
-        assert 0 < phase["last_upload_done_seconds"] <= phase["client_seconds"], key
+        if not phase["queued"]:  # queued: the uploads were done before the phase's clock started
+            assert 0 < phase["last_upload_done_seconds"] <= phase["client_seconds"], key
+        else:
+            assert phase["last_upload_done_seconds"] <= 0 < phase["uploads_seconds"], key
         rows = phase["jobs_detail"]  # one per job, each with the worker's timing line (worker.tasks) parsed
         assert len(rows) == 2 and {r["worker"] for r in rows} <= set(range(workers)), rows
         for row in rows:
@@ -307,7 +313,7 @@ def test_throughput(tmp_path: Path, redis_executable: str) -> None:
         medians = phase["stage_medians"]
         assert finite(medians["reconstruct"]) and finite(medians["upload"]) and finite(medians["queue_wait"]), key
         assert len(phase["load_average_at_end"]) == 3, key
-    assert finite(report["speedup"])
+    assert finite(report["speedup"]) and finite(report["queued_speedup"])
 
 
 def test_defect_quality(tmp_path: Path) -> None:
