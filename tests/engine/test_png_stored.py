@@ -1,0 +1,136 @@
+"""The PNG fast path (``engine.io.codecs``): libdeflate inflates, libpng decodes a stored stream of the same rows.
+
+Its samples must be libpng's on the original bytes, bit for bit, for every filter type (None, Sub, Up, Average,
+Paeth, chosen per row at random), 8 and 16 bits, odd sizes, one or several IDAT chunks, ancillary chunks before and
+after them; what it does not rewrap (interlaced, damaged, a stream of another size) is decoded from the original,
+with libpng's own result or error. The real scans of ``../shared`` are checked slice by slice when present.
+"""
+
+from __future__ import annotations
+
+import struct
+import zipfile
+import zlib
+
+import imagecodecs
+import numpy as np
+import pytest
+
+from engine.io import codecs
+from engine.io.codecs import decode_png_fast
+from tests.conftest import shared_file
+
+RNG = np.random.default_rng(7)
+ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+
+
+def _paeth(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    p = a + b - c
+    pa, pb, pc = np.abs(p - a), np.abs(p - b), np.abs(p - c)
+    return np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, c))
+
+
+def _chunk(kind: bytes, body: bytes) -> bytes:
+    return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
+
+
+def encode_png(img: np.ndarray, filters: np.ndarray, idat_parts: int = 1, interlace: int = 0) -> bytes:
+    """A grayscale PNG of ``img`` (uint8/uint16) with row ``r`` filtered by type ``filters[r]`` (0-4)."""
+    h, w = img.shape
+    bpp = img.dtype.itemsize
+    raw = img.astype(img.dtype.newbyteorder(">")).view(np.uint8).reshape(h, w * bpp).astype(np.int64)
+    rows = []
+    for r in range(h):
+        x = raw[r]
+        a = np.concatenate([np.zeros(bpp, np.int64), x[:-bpp]])
+        b = raw[r - 1] if r else np.zeros_like(x)
+        c = np.concatenate([np.zeros(bpp, np.int64), b[:-bpp]])
+        pred = [np.zeros_like(x), a, b, (a + b) // 2, _paeth(a, b, c)][int(filters[r])]
+        rows.append(bytes([int(filters[r])]) + ((x - pred) % 256).astype(np.uint8).tobytes())
+    stream = zlib.compress(b"".join(rows), 6)
+    cut = np.linspace(0, len(stream), idat_parts + 1).astype(int)
+    ihdr = struct.pack(">IIBBBBB", w, h, 8 * bpp, 0, 0, 0, interlace)
+    idats = b"".join(_chunk(b"IDAT", stream[cut[i] : cut[i + 1]]) for i in range(idat_parts))
+    return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + idats + _chunk(b"IEND", b"")
+
+
+def encode_adam7(img: np.ndarray) -> bytes:
+    """An interlaced (Adam7) grayscale PNG of ``img``, every row unfiltered."""
+    h, w = img.shape
+    big = img.astype(img.dtype.newbyteorder(">"))
+    rows = []
+    for x0, y0, dx, dy in ADAM7:
+        sub = big[y0::dy, x0::dx]
+        if sub.size:
+            rows += [b"\x00" + r.tobytes() for r in sub]
+    ihdr = struct.pack(">IIBBBBB", w, h, 8 * img.dtype.itemsize, 0, 0, 0, 1)
+    body = _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", zlib.compress(b"".join(rows))) + _chunk(b"IEND", b"")
+    return b"\x89PNG\r\n\x1a\n" + body
+
+
+def _slices(n: int, shape: tuple[int, int], dtype: type) -> np.ndarray:
+    top = np.iinfo(dtype).max
+    smooth = np.cumsum(RNG.integers(-3, 4, size=(n, *shape)), axis=2) % (top + 1)
+    return np.where(RNG.random((n, *shape)) < 0.1, RNG.integers(0, top + 1, size=(n, *shape)), smooth).astype(dtype)
+
+
+def _with_chunks(png: bytes, before: list[bytes], after: list[bytes]) -> bytes:
+    """``png`` with these (already framed) chunks after IHDR and after the IDATs."""
+    ihdr_end = 8 + 25
+    iend = png.rindex(b"IEND") - 4
+    return png[:ihdr_end] + b"".join(before) + png[ihdr_end:iend] + b"".join(after) + png[iend:]
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+@pytest.mark.parametrize("parts", [1, 3])
+def test_every_filter_type_equals_libpng(dtype: type, parts: int) -> None:
+    for img in _slices(4, (23, 37), dtype):
+        png = encode_png(img, RNG.integers(0, 5, size=img.shape[0]), idat_parts=parts)
+        png = _with_chunks(
+            png,
+            [_chunk(b"pHYs", bytes(9)), _chunk(b"sBIT", bytes([12 if dtype == np.uint16 else 6]))],
+            [_chunk(b"tEXt", b"Comment\x00after the data")],
+        )
+        stored = codecs._stored(imagecodecs, png)
+        assert stored is not None and stored.count(b"IDAT") == 1 and b"tEXt" in stored and b"sBIT" in stored
+        fast = decode_png_fast(png)
+        assert fast is not None and fast.dtype == np.dtype(dtype)
+        np.testing.assert_array_equal(fast, img)
+        np.testing.assert_array_equal(fast, imagecodecs.png_decode(png))
+
+
+def test_what_it_does_not_rewrap_is_decoded_from_the_original() -> None:
+    img = _slices(1, (16, 20), np.uint16)[0]
+    interlaced = encode_adam7(img)
+    assert codecs._stored(imagecodecs, interlaced) is None
+    np.testing.assert_array_equal(decode_png_fast(interlaced), img)
+    png = encode_png(img, RNG.integers(0, 5, size=16))
+    start = png.index(b"IDAT") + 4
+    damaged = png[: start + 10] + bytes(8) + png[start + 18 :]
+    assert codecs._stored(imagecodecs, damaged) is None
+    with pytest.raises(Exception) as fast:
+        decode_png_fast(damaged)
+    with pytest.raises(Exception) as plain:
+        imagecodecs.png_decode(damaged)
+    assert type(fast.value) is type(plain.value) and str(fast.value) == str(plain.value)
+    # rows of another size than the header's (a header that lies about the height): libpng's verdict, not ours
+    ihdr = struct.pack(">IIBBBBB", 20, 15, 16, 0, 0, 0, 0)
+    lying = png[:8] + _chunk(b"IHDR", ihdr) + png[8 + 25 :]
+    assert codecs._stored(imagecodecs, lying) is None
+    try:
+        expected = imagecodecs.png_decode(lying)
+    except Exception as exc:
+        with pytest.raises(type(exc)):
+            decode_png_fast(lying)
+    else:
+        np.testing.assert_array_equal(decode_png_fast(lying), expected)
+
+
+@pytest.mark.parametrize("name", ["cranium_ct/cranium_ct_png16.zip", "head_phantom_dicom/head_phantom_png16.zip"])
+def test_real_scans_equal_libpng(name: str) -> None:
+    path = shared_file(*name.split("/"))
+    with zipfile.ZipFile(path) as zf:
+        for member in [n for n in zf.namelist() if n.endswith(".png")]:
+            data = zf.read(member)
+            assert codecs._stored(imagecodecs, data) is not None, member
+            np.testing.assert_array_equal(decode_png_fast(data), imagecodecs.png_decode(data), err_msg=member)
