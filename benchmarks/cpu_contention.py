@@ -1,14 +1,16 @@
 """CPU contention probe: how much one busy vCPU slows a single-threaded loop on another, and how fast two pinned
 thread pools run alone and side by side (the question behind issue 29: do two workers' CPU shares slow each other?).
+The workers' CPU shares (``cpu_shares``, the throughput benchmark's ``--cpu-layout``) are defined here.
 
     python -m benchmarks.cpu_contention [--seconds 0.6] --out result.json
 
-``pair_with_0``: the rate of a zlib-inflate loop pinned to CPU 0 while a second one runs on CPU j, over its rate
-alone (a hyper-thread sibling shows about 0.5-0.6; a separate core about 1.0; a uniform drop on every j is the
-package's clock or shared cache, not placement). ``pools``: inflate calls per second of one process with one thread
-per CPU of its set, alone and beside the complementary set (halves, odd/even, interleaved quarters), so a layout
-that keeps two workers off each other's cores would show here. Each loop inflates ~1 MB per call (zlib releases the
-GIL), the work of a slice decoder.
+``pair_with_first``: the rate of a zlib-inflate loop pinned to the first CPU while a second one runs on CPU j, over
+its rate alone (a hyper-thread sibling shows about 0.5-0.6; a separate core about 1.0; a uniform drop on every j is
+the package's clock or shared cache, not placement). ``pools``: inflate calls per second of one process with one
+thread per CPU of its set, alone and beside the complementary set (the layouts "blocks" and "halves" of
+``cpu_shares``, and even/odd), so a layout that keeps two workers off each other's cores would show here (the
+committed ``cpu_contention_2xh100.json`` calls blocks "low_high" and halves "quarters", as the first version did).
+Each loop inflates ~1 MB per call (zlib releases the GIL), the work of a slice decoder.
 """
 
 from __future__ import annotations
@@ -79,13 +81,27 @@ def pools(*cpusets: list[int], seconds: float) -> list[dict[str, Any]]:
     return [{"cpus": list(s), "calls_per_second": round(found[tuple(s)], 1)} for s in cpusets]
 
 
-def layouts(cpus: list[int]) -> dict[str, tuple[list[int], list[int]]]:
-    """Two disjoint halves of ``cpus`` three ways: low/high, even/odd positions, interleaved quarters."""
-    h, q = len(cpus) // 2, len(cpus) // 4
-    out = {"low_high": (cpus[:h], cpus[h : 2 * h]), "even_odd": (cpus[0 : 2 * h : 2], cpus[1 : 2 * h : 2])}
-    if q:
-        out["quarters"] = (cpus[:q] + cpus[h : h + q], cpus[q:h] + cpus[h + q : h + 2 * q])
-    return out
+def cpu_shares(workers: int, cpus: list[int] | None = None, layout: str = "blocks") -> list[list[int]]:
+    """``cpus`` (default this process's) split into ``workers`` equal, disjoint shares (a remainder is left unused):
+    "blocks", one run of CPUs each; "halves", each share half from the first half of the CPUs and half from the
+    second (where a host numbers hyper-thread siblings i and i + n/2, each worker then owns whole cores)."""
+    cpus = sorted(os.sched_getaffinity(0)) if cpus is None else cpus
+    per = max(1, len(cpus) // workers)
+    if layout == "halves" and per >= 2 and len(cpus) >= 2 * workers:
+        half, part = len(cpus) // 2, per // 2
+        return [cpus[i * part : (i + 1) * part] + cpus[half + i * part : half + (i + 1) * part] for i in range(workers)]
+    return [cpus[(i * per) % len(cpus) : (i * per) % len(cpus) + per] for i in range(workers)]
+
+
+def layouts(cpus: list[int]) -> dict[str, list[list[int]]]:
+    """Two disjoint halves of ``cpus`` three ways: the throughput benchmark's "blocks" and "halves" (``cpu_shares``)
+    and even/odd positions."""
+    h = len(cpus) // 2
+    return {
+        "blocks": cpu_shares(2, cpus, "blocks"),
+        "halves": cpu_shares(2, cpus, "halves"),
+        "even_odd": [cpus[0 : 2 * h : 2], cpus[1 : 2 * h : 2]],
+    }
 
 
 def main(argv: list[str] | None = None) -> None:

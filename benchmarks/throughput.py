@@ -58,6 +58,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from benchmarks.cpu_contention import cpu_shares
 from benchmarks.report import stop_on_sigterm, write_json
 from tests.service.procs import Proc, RedisServer, ServiceStack, bonemesh_argv, submit, wait_for_job, wait_until
 
@@ -73,18 +74,6 @@ def split_front(front: str) -> tuple[list[int], list[int]]:
     if not 0 <= n < len(cpus):
         raise SystemExit(f"--front-cpus {front}: expected 0 to {len(cpus) - 1}")
     return (cpus[-n:], cpus[:-n]) if n else ([], cpus)
-
-
-def cpu_shares(workers: int, cpus: list[int] | None = None, layout: str = "blocks") -> list[list[int]]:
-    """``cpus`` (default this process's) split into ``workers`` equal, disjoint shares (a remainder is left unused):
-    "blocks", one run of CPUs each; "halves", each share half from the first half of the CPUs and half from the
-    second (where a host numbers hyper-thread siblings i and i + n/2, each worker then owns whole cores)."""
-    cpus = sorted(os.sched_getaffinity(0)) if cpus is None else cpus
-    per = max(1, len(cpus) // workers)
-    if layout == "halves" and per >= 2 and len(cpus) >= 2 * workers:
-        half, part = len(cpus) // 2, per // 2
-        return [cpus[i * part : (i + 1) * part] + cpus[half + i * part : half + (i + 1) * part] for i in range(workers)]
-    return [cpus[(i * per) % len(cpus) : (i * per) % len(cpus) + per] for i in range(workers)]
 
 
 def start_worker(stack: ServiceStack, index: int, device: str, cpus: list[int]) -> Proc:
