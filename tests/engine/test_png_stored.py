@@ -34,7 +34,16 @@ def _chunk(kind: bytes, body: bytes) -> bytes:
     return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
 
 
-def encode_png(img: np.ndarray, filters: np.ndarray, idat_parts: int = 1, interlace: int = 0) -> bytes:
+def _png(img: np.ndarray, stream: bytes, idat_parts: int = 1, interlace: int = 0) -> bytes:
+    """A grayscale PNG of ``img``'s size and depth around the zlib ``stream``, cut into ``idat_parts`` IDATs."""
+    h, w = img.shape
+    ihdr = struct.pack(">IIBBBBB", w, h, 8 * img.dtype.itemsize, 0, 0, 0, interlace)
+    cut = np.linspace(0, len(stream), idat_parts + 1).astype(int)
+    idats = b"".join(_chunk(b"IDAT", stream[cut[i] : cut[i + 1]]) for i in range(idat_parts))
+    return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + idats + _chunk(b"IEND", b"")
+
+
+def encode_png(img: np.ndarray, filters: np.ndarray, idat_parts: int = 1) -> bytes:
     """A grayscale PNG of ``img`` (uint8/uint16) with row ``r`` filtered by type ``filters[r]`` (0-4)."""
     h, w = img.shape
     bpp = img.dtype.itemsize
@@ -47,25 +56,18 @@ def encode_png(img: np.ndarray, filters: np.ndarray, idat_parts: int = 1, interl
         c = np.concatenate([np.zeros(bpp, np.int64), b[:-bpp]])
         pred = [np.zeros_like(x), a, b, (a + b) // 2, _paeth(a, b, c)][int(filters[r])]
         rows.append(bytes([int(filters[r])]) + ((x - pred) % 256).astype(np.uint8).tobytes())
-    stream = zlib.compress(b"".join(rows), 6)
-    cut = np.linspace(0, len(stream), idat_parts + 1).astype(int)
-    ihdr = struct.pack(">IIBBBBB", w, h, 8 * bpp, 0, 0, 0, interlace)
-    idats = b"".join(_chunk(b"IDAT", stream[cut[i] : cut[i + 1]]) for i in range(idat_parts))
-    return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + idats + _chunk(b"IEND", b"")
+    return _png(img, zlib.compress(b"".join(rows), 6), idat_parts)
 
 
 def encode_adam7(img: np.ndarray) -> bytes:
     """An interlaced (Adam7) grayscale PNG of ``img``, every row unfiltered."""
-    h, w = img.shape
     big = img.astype(img.dtype.newbyteorder(">"))
     rows = []
     for x0, y0, dx, dy in ADAM7:
         sub = big[y0::dy, x0::dx]
         if sub.size:
             rows += [b"\x00" + r.tobytes() for r in sub]
-    ihdr = struct.pack(">IIBBBBB", w, h, 8 * img.dtype.itemsize, 0, 0, 0, 1)
-    body = _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", zlib.compress(b"".join(rows))) + _chunk(b"IEND", b"")
-    return b"\x89PNG\r\n\x1a\n" + body
+    return _png(img, zlib.compress(b"".join(rows)), interlace=1)
 
 
 def _slices(n: int, shape: tuple[int, int], dtype: type) -> np.ndarray:
