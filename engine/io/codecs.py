@@ -14,7 +14,9 @@ before, so the samples are libpng's (every filter type, every ancillary chunk ke
 in per-thread scratch buffers (fresh 2 MB buffers per slice cost more in page faults than the inflate saves). A
 1024 x 1024 16-bit phantom slice: 9.2 ms instead of 13 ms; a 160-slice stack on 2 threads, each load in a fresh
 process (``benchmarks.ingest``): 0.81-0.83 s instead of 1.05-1.08 s. A stream that does not inflate to exactly those
-rows (damaged, short, padded) is decoded from the original bytes, so libpng reports it as before.
+rows (damaged, short, padded) is decoded from the original bytes, so libpng reports it as before. The loader hands
+each slice its plane of the volume, and libpng writes the samples there (no temporary slice, no copy: 8 % less CPU
+for a 160 x 1024 x 1024 stack here).
 """
 
 from __future__ import annotations
@@ -45,14 +47,21 @@ def plain_gray_png(data: bytes) -> bool:
     return idat > 0 and b"tRNS" not in data[:idat]
 
 
-def decode_png_fast(data: bytes) -> np.ndarray | None:
-    """The (y, x) array of a plain grayscale PNG through libpng; None when the general path must decode it."""
+def decode_png_fast(data: bytes, out: np.ndarray | None = None) -> np.ndarray | None:
+    """The (y, x) array of a plain grayscale PNG through libpng; None when the general path must decode it.
+
+    ``out``: a C-contiguous (y, x) array to decode into where the header gives that shape and sample type (a plane of
+    the volume being loaded: no temporary slice, no copy); the result is then ``out`` itself. Otherwise, or where
+    the header differs, a new array."""
     if not USE_IMAGECODECS or not plain_gray_png(data):
         return None
     codecs = _imagecodecs()
     if codecs is None:
         return None
-    arr = codecs.png_decode(_stored(codecs, data) or data)  # type: ignore[attr-defined]
+    width, height, depth = struct.unpack(">IIB", data[16:25])
+    dtype = np.uint8 if depth == 8 else np.uint16
+    into = out is not None and out.shape == (height, width) and out.dtype == dtype and out.flags.c_contiguous
+    arr = codecs.png_decode(_stored(codecs, data) or data, out=out if into else None)  # type: ignore[attr-defined]
     return arr if arr.ndim == 2 and arr.dtype in (np.uint8, np.uint16) else None
 
 

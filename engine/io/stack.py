@@ -145,9 +145,10 @@ def _read_slices(
 
     def decode_into(k: int) -> tuple[tuple[int, ...], np.dtype[Any], bool]:
         """Decode slice k straight into its plane of ``out`` (on a pool thread); its shape, dtype, colour flag."""
-        s, g = _decode(images[k], limits)
-        if s.shape == out.shape[1:] and s.dtype == out.dtype:
-            out[k] = s
+        plane = out[k]
+        s, g = _decode(images[k], limits, plane)
+        if s is not plane and s.shape == plane.shape and s.dtype == plane.dtype:  # not decoded in place
+            plane[...] = s
         return s.shape, s.dtype, "colour" in g
 
     # closed on the way out, also when this loop raises: no pool thread outlives the call
@@ -176,8 +177,9 @@ def _warn_colour(label: str, names: list[str], geo: dict[str, Any]) -> None:
         )
 
 
-def _decode(m: Member, limits: InputLimits) -> tuple[np.ndarray, dict[str, Any]]:
-    """Decode one member into a 2-D (or 3-D for multi-page TIFF / npy) grayscale array plus geometry hints."""
+def _decode(m: Member, limits: InputLimits, plane: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+    """Decode one member into a 2-D (or 3-D for multi-page TIFF / npy) grayscale array plus geometry hints; a plain
+    grayscale PNG of ``plane``'s shape and type is decoded straight into ``plane`` (and ``plane`` returned)."""
     kind = image_kind(m.head)
     data = m.read() if kind != "npy" else b""
     try:
@@ -190,7 +192,7 @@ def _decode(m: Member, limits: InputLimits) -> tuple[np.ndarray, dict[str, Any]]
             return arr, {}
         if kind == "tiff":
             return _decode_tiff(data)
-        if kind == "png" and (fast := decode_png_fast(data)) is not None:
+        if kind == "png" and (fast := decode_png_fast(data, plane)) is not None:
             return fast, {}
         import imageio.v3 as iio
 

@@ -103,6 +103,23 @@ def test_every_filter_type_equals_libpng(dtype: type, parts: int) -> None:
         np.testing.assert_array_equal(fast, imagecodecs.png_decode(png))
 
 
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_decodes_into_a_plane_of_the_volume(dtype: type) -> None:
+    imgs = _slices(3, (12, 9), dtype)
+    volume = np.zeros((3, 12, 9), dtype)
+    for k, img in enumerate(imgs):
+        plane = volume[k]
+        got = decode_png_fast(encode_png(img, RNG.integers(0, 5, size=12)), plane)
+        assert got is plane  # decoded in place: no temporary slice
+    np.testing.assert_array_equal(volume, imgs)
+    # a plane of another shape, type or layout is left alone: a new array comes back
+    png = encode_png(imgs[0], np.zeros(12, int))
+    for other in (np.zeros((9, 12), dtype), np.zeros((12, 9), np.float32), np.zeros((12, 18), dtype)[:, ::2]):
+        got = decode_png_fast(png, other)
+        assert got is not other and not other.any()
+        np.testing.assert_array_equal(got, imgs[0])
+
+
 def test_what_it_does_not_rewrap_is_decoded_from_the_original() -> None:
     img = _slices(1, (16, 20), np.uint16)[0]
     interlaced = encode_adam7(img)
