@@ -203,6 +203,7 @@ def _run(
     from engine.outputs import write_outputs
     from engine.params import ReconParams
     from engine.pipeline import reconstruct
+    from engine.staging import pinned_volumes
 
     timer = timer or Timings()  # the attempt's (reconstruct_job), or one of its own
     recon_dict, spacing = engine_params_of(job)
@@ -231,6 +232,7 @@ def _run(
         spacing_zyx_mm=tuple(spacing) if spacing else None,
         threads=settings.decode_threads,
         processes=settings.decode_processes,
+        allocate=pinned_volumes(device),  # reused from job to job; page-locked for the upload to a CUDA device
     )
     if options["roi"] is not None:  # cropped before anything runs
         volume = crop_roi(volume, options["roi"], params.orient)

@@ -15,7 +15,7 @@ from engine.errors import InputError, NotAScanError
 from engine.io.archive import InputLimits, open_members
 from engine.io.dicom import has_dicom_images, load_dicom
 from engine.io.parallel import decode_threads
-from engine.io.stack import StackWarning, check_spacing, load_stack, natural_key
+from engine.io.stack import Allocate, StackWarning, check_spacing, load_stack, natural_key
 from engine.types import Volume
 
 __all__ = [
@@ -79,6 +79,7 @@ def load_volume(
     on_progress: Callable[[float], None] | None = None,
     threads: int | None = None,
     processes: bool | None = None,
+    allocate: Allocate | None = None,
 ) -> Volume:
     """Load a scan as a (z, y, x) :class:`Volume`.
 
@@ -96,6 +97,9 @@ def load_volume(
             (pydicom holds the GIL; ``engine.io.procs``). None (default): for inputs of at least
             ``engine.io.dicom.PROCESS_MIN_FILES`` DICOM files and ``threads`` >= ``PROCESS_MIN_WORKERS``, where this
             process may start processes; False: threads. The result does not depend on it.
+        allocate: image stacks only: makes the array the slices are decoded into, ``allocate(shape, dtype)`` -> an
+            uninitialised C-contiguous array (default ``np.empty``; a worker passes its reused page-locked buffer,
+            ``engine.staging.pinned_volumes``). DICOM series make their own.
 
     Returns:
         The volume: integer data stay integer (uint8/uint16/int16); DICOM CT is in HU (int16 where exact,
@@ -126,4 +130,4 @@ def load_volume(
                 return vol
         if series_uid is not None:
             raise InputError(f"series_uid={series_uid!r} was given, but {label} holds no DICOM images")
-        return load_stack(members, label, spacing, limits, on_progress=on_progress, threads=threads)
+        return load_stack(members, label, spacing, limits, on_progress=on_progress, threads=threads, allocate=allocate)

@@ -22,6 +22,9 @@ from engine.io.parallel import decode_threads, ordered_map
 from engine.params import check_spacing_zyx_mm
 from engine.types import Volume
 
+# makes the (z, y, x) array a stack is decoded into: (shape, dtype) -> an uninitialised C-contiguous array
+Allocate = Callable[[tuple[int, ...], "np.dtype[Any]"], np.ndarray]
+
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
 _SIGNATURES = (
     (b"\x89PNG\r\n\x1a\n", "png"),
@@ -78,19 +81,21 @@ def load_stack(
     limits: InputLimits,
     on_progress: Callable[[float], None] | None = None,
     threads: int | None = None,
+    allocate: Allocate | None = None,
 ) -> Volume:
     """Build a Volume from the image members of ``members`` (slices, one multi-page TIFF, or one .npy).
 
     ``on_progress`` is called with the fraction of slices decoded. Slices are decoded on ``threads`` threads
-    (default: the CPUs this process may use; 1 decodes serially). The stack's orientation is not known: the
-    pipeline places it by ``engine.params.OrientParams`` (``engine.orient``).
+    (default: the CPUs this process may use; 1 decodes serially) into ``allocate(shape, dtype)`` (default
+    ``np.empty``). The stack's orientation is not known: the pipeline places it by ``engine.params.OrientParams``
+    (``engine.orient``).
 
     Raises:
         InputError: no images, mixed shapes/dtypes, too many voxels, or no voxel size.
     """
     names = sorted((m.name for m in members.members if image_kind(m.head)), key=natural_key)
     completeness = check_numbering(names, label) if len(names) > 1 else None  # before decoding: fail fast
-    data, fmt, geo = _read_slices(members, label, limits, on_progress, decode_threads(threads))
+    data, fmt, geo = _read_slices(members, label, limits, on_progress, decode_threads(threads), allocate)
     check_count(data.shape[0], label)
     if completeness is None:  # one file: a volume (.npy, multi-page TIFF)
         completeness = Completeness(images=data.shape[0], layout="one volume file")
@@ -111,9 +116,10 @@ def _read_slices(
     limits: InputLimits,
     on_progress: Callable[[float], None] | None = None,
     threads: int = 1,
+    allocate: Allocate | None = None,
 ) -> tuple[np.ndarray, str, dict[str, Any]]:
-    """The image members in natural name order as one (z, y, x) array; slices after the first are decoded on
-    ``threads`` threads straight into the array (``engine.io.parallel``)."""
+    """The image members in natural name order as one (z, y, x) array (made by ``allocate``, default ``np.empty``);
+    slices after the first are decoded on ``threads`` threads straight into the array (``engine.io.parallel``)."""
     images = [m for m in members.members if image_kind(m.head)]
     if not images:
         seen = ", ".join(m.name for m in members.members[:3]) or "nothing"
@@ -138,7 +144,7 @@ def _read_slices(
             "give a multi-page TIFF on its own"
         )
     limits.check_voxels((len(images), *first.shape), label)
-    out = np.empty((len(images), *first.shape), dtype=first.dtype)
+    out = _allocated(allocate, (len(images), *first.shape), first.dtype)
     out[0] = first
     del first
     coloured = [images[0].name] if "colour" in geo else []
@@ -165,6 +171,16 @@ def _read_slices(
                 on_progress((k + 1) / len(images))
     _warn_colour(label, coloured, geo)
     return _narrow(out), "+".join(kinds), geo
+
+
+def _allocated(allocate: Allocate | None, shape: tuple[int, ...], dtype: np.dtype[Any]) -> np.ndarray:
+    """An uninitialised C-contiguous array from ``allocate`` (checked), else ``np.empty``."""
+    if allocate is None:
+        return np.empty(shape, dtype)
+    out = allocate(shape, dtype)
+    if out.shape != shape or out.dtype != dtype or not out.flags.c_contiguous or not out.flags.writeable:
+        raise ValueError(f"allocate{shape, dtype} gave a {out.shape} {out.dtype} array that cannot be filled in place")
+    return out
 
 
 def _warn_colour(label: str, names: list[str], geo: dict[str, Any]) -> None:

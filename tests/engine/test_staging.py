@@ -68,6 +68,69 @@ def test_cuda_copies_go_through_one_reused_pinned_buffer():
     assert ptrs[0] == ptrs[1], "the pinned buffer is allocated once and reused"
 
 
+# ------------------------------------------------------------------------- loaded volumes (engine.io's allocate)
+def test_the_volume_buffer_is_reused_only_once_nothing_holds_it(monkeypatch):
+    from engine.staging import VolumeBuffer
+
+    monkeypatch.setenv("BONEMESH_PINNED_MAX", "1M")
+    volumes = VolumeBuffer(pinned=False)
+    first = volumes((4, 8, 8), np.uint16)
+    first[...] = 7
+    held = volumes((4, 8, 8), np.uint16)  # the first still lives: a plain array of its own
+    assert not np.shares_memory(first, held) and volumes.buf.ptr != held.ctypes.data
+    plane = first[2]  # a view holds it too
+    del first, held
+    assert volumes((4, 8, 8), np.uint16).ctypes.data != volumes.buf.ptr
+    del plane
+    again = volumes((2, 8, 8), np.float32)  # free now: the same memory, any shape and type that fits
+    assert again.ctypes.data == volumes.buf.ptr and again.shape == (2, 8, 8) and again.dtype == np.float32
+    assert again.flags.c_contiguous and again.flags.writeable
+    del again
+    big = volumes((64, 64, 64), np.uint16)  # larger: the buffer grows (the old one freed first)
+    assert big.ctypes.data == volumes.buf.ptr and volumes.buf.capacity >= big.nbytes
+    del big
+    past_cap = volumes((1, 1024, 1024), np.uint16)  # 2 MB past the 1 MB cap: plain
+    assert past_cap.ctypes.data != volumes.buf.ptr
+
+
+def test_a_stack_loads_the_same_into_the_buffer(tmp_path):
+    import imagecodecs
+
+    from engine.io import load_volume
+    from engine.staging import VolumeBuffer, pinned_volumes
+
+    rng = np.random.default_rng(3)
+    stack = rng.integers(0, 4096, (5, 12, 9), dtype=np.uint16)
+    folder = tmp_path / "stack"
+    folder.mkdir()
+    for z, img in enumerate(stack):
+        (folder / f"s{z:02d}.png").write_bytes(imagecodecs.png_encode(img))
+    volumes = VolumeBuffer(pinned=False)
+    got = load_volume(folder, spacing_zyx_mm=(1, 1, 1), allocate=volumes)
+    assert got.data.ctypes.data == volumes.buf.ptr
+    np.testing.assert_array_equal(got.data, stack)
+    np.testing.assert_array_equal(got.data, load_volume(folder, spacing_zyx_mm=(1, 1, 1)).data)
+    with pytest.raises(ValueError, match="cannot be filled in place"):
+        load_volume(folder, spacing_zyx_mm=(1, 1, 1), allocate=lambda shape, dtype: np.empty(shape, np.float32))
+    assert pinned_volumes("cpu") is None  # plain arrays where the device is not CUDA
+
+
+@pytest.mark.gpu
+def test_cuda_workers_load_into_one_reused_pinned_buffer(tmp_path):
+    from engine.staging import pinned_volumes
+
+    volumes = pinned_volumes("cuda:0")
+    assert volumes is not None and volumes is pinned_volumes("cuda:0")
+    a = volumes((3, 64, 64), np.uint16)
+    a[...] = np.arange(64, dtype=np.uint16)
+    assert volumes.buf.pinned and volumes.buf.ptr == a.ctypes.data
+    on_gpu = wp.array(a, device="cuda:0")
+    np.testing.assert_array_equal(on_gpu.numpy(), a)
+    ptr = volumes.buf.ptr
+    del a
+    assert volumes((3, 64, 64), np.uint16).ctypes.data == ptr
+
+
 # --------------------------------------------------------------------------------- plane feed (host to device)
 def _requests(nz: int, rng: np.random.Generator) -> list[tuple[int, int]]:
     """A slab pass's requests: forward in z, each next slab starting just before the last one ended, some slabs

@@ -54,6 +54,7 @@ def test_worker_loads_with_the_decode_settings(monkeypatch: pytest.MonkeyPatch, 
     import worker.tasks as tasks
     from core.settings import Settings
     from engine.io import codecs
+    from engine.staging import pinned_volumes
 
     class Stop(Exception):
         pass
@@ -81,4 +82,6 @@ def test_worker_loads_with_the_decode_settings(monkeypatch: pytest.MonkeyPatch, 
         seen.clear()
         with pytest.raises(Stop):
             tasks._run(job, tmp_path / "upload.zip", tmp_path / "staged", holder, settings, None)  # type: ignore[arg-type]
-        assert seen == {"spacing_zyx_mm": (1.0, 0.5, 0.5), **expected}
+        # the process's page-locked volume buffer on a CUDA device, plain arrays here
+        allocate = pinned_volumes(settings.device)
+        assert seen == {"spacing_zyx_mm": (1.0, 0.5, 0.5), "allocate": allocate, **expected}
