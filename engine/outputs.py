@@ -299,6 +299,7 @@ def write_outputs(
     import warp as wp
 
     from engine.device import resolve_backend, resolve_device
+    from engine.export.files import load_exporters, viewing_files
     from engine.export.printcheck import PRINT_STL, check_print_model, stl_name
     from engine.orient import Frame
     from engine.surface.devmesh import mesh_stats_device
@@ -307,6 +308,7 @@ def write_outputs(
     dev = resolve_device(device)
     be = resolve_backend(device)
     target = dev if be.kind == "warp" else be  # OpenCL: the layout and the viewing copies run on its device
+    load_exporters(viewing_files())  # before the threads below: native libraries are first loaded on this thread
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".bonemesh-", dir=out))
@@ -389,17 +391,25 @@ def _viewing_files(
 
 
 def _encode_small(phone: Mesh, ar: Mesh, parts: dict[str, list[Any]]) -> tuple[dict[str, bytes], dict[str, float]]:
-    """The small files (``engine.export.viewers.small_files``), one after another (in threads they hung on the
-    H100 host), and each one's seconds."""
+    """The small files (``engine.export.viewers.small_files``) and each one's seconds: those whose exporter runs
+    Warp kernels (``OutputFile.device``: the preview) on this thread, the others at the same time in threads (their
+    codecs are native code and numpy; no Warp call leaves this thread: Warp copies from a second thread while this
+    one launched kernels hung ``write_outputs`` on the H100 host, c683f09)."""
+    from engine.export.files import FILES, load_exporters
     from engine.export.viewers import small_files
 
-    files: dict[str, bytes] = {}
-    seconds: dict[str, float] = {}
-    for name, encode in small_files(phone, ar, parts).items():
+    def timed(encode: Any) -> tuple[bytes, float]:
         t0 = time.perf_counter()
-        files[name] = encode()
-        seconds[name] = time.perf_counter() - t0
-    return files, seconds
+        return encode(), time.perf_counter() - t0
+
+    jobs = small_files(phone, ar, parts)
+    load_exporters(FILES[n] for n in jobs)  # their native libraries, loaded on this thread before the pool starts
+    here = {n: e for n, e in jobs.items() if FILES[n].device}
+    with ThreadPoolExecutor(max(1, len(jobs) - len(here)), thread_name_prefix="bonemesh-encode") as pool:
+        beside = {n: pool.submit(timed, e) for n, e in jobs.items() if n not in here}
+        done = {n: timed(e) for n, e in here.items()}
+        done.update({n: f.result() for n, f in beside.items()})
+    return {n: done[n][0] for n in jobs}, {n: done[n][1] for n in jobs}
 
 
 def _layout_device(recon: Reconstruction, dev: Any, budget: Budget, report: Report) -> tuple[Any, bool]:

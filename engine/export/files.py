@@ -91,6 +91,8 @@ class OutputFile:
             template as its own coloured node).
         labels: whether a label job has it too (its model.glb, phone.glb and ar.glb hold one named, coloured node
             per label; ``engine_files(labels=True)``).
+        device: whether its exporter runs Warp kernels (the preview's rasteriser): ``engine.outputs`` runs it on
+            the calling thread, and the exporters without (native codecs, numpy) in threads beside it.
     """
 
     name: str
@@ -103,6 +105,7 @@ class OutputFile:
     when: When = "always"
     parts: bool = False
     labels: bool = False
+    device: bool = False
 
     @property
     def format(self) -> str | None:
@@ -192,6 +195,7 @@ _FILES = (
         triangles=False,
         exporter="engine.export.preview:to_preview_png",
         labels=True,
+        device=True,
     ),
     OutputFile(
         name=REPORT_JSON,
@@ -298,6 +302,20 @@ def exporter_of(file: str | OutputFile) -> Exporter:
     if entry.exporter is None:
         raise KeyError(f"{entry.name} has no exporter")
     return _resolve(entry.exporter)
+
+
+def load_exporters(files: Iterable[OutputFile]) -> None:
+    """Import the exporters of ``files`` and the native libraries they load lazily (their module's
+    ``load_native``), here, before any thread encodes with them. A native library's first import from two threads at
+    once can deadlock: USD's initialisers take the GIL inside ``dlopen`` (holding the loader's lock) while a thread
+    holding the GIL waits in ``dlopen`` for that lock (ctypes loading meshoptimizer's library). That hung
+    ``engine.outputs.write_outputs`` on the H100 host once and in the tests here."""
+    for entry in files:
+        if entry.exporter is not None:
+            module = importlib.import_module(entry.exporter.partition(":")[0])
+            load_native = getattr(module, "load_native", None)
+            if load_native is not None:
+                load_native()
 
 
 def _resolve(path: str) -> Exporter:

@@ -45,6 +45,11 @@ def _meshopt() -> Any:
     return meshoptimizer
 
 
+def load_native() -> None:
+    """Import meshoptimizer's native library now (``engine.export.files.load_exporters``: before threads encode)."""
+    _meshopt()
+
+
 def _fetch_order(tris: npt.NDArray[np.int64]) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
     """``(order, new_tris)``: vertices in the order the triangles first use them (unused ones dropped)."""
     flat = tris.ravel()

@@ -27,6 +27,11 @@ def _pxr() -> Any:
     return Gf, Sdf, Usd, UsdGeom, UsdShade, UsdUtils, Vt
 
 
+def load_native() -> None:
+    """Import USD's native library now (``engine.export.files.load_exporters``: before threads encode)."""
+    _pxr()
+
+
 def to_usdz(
     vertices_zyx_mm: npt.ArrayLike,
     faces: npt.ArrayLike,

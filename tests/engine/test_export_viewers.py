@@ -127,3 +127,60 @@ def test_thumbnail_ties_go_to_the_lower_triangle() -> None:
     assert seen[0] > seen[1], "the first-listed square must win the tie, whichever it is"
     again = render(positions, first, np.vstack([bright, dark]), size=32, yaw_deg=0, pitch_deg=0, margin=0.0)
     assert again[16, 16, :3].astype(int).sum() == seen[0]
+
+
+def test_small_files_encode_beside_each_other_with_warp_on_the_calling_thread(
+    monkeypatch: pytest.MonkeyPatch, ball_on_rod: trimesh.Trimesh
+) -> None:
+    """``engine.outputs`` encodes the viewer files at once; an exporter that runs Warp kernels (the preview) stays
+    on the calling thread (Warp copies from a second thread hung the H100 host once), the others run in threads;
+    every file comes out as its exporter alone makes it."""
+    import threading
+
+    from engine import outputs
+    from engine.export import viewers
+    from engine.export.files import FILES, viewing_files
+    from engine.types import Mesh
+
+    vertices, faces = _engine_mesh(ball_on_rod)
+    mesh = Mesh(vertices, faces, None)
+    threads: dict[str, str] = {}
+    plain = viewers.small_files(mesh, mesh)
+
+    def recorded(name: str, encode) -> object:
+        def run() -> bytes:
+            threads[name] = threading.current_thread().name
+            return encode()
+
+        return run
+
+    real = viewers.small_files
+    monkeypatch.setattr(viewers, "small_files", lambda *a: {n: recorded(n, e) for n, e in real(*a).items()})
+    files, seconds = outputs._encode_small(mesh, mesh, {})
+    assert list(files) == list(seconds) == [f.name for f in viewing_files()]
+    here = threading.current_thread().name
+    for name in files:
+        on_here = threads[name] == here
+        assert on_here == FILES[name].device, (name, threads[name])
+        assert files[name] == plain[name](), name
+    assert FILES["preview.png"].device
+
+
+def test_a_fresh_process_encodes_the_small_files_in_threads_without_hanging() -> None:
+    """The first use of the exporters in a process loads USD's and meshoptimizer's native libraries; loaded from two
+    threads at once they deadlocked (USD's initialisers wait for the GIL inside ``dlopen``). ``load_exporters``
+    loads them on the calling thread first."""
+    import subprocess
+    import sys
+
+    code = (
+        "import trimesh, numpy as np\n"
+        "from engine.outputs import _encode_small\n"
+        "from engine.types import Mesh\n"
+        "m = trimesh.creation.icosphere(3, radius=20.0)\n"
+        "mesh = Mesh(m.vertices[:, ::-1].astype(np.float32), m.faces.astype(np.int32), None)\n"
+        "files, _ = _encode_small(mesh, mesh, {})\n"
+        "print(sorted(files))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180, check=True)
+    assert "model.usdz" in done.stdout and "phone_meshopt.glb" in done.stdout
