@@ -361,3 +361,15 @@ def test_cpu_contention(tmp_path: Path) -> None:
     for name, runs in report["pools"].items():
         assert len(runs["alone"]) == 1 and len(runs["together"]) == 2, name
         assert all(r["calls_per_second"] > 0 for r in runs["alone"] + runs["together"]), name
+
+
+def test_load_contention(tmp_path: Path) -> None:
+    out = tmp_path / "load_contention.json"
+    run_module("load_contention", ["--phantom", "8,32,32", "--loads", "1", "--out", str(out)], tmp_path)
+    report = load(out)
+    has_keys(report, "benchmark", "host", "input", "fresh_alone", "fresh_both", "reused_alone", "reused_both")
+    for key in ("fresh", "reused"):
+        assert len(report[f"{key}_alone"]) == 1 and len(report[f"{key}_both"]) == 2, key
+        for proc in report[f"{key}_alone"] + report[f"{key}_both"]:
+            (row,) = proc["loads"]
+            assert finite(row["seconds"]) and row["seconds"] > 0 and row["user"] >= 0 and row["sys"] >= 0, row
