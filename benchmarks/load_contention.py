@@ -2,12 +2,12 @@
 
     python -m benchmarks.load_contention [--phantom 476,1024,1024 | --input scan.zip] [--loads 5] --out result.json
 
-One process (pinned to the first half of this process's CPUs, one decode thread per CPU) loads the stack ``--loads``
-times after a warm-up load, then two such processes (the two halves) load at once, each load timed with its user
-and system CPU seconds and minor page faults. Each is done twice: into a fresh ``np.empty`` per load ("fresh", as
-the CLI does) and into one reused buffer (``engine.staging.VolumeBuffer``, as a worker does; page-locked with
-``--pinned`` on a CUDA host). The committed ``loadprobe_2xh100.json`` came from the first version of this probe
-(the same measurements, the buffer reused by patching the loader).
+One process (pinned to the first half of this process's CPUs, one decode thread per CPU, or ``--threads``) loads
+the stack ``--loads`` times after a warm-up load, then two such processes (the two halves) load at once, each load
+timed with its user and system CPU seconds and minor page faults. Each is done twice: into a fresh ``np.empty`` per
+load ("fresh", as the CLI does) and into one reused buffer (``engine.staging.VolumeBuffer``, as a worker does;
+page-locked with ``--pinned`` on a CUDA host). The committed ``loadprobe_2xh100.json`` came from the first version
+of this probe (the same measurements, the buffer reused by patching the loader).
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
+from queue import Empty
 from typing import Any
 
 from benchmarks.report import write_json
@@ -29,19 +30,22 @@ from benchmarks.report import write_json
 SPACING = (1.0, 1.0, 1.0)
 
 
-def _loads(path: Path, cpus: list[int], reuse: bool, pinned: bool, n: int, queue: Any, start: Any) -> None:
-    """``n`` timed loads of ``path`` in this process, pinned to ``cpus`` (after a warm-up and ``start``)."""
+def _loads(
+    path: Path, cpus: list[int], threads: int, reuse: bool, pinned: bool, n: int, queue: Any, start: Any
+) -> None:
+    """``n`` timed loads of ``path`` on ``threads`` decode threads in this process, pinned to ``cpus`` (after a
+    warm-up and ``start``)."""
     os.sched_setaffinity(0, set(cpus))
     from engine.io import load_volume
     from engine.staging import VolumeBuffer
 
     allocate = VolumeBuffer(pinned=pinned) if reuse else None
-    load_volume(path, spacing_zyx_mm=SPACING, threads=len(cpus), allocate=allocate)  # page cache, imports
+    load_volume(path, spacing_zyx_mm=SPACING, threads=threads, allocate=allocate)  # page cache, imports
     start.wait()
     rows = []
     for _ in range(n):
         r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
-        volume = load_volume(path, spacing_zyx_mm=SPACING, threads=len(cpus), allocate=allocate)
+        volume = load_volume(path, spacing_zyx_mm=SPACING, threads=threads, allocate=allocate)
         r1 = resource.getrusage(resource.RUSAGE_SELF)
         rows.append(
             {
@@ -55,14 +59,16 @@ def _loads(path: Path, cpus: list[int], reuse: bool, pinned: bool, n: int, queue
     queue.put((cpus, rows))
 
 
-def phase(path: Path, cpusets: list[list[int]], reuse: bool, pinned: bool, n: int) -> list[dict[str, Any]]:
-    """Each CPU set's loads, the sets loading at the same time."""
+def phase(
+    path: Path, cpusets: list[list[int]], threads: int, reuse: bool, pinned: bool, n: int
+) -> list[dict[str, Any]]:
+    """Each CPU set's loads (``threads`` decode threads each), the sets loading at the same time."""
     ctx = mp.get_context("fork")
     queue, start = ctx.Queue(), ctx.Barrier(len(cpusets))
-    procs = [ctx.Process(target=_loads, args=(path, c, reuse, pinned, n, queue, start)) for c in cpusets]
+    procs = [ctx.Process(target=_loads, args=(path, c, threads, reuse, pinned, n, queue, start)) for c in cpusets]
     for p in procs:
         p.start()
-    out = [queue.get(timeout=600) for _ in procs]
+    out = [_result(queue, procs) for _ in procs]
     for p in procs:
         p.join()
     return [
@@ -76,12 +82,28 @@ def phase(path: Path, cpusets: list[list[int]], reuse: bool, pinned: bool, n: in
     ]
 
 
+def _result(queue: Any, procs: list[Any], timeout: float = 600) -> Any:
+    """The next result; an error at once where a loader process died (e.g. ``--pinned`` without CUDA)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            return queue.get(timeout=0.5)
+        except Empty:
+            dead = [p for p in procs if p.exitcode not in (None, 0)]
+            if dead:
+                raise RuntimeError(f"a loader process exited with {dead[0].exitcode}; its error is above") from None
+    raise TimeoutError(f"no load finished within {timeout} s")
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--phantom", default="476,1024,1024", help="z,y,x of the bone phantom's PNG zip")
     parser.add_argument("--input", type=Path, help="a PNG stack (zip or folder) instead of the phantom")
     parser.add_argument("--loads", type=int, default=5, help="timed loads per process and phase")
     parser.add_argument("--pinned", action="store_true", help="the reused buffer page-locked (needs CUDA)")
+    parser.add_argument(
+        "--threads", default="", help="decode threads per process, comma-separated to compare (default: its CPUs)"
+    )
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     cpus = sorted(os.sched_getaffinity(0))
@@ -102,14 +124,16 @@ def main(argv: list[str] | None = None) -> None:
         "input": {"name": path.name, "bytes": path.stat().st_size if path.is_file() else None, "preparation": prep},
         "pinned": args.pinned,
     }
-    for reuse in (False, True):
-        key = "reused" if reuse else "fresh"
-        report[f"{key}_alone"] = phase(path, sets[:1], reuse, args.pinned, args.loads)
-        report[f"{key}_both"] = phase(path, sets, reuse, args.pinned, args.loads)
-        alone = report[f"{key}_alone"][0]["median_seconds"]
-        both = [p["median_seconds"] for p in report[f"{key}_both"]]
-        print(f"[load_contention] {key}: alone {alone:.3f} s, both {both}", flush=True)
-        write_json(args.out, report)
+    for threads in [int(t) for t in args.threads.split(",") if t] or [half]:
+        prefix = "" if not args.threads else f"threads_{threads}_"
+        for reuse in (False, True):
+            key = prefix + ("reused" if reuse else "fresh")
+            report[f"{key}_alone"] = phase(path, sets[:1], threads, reuse, args.pinned, args.loads)
+            report[f"{key}_both"] = phase(path, sets, threads, reuse, args.pinned, args.loads)
+            alone = report[f"{key}_alone"][0]["median_seconds"]
+            both = [p["median_seconds"] for p in report[f"{key}_both"]]
+            print(f"[load_contention] {key}: alone {alone:.3f} s, both {both}", flush=True)
+            write_json(args.out, report)
 
 
 if __name__ == "__main__":
