@@ -83,7 +83,8 @@ def phase(
 
 
 def _result(queue: Any, procs: list[Any], timeout: float = 600) -> Any:
-    """The next result; an error at once where a loader process died (e.g. ``--pinned`` without CUDA)."""
+    """The next result; an error at once where a loader process died (e.g. no Warp for the reused buffer, or
+    ``--pinned`` without CUDA)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         try:
