@@ -27,7 +27,9 @@ running meanwhile (decimation 0.8 s instead of 0.27 s): 1.51x against 1.66-1.77x
 (SIGSTOP to each worker's process group) and times the phase from their resume: the workers' own scaling, without
 the uploads sharing the host's CPUs. ``--cpu-layout halves`` gives each worker half of its CPUs from each half of
 the host's (whole cores where hyper-thread siblings are numbered i and i + n/2; on the 2 x H100 host it made no
-difference: 1.81x against 1.80x).
+difference: 1.81x against 1.80x). ``--workdir`` holds the stack's data folder, which takes every upload: on the 2 x
+H100 VM its disk took 24 uploads of 571 MB in 15.5-17 s (workers paused) against 7.3 s on tmpfs (``/dev/shm``), so
+two fast workers starved behind uploads to disk (1.39x) and reached 1.71-1.80x with the folder on tmpfs.
 
 Input: ``--input`` (a scan archive, with ``--params``), ``--phantom Z,Y,X`` (the bone phantom as 16-bit PNG slices,
 ``benchmarks.phantom_zip``), or by default the bundled CT head (``engine.data``).
