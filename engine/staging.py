@@ -114,9 +114,9 @@ def host_copies(device: Any, nbytes: int) -> Iterator[HostCopies]:
         _PINNED.lock.release()
 
 
-class VolumeBuffer:
-    """The process's buffer for loaded volumes (``engine.io.load_volume``'s ``allocate``): a CPU array, page-locked
-    where ``pinned``, kept from job to job and grown on demand, up to ``BONEMESH_PINNED_MAX``.
+class VolumeBuffer(PinnedBuffer):
+    """The process's buffer for loaded volumes (``engine.io.load_volume``'s ``allocate``): a ``PinnedBuffer``
+    (page-locked where ``pinned``) kept from job to job and grown on demand, up to ``BONEMESH_PINNED_MAX``.
 
     A volume decoded into page-locked memory goes to a CUDA device at the link's speed, and its pages are touched
     once per process instead of once per job. Measured on the 2 x H100 host for a 476 x 1024 x 1024 uint16 volume
@@ -129,9 +129,8 @@ class VolumeBuffer:
     """
 
     def __init__(self, pinned: bool = True) -> None:
+        super().__init__()
         self.pinned = pinned
-        self.buf: Any = None
-        self.lock = threading.Lock()
 
     def __call__(self, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
         dtype = np.dtype(dtype)
@@ -139,10 +138,7 @@ class VolumeBuffer:
         with self.lock:
             if nbytes > pinned_max() or not nbytes or (self.buf is not None and self._held()):
                 return np.empty(shape, dtype)
-            if self.buf is None or self.buf.capacity < nbytes:
-                self.buf = None  # the old one freed first
-                self.buf = pinned_bytes(min(nbytes * 9 // 8, pinned_max()), pinned=self.pinned)
-            whole: np.ndarray = self.buf.numpy()
+            whole: np.ndarray = self.at_least(nbytes, min(nbytes * 9 // 8, pinned_max()), self.pinned).numpy()
             out: np.ndarray = whole.view(np.uint8)[:nbytes].view(dtype).reshape(shape)
             return out
 
@@ -151,7 +147,7 @@ class VolumeBuffer:
         return sys.getrefcount(self.buf) > 2  # the attribute and getrefcount's argument
 
 
-_VOLUMES: dict[str, VolumeBuffer] = {}
+_VOLUMES = VolumeBuffer(pinned=True)  # allocated at its first use
 
 
 def pinned_volumes(device: Any) -> VolumeBuffer | None:
@@ -159,6 +155,4 @@ def pinned_volumes(device: Any) -> VolumeBuffer | None:
     resolves to a CUDA device, else None (plain ``np.empty``)."""
     from engine.device import resolve_device
 
-    if not resolve_device(device).is_cuda:
-        return None
-    return _VOLUMES.setdefault("pinned", VolumeBuffer(pinned=True))
+    return _VOLUMES if resolve_device(device).is_cuda else None
