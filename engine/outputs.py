@@ -308,7 +308,7 @@ def write_outputs(
     dev = resolve_device(device)
     be = resolve_backend(device)
     target = dev if be.kind == "warp" else be  # OpenCL: the layout and the viewing copies run on its device
-    load_exporters(viewing_files())  # before the threads below: native libraries are first loaded on this thread
+    load_exporters(viewing_files())  # native libraries loaded on this thread, before the print files' writer starts
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".bonemesh-", dir=out))
@@ -395,15 +395,14 @@ def _encode_small(phone: Mesh, ar: Mesh, parts: dict[str, list[Any]]) -> tuple[d
     Warp kernels (``OutputFile.device``: the preview) on this thread, the others at the same time in threads (their
     codecs are native code and numpy; no Warp call leaves this thread: Warp copies from a second thread while this
     one launched kernels hung ``write_outputs`` on the H100 host, c683f09)."""
-    from engine.export.files import FILES, load_exporters
+    from engine.export.files import FILES
     from engine.export.viewers import small_files
 
     def timed(encode: Any) -> tuple[bytes, float]:
         t0 = time.perf_counter()
         return encode(), time.perf_counter() - t0
 
-    jobs = small_files(phone, ar, parts)
-    load_exporters(FILES[n] for n in jobs)  # their native libraries, loaded on this thread before the pool starts
+    jobs = small_files(phone, ar, parts)  # the exporters looked up (native libraries loaded) on this thread
     here = {n: e for n, e in jobs.items() if FILES[n].device}
     with ThreadPoolExecutor(max(1, len(jobs) - len(here)), thread_name_prefix="bonemesh-encode") as pool:
         beside = {n: pool.submit(timed, e) for n, e in jobs.items() if n not in here}

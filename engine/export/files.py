@@ -293,7 +293,7 @@ def viewing_files() -> tuple[OutputFile, ...]:
 
 
 def exporter_of(file: str | OutputFile) -> Exporter:
-    """The exporter of a file (by name or entry), imported now.
+    """The exporter of a file (by name or entry), imported now with the native libraries it loads (``_resolve``).
 
     Raises:
         KeyError: not an output file, or one without an exporter (the report).
@@ -305,22 +305,26 @@ def exporter_of(file: str | OutputFile) -> Exporter:
 
 
 def load_exporters(files: Iterable[OutputFile]) -> None:
-    """Import the exporters of ``files`` and the native libraries they load lazily (their module's
-    ``load_native``), here, before any thread encodes with them. A native library's first import from two threads at
-    once can deadlock: USD's initialisers take the GIL inside ``dlopen`` (holding the loader's lock) while a thread
-    holding the GIL waits in ``dlopen`` for that lock (ctypes loading meshoptimizer's library). That hung
-    ``engine.outputs.write_outputs`` on the H100 host once and in the tests here."""
+    """Look up the exporters of ``files`` now (``exporter_of``: with their native libraries), on this thread, before
+    any thread is started that could load a native library at the same time."""
     for entry in files:
         if entry.exporter is not None:
-            module = importlib.import_module(entry.exporter.partition(":")[0])
-            load_native = getattr(module, "load_native", None)
-            if load_native is not None:
-                load_native()
+            _resolve(entry.exporter)
 
 
 def _resolve(path: str) -> Exporter:
-    module, _, name = path.partition(":")
-    fn: Exporter = getattr(importlib.import_module(module), name)
+    """The exporter ``module:function``, its module imported with the native libraries it loads lazily (its
+    ``load_native``), on the calling thread. A native library's first load from two threads at once can deadlock:
+    USD's initialisers take the GIL inside ``dlopen`` (holding the loader's lock) while a thread holding the GIL
+    waits in ``dlopen`` for that lock (ctypes loading meshoptimizer's library). That hung
+    ``engine.outputs.write_outputs`` on the H100 host once and in the tests here; its threads encode with exporters
+    looked up before they start."""
+    name, _, function = path.partition(":")
+    module = importlib.import_module(name)
+    load_native = getattr(module, "load_native", None)
+    if load_native is not None:
+        load_native()
+    fn: Exporter = getattr(module, function)
     return fn
 
 

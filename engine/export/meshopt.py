@@ -46,7 +46,8 @@ def _meshopt() -> Any:
 
 
 def load_native() -> None:
-    """Import meshoptimizer's native library now (``engine.export.files.load_exporters``: before threads encode)."""
+    """Import meshoptimizer's native library now: ``engine.export.files`` calls it when the exporter is looked up, on
+    the thread that then starts the threads that encode (a first load from two threads at once can deadlock)."""
     _meshopt()
 
 

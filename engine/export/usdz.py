@@ -28,7 +28,8 @@ def _pxr() -> Any:
 
 
 def load_native() -> None:
-    """Import USD's native library now (``engine.export.files.load_exporters``: before threads encode)."""
+    """Import USD's native library now: ``engine.export.files`` calls it when the exporter is looked up, on
+    the thread that then starts the threads that encode (a first load from two threads at once can deadlock)."""
     _pxr()
 
 

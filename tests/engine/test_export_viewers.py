@@ -168,8 +168,8 @@ def test_small_files_encode_beside_each_other_with_warp_on_the_calling_thread(
 
 def test_a_fresh_process_encodes_the_small_files_in_threads_without_hanging() -> None:
     """The first use of the exporters in a process loads USD's and meshoptimizer's native libraries; loaded from two
-    threads at once they deadlocked (USD's initialisers wait for the GIL inside ``dlopen``). ``load_exporters``
-    loads them on the calling thread first."""
+    threads at once they deadlocked (USD's initialisers wait for the GIL inside ``dlopen``). Looking an exporter up
+    (``engine.export.files``, on the calling thread) loads them before any encoding thread starts."""
     import subprocess
     import sys
 
