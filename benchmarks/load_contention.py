@@ -6,7 +6,9 @@ One process (pinned to the first half of this process's CPUs, one decode thread 
 the stack ``--loads`` times after a warm-up load, then two such processes (the two halves) load at once, each load
 timed with its user and system CPU seconds and minor page faults. Each is done twice: into a fresh ``np.empty`` per
 load ("fresh", as the CLI does) and into one reused buffer (``engine.staging.VolumeBuffer``, as a worker does;
-page-locked with ``--pinned`` on a CUDA host). The committed ``loadprobe_2xh100.json`` came from the first version
+page-locked with ``--pinned`` on a CUDA host). ``--unfilter host,device`` compares libpng's unfiltering on the host
+with the device's (``engine.io.png_rows``; the i-th process on the i-th of ``--gpus``), ``--buffers reused`` skips
+the fresh arrays. The committed ``loadprobe_2xh100.json`` came from the first version
 of this probe (the same measurements, the buffer reused by patching the loader).
 """
 
@@ -31,21 +33,32 @@ SPACING = (1.0, 1.0, 1.0)
 
 
 def _loads(
-    path: Path, cpus: list[int], threads: int, reuse: bool, pinned: bool, n: int, queue: Any, start: Any
+    path: Path,
+    cpus: list[int],
+    threads: int,
+    reuse: bool,
+    pinned: bool,
+    n: int,
+    queue: Any,
+    start: Any,
+    gpu: str | None = None,
 ) -> None:
     """``n`` timed loads of ``path`` on ``threads`` decode threads in this process, pinned to ``cpus`` (after a
-    warm-up and ``start``)."""
+    warm-up and ``start``); with ``gpu``, PNG rows unfiltered there."""
     os.sched_setaffinity(0, set(cpus))
     from engine.io import load_volume
+    from engine.io.png_rows import device_rows
     from engine.staging import VolumeBuffer
 
     allocate = VolumeBuffer(pinned=pinned) if reuse else None
-    load_volume(path, spacing_zyx_mm=SPACING, threads=threads, allocate=allocate)  # page cache, imports
+    unfilter = None if gpu is None else device_rows(gpu, allocate=VolumeBuffer(pinned=pinned) if reuse else None)
+    kwargs = {"spacing_zyx_mm": SPACING, "threads": threads, "allocate": allocate, "rows": unfilter}
+    load_volume(path, **kwargs)  # type: ignore[arg-type]  # page cache, imports, kernels
     start.wait()
     rows = []
     for _ in range(n):
         r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
-        volume = load_volume(path, spacing_zyx_mm=SPACING, threads=threads, allocate=allocate)
+        volume = load_volume(path, **kwargs)  # type: ignore[arg-type]
         r1 = resource.getrusage(resource.RUSAGE_SELF)
         rows.append(
             {
@@ -60,12 +73,22 @@ def _loads(
 
 
 def phase(
-    path: Path, cpusets: list[list[int]], threads: int, reuse: bool, pinned: bool, n: int
+    path: Path,
+    cpusets: list[list[int]],
+    threads: int,
+    reuse: bool,
+    pinned: bool,
+    n: int,
+    gpus: list[str] | None = None,
 ) -> list[dict[str, Any]]:
-    """Each CPU set's loads (``threads`` decode threads each), the sets loading at the same time."""
+    """Each CPU set's loads (``threads`` decode threads each; the i-th set's rows unfiltered on ``gpus[i]``), the
+    sets loading at the same time."""
     ctx = mp.get_context("fork")
     queue, start = ctx.Queue(), ctx.Barrier(len(cpusets))
-    procs = [ctx.Process(target=_loads, args=(path, c, threads, reuse, pinned, n, queue, start)) for c in cpusets]
+    procs = [
+        ctx.Process(target=_loads, args=(path, c, threads, reuse, pinned, n, queue, start, gpus[i] if gpus else None))
+        for i, c in enumerate(cpusets)
+    ]
     for p in procs:
         p.start()
     out = [_result(queue, procs) for _ in procs]
@@ -105,6 +128,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--threads", default="", help="decode threads per process, comma-separated to compare (default: its CPUs)"
     )
+    parser.add_argument("--unfilter", default="host", help="host, device, or both comma-separated to compare")
+    parser.add_argument("--gpus", default="cuda:0,cuda:1", help="the devices of --unfilter device, one per process")
+    parser.add_argument("--buffers", default="fresh,reused", help="fresh, reused, or both comma-separated")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     cpus = sorted(os.sched_getaffinity(0))
@@ -125,16 +151,19 @@ def main(argv: list[str] | None = None) -> None:
         "input": {"name": path.name, "bytes": path.stat().st_size if path.is_file() else None, "preparation": prep},
         "pinned": args.pinned,
     }
-    for threads in [int(t) for t in args.threads.split(",") if t] or [half]:
-        prefix = "" if not args.threads else f"threads_{threads}_"
-        for reuse in (False, True):
-            key = prefix + ("reused" if reuse else "fresh")
-            report[f"{key}_alone"] = phase(path, sets[:1], threads, reuse, args.pinned, args.loads)
-            report[f"{key}_both"] = phase(path, sets, threads, reuse, args.pinned, args.loads)
-            alone = report[f"{key}_alone"][0]["median_seconds"]
-            both = [p["median_seconds"] for p in report[f"{key}_both"]]
-            print(f"[load_contention] {key}: alone {alone:.3f} s, both {both}", flush=True)
-            write_json(args.out, report)
+    gpus = args.gpus.split(",")
+    for unfilter in args.unfilter.split(","):
+        for threads in [int(t) for t in args.threads.split(",") if t] or [half]:
+            prefix = ("" if not args.threads else f"threads_{threads}_") + ("" if unfilter == "host" else "device_")
+            for reuse in [b == "reused" for b in args.buffers.split(",")]:
+                key = prefix + ("reused" if reuse else "fresh")
+                on = gpus if unfilter == "device" else None
+                report[f"{key}_alone"] = phase(path, sets[:1], threads, reuse, args.pinned, args.loads, on)
+                report[f"{key}_both"] = phase(path, sets, threads, reuse, args.pinned, args.loads, on)
+                alone = report[f"{key}_alone"][0]["median_seconds"]
+                both = [p["median_seconds"] for p in report[f"{key}_both"]]
+                print(f"[load_contention] {key}: alone {alone:.3f} s, both {both}", flush=True)
+                write_json(args.out, report)
 
 
 if __name__ == "__main__":

@@ -293,6 +293,9 @@ def main(argv: list[str] | None = None) -> int:
         choices=("blocks", "halves"),
         help="workers' CPU shares: blocks (0-15, 16-31) or halves (0-7+16-23, 8-15+24-31)",
     )
+    parser.add_argument(
+        "--png-decoder", default="auto", choices=("auto", "libpng", "pillow"), help="the workers' BONEMESH_PNG_DECODER"
+    )
     parser.add_argument("--redis-server", default=None)
     parser.add_argument("--workdir", type=Path, default=None)
     parser.add_argument("--warp-cache", type=Path, default=None, help="the workers' Warp kernel cache (default: new)")
@@ -321,7 +324,10 @@ def main(argv: list[str] | None = None) -> int:
     shares = cpu_shares(len(devices), back, args.cpu_layout)
     if front:  # the API processes and Redis (started below) and the upload threads inherit it; workers use taskset
         os.sched_setaffinity(0, front)
-    extra = {"WARP_CACHE_PATH": str(args.warp_cache or workdir / "warp-cache")}  # shared, filled by the warm-up
+    extra = {  # the Warp cache is shared, filled by the warm-up
+        "WARP_CACHE_PATH": str(args.warp_cache or workdir / "warp-cache"),
+        "BONEMESH_PNG_DECODER": args.png_decoder,
+    }
     report: dict[str, Any] = {
         "benchmark": "throughput",
         "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
@@ -333,6 +339,7 @@ def main(argv: list[str] | None = None) -> int:
         "ideal": len(devices),
         "front_cpus": front,
         "cpu_layout": args.cpu_layout,
+        "png_decoder": args.png_decoder,
     }
 
     def write() -> None:

@@ -75,8 +75,10 @@ class Settings(BaseSettings):
         default="auto",
         description="the worker warms its device up with one small job before taking any (auto: on a GPU)",
     )
-    png_decoder: Literal["auto", "pillow"] = Field(
-        default="auto", description="auto: libpng for plain grayscale PNG; pillow: every PNG through Pillow (slower)"
+    png_decoder: Literal["auto", "libpng", "pillow"] = Field(
+        default="auto",
+        description="auto: plain grayscale PNG inflated on the host and unfiltered on the job's GPU (on a CPU: "
+        "libpng); libpng: libpng on the host; pillow: every PNG through Pillow (slower)",
     )
     job_soft_time_limit: int = 3600
     job_time_limit: int = 3900

@@ -148,6 +148,7 @@ class VolumeBuffer(PinnedBuffer):
 
 
 _VOLUMES = VolumeBuffer(pinned=True)  # allocated at its first use
+_ROWS = VolumeBuffer(pinned=True)  # PNG slices' filtered rows on their way to the device (engine.io.png_rows)
 
 
 def pinned_volumes(device: Any) -> VolumeBuffer | None:
@@ -156,3 +157,11 @@ def pinned_volumes(device: Any) -> VolumeBuffer | None:
     from engine.device import resolve_device
 
     return _VOLUMES if resolve_device(device).is_cuda else None
+
+
+def pinned_rows(device: Any) -> VolumeBuffer | None:
+    """The process's page-locked ``VolumeBuffer`` for PNG rows unfiltered on ``device``
+    (``engine.io.png_rows.device_rows``' ``allocate``) where it is a CUDA device, else None (plain ``np.empty``)."""
+    from engine.device import resolve_device
+
+    return _ROWS if resolve_device(device).is_cuda else None

@@ -365,7 +365,11 @@ def test_cpu_contention(tmp_path: Path) -> None:
 
 def test_load_contention(tmp_path: Path) -> None:
     out = tmp_path / "load_contention.json"
-    run_module("load_contention", ["--phantom", "8,32,32", "--loads", "1", "--out", str(out)], tmp_path)
+    run_module(
+        "load_contention",
+        ["--phantom", "8,32,32", "--loads", "1", "--unfilter", "host,device", "--gpus", "cpu,cpu", "--out", str(out)],
+        tmp_path,
+    )
     report = load(out)
     has_keys(report, "benchmark", "host", "input", "fresh_alone", "fresh_both", "reused_alone", "reused_both")
     for key in ("fresh", "reused"):
@@ -373,3 +377,19 @@ def test_load_contention(tmp_path: Path) -> None:
         for proc in report[f"{key}_alone"] + report[f"{key}_both"]:
             (row,) = proc["loads"]
             assert finite(row["seconds"]) and row["seconds"] > 0 and row["user"] >= 0 and row["sys"] >= 0, row
+
+
+def test_png_rows(tmp_path: Path) -> None:
+    out = tmp_path / "png_rows.json"
+    run_module(
+        "png_rows",
+        ["--phantom", "8,24,32", "--device", "cpu", "--slab-mb", "1", "--loads", "1", "--out", str(out)],
+        tmp_path,
+    )
+    report = load(out)
+    has_keys(report, "benchmark", "device", "threads", "stacks")
+    for name in ("pillow", "paeth"):
+        stack = report["stacks"][name]
+        assert stack["device_1mb"]["equal_to_host"] is True, name
+        assert finite(stack["host"]["median_seconds"]) and finite(stack["device_only"]["median_seconds"]), name
+    assert report["stacks"]["paeth"]["zip"]["filter_share"][4] == 1.0

@@ -203,7 +203,8 @@ def _run(
     from engine.outputs import write_outputs
     from engine.params import ReconParams
     from engine.pipeline import reconstruct
-    from engine.staging import pinned_volumes
+    from engine.io.png_rows import device_rows
+    from engine.staging import pinned_rows, pinned_volumes
 
     timer = timer or Timings()  # the attempt's (reconstruct_job), or one of its own
     recon_dict, spacing = engine_params_of(job)
@@ -226,13 +227,16 @@ def _run(
         return _described(paths, report)
     if segments and options["pieces"] is None:
         raise InputError("segments picks among a label map's segments (or a CT's pieces); this upload is a CT scan")
-    codecs.USE_IMAGECODECS = settings.png_decoder == "auto"
+    codecs.USE_IMAGECODECS = settings.png_decoder != "pillow"
+    # on a GPU, PNG slices are only inflated on the host: the device undoes the row filters (engine.io.png_rows)
+    rows = device_rows(device, allocate=pinned_rows(device)) if settings.png_decoder == "auto" else None
     volume = load_volume(
         upload,
         spacing_zyx_mm=tuple(spacing) if spacing else None,
         threads=settings.decode_threads,
         processes=settings.decode_processes,
         allocate=pinned_volumes(device),  # reused from job to job; page-locked for the upload to a CUDA device
+        rows=rows,
     )
     if options["roi"] is not None:  # cropped before anything runs
         volume = crop_roi(volume, options["roi"], params.orient)

@@ -127,6 +127,12 @@ class Backend(abc.ABC):
         """Device to host (a sync point): the first ``count`` elements (all by default); vector arrays as (n, 3)."""
 
     @abc.abstractmethod
+    def download(self, dst: np.ndarray, src: Any, src_offset: int = 0) -> None:
+        """Device to host into ``dst`` (C-contiguous, of ``src``'s type): ``dst.size`` elements of ``src`` from
+        ``src_offset``. It may still run when this returns (where ``dst`` is page-locked): read ``dst``, or let
+        anything else write it, only after ``synchronize()``."""
+
+    @abc.abstractmethod
     def copy(self, dst: Any, src: Any, dst_offset: int = 0, src_offset: int = 0, count: int | None = None) -> None:
         """Device to device: ``count`` elements (all of ``src`` from ``src_offset`` by default)."""
 

@@ -239,6 +239,11 @@ class OpenCLBackend(Backend):
             self.cl.enqueue_copy(self.queue, out, arr.buf, is_blocking=True)
         return out
 
+    def download(self, dst: np.ndarray, src: CLArray, src_offset: int = 0) -> None:
+        if dst.size:
+            offset = src_offset * itemsize(src.dtype)
+            self.cl.enqueue_copy(self.queue, dst.reshape(-1), src.buf, src_offset=offset, is_blocking=True)
+
     def copy(
         self, dst: CLArray, src: CLArray, dst_offset: int = 0, src_offset: int = 0, count: int | None = None
     ) -> None:

@@ -96,6 +96,13 @@ class WarpBackend(Backend):
         out: np.ndarray = (arr if count is None else arr[:count]).numpy()
         return out
 
+    def download(self, dst: np.ndarray, src: Any, src_offset: int = 0) -> None:
+        import warp as wp
+
+        if dst.size:  # wraps ``dst`` (no copy); CUDA copies into page-locked memory asynchronously
+            host: Any = wp.array(dst.reshape(-1), dtype=src.dtype, device="cpu", copy=False)
+            wp.copy(host, src, src_offset=src_offset, count=dst.size)
+
     def copy(self, dst: Any, src: Any, dst_offset: int = 0, src_offset: int = 0, count: int | None = None) -> None:
         import warp as wp
 

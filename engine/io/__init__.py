@@ -15,6 +15,7 @@ from engine.errors import InputError, NotAScanError
 from engine.io.archive import InputLimits, open_members
 from engine.io.dicom import has_dicom_images, load_dicom
 from engine.io.parallel import decode_threads
+from engine.io.png_rows import DeviceRows
 from engine.io.stack import Allocate, StackWarning, check_spacing, load_stack, natural_key
 from engine.types import Volume
 
@@ -80,6 +81,7 @@ def load_volume(
     threads: int | None = None,
     processes: bool | None = None,
     allocate: Allocate | None = None,
+    rows: DeviceRows | None = None,
 ) -> Volume:
     """Load a scan as a (z, y, x) :class:`Volume`.
 
@@ -100,6 +102,8 @@ def load_volume(
         allocate: image stacks only: makes the array the slices are decoded into, ``allocate(shape, dtype)`` -> an
             uninitialised C-contiguous array (default ``np.empty``; a worker passes its reused page-locked buffer,
             ``engine.staging.pinned_volumes``). DICOM series make their own.
+        rows: image stacks only: a GPU's ``engine.io.png_rows.DeviceRows`` (``device_rows``): plain grayscale PNG
+            slices are then inflated on the host and unfiltered on that device. The result does not depend on it.
 
     Returns:
         The volume: integer data stay integer (uint8/uint16/int16); DICOM CT is in HU (int16 where exact,
@@ -130,4 +134,6 @@ def load_volume(
                 return vol
         if series_uid is not None:
             raise InputError(f"series_uid={series_uid!r} was given, but {label} holds no DICOM images")
-        return load_stack(members, label, spacing, limits, on_progress=on_progress, threads=threads, allocate=allocate)
+        return load_stack(
+            members, label, spacing, limits, on_progress=on_progress, threads=threads, allocate=allocate, rows=rows
+        )

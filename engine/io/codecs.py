@@ -24,6 +24,7 @@ from __future__ import annotations
 import struct
 import threading
 import zlib
+from typing import Any
 
 import numpy as np
 
@@ -84,6 +85,42 @@ def _stored(codecs: object, data: bytes) -> memoryview | None:
     if interlace or not width or not height:
         return None
     size = height * (1 + width * depth // 8)
+    chunks = _chunks(data)
+    if chunks is None:
+        return None
+    head, parts, tail = chunks
+    rows = _inflated(codecs, parts, _scratch("rows", size))
+    if rows is None:
+        return None
+    bound = size + (size >> 12) + (size >> 14) + (size >> 25) + 13  # zlib's compressBound
+    before, after = sum(len(c) for c in head), sum(len(c) for c in tail)
+    png = _scratch("png", before + 12 + bound + after)
+    at = _put(png, 0, head) + 8
+    stored = len(codecs.zlib_encode(rows, level=0, out=png[at : at + bound]))  # type: ignore[attr-defined]
+    png[at - 8 : at] = struct.pack(">I", stored) + b"IDAT"
+    png[at + stored : at + stored + 4] = struct.pack(">I", zlib.crc32(png[at - 4 : at + stored]))
+    return png[: _put(png, at + stored + 4, tail)]
+
+
+def inflate_rows(data: bytes, shape: tuple[int, int], dtype: np.dtype[Any], out: memoryview) -> bool:
+    """Inflate a plain grayscale, non-interlaced PNG of ``shape`` (y, x) and ``dtype`` (uint8 or uint16) into
+    ``out``: exactly its filtered rows (each row's filter-type byte, then its big-endian samples as filtered), for
+    a device to unfilter (``engine.io.png_rows``). False, with ``out`` in any state, where the PNG is of another
+    kind, shape or type, its chunks are malformed, imagecodecs is missing, or the stream does not inflate to exactly
+    ``len(out)`` bytes: the caller then decodes it the usual way (which reports what is wrong)."""
+    if not USE_IMAGECODECS or not plain_gray_png(data):
+        return False
+    width, height, depth, interlace = struct.unpack(">IIB3xB", data[16:29])
+    if interlace or (height, width) != shape or depth != 8 * np.dtype(dtype).itemsize:
+        return False
+    codecs = _imagecodecs()
+    chunks = _chunks(data) if codecs is not None and len(out) == height * (1 + width * depth // 8) else None
+    return chunks is not None and _inflated(codecs, chunks[1], out) is not None
+
+
+def _chunks(data: bytes) -> tuple[list[memoryview], list[memoryview], list[memoryview]] | None:
+    """A PNG's chunks: those before its IDAT chunks (with the signature), the IDAT chunks' data, those after; None
+    where a chunk runs past the end, IDAT chunks are not consecutive, or there is none."""
     view = memoryview(data)
     head, parts, tail = [view[:8]], [], []
     pos = 8
@@ -99,23 +136,17 @@ def _stored(codecs: object, data: bytes) -> memoryview | None:
         else:
             (tail if parts else head).append(view[pos:end])
         pos = end
-    if not parts:
-        return None
+    return (head, parts, tail) if parts else None
+
+
+def _inflated(codecs: object, parts: list[memoryview], out: memoryview) -> memoryview | None:
+    """The zlib stream of ``parts`` inflated with libdeflate into ``out``; None unless it fills exactly ``out``."""
     stream = parts[0] if len(parts) == 1 else _joined("stream", parts)
     try:
-        rows = codecs.deflate_decode(stream, out=_scratch("rows", size))  # type: ignore[attr-defined]
+        rows = codecs.deflate_decode(stream, out=out)  # type: ignore[attr-defined]
     except Exception:  # damaged or not of this size: libpng reports it from the original bytes
         return None
-    if len(rows) != size:
-        return None
-    bound = size + (size >> 12) + (size >> 14) + (size >> 25) + 13  # zlib's compressBound
-    before, after = sum(len(c) for c in head), sum(len(c) for c in tail)
-    png = _scratch("png", before + 12 + bound + after)
-    at = _put(png, 0, head) + 8
-    stored = len(codecs.zlib_encode(rows, level=0, out=png[at : at + bound]))  # type: ignore[attr-defined]
-    png[at - 8 : at] = struct.pack(">I", stored) + b"IDAT"
-    png[at + stored : at + stored + 4] = struct.pack(">I", zlib.crc32(png[at - 4 : at + stored]))
-    return png[: _put(png, at + stored + 4, tail)]
+    return rows if len(rows) == len(out) else None
 
 
 def _joined(name: str, parts: list[memoryview]) -> memoryview:

@@ -19,6 +19,7 @@ from engine.io.archive import InputLimits, Member, Members, open_members
 from engine.io.codecs import decode_png_fast
 from engine.io.completeness import Completeness, check_count, check_numbering
 from engine.io.parallel import decode_threads, ordered_map
+from engine.io.png_rows import DeviceRows
 from engine.params import check_spacing_zyx_mm
 from engine.types import Volume
 
@@ -82,20 +83,22 @@ def load_stack(
     on_progress: Callable[[float], None] | None = None,
     threads: int | None = None,
     allocate: Allocate | None = None,
+    rows: DeviceRows | None = None,
 ) -> Volume:
     """Build a Volume from the image members of ``members`` (slices, one multi-page TIFF, or one .npy).
 
     ``on_progress`` is called with the fraction of slices decoded. Slices are decoded on ``threads`` threads
     (default: the CPUs this process may use; 1 decodes serially) into ``allocate(shape, dtype)`` (default
-    ``np.empty``). The stack's orientation is not known: the pipeline places it by ``engine.params.OrientParams``
-    (``engine.orient``).
+    ``np.empty``); with ``rows``, plain grayscale PNG slices are only inflated on the host and unfiltered on its
+    device (``engine.io.png_rows``), the same values. The stack's orientation is not known: the pipeline places it
+    by ``engine.params.OrientParams`` (``engine.orient``).
 
     Raises:
         InputError: no images, mixed shapes/dtypes, too many voxels, or no voxel size.
     """
     names = sorted((m.name for m in members.members if image_kind(m.head)), key=natural_key)
     completeness = check_numbering(names, label) if len(names) > 1 else None  # before decoding: fail fast
-    data, fmt, geo = _read_slices(members, label, limits, on_progress, decode_threads(threads), allocate)
+    data, fmt, geo = _read_slices(members, label, limits, on_progress, decode_threads(threads), allocate, rows)
     check_count(data.shape[0], label)
     if completeness is None:  # one file: a volume (.npy, multi-page TIFF)
         completeness = Completeness(images=data.shape[0], layout="one volume file")
@@ -117,9 +120,11 @@ def _read_slices(
     on_progress: Callable[[float], None] | None = None,
     threads: int = 1,
     allocate: Allocate | None = None,
+    rows: DeviceRows | None = None,
 ) -> tuple[np.ndarray, str, dict[str, Any]]:
     """The image members in natural name order as one (z, y, x) array (made by ``allocate``, default ``np.empty``);
-    slices after the first are decoded on ``threads`` threads straight into the array (``engine.io.parallel``)."""
+    slices after the first are decoded on ``threads`` threads straight into the array (``engine.io.parallel``), or
+    with ``rows`` (PNG slices), inflated there and unfiltered on its device."""
     images = [m for m in members.members if image_kind(m.head)]
     if not images:
         seen = ", ".join(m.name for m in members.members[:3]) or "nothing"
@@ -148,27 +153,40 @@ def _read_slices(
     out[0] = first
     del first
     coloured = [images[0].name] if "colour" in geo else []
+    stage = rows if rows is not None and "png" in kinds and rows.start(out) else None
 
     def decode_into(k: int) -> tuple[tuple[int, ...], np.dtype[Any], bool]:
-        """Decode slice k straight into its plane of ``out`` (on a pool thread); its shape, dtype, colour flag."""
+        """Decode slice k straight into its plane of ``out`` (on a pool thread), or stage it for the device; its
+        shape, dtype, colour flag."""
         plane = out[k]
-        s, g = _decode(images[k], limits, plane)
+        data = images[k].read() if stage is not None else None
+        if data is not None and stage is not None and stage.take(k, data):
+            return plane.shape, plane.dtype, False
+        s, g = _decode(images[k], limits, plane, data)
         if s is not plane and s.shape == plane.shape and s.dtype == plane.dtype:  # not decoded in place
             plane[...] = s
         return s.shape, s.dtype, "colour" in g
 
-    # closed on the way out, also when this loop raises: no pool thread outlives the call
-    with contextlib.closing(ordered_map(decode_into, range(1, len(images)), threads)) as decoded:
-        for k, (shape, dtype, colour) in enumerate(decoded, start=1):
-            if colour:
-                coloured.append(images[k].name)
-            if shape != out.shape[1:] or dtype != out.dtype:
-                raise InputError(
-                    f"expected every slice to be {out.shape[2]}x{out.shape[1]} {out.dtype} like {images[0].name}, "
-                    f"got {shape[-1]}x{shape[0]} {dtype} in {images[k].name}"
-                )
-            if on_progress is not None:
-                on_progress((k + 1) / len(images))
+    try:
+        # closed on the way out, also when this loop raises: no pool thread outlives the call
+        with contextlib.closing(ordered_map(decode_into, range(1, len(images)), threads)) as decoded:
+            for k, (shape, dtype, colour) in enumerate(decoded, start=1):
+                if colour:
+                    coloured.append(images[k].name)
+                if shape != out.shape[1:] or dtype != out.dtype:
+                    raise InputError(
+                        f"expected every slice to be {out.shape[2]}x{out.shape[1]} {out.dtype} like "
+                        f"{images[0].name}, got {shape[-1]}x{shape[0]} {dtype} in {images[k].name}"
+                    )
+                if stage is not None:
+                    stage.ready(k + 1)
+                if on_progress is not None:
+                    on_progress((k + 1) / len(images))
+        for k in stage.finish() if stage is not None else ():
+            _decode(images[k], limits, out[k])  # a filter type PNG does not define: libpng says so
+    finally:
+        if stage is not None:
+            stage.close()  # no device copy still runs into ``out`` or out of the staging rows
     _warn_colour(label, coloured, geo)
     return _narrow(out), "+".join(kinds), geo
 
@@ -193,11 +211,15 @@ def _warn_colour(label: str, names: list[str], geo: dict[str, Any]) -> None:
         )
 
 
-def _decode(m: Member, limits: InputLimits, plane: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, Any]]:
-    """Decode one member into a 2-D (or 3-D for multi-page TIFF / npy) grayscale array plus geometry hints; a plain
-    grayscale PNG of ``plane``'s shape and type is decoded straight into ``plane`` (and ``plane`` returned)."""
+def _decode(
+    m: Member, limits: InputLimits, plane: np.ndarray | None = None, data: bytes | None = None
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Decode one member (its bytes ``data`` where already read) into a 2-D (or 3-D for multi-page TIFF / npy)
+    grayscale array plus geometry hints; a plain grayscale PNG of ``plane``'s shape and type is decoded straight into
+    ``plane`` (and ``plane`` returned)."""
     kind = image_kind(m.head)
-    data = m.read() if kind != "npy" else b""
+    if data is None:
+        data = m.read() if kind != "npy" else b""
     try:
         if kind == "npy":
             arr = _load_npy(m, limits)

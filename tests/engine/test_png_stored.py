@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import struct
 import zipfile
-import zlib
 
 import imagecodecs
 import numpy as np
@@ -19,61 +18,10 @@ import pytest
 from engine.io import codecs
 from engine.io.codecs import decode_png_fast
 from tests.conftest import shared_file
+from tests.engine.pngfactory import chunk as _chunk
+from tests.engine.pngfactory import encode_adam7, encode_png, gray_slices
 
 RNG = np.random.default_rng(7)
-ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
-
-
-def _paeth(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    p = a + b - c
-    pa, pb, pc = np.abs(p - a), np.abs(p - b), np.abs(p - c)
-    return np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, c))
-
-
-def _chunk(kind: bytes, body: bytes) -> bytes:
-    return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
-
-
-def _png(img: np.ndarray, stream: bytes, idat_parts: int = 1, interlace: int = 0) -> bytes:
-    """A grayscale PNG of ``img``'s size and depth around the zlib ``stream``, cut into ``idat_parts`` IDATs."""
-    h, w = img.shape
-    ihdr = struct.pack(">IIBBBBB", w, h, 8 * img.dtype.itemsize, 0, 0, 0, interlace)
-    cut = np.linspace(0, len(stream), idat_parts + 1).astype(int)
-    idats = b"".join(_chunk(b"IDAT", stream[cut[i] : cut[i + 1]]) for i in range(idat_parts))
-    return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + idats + _chunk(b"IEND", b"")
-
-
-def encode_png(img: np.ndarray, filters: np.ndarray, idat_parts: int = 1) -> bytes:
-    """A grayscale PNG of ``img`` (uint8/uint16) with row ``r`` filtered by type ``filters[r]`` (0-4)."""
-    h, w = img.shape
-    bpp = img.dtype.itemsize
-    raw = img.astype(img.dtype.newbyteorder(">")).view(np.uint8).reshape(h, w * bpp).astype(np.int64)
-    rows = []
-    for r in range(h):
-        x = raw[r]
-        a = np.concatenate([np.zeros(bpp, np.int64), x[:-bpp]])
-        b = raw[r - 1] if r else np.zeros_like(x)
-        c = np.concatenate([np.zeros(bpp, np.int64), b[:-bpp]])
-        pred = [np.zeros_like(x), a, b, (a + b) // 2, _paeth(a, b, c)][int(filters[r])]
-        rows.append(bytes([int(filters[r])]) + ((x - pred) % 256).astype(np.uint8).tobytes())
-    return _png(img, zlib.compress(b"".join(rows), 6), idat_parts)
-
-
-def encode_adam7(img: np.ndarray) -> bytes:
-    """An interlaced (Adam7) grayscale PNG of ``img``, every row unfiltered."""
-    big = img.astype(img.dtype.newbyteorder(">"))
-    rows = []
-    for x0, y0, dx, dy in ADAM7:
-        sub = big[y0::dy, x0::dx]
-        if sub.size:
-            rows += [b"\x00" + r.tobytes() for r in sub]
-    return _png(img, zlib.compress(b"".join(rows)), interlace=1)
-
-
-def _slices(n: int, shape: tuple[int, int], dtype: type) -> np.ndarray:
-    top = np.iinfo(dtype).max
-    smooth = np.cumsum(RNG.integers(-3, 4, size=(n, *shape)), axis=2) % (top + 1)
-    return np.where(RNG.random((n, *shape)) < 0.1, RNG.integers(0, top + 1, size=(n, *shape)), smooth).astype(dtype)
 
 
 def _with_chunks(png: bytes, before: list[bytes], after: list[bytes]) -> bytes:
@@ -86,7 +34,7 @@ def _with_chunks(png: bytes, before: list[bytes], after: list[bytes]) -> bytes:
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
 @pytest.mark.parametrize("parts", [1, 3])
 def test_every_filter_type_equals_libpng(dtype: type, parts: int) -> None:
-    for img in _slices(4, (23, 37), dtype):
+    for img in gray_slices(RNG, 4, (23, 37), dtype):
         png = encode_png(img, RNG.integers(0, 5, size=img.shape[0]), idat_parts=parts)
         png = _with_chunks(
             png,
@@ -105,7 +53,7 @@ def test_every_filter_type_equals_libpng(dtype: type, parts: int) -> None:
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
 def test_decodes_into_a_plane_of_the_volume(dtype: type) -> None:
-    imgs = _slices(3, (12, 9), dtype)
+    imgs = gray_slices(RNG, 3, (12, 9), dtype)
     volume = np.zeros((3, 12, 9), dtype)
     for k, img in enumerate(imgs):
         plane = volume[k]
@@ -121,7 +69,7 @@ def test_decodes_into_a_plane_of_the_volume(dtype: type) -> None:
 
 
 def test_what_it_does_not_rewrap_is_decoded_from_the_original() -> None:
-    img = _slices(1, (16, 20), np.uint16)[0]
+    img = gray_slices(RNG, 1, (16, 20), np.uint16)[0]
     interlaced = encode_adam7(img)
     assert codecs._stored(imagecodecs, interlaced) is None
     np.testing.assert_array_equal(decode_png_fast(interlaced), img)

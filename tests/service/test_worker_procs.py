@@ -54,6 +54,7 @@ def test_worker_loads_with_the_decode_settings(monkeypatch: pytest.MonkeyPatch, 
     import worker.tasks as tasks
     from core.settings import Settings
     from engine.io import codecs
+    from engine.io.png_rows import DeviceRows, device_rows
     from engine.staging import pinned_volumes
 
     class Stop(Exception):
@@ -78,10 +79,14 @@ def test_worker_loads_with_the_decode_settings(monkeypatch: pytest.MonkeyPatch, 
             Settings(decode_threads=1, decode_processes=False, png_decoder="pillow"),
             {"threads": 1, "processes": False, "imagecodecs": False},
         ),
+        (Settings(png_decoder="libpng"), {"threads": None, "processes": None, "imagecodecs": True}),
     ):
         seen.clear()
         with pytest.raises(Stop):
             tasks._run(job, tmp_path / "upload.zip", tmp_path / "staged", holder, settings, None)  # type: ignore[arg-type]
         # the process's page-locked volume buffer on a CUDA device, plain arrays here
         allocate = pinned_volumes(settings.device)
+        rows = seen.pop("rows")  # PNG rows unfiltered on the job's GPU (auto only); none on a CPU
+        on_device = settings.png_decoder == "auto" and device_rows(settings.device) is not None
+        assert isinstance(rows, DeviceRows) if on_device else rows is None
         assert seen == {"spacing_zyx_mm": (1.0, 0.5, 0.5), "allocate": allocate, **expected}

@@ -1,0 +1,1 @@
+"""Device kernels of the loaders (``unfilter``: PNG rows). No host logic lives here."""
