@@ -5,9 +5,9 @@ undoing each row's filter (then swapping 16-bit samples to native order). For a 
 here: 4.3 ms to inflate (libdeflate), 9.1 ms for the whole decode (``engine.io.codecs``). When a job runs on a GPU,
 :class:`DeviceRows` keeps the first pass on the host's decode threads, each slice inflated straight into its plane
 of a staging array of filtered rows (page-locked for a CUDA device), and gives the second to the device: a slab of
-slices at a time, as the slices before it are done, the rows go up, two kernels (``kernels/unfilter.py`` for Warp,
-``kernels/unfilter.cl`` for OpenCL) reconstruct and swap them, and the samples come back into the slices' planes of
-the volume. The host then spends about half the CPU time on a stack (what two workers on one host compete for).
+slices at a time, as the slices before it are done, the rows go up, a kernel (``kernels/unfilter.py`` for Warp,
+``kernels/unfilter.cl`` for OpenCL) reconstructs them into samples in native order, and the samples come back into
+the slices' planes of the volume.
 
 Every slice the device takes is one the host would have given to libpng as a plain grayscale, non-interlaced PNG of
 the stack's shape and type whose stream inflates to exactly its rows; anything else (another kind of image, a
@@ -28,7 +28,6 @@ from engine.io.codecs import inflate_rows
 UNFILTER = Kernel(
     "png.unfilter", warp="engine.io.kernels.unfilter:unfilter_kernel", opencl="engine.io.kernels:unfilter.cl:unfilter"
 )
-PACK = Kernel("png.pack", warp="engine.io.kernels.unfilter:pack_kernel", opencl="engine.io.kernels:unfilter.cl:pack")
 SLAB_BYTES = 256 << 20  # filtered rows sent to the device at a time (its memory holds two such slabs per load)
 
 Allocate = Callable[[tuple[int, ...], "np.dtype[Any]"], np.ndarray]
@@ -94,6 +93,14 @@ class DeviceRows:
         self.pending.clear()
         self.out = self.rows = None
 
+    def warm_up(self) -> None:
+        """Load the kernel (Warp's module, the OpenCL program): one 1 x 1 slice, so a worker's first job does not
+        wait for it."""
+        be = self.backend
+        rows, slices = be.from_host(np.zeros(2, np.uint8)), be.from_host(np.zeros(1, np.int32))
+        be.launch(UNFILTER, 1, [rows, 2, slices, be.empty(1, np.uint8), be.zeros(1, np.int32), 1, 1, 1])
+        be.synchronize()
+
     def _send(self, lo: int, hi: int) -> None:
         assert self.out is not None and self.rows is not None
         self.flushed = hi
@@ -105,9 +112,8 @@ class DeviceRows:
         rows = be.from_host(self.rows[lo:hi].reshape(-1))
         slices = be.from_host(picked)
         bad = be.zeros(hi - lo, np.int32)
-        be.launch(UNFILTER, len(picked) * bpp, [rows, plane, slices, bad, h, w, bpp])
         samples = be.empty((hi - lo) * h * w * bpp, np.uint8)
-        be.launch(PACK, (len(picked), h, w * bpp), [rows, plane, slices, samples, h, w, bpp])
+        be.launch(UNFILTER, len(picked) * bpp, [rows, plane, slices, samples, bad, h, w, bpp])
         dest = self.out[lo:hi].reshape(hi - lo, -1).view(np.uint8)
         if len(picked) == hi - lo:
             be.download(dest.reshape(-1), samples)

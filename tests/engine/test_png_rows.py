@@ -145,3 +145,7 @@ def test_cuda_with_the_page_locked_buffers(tmp_path: Path) -> None:
     rows.slab_bytes = 7 * 200 * 603  # several slabs, the copies overlapping the decode
     volume = load_volume(path, spacing_zyx_mm=SPACING, threads=4, rows=rows, allocate=VolumeBuffer(pinned=True))
     np.testing.assert_array_equal(volume.data, imgs)
+
+
+def test_warm_up_loads_the_kernel(backend: Any) -> None:
+    DeviceRows(backend).warm_up()  # one 1 x 1 slice through the kernel: it builds and runs on this backend

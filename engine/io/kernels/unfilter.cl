@@ -1,5 +1,7 @@
-/* OpenCL C kernels that turn PNG slices' inflated rows into samples on the device: the same arithmetic as
- * unfilter.py's Warp kernels (see there for the layout). rows: slice s's plane at s * plane bytes. */
+/* OpenCL C kernel that turns PNG slices' inflated rows into samples on the device: the same arithmetic and layout
+ * as unfilter.py's Warp kernel (see there). */
+
+#define CHUNK 32
 
 static int reconstruct(const int kind, const int raw, const int a, const int b, const int c)
 {
@@ -20,42 +22,43 @@ static int reconstruct(const int kind, const int raw, const int a, const int b, 
     return (raw + pred) & 255;
 }
 
-__kernel void unfilter(__global uchar *rows, const int plane, __global const int *slices, __global int *bad,
-                       const int height, const int width, const int bpp)
+__kernel void unfilter(__global const uchar *rows, const int plane, __global const int *slices, __global uchar *out,
+                       __global int *bad, const int height, const int width, const int bpp)
 {
     const int i = (int)get_global_id(0);
     const int s = slices[i / bpp];
     const int lane = i % bpp;
-    const long stride = 1 + (long)width * bpp;
-    __global uchar *base = rows + (long)s * plane;
+    const long line = (long)width * bpp;
     for (int y = 0; y < height; ++y) {
-        __global uchar *row = base + y * stride;
-        const int kind = row[0];
+        __global const uchar *src = rows + (long)s * plane + y * (1 + line);
+        __global uchar *dst = out + ((long)s * height + y) * line + (bpp - 1 - lane);
+        const int kind = src[0];
         if (kind > 4) {
             bad[s] = 1;
             return;
         }
+        src += 1 + lane;
         int a = 0;
         int c = 0;
-        for (int x = 0; x < width; ++x) {
-            const long p = 1 + (long)x * bpp + lane;
-            const int b = y > 0 ? row[p - stride] : 0;
-            const int v = reconstruct(kind, row[p], a, b, c);
-            row[p] = (uchar)v;
-            a = v;
-            c = b;
+        for (int x0 = 0; x0 < width; x0 += CHUNK) {
+            int raw[CHUNK];
+            int up[CHUNK];
+#pragma unroll
+            for (int j = 0; j < CHUNK; ++j) {
+                const int x = x0 + j;
+                raw[j] = x < width ? src[x * bpp] : 0;
+                up[j] = (x < width && y > 0) ? dst[x * bpp - line] : 0;
+            }
+#pragma unroll
+            for (int j = 0; j < CHUNK; ++j) {
+                const int x = x0 + j;
+                if (x < width) {
+                    const int v = reconstruct(kind, raw[j], a, up[j], c);
+                    dst[x * bpp] = (uchar)v;
+                    a = v;
+                    c = up[j];
+                }
+            }
         }
     }
-}
-
-/* Global size (line bytes, height, slices): byte x of line y of slice slices[j], native (little-endian) order. */
-__kernel void pack(__global const uchar *rows, const int plane, __global const int *slices, __global uchar *out,
-                   const int height, const int width, const int bpp)
-{
-    const int x = (int)get_global_id(0);
-    const int y = (int)get_global_id(1);
-    const int s = slices[get_global_id(2)];
-    const long line = (long)width * bpp;
-    const int lane = bpp - 1 - x % bpp;
-    out[((long)s * height + y) * line + x] = rows[(long)s * plane + y * (1 + line) + 1 + (x / bpp) * bpp + lane];
 }

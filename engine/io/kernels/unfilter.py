@@ -1,7 +1,7 @@
-"""Warp kernels that turn PNG slices' inflated rows into samples on the device; ``unfilter.cl`` is the OpenCL C
+"""The Warp kernel that turns PNG slices' inflated rows into samples on the device; ``unfilter.cl`` is the OpenCL C
 version, the same arithmetic.
 
-``rows`` holds one slice's rows per line of the 2-D array: each row is its filter-type byte, then ``width * bpp``
+``rows`` holds slice ``s``'s rows from byte ``s * plane``: each row is its filter-type byte, then ``width * bpp``
 filtered bytes (PNG's scanlines, ``bpp`` bytes a sample, big-endian). The filters (PNG spec, section 9) predict a
 byte from the reconstructed bytes ``a`` (one sample to the left, same byte lane), ``b`` (above) and ``c`` (above
 left): 0 none, 1 Sub (a), 2 Up (b), 3 Average ((a + b) // 2), 4 Paeth (whichever of a, b, c is nearest a + b - c).
@@ -34,57 +34,56 @@ def _reconstruct(kind: int, raw: int, a: int, b: int, c: int) -> int:
     return (raw + pred) & 255
 
 
+CHUNK = 32  # samples a thread loads before it reconstructs them: one memory latency per chunk, not per byte
+wp.set_module_options({"max_unroll": CHUNK})
+_chunk = wp.types.vector(length=CHUNK, dtype=wp.int32)
+
+
 @wp.kernel
 def unfilter_kernel(
     rows: wp.array(dtype=wp.uint8),
     plane: int,
     slices: wp.array(dtype=wp.int32),
+    out: wp.array(dtype=wp.uint8),
     bad: wp.array(dtype=wp.int32),
     height: int,
     width: int,
     bpp: int,
 ):
-    """Undo the row filters in place: thread ``i`` reconstructs byte lane ``i % bpp`` of slice ``slices[i // bpp]``
-    (its rows at ``slices[i // bpp] * plane``), row after row (each row needs the one above); a filter type above 4
-    sets ``bad[slice]`` and stops."""
+    """Reconstruct byte lane ``i % bpp`` of slice ``s = slices[i // bpp]`` (its rows at ``s * plane``), row after row
+    (each row needs the one above), into the slice's samples in native (little-endian) order: byte
+    ``(s * height + y) * width * bpp + x * bpp + bpp - 1 - lane`` of ``out``. ``CHUNK`` samples' filtered bytes and
+    the bytes above them are loaded before any is reconstructed (the loads do not wait on each other). A filter type
+    above 4 sets ``bad[s]`` and stops."""
     i = wp.tid()
     s = slices[i // bpp]
     lane = i % bpp
-    stride = 1 + width * bpp
+    line = width * bpp
+    swapped = bpp - 1 - lane
     for y in range(height):
-        row = s * plane + y * stride
-        kind = int(rows[row])
+        src = s * plane + y * (1 + line)
+        dst = (s * height + y) * line + swapped
+        kind = int(rows[src])
         if kind > 4:
             bad[s] = 1
             return
+        src = src + 1 + lane
         a = int(0)
         c = int(0)
-        for x in range(width):
-            p = row + 1 + x * bpp + lane
-            b = int(0)
-            if y > 0:
-                b = int(rows[p - stride])
-            v = _reconstruct(kind, int(rows[p]), a, b, c)
-            rows[p] = wp.uint8(v)
-            a = v
-            c = b
-
-
-@wp.kernel
-def pack_kernel(
-    rows: wp.array(dtype=wp.uint8),
-    plane: int,
-    slices: wp.array(dtype=wp.int32),
-    out: wp.array(dtype=wp.uint8),
-    height: int,
-    width: int,
-    bpp: int,
-):
-    """Samples from unfiltered rows: byte ``x`` of line ``y`` of slice ``s = slices[j]``, at
-    ``(s * height + y) * width * bpp + x`` of ``out``, in native (little-endian) order: a 16-bit sample's big-endian
-    pair swapped."""
-    j, y, x = wp.tid()
-    s = slices[j]
-    line = width * bpp
-    lane = bpp - 1 - x % bpp
-    out[(s * height + y) * line + x] = rows[s * plane + y * (1 + line) + 1 + (x // bpp) * bpp + lane]
+        for x0 in range(0, width, CHUNK):
+            raw = _chunk()
+            up = _chunk()
+            for j in range(CHUNK):
+                x = x0 + j
+                if x < width:
+                    raw[j] = int(rows[src + x * bpp])
+                    if y > 0:
+                        up[j] = int(out[dst - line + x * bpp])
+            for j in range(CHUNK):
+                x = x0 + j
+                if x < width:
+                    b = up[j]
+                    v = _reconstruct(kind, raw[j], a, b, c)
+                    out[dst + x * bpp] = wp.uint8(v)
+                    a = v
+                    c = b
