@@ -24,6 +24,7 @@ import numpy as np
 
 from engine.backend.base import Backend, Kernel
 from engine.io.codecs import inflate_rows
+from engine.io.kernels.steps import BLOCK, wavefront_steps
 
 UNFILTER = Kernel(
     "png.unfilter", warp="engine.io.kernels.unfilter:unfilter_kernel", opencl="engine.io.kernels:unfilter.cl:unfilter"
@@ -98,7 +99,7 @@ class DeviceRows:
         wait for it."""
         be = self.backend
         rows, slices = be.from_host(np.zeros(2, np.uint8)), be.from_host(np.zeros(1, np.int32))
-        be.launch(UNFILTER, 1, [rows, 2, slices, be.empty(1, np.uint8), be.zeros(1, np.int32), 1, 1, 1])
+        be.launch(UNFILTER, 1, [rows, 2, slices, be.empty(1, np.uint8), be.zeros(1, np.int32), 1, 1, 1, 0])
         be.synchronize()
 
     def _send(self, lo: int, hi: int) -> None:
@@ -113,7 +114,9 @@ class DeviceRows:
         slices = be.from_host(picked)
         bad = be.zeros(hi - lo, np.int32)
         samples = be.empty((hi - lo) * h * w * bpp, np.uint8)
-        be.launch(UNFILTER, len(picked) * bpp, [rows, plane, slices, samples, bad, h, w, bpp])
+        threads = len(picked) * bpp * -(-w // BLOCK)
+        for step in range(wavefront_steps(h, w)):  # each step needs the one before: the device's queue orders them
+            be.launch(UNFILTER, threads, [rows, plane, slices, samples, bad, h, w, bpp, step])
         dest = self.out[lo:hi].reshape(hi - lo, -1).view(np.uint8)
         if len(picked) == hi - lo:
             be.download(dest.reshape(-1), samples)

@@ -1,7 +1,8 @@
-/* OpenCL C kernel that turns PNG slices' inflated rows into samples on the device: the same arithmetic and layout
- * as unfilter.py's Warp kernel (see there). */
+/* OpenCL C kernel that turns PNG slices' inflated rows into samples on the device: one step of the wavefront of
+ * unfilter.py's Warp kernel, the same arithmetic, layout and block sizes (see there). */
 
-#define CHUNK 32
+#define BLOCK 32
+#define BAND 4
 
 static int reconstruct(const int kind, const int raw, const int a, const int b, const int c)
 {
@@ -23,42 +24,43 @@ static int reconstruct(const int kind, const int raw, const int a, const int b, 
 }
 
 __kernel void unfilter(__global const uchar *rows, const int plane, __global const int *slices, __global uchar *out,
-                       __global int *bad, const int height, const int width, const int bpp)
+                       __global int *bad, const int height, const int width, const int bpp, const int step)
 {
     const int i = (int)get_global_id(0);
-    const int s = slices[i / bpp];
-    const int lane = i % bpp;
+    const int blocks = (width + BLOCK - 1) / BLOCK;
+    const int j = i % blocks;
+    const int y0 = (step - j) * BAND;
+    if (y0 < 0 || y0 >= height) {
+        return;
+    }
+    const int s = slices[i / blocks / bpp];
+    const int lane = (i / blocks) % bpp;
     const long line = (long)width * bpp;
-    for (int y = 0; y < height; ++y) {
+    const int x0 = j * BLOCK;
+    const int x1 = min(x0 + BLOCK, width);
+    for (int y = y0; y < min(y0 + BAND, height); ++y) {
         __global const uchar *src = rows + (long)s * plane + y * (1 + line);
         __global uchar *dst = out + ((long)s * height + y) * line + (bpp - 1 - lane);
-        const int kind = src[0];
+        int kind = src[0];
         if (kind > 4) {
             bad[s] = 1;
-            return;
+            kind = 0;
         }
         src += 1 + lane;
         int a = 0;
         int c = 0;
-        for (int x0 = 0; x0 < width; x0 += CHUNK) {
-            int raw[CHUNK];
-            int up[CHUNK];
-#pragma unroll
-            for (int j = 0; j < CHUNK; ++j) {
-                const int x = x0 + j;
-                raw[j] = x < width ? src[x * bpp] : 0;
-                up[j] = (x < width && y > 0) ? dst[x * bpp - line] : 0;
+        if (x0 > 0) {
+            a = dst[(x0 - 1) * bpp];
+            if (y > 0) {
+                c = dst[(x0 - 1) * bpp - line];
             }
-#pragma unroll
-            for (int j = 0; j < CHUNK; ++j) {
-                const int x = x0 + j;
-                if (x < width) {
-                    const int v = reconstruct(kind, raw[j], a, up[j], c);
-                    dst[x * bpp] = (uchar)v;
-                    a = v;
-                    c = up[j];
-                }
-            }
+        }
+        for (int x = x0; x < x1; ++x) {
+            const int b = y > 0 ? dst[x * bpp - line] : 0;
+            const int v = reconstruct(kind, src[x * bpp], a, b, c);
+            dst[x * bpp] = (uchar)v;
+            a = v;
+            c = b;
         }
     }
 }

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from engine.io.kernels.steps import BAND, BLOCK
+
 
 @wp.func
 def _reconstruct(kind: int, raw: int, a: int, b: int, c: int) -> int:
@@ -34,11 +36,6 @@ def _reconstruct(kind: int, raw: int, a: int, b: int, c: int) -> int:
     return (raw + pred) & 255
 
 
-CHUNK = 32  # samples a thread loads before it reconstructs them: one memory latency per chunk, not per byte
-wp.set_module_options({"max_unroll": CHUNK})
-_chunk = wp.types.vector(length=CHUNK, dtype=wp.int32)
-
-
 @wp.kernel
 def unfilter_kernel(
     rows: wp.array(dtype=wp.uint8),
@@ -49,41 +46,44 @@ def unfilter_kernel(
     height: int,
     width: int,
     bpp: int,
+    step: int,
 ):
-    """Reconstruct byte lane ``i % bpp`` of slice ``s = slices[i // bpp]`` (its rows at ``s * plane``), row after row
-    (each row needs the one above), into the slice's samples in native (little-endian) order: byte
-    ``(s * height + y) * width * bpp + x * bpp + bpp - 1 - lane`` of ``out``. ``CHUNK`` samples' filtered bytes and
-    the bytes above them are loaded before any is reconstructed (the loads do not wait on each other). A filter type
-    above 4 sets ``bad[s]`` and stops."""
+    """One step of a wavefront over every slice: thread ``i`` reconstructs byte lane ``lane`` of column block ``j``
+    (samples ``j * BLOCK`` on) of slice ``s = slices[...]`` (its rows at ``s * plane``), in the band of ``BAND``
+    rows ``(step - j) * BAND`` on, into the slice's samples in native (little-endian) order: byte
+    ``(s * height + y) * width * bpp + x * bpp + bpp - 1 - lane`` of ``out``. What a block needs, the samples to
+    its left and above, the earlier steps wrote: its left neighbour did this band one step before, and it did the
+    band above itself. A filter type above 4 sets ``bad[s]`` (the row is then taken as unfiltered)."""
     i = wp.tid()
-    s = slices[i // bpp]
-    lane = i % bpp
+    blocks = (width + BLOCK - 1) // BLOCK
+    j = i % blocks
+    y0 = (step - j) * BAND
+    if y0 < 0 or y0 >= height:
+        return
+    s = slices[i // blocks // bpp]
+    lane = (i // blocks) % bpp
     line = width * bpp
-    swapped = bpp - 1 - lane
-    for y in range(height):
+    x0 = j * BLOCK
+    x1 = wp.min(x0 + BLOCK, width)
+    for y in range(y0, wp.min(y0 + BAND, height)):
         src = s * plane + y * (1 + line)
-        dst = (s * height + y) * line + swapped
+        dst = (s * height + y) * line + bpp - 1 - lane
         kind = int(rows[src])
         if kind > 4:
             bad[s] = 1
-            return
+            kind = 0
         src = src + 1 + lane
         a = int(0)
         c = int(0)
-        for x0 in range(0, width, CHUNK):
-            raw = _chunk()
-            up = _chunk()
-            for j in range(CHUNK):
-                x = x0 + j
-                if x < width:
-                    raw[j] = int(rows[src + x * bpp])
-                    if y > 0:
-                        up[j] = int(out[dst - line + x * bpp])
-            for j in range(CHUNK):
-                x = x0 + j
-                if x < width:
-                    b = up[j]
-                    v = _reconstruct(kind, raw[j], a, b, c)
-                    out[dst + x * bpp] = wp.uint8(v)
-                    a = v
-                    c = b
+        if x0 > 0:
+            a = int(out[dst + (x0 - 1) * bpp])
+            if y > 0:
+                c = int(out[dst - line + (x0 - 1) * bpp])
+        for x in range(x0, x1):
+            b = int(0)
+            if y > 0:
+                b = int(out[dst - line + x * bpp])
+            v = _reconstruct(kind, int(rows[src + x * bpp]), a, b, c)
+            out[dst + x * bpp] = wp.uint8(v)
+            a = v
+            c = b
