@@ -16,4 +16,4 @@ cd "$(dirname "$0")/.."
     engine/surface/__init__.py engine/paper/__init__.py \
     engine/defect/__init__.py engine/defect/params.py engine/defect/step.py engine/defect/template.py \
     engine/backend/__init__.py engine/backend/base.py engine/backend/select.py engine/backend/warp_backend.py \
-    engine/backend/opencl_backend.py
+    engine/backend/opencl_backend.py engine/io/png_rows.py engine/io/kernels/steps.py

@@ -49,6 +49,7 @@ class DeviceRows:
         self.rows: np.ndarray | None = None
         self.staged = np.zeros(0, bool)
         self.flushed = 0  # slices before this one have been sent to the device (or needed nothing)
+        self.slab = 1  # slices sent at a time (set by start)
         self.pending: list[tuple[int, Any]] = []  # slabs sent: first slice, the device's bad-filter flags
 
     def start(self, out: np.ndarray) -> bool:
@@ -60,7 +61,8 @@ class DeviceRows:
         shape, dtype = (z, plane), np.dtype(np.uint8)
         rows = np.empty(shape, dtype) if self.allocate is None else self.allocate(shape, dtype)
         self.out, self.rows, self.staged, self.flushed = out, rows, np.zeros(z, bool), 0
-        self.slab = max(1, min(z, self.slab_bytes // max(plane, 1)))
+        # the kernels index a slab's bytes with 32-bit integers
+        self.slab = max(1, min(z, self.slab_bytes // plane, (2**31 - 1) // plane))
         return True
 
     def take(self, k: int, data: bytes) -> bool:
