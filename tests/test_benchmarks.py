@@ -372,7 +372,7 @@ def test_load_contention(tmp_path: Path) -> None:
     )
     report = load(out)
     has_keys(report, "benchmark", "host", "input", "fresh_alone", "fresh_both", "reused_alone", "reused_both")
-    for key in ("fresh", "reused"):
+    for key in ("fresh", "reused", "device_fresh", "device_reused"):  # "device" on the CPU: the host path, labelled
         assert len(report[f"{key}_alone"]) == 1 and len(report[f"{key}_both"]) == 2, key
         for proc in report[f"{key}_alone"] + report[f"{key}_both"]:
             (row,) = proc["loads"]
