@@ -21,6 +21,7 @@ import tifffile
 from engine.errors import InputError
 from engine.io import load_volume
 from engine.io.png_rows import DeviceRows, device_rows
+from tests.conftest import shared_file
 from tests.engine.pngfactory import encode_adam7, encode_png, gray_slices, png_of_stream
 
 RNG = np.random.default_rng(11)
@@ -149,3 +150,16 @@ def test_cuda_with_the_page_locked_buffers(tmp_path: Path) -> None:
 
 def test_warm_up_loads_the_kernel(backend: Any) -> None:
     DeviceRows(backend).warm_up()  # one 1 x 1 slice through the kernel: it builds and runs on this backend
+
+
+@pytest.mark.parametrize(
+    "where",
+    ["engine/data/headsq_png16.zip", "cranium_ct/cranium_ct_png16.zip", "head_phantom_dicom/head_phantom_png16.zip"],
+)
+def test_real_scans_equal_libpng(backend: Any, where: str) -> None:
+    """Real CT exports (mostly Paeth rows): the bundled headsq always, the ../shared scans where present."""
+    path = Path(__file__).parents[2] / where if where.startswith("engine/") else shared_file(*where.split("/"))
+    rows = _Counting(backend, slab_bytes=24 << 20)
+    got = _load(path, rows, threads=2)
+    np.testing.assert_array_equal(got, _load(path, None, threads=2))
+    assert rows.taken == got.shape[0] - 1 and rows.sends >= 1
