@@ -30,6 +30,7 @@ from engine.types import Volume
 
 if TYPE_CHECKING:
     from engine.budget import Budget
+    from engine.io.png_rows import DeviceRows
 
 Spacing = tuple[float, float, float]
 
@@ -264,19 +265,31 @@ def load_input(args: argparse.Namespace, on_progress: Callable[[float], None] | 
     """
     from engine.io import load_volume
 
+    rows = _png_rows(getattr(args, "device", None))
     if getattr(args, "demo", False):
         from engine.data import HEADSQ_LEVEL, HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
 
         spacing = args.spacing or HEADSQ_SPACING_ZYX_MM
-        return load_volume(HEADSQ_ZIP, spacing_zyx_mm=spacing, on_progress=on_progress), HEADSQ_LEVEL
+        return load_volume(HEADSQ_ZIP, spacing_zyx_mm=spacing, on_progress=on_progress, rows=rows), HEADSQ_LEVEL
     if not args.input:
         raise InputError("no INPUT given (or use --demo)")
     if not Path(args.input).exists():
         raise InputError(f"{args.input} does not exist")
     try:
-        return load_volume(args.input, spacing_zyx_mm=args.spacing, on_progress=on_progress), math.nan
+        return load_volume(args.input, spacing_zyx_mm=args.spacing, on_progress=on_progress, rows=rows), math.nan
     except NoSpacingError as exc:  # the library names spacing_zyx_mm: say it with the command's option
         raise InputError(no_voxel_size_message(args.input, exc)) from None
+
+
+def _png_rows(device: str | None) -> DeviceRows | None:
+    """PNG slices' rows unfiltered on the command's ``--device`` where it is a GPU (``engine.io.png_rows``); None on
+    the CPU, or where the spec is not usable (the stage that runs on it reports that)."""
+    from engine.io.png_rows import device_rows
+
+    try:
+        return None if device is None else device_rows(device)
+    except ValueError:
+        return None
 
 
 def no_voxel_size_message(path: str, exc: NoSpacingError) -> str:

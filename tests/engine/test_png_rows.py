@@ -163,3 +163,10 @@ def test_real_scans_equal_libpng(backend: Any, where: str) -> None:
     got = _load(path, rows, threads=2)
     np.testing.assert_array_equal(got, _load(path, None, threads=2))
     assert rows.taken == got.shape[0] - 1 and rows.sends >= 1
+
+
+def test_the_cli_unfilters_on_its_gpu_only() -> None:
+    from engine.cli_args import _png_rows
+
+    assert _png_rows(None) is None and _png_rows("cpu") is None
+    assert _png_rows("cuda:99") is None  # not present: the reconstruction says so, not the loader
