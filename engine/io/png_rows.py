@@ -120,11 +120,11 @@ class DeviceRows:
         for step in range(wavefront_steps(h, w)):  # each step needs the one before: the device's queue orders them
             be.launch(UNFILTER, threads, [rows, plane, slices, samples, bad, h, w, bpp, step])
         dest = self.out[lo:hi].reshape(hi - lo, -1).view(np.uint8)
-        if len(picked) == hi - lo:
-            be.download(dest.reshape(-1), samples)
-        else:  # some slices of the slab were decoded on the host: only the others come back
-            for i in picked:
-                be.download(dest[i], samples, src_offset=int(i) * dest.shape[1])
+        # one copy per run of consecutive device slices (the host decoded the others, e.g. the first of the stack)
+        firsts = np.flatnonzero(np.diff(picked, prepend=-2) != 1)
+        for a, b in zip(firsts, [*firsts[1:], len(picked)], strict=True):
+            first, end = int(picked[a]), int(picked[b - 1]) + 1
+            be.download(dest[first:end].reshape(-1), samples, src_offset=first * dest.shape[1])
         self.pending.append((lo, bad))  # the device arrays may go: their memory is freed in the queue's order
 
 
