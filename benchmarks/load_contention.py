@@ -46,12 +46,15 @@ def _loads(
     """``n`` timed loads of ``path`` on ``threads`` decode threads in this process, pinned to ``cpus`` (after a
     warm-up and ``start``); with ``gpu``, PNG rows unfiltered there."""
     os.sched_setaffinity(0, set(cpus))
+    from engine.backend.select import get_backend
     from engine.io import load_volume
-    from engine.io.png_rows import device_rows
+    from engine.io.png_rows import DeviceRows
     from engine.staging import VolumeBuffer
 
     allocate = VolumeBuffer(pinned=pinned) if reuse else None
-    unfilter = None if gpu is None else device_rows(gpu, allocate=VolumeBuffer(pinned=pinned) if reuse else None)
+    buffer = VolumeBuffer(pinned=pinned) if reuse else None
+    backend = None if gpu is None else get_backend(gpu)
+    unfilter = None if backend is None or backend.is_host else DeviceRows(backend, buffer)
     kwargs = {"spacing_zyx_mm": SPACING, "threads": threads, "allocate": allocate, "rows": unfilter}
     load_volume(path, **kwargs)  # type: ignore[arg-type]  # page cache, imports, kernels
     start.wait()

@@ -152,16 +152,17 @@ _ROWS = VolumeBuffer(pinned=True)  # PNG slices' filtered rows on their way to t
 
 
 def pinned_volumes(device: Any) -> VolumeBuffer | None:
-    """The process's page-locked ``VolumeBuffer`` where ``device`` (a spec of ``engine.device.resolve_device``)
-    resolves to a CUDA device, else None (plain ``np.empty``)."""
-    from engine.device import resolve_device
-
-    return _VOLUMES if resolve_device(device).is_cuda else None
+    """The process's page-locked ``VolumeBuffer`` for loaded volumes where ``device`` (a spec of
+    ``engine.device.resolve_device``) resolves to a CUDA device, else None (plain ``np.empty``)."""
+    return _on_cuda(_VOLUMES, device)
 
 
 def pinned_rows(device: Any) -> VolumeBuffer | None:
-    """The process's page-locked ``VolumeBuffer`` for PNG rows unfiltered on ``device``
-    (``engine.io.png_rows.device_rows``' ``allocate``) where it is a CUDA device, else None (plain ``np.empty``)."""
+    """The same for PNG slices' filtered rows on their way to ``device`` (``engine.io.png_rows.device_rows``)."""
+    return _on_cuda(_ROWS, device)
+
+
+def _on_cuda(buffer: VolumeBuffer, device: Any) -> VolumeBuffer | None:
     from engine.device import resolve_device
 
-    return _ROWS if resolve_device(device).is_cuda else None
+    return buffer if resolve_device(device).is_cuda else None

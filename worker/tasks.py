@@ -197,14 +197,14 @@ def _run(
     from engine.budget import Budget
     from engine.errors import InputError
     from engine.io import codecs, load_volume
+    from engine.io.png_rows import device_rows
     from engine.labels.job import label_job
     from engine.labels.pieces import crop_roi
     from engine.labels.uploads import find_label_upload
     from engine.outputs import write_outputs
     from engine.params import ReconParams
     from engine.pipeline import reconstruct
-    from engine.io.png_rows import device_rows
-    from engine.staging import pinned_rows, pinned_volumes
+    from engine.staging import pinned_volumes
 
     timer = timer or Timings()  # the attempt's (reconstruct_job), or one of its own
     recon_dict, spacing = engine_params_of(job)
@@ -229,7 +229,7 @@ def _run(
         raise InputError("segments picks among a label map's segments (or a CT's pieces); this upload is a CT scan")
     codecs.USE_IMAGECODECS = settings.png_decoder != "pillow"
     # on a GPU, PNG slices are only inflated on the host: the device undoes the row filters (engine.io.png_rows)
-    rows = device_rows(device, allocate=pinned_rows(device)) if settings.png_decoder == "auto" else None
+    rows = device_rows(device) if settings.png_decoder == "auto" else None
     volume = load_volume(
         upload,
         spacing_zyx_mm=tuple(spacing) if spacing else None,

@@ -128,11 +128,13 @@ class DeviceRows:
         self.pending.append((lo, bad))  # the device arrays may go: their memory is freed in the queue's order
 
 
-def device_rows(device: Any, allocate: Allocate | None = None) -> DeviceRows | None:
+def device_rows(device: Any) -> DeviceRows | None:
     """A :class:`DeviceRows` for a job on ``device`` (a spec of ``engine.backend.get_backend``) where that is a GPU
-    (or another device that is not the host's CPU), staging its rows in ``allocate`` (default ``np.empty``); None on
-    the CPU, where libpng's unfiltering on every decode thread is the faster way."""
+    (or another device that is not the host's CPU), staging its rows in the process's page-locked buffer on a CUDA
+    device (``engine.staging.pinned_rows``, reused from job to job), else in ``np.empty`` arrays; None on the CPU,
+    where libpng's unfiltering on every decode thread is the faster way."""
     from engine.backend.select import get_backend
+    from engine.staging import pinned_rows
 
     backend = get_backend(device)
-    return None if backend.is_host else DeviceRows(backend, allocate)
+    return None if backend.is_host else DeviceRows(backend, pinned_rows(device))

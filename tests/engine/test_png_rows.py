@@ -137,12 +137,12 @@ def _tiff(img: np.ndarray) -> bytes:
 
 @pytest.mark.gpu
 def test_cuda_with_the_page_locked_buffers(tmp_path: Path) -> None:
-    from engine.staging import VolumeBuffer
+    from engine.staging import VolumeBuffer, pinned_rows
 
     imgs = gray_slices(RNG, 40, (200, 301), np.uint16)
     path = _zip(tmp_path / "s.zip", _pngs(imgs))
-    rows = device_rows("cuda", allocate=VolumeBuffer(pinned=True))
-    assert rows is not None
+    rows = device_rows("cuda")
+    assert rows is not None and rows.allocate is pinned_rows("cuda")
     rows.slab_bytes = 7 * 200 * 603  # several slabs, the copies overlapping the decode
     volume = load_volume(path, spacing_zyx_mm=SPACING, threads=4, rows=rows, allocate=VolumeBuffer(pinned=True))
     np.testing.assert_array_equal(volume.data, imgs)
