@@ -73,7 +73,14 @@ class Settings(BaseSettings):
     )
     warmup: Literal["auto", "true", "false"] = Field(
         default="auto",
-        description="the worker warms its device up with one small job before taking any (auto: on a GPU)",
+        description="the worker warms its device up with one small job before taking any (auto, true: on every "
+        "device; false: its first job pays for it, 1-2 s)",
+    )
+    warmup_volume_bytes: str = Field(
+        default="512MiB",
+        description="a CUDA worker's warm-up also page-locks its load buffers for a volume this size (16-bit: 2 bytes "
+        "a voxel; a 476 x 1024 x 1024 scan is 952 MiB), so the first scan up to it does not pay for them; 0: the "
+        "first job that needs them does",
     )
     png_decoder: Literal["auto", "libpng", "pillow"] = Field(
         default="auto",
@@ -117,6 +124,14 @@ class Settings(BaseSettings):
     def _some_key(cls, value: list[str]) -> list[str]:
         if not value:
             raise ValueError("BONEMESH_API_KEYS holds no key")
+        return value
+
+    @field_validator("warmup_volume_bytes")
+    @classmethod
+    def _byte_count(cls, value: str) -> str:
+        from engine.budget import parse_bytes
+
+        parse_bytes(value)  # ValueError: not a byte count
         return value
 
     @field_validator("storage_url")

@@ -136,11 +136,25 @@ class VolumeBuffer(PinnedBuffer):
         dtype = np.dtype(dtype)
         nbytes = int(np.prod(shape)) * dtype.itemsize
         with self.lock:
-            if nbytes > pinned_max() or not nbytes or (self.buf is not None and self._held()):
+            if not self._free(nbytes):
                 return np.empty(shape, dtype)
-            whole: np.ndarray = self.at_least(nbytes, min(nbytes * 9 // 8, pinned_max()), self.pinned).numpy()
+            whole: np.ndarray = self._grown(nbytes).numpy()
             out: np.ndarray = whole.view(np.uint8)[:nbytes].view(dtype).reshape(shape)
             return out
+
+    def reserve(self, nbytes: int) -> int:
+        """Grow the buffer now for arrays up to ``nbytes`` (a worker's warm-up), not during the first job that needs
+        it; nothing where nothing may be handed out (held, past the cap, 0). Returns the buffer's bytes."""
+        with self.lock:
+            if self._free(nbytes):
+                self._grown(nbytes)
+            return 0 if self.buf is None else int(self.buf.capacity)
+
+    def _free(self, nbytes: int) -> bool:
+        return 0 < nbytes <= pinned_max() and not (self.buf is not None and self._held())
+
+    def _grown(self, nbytes: int) -> Any:
+        return self.at_least(nbytes, min(nbytes * 9 // 8, pinned_max()), self.pinned)
 
     def _held(self) -> bool:
         """Whether an array handed out earlier still lives (it, or a view of it, holds ``buf``)."""
@@ -160,6 +174,16 @@ def pinned_volumes(device: Any) -> VolumeBuffer | None:
 def pinned_rows(device: Any) -> VolumeBuffer | None:
     """The same for PNG slices' filtered rows on their way to ``device`` (``engine.io.png_rows.device_rows``)."""
     return _on_cuda(_ROWS, device)
+
+
+def reserve_load_buffers(device: Any, volume_bytes: int, rows: bool) -> int:
+    """Allocate the page-locked buffers a load onto ``device`` (a CUDA device; elsewhere nothing) uses, for a volume
+    of ``volume_bytes``: the volume's, and where ``rows`` (PNG slices unfiltered on the device) the filtered rows'
+    (the rows of a volume of B bytes are B plus one filter byte per row, inside the 1/8 the buffer adds). Page-locking
+    a gigabyte takes a few tenths of a second, which a worker's warm-up pays instead of its first job. Returns the
+    bytes held."""
+    buffers = [pinned_volumes(device), pinned_rows(device) if rows else None]
+    return sum(b.reserve(volume_bytes) for b in buffers if b is not None)
 
 
 def _on_cuda(buffer: VolumeBuffer, device: Any) -> VolumeBuffer | None:

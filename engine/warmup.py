@@ -1,6 +1,11 @@
 """Warm a device up before the first job: one small reconstruction and its files, so a worker's first real job does
-not pay for the device context, loading Warp's compiled modules (the PNG rows' kernel too) and the pinned host
-buffer (measured on the H100 host: a fresh worker's first job took 2.4 s longer than the next ones)."""
+not pay for the device context and loading Warp's compiled modules (the PNG rows' kernel too); on a CUDA device, the
+page-locked buffers a load fills are allocated too, for a volume of the size asked (``BONEMESH_WARMUP_VOLUME_BYTES``).
+
+Measured: on the H100 host a fresh worker's first job took 2.4 s longer than the next ones before any warm-up; with
+the small reconstruction alone, its load still took 1.2-2.1 s against 0.45 s, page-locking 2 GB of buffers for the
+476 x 1024 x 1024 phantom (``benchmarks/results/throughput_cuda_2xh100_24jobs_unfilter_device_*.json``). On this
+2-core CPU the warm-up takes 1.3 s and a CPU worker's first job was 1.5 s slower without it."""
 
 from __future__ import annotations
 
@@ -13,11 +18,18 @@ import numpy as np
 WARMUP_SHAPE = (40, 64, 64)  # a bone phantom this size touches every stage (decimation, copies, files) in ~0.3 s
 
 
-def warm_up(device: str = "auto", max_device_bytes: int | str | None = None) -> dict[str, Any]:
-    """Reconstruct a small bone phantom on ``device`` and write its files to a temporary folder (then removed).
+def warm_up(
+    device: str = "auto",
+    max_device_bytes: int | str | None = None,
+    volume_bytes: int = 0,
+    png_rows: bool = True,
+) -> dict[str, Any]:
+    """Reconstruct a small bone phantom on ``device`` and write its files to a temporary folder (then removed); on a
+    CUDA device, allocate the load's page-locked buffers for a volume of ``volume_bytes`` (the filtered rows' too
+    where ``png_rows``: PNG slices are unfiltered on the device, ``engine.io.png_rows``).
 
     Returns:
-        ``{"device": name, "seconds": wall time}``.
+        ``{"device": name, "seconds": wall time, "pinned_bytes": page-locked bytes held for loads}``.
     """
     from engine.data.phantom import bone_phantom
     from engine.device import resolve_device
@@ -25,6 +37,7 @@ def warm_up(device: str = "auto", max_device_bytes: int | str | None = None) -> 
     from engine.outputs import write_outputs
     from engine.params import ReconParams
     from engine.pipeline import reconstruct
+    from engine.staging import reserve_load_buffers
     from engine.types import Volume
 
     t0 = time.perf_counter()
@@ -35,7 +48,8 @@ def warm_up(device: str = "auto", max_device_bytes: int | str | None = None) -> 
     recon = reconstruct(volume, ReconParams(), device=spec, max_device_bytes=max_device_bytes)
     with tempfile.TemporaryDirectory(prefix="bonemesh-warmup-") as out:
         write_outputs(recon, out, device=spec, max_device_bytes=max_device_bytes)
-    rows = device_rows(spec)  # a GPU unfilters PNG slices' rows (engine.io.png_rows): its kernel loaded too
+    rows = device_rows(spec) if png_rows else None  # a GPU unfilters PNG slices' rows: its kernel loaded too
     if rows is not None:
         rows.warm_up()
-    return {"device": recon.report["device"]["name"], "seconds": time.perf_counter() - t0}
+    pinned = reserve_load_buffers(spec, volume_bytes, rows=rows is not None)
+    return {"device": recon.report["device"]["name"], "seconds": time.perf_counter() - t0, "pinned_bytes": pinned}

@@ -313,7 +313,14 @@ def test_throughput(tmp_path: Path, redis_executable: str) -> None:
         medians = phase["stage_medians"]
         assert finite(medians["reconstruct"]) and finite(medians["upload"]) and finite(medians["queue_wait"]), key
         assert len(phase["load_average_at_end"]) == 3, key
+        if workers == 1:  # two jobs: the rate after the first is 60 / the time between their finishes
+            ends = sorted(r["finished_at"] for r in rows)
+            assert abs(phase["after_first_jobs_per_minute"] - 60 / (ends[1] - ends[0])) < 1e-6, key
+        else:  # one job each: no rate after a first
+            assert phase["after_first_jobs_per_minute"] is None, key
     assert finite(report["speedup"]) and finite(report["queued_speedup"])
+    z, y, x = (int(v) for v in PHANTOM.split(","))  # the workers page-lock for the phantom (on CUDA only)
+    assert report["warmup_volume_bytes"] == str(2 * z * y * x) and report["workers_warm_up"] == "auto"
 
 
 def test_defect_quality(tmp_path: Path) -> None:

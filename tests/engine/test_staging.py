@@ -93,6 +93,35 @@ def test_the_volume_buffer_is_reused_only_once_nothing_holds_it(monkeypatch):
     assert past_cap.ctypes.data != volumes.buf.ptr
 
 
+def test_a_reserved_volume_buffer_serves_the_first_load_without_growing(monkeypatch):
+    """A worker's warm-up reserves the buffer for a volume size; a volume up to it then lands in that memory (no
+    new allocation), a larger one grows it as before; nothing is reserved past the cap or while a volume holds it."""
+    from engine.staging import VolumeBuffer
+
+    monkeypatch.setenv("BONEMESH_PINNED_MAX", "1M")
+    volumes = VolumeBuffer(pinned=False)
+    assert volumes.reserve(0) == 0 and volumes.buf is None
+    assert volumes.reserve(2 << 20) == 0 and volumes.buf is None  # past the 1 MB cap
+    held = volumes.reserve(100_000)
+    assert held >= 100_000 and volumes.buf.capacity == held
+    ptr = volumes.buf.ptr
+    first = volumes((10, 50, 100), np.uint16)  # exactly the 100,000 bytes reserved
+    assert first.ctypes.data == ptr and volumes.buf.capacity == held
+    assert volumes.reserve(200_000) == held and volumes.buf.ptr == ptr  # held by `first`: left as it is
+    del first
+    assert volumes.reserve(50_000) == held and volumes.buf.ptr == ptr  # already large enough
+    assert volumes.reserve(200_000) >= 200_000
+
+
+def test_warm_up_reserves_load_buffers_only_on_cuda():
+    from engine.staging import reserve_load_buffers
+    from engine.warmup import warm_up
+
+    assert reserve_load_buffers("cpu", 1 << 20, rows=True) == 0  # plain arrays off CUDA: nothing to page-lock
+    info = warm_up("cpu", volume_bytes=1 << 20)
+    assert info["device"] == "cpu" and info["pinned_bytes"] == 0 and info["seconds"] > 0
+
+
 def test_a_stack_loads_the_same_into_the_buffer(tmp_path):
     import imagecodecs
 
@@ -129,6 +158,21 @@ def test_cuda_workers_load_into_one_reused_pinned_buffer(tmp_path):
     ptr = volumes.buf.ptr
     del a
     assert volumes((3, 64, 64), np.uint16).ctypes.data == ptr
+
+
+@pytest.mark.gpu
+def test_a_cuda_warm_up_page_locks_the_load_buffers_for_the_size_asked():
+    from engine.staging import pinned_rows, pinned_volumes
+    from engine.warmup import warm_up
+
+    nbytes = 3 * 256 * 256 * 2
+    info = warm_up("cuda:0", volume_bytes=nbytes)
+    volumes, rows = pinned_volumes("cuda:0"), pinned_rows("cuda:0")
+    assert volumes is not None and rows is not None
+    assert volumes.buf.pinned and volumes.buf.capacity >= nbytes and rows.buf.capacity >= nbytes + 3 * 256
+    assert info["pinned_bytes"] == volumes.buf.capacity + rows.buf.capacity
+    ptr = volumes.buf.ptr
+    assert volumes((3, 256, 256), np.uint16).ctypes.data == ptr  # the first load fills it as it is
 
 
 # --------------------------------------------------------------------------------- plane feed (host to device)

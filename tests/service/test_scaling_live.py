@@ -6,6 +6,7 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 
 import httpx
+import pytest
 
 from tests.service.checks import assert_succeeded
 from tests.service.conftest import HEADSQ, StackFactory
@@ -34,11 +35,14 @@ def test_two_api_processes_and_a_warm_worker(make_stack: StackFactory) -> None:
     assert "already taken" not in worker.tail(50000)  # each job ran once
 
 
-def test_warm_up_is_on_for_gpus_unless_set() -> None:
+def test_warm_up_is_on_for_every_device_unless_set() -> None:
     from core.settings import Settings
     from worker.app import warms_up
 
     assert warms_up(Settings(device="cuda:1"))
-    assert not warms_up(Settings(device="cpu"))
+    assert warms_up(Settings(device="cpu"))  # Warp's CPU modules: the first job would load them
     assert warms_up(Settings(device="cpu", warmup="true"))
     assert not warms_up(Settings(device="cuda:0", warmup="false"))
+    assert Settings().warmup_volume_bytes == "512MiB"
+    with pytest.raises(ValueError, match="byte count"):
+        Settings(warmup_volume_bytes="lots")
