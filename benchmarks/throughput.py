@@ -39,12 +39,18 @@ the first POST, the worker's seconds per step from its ``job <id> timings`` log 
 reconstruct, write_files, publish, queue_wait, ...) and the engine's per stage from the job's report.json),
 ``stage_medians`` (the median of each), ``first_start_seconds``, ``last_upload_done_seconds`` and the host's
 ``load_average_at_end``; ``after_first_jobs_per_minute`` is the rate once each worker has finished its first job,
-and ``after_first_speedup`` its ratio (the phases' start and tail left out).
+and ``after_first_speedups`` its ratios (the phases' start and tail left out).
 
 The workers warm up as the product's do (``BONEMESH_WARMUP``, on every device; ``--warmup``), and with
 ``--phantom`` they page-lock their load buffers for the phantom's volume (``--warmup-volume-bytes scan``), as a
 worker whose operator set ``BONEMESH_WARMUP_VOLUME_BYTES`` for the usual scans does. Before either, each phase's
 fresh workers paid for both in their first job: 1.2-2.1 s more on the 2 x H100 host (its load), 1.5 s on the CPU.
+
+``--rounds N`` repeats the phases, one worker first in even rounds and all first in odd ones, so that a slow spell
+of the host (on the 2 x H100 VM, loads of 0.9-1.2 s for a few seconds against 0.45-0.55 s) falls on either side:
+round 0's phases keep the top-level keys, later rounds are under ``more_rounds``, and ``speedups`` /
+``median_speedup`` give every round's ratio and their median. Each phase's jobs are deleted once measured, so the
+data folder holds one phase's uploads and files at most.
 
 The JSON is rewritten after each phase, and SIGTERM (``timeout``) stops the processes and keeps what was measured.
 """
@@ -111,12 +117,14 @@ def _warms_up(stack: ServiceStack, device: str) -> bool:
     return warms_up(Settings(device=device, warmup=stack.env.get("BONEMESH_WARMUP", "auto")))
 
 
-def _phases(mode: str, devices: list[str]) -> list[tuple[str, list[str], bool]]:
-    """The phases of a run: (report key, its devices, queued), one worker first, then all, per mode."""
+def _phases(mode: str, devices: list[str], round_: int = 0) -> list[tuple[str, list[str], bool]]:
+    """The phases of a round: (report key, its devices, queued), per mode; one worker first, then all, in even
+    rounds, and the other way round in odd ones (a slow spell of the host then falls on either side)."""
     out = []
     for queued in {"uploading": (False,), "queued": (True,), "both": (False, True)}[mode]:
         prefix = "queued_" if queued else ""
-        out += [(f"{prefix}one_worker", devices[:1], queued), (f"{prefix}all_workers", devices, queued)]
+        pair = [(f"{prefix}one_worker", devices[:1], queued), (f"{prefix}all_workers", devices, queued)]
+        out += pair[::-1] if round_ % 2 else pair
     return out
 
 
@@ -178,6 +186,9 @@ def run_phase(
     end = max(_ts(j, "finished_at") for j in done)
     job_seconds = [_ts(j, "finished_at") - _ts(j, "started_at") for j in done]
     detail = _jobs_detail(stack, done, posts, workers, t0)
+    with stack.client(timeout=600) as client:  # measured: deleted, as retention would, so the data folder (often
+        for i in ids:  # tmpfs) holds one phase's uploads and files at most, not every phase's
+            assert client.delete(f"/v1/jobs/{i}").status_code == 204, i
     return {
         "workers": len(devices),
         "devices": devices,
@@ -290,6 +301,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--devices", default="cpu,cpu", help="one worker per entry: cpu, cuda:0, cuda:1, ...")
     parser.add_argument("--jobs", type=int, default=6, help="jobs per phase")
+    parser.add_argument(
+        "--rounds", type=int, default=1, help="rounds of the phases, one worker first in even rounds, all first in odd"
+    )
     parser.add_argument("--input", type=Path, default=None, help="scan archive (default: the bundled CT head)")
     parser.add_argument("--params", default=None, help="job params JSON for --input")
     parser.add_argument("--phantom", default=None, help="instead of --input: the bone phantom of this shape Z,Y,X")
@@ -398,33 +412,48 @@ def main(argv: list[str] | None = None) -> int:
             print(f"[throughput] warm-up on {devices[0]} (kernel compilation)", flush=True)
             report["warmup"] = run_phase(stack, devices[:1], shares, archive, params, 1)
             print(f"  {report['warmup']['seconds']:.1f} s", flush=True)
-            for key, devs, queued in _phases(args.mode, devices):
-                how = "queued" if queued else "uploading"
-                where = f"{len(devs)} worker(s): {devs}, CPUs {shares}"
-                print(f"[throughput] {args.jobs} jobs ({how}) on {where}", flush=True)
-                phase = run_phase(stack, devs, shares, archive, params, args.jobs, args.uploaders, queued)
-                print(
-                    f"  {phase['seconds']:.1f} s, {phase['jobs_per_minute']:.2f} jobs/min, mean job "
-                    f"{phase['mean_job_seconds']:.1f} s, at most {phase['most_jobs_running_at_once']} at once",
-                    flush=True,
-                )
-                medians = ", ".join(f"{k} {v:.2f}" for k, v in phase["stage_medians"].items())
-                print(f"  median seconds: {medians}", flush=True)
-                report[key] = phase
-                write()
+            for round_ in range(args.rounds):  # round 0's phases at the top level, later ones under more_rounds
+                into = report if round_ == 0 else {}
+                if round_:
+                    report.setdefault("more_rounds", []).append(into)
+                for key, devs, queued in _phases(args.mode, devices, round_):
+                    how = "queued" if queued else "uploading"
+                    where = f"{len(devs)} worker(s): {devs}, CPUs {shares}"
+                    print(f"[throughput] round {round_}: {args.jobs} jobs ({how}) on {where}", flush=True)
+                    phase = run_phase(stack, devs, shares, archive, params, args.jobs, args.uploaders, queued)
+                    print(
+                        f"  {phase['seconds']:.1f} s, {phase['jobs_per_minute']:.2f} jobs/min, mean job "
+                        f"{phase['mean_job_seconds']:.1f} s, at most {phase['most_jobs_running_at_once']} at once",
+                        flush=True,
+                    )
+                    medians = ", ".join(f"{k} {v:.2f}" for k, v in phase["stage_medians"].items())
+                    print(f"  median seconds: {medians}", flush=True)
+                    into[key] = phase
+                    write()
         except BaseException:
             print(stack.logs(8000), file=sys.stderr)
             write()
             raise
     for prefix in ("", "queued_"):
-        if f"{prefix}one_worker" in report:
-            ratio = report[f"{prefix}one_worker"]["seconds"] / report[f"{prefix}all_workers"]["seconds"]
-            report[f"{prefix}speedup"] = ratio
-            print(f"[throughput] {prefix}speedup {ratio:.2f}x with {len(devices)} workers", flush=True)
-            one, all_ = (report[f"{prefix}{k}"]["after_first_jobs_per_minute"] for k in ("one_worker", "all_workers"))
-            if one and all_:
-                report[f"{prefix}after_first_speedup"] = all_ / one
-                print(f"[throughput] {prefix}after the first jobs {all_ / one:.2f}x", flush=True)
+        rounds = [r for r in [report, *report.get("more_rounds", [])] if f"{prefix}all_workers" in r]
+        if not rounds:
+            continue
+        ratios = [r[f"{prefix}one_worker"]["seconds"] / r[f"{prefix}all_workers"]["seconds"] for r in rounds]
+        report[f"{prefix}speedup"] = ratios[0]
+        report[f"{prefix}speedups"] = ratios
+        report[f"{prefix}median_speedup"] = statistics.median(ratios)
+        shown = ", ".join(f"{r:.2f}x" for r in ratios)
+        print(f"[throughput] {prefix}speedup {shown} with {len(devices)} workers", flush=True)
+        after = [(r[f"{prefix}one_worker"], r[f"{prefix}all_workers"]) for r in rounds]
+        after_ratios = [
+            b["after_first_jobs_per_minute"] / a["after_first_jobs_per_minute"]
+            for a, b in after
+            if a["after_first_jobs_per_minute"] and b["after_first_jobs_per_minute"]
+        ]
+        if after_ratios:
+            report[f"{prefix}after_first_speedups"] = after_ratios
+            shown = ", ".join(f"{r:.2f}x" for r in after_ratios)
+            print(f"[throughput] {prefix}after each worker's first job {shown}", flush=True)
     write()
     print(f"[throughput] wrote {args.out}", flush=True)
     return 0

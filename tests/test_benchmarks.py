@@ -287,13 +287,14 @@ def test_throughput(tmp_path: Path, redis_executable: str) -> None:
     out = tmp_path / "throughput.json"
     args = ["--devices", "cpu,cpu", "--jobs", "2", "--phantom", PHANTOM, "--uploaders", "2", "--api-workers", "1"]
     args += ["--mode", "both", "--cpu-layout", "halves"]  # uploading, then queued (workers paused while uploading)
+    args += ["--rounds", "2"]  # the second round: all workers first, then one
     args += ["--redis-server", redis_executable, "--warp-cache", str(cache), "--workdir", str(tmp_path / "work")]
     run_module("throughput", [*args, "--out", str(out)], tmp_path)
     report = load(out)
     has_keys(report, "benchmark", "machine", "host", "input", "timing", "warmup", "one_worker", "all_workers")
     phases = (("one_worker", 1), ("all_workers", 2), ("queued_one_worker", 1), ("queued_all_workers", 2))
-    for key, workers in phases:
-        phase = report[key]
+    (second,) = report["more_rounds"]
+    for key, workers, phase in [*((k, n, report[k]) for k, n in phases), *((k, n, second[k]) for k, n in phases)]:
         assert phase["workers"] == workers and phase["jobs"] == 2, key
         assert phase["queued"] is key.startswith("queued_") and finite(phase["uploads_seconds"]), key
         assert finite(phase["seconds"]) and finite(phase["jobs_per_minute"]), key
@@ -319,6 +320,12 @@ def test_throughput(tmp_path: Path, redis_executable: str) -> None:
         else:  # one job each: no rate after a first
             assert phase["after_first_jobs_per_minute"] is None, key
     assert finite(report["speedup"]) and finite(report["queued_speedup"])
+    for prefix in ("", "queued_"):  # one ratio per round, the first also on its own; their median
+        ratios = report[f"{prefix}speedups"]
+        assert len(ratios) == 2 and ratios[0] == report[f"{prefix}speedup"] and all(finite(r) for r in ratios)
+        assert min(ratios) <= report[f"{prefix}median_speedup"] <= max(ratios)
+    jobs = tmp_path / "work" / "stack" / "data" / "jobs"  # each phase's jobs were deleted once measured
+    assert jobs.is_dir() and not any(jobs.iterdir()), list(jobs.iterdir())
     z, y, x = (int(v) for v in PHANTOM.split(","))  # the workers page-lock for the phantom (on CUDA only)
     assert report["warmup_volume_bytes"] == str(2 * z * y * x) and report["workers_warm_up"] == "auto"
 
