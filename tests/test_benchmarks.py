@@ -407,3 +407,15 @@ def test_png_rows(tmp_path: Path) -> None:
         assert stack["device_1mb"]["equal_to_host"] is True, name
         assert finite(stack["host"]["median_seconds"]) and finite(stack["device_only"]["median_seconds"]), name
     assert report["stacks"]["paeth"]["zip"]["filter_share"][4] == 1.0
+
+
+def test_first_load(tmp_path: Path) -> None:
+    out = tmp_path / "first_load.json"
+    args = ["--phantom", "8,24,32", "--device", "cpu", "--loads", "2", "--reserve", "0,scan", "--threads", "2"]
+    run_module("first_load", [*args, "--workdir", str(tmp_path / "work"), "--out", str(out)], tmp_path)
+    report = load(out)
+    has_keys(report, "benchmark", "host", "device", "input", "runs")
+    assert [r["reserve_bytes"] for r in report["runs"]] == [0, 2 * 8 * 24 * 32]
+    for run in report["runs"]:  # a new process each: its warm-up, then the loads
+        assert run["warm_up"]["device"] == "cpu" and run["warm_up"]["pinned_bytes"] == 0  # nothing page-locked off CUDA
+        assert len(run["loads"]) == 2 and all(finite(x["seconds"]) and x["cpu_seconds"] >= 0 for x in run["loads"])
