@@ -12,9 +12,10 @@ warm-up), a new Python process (nothing allocated or loaded yet, as a new worker
 process CPU seconds are reported; the first against the next ones is what a fresh worker's first job pays. Off
 CUDA nothing is page-locked, so both reserves measure the same path there.
 
-Measured on the 2 x H100 host (``benchmarks/results/firstload_2xh100.json``; that run was the same steps in a
-script beside the device run, before they became this module): without the reserve the first load took 1.66 s
-and the next 0.54-0.65 s; with it, 0.63 s and then 0.57-0.70 s.
+Measured on one H100, 16 threads, the 476 x 1024 x 1024 phantom (``benchmarks/results/first_load_h100.json``):
+without the reserve the first load took 1.63 s and the next 0.41-0.45 s; with it, 0.55 s and then 0.42-0.50 s
+(the warm-up 2.6 s, 2.1 GiB page-locked). On the 2 x H100 host the same steps, in a script before they became this
+module (``firstload_2xh100.json``): 1.66 s then 0.54-0.65 s, against 0.63 s then 0.57-0.70 s.
 """
 
 from __future__ import annotations
