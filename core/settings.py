@@ -76,8 +76,8 @@ class Settings(BaseSettings):
         description="the worker warms its device up with one small job before taking any (auto, true: on every "
         "device; false: its first job pays for it, 1-2 s)",
     )
-    warmup_volume_bytes: str = Field(
-        default="512MiB",
+    warmup_volume_bytes: int = Field(
+        default=512 << 20,
         description="a CUDA worker's warm-up also page-locks its load buffers for a volume this size (16-bit: 2 bytes "
         "a voxel; a 476 x 1024 x 1024 scan is 952 MiB), so the first scan up to it does not pay for them; 0: the "
         "first job that needs them does",
@@ -126,13 +126,13 @@ class Settings(BaseSettings):
             raise ValueError("BONEMESH_API_KEYS holds no key")
         return value
 
-    @field_validator("warmup_volume_bytes")
+    @field_validator("warmup_volume_bytes", mode="before")
     @classmethod
-    def _byte_count(cls, value: str) -> str:
+    def _byte_count(cls, value: object) -> object:
+        """``512MiB``, ``1GiB``, a plain count or 0, read once here (ValueError: not a byte count)."""
         from engine.budget import parse_bytes
 
-        parse_bytes(value)  # ValueError: not a byte count
-        return value
+        return (parse_bytes(value) or 0) if isinstance(value, str | int) else value
 
     @field_validator("storage_url")
     @classmethod

@@ -71,13 +71,13 @@ def _warm_device(**_: object) -> None:
     if not warms_up(settings):
         return
     try:
-        from engine.budget import mib, parse_bytes
+        from engine.budget import mib
         from engine.warmup import warm_up
 
         info = warm_up(
             settings.device,
             settings.max_device_bytes,
-            volume_bytes=parse_bytes(settings.warmup_volume_bytes) or 0,
+            volume_bytes=settings.warmup_volume_bytes,
             png_rows=settings.png_decoder == "auto",
         )
     except Exception as exc:

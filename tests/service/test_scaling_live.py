@@ -43,6 +43,8 @@ def test_warm_up_is_on_for_every_device_unless_set() -> None:
     assert warms_up(Settings(device="cpu"))  # Warp's CPU modules: the first job would load them
     assert warms_up(Settings(device="cpu", warmup="true"))
     assert not warms_up(Settings(device="cuda:0", warmup="false"))
-    assert Settings().warmup_volume_bytes == "512MiB"
+    assert Settings().warmup_volume_bytes == 512 << 20
+    assert Settings(warmup_volume_bytes="1GiB").warmup_volume_bytes == 1 << 30  # read once, as a byte count
+    assert Settings(warmup_volume_bytes="0").warmup_volume_bytes == 0
     with pytest.raises(ValueError, match="byte count"):
         Settings(warmup_volume_bytes="lots")
