@@ -435,20 +435,21 @@ def main(argv: list[str] | None = None) -> int:
             write()
             raise
     for prefix in ("", "queued_"):
-        rounds = [r for r in [report, *report.get("more_rounds", [])] if f"{prefix}all_workers" in r]
-        if not rounds:
+        one_key, all_key = f"{prefix}one_worker", f"{prefix}all_workers"
+        rounds = [report, *report.get("more_rounds", [])]  # a round cut short has one of its phases at most
+        pairs = [(r[one_key], r[all_key]) for r in rounds if one_key in r and all_key in r]
+        if not pairs:
             continue
-        ratios = [r[f"{prefix}one_worker"]["seconds"] / r[f"{prefix}all_workers"]["seconds"] for r in rounds]
+        ratios = [one["seconds"] / all_["seconds"] for one, all_ in pairs]
         report[f"{prefix}speedup"] = ratios[0]
         report[f"{prefix}speedups"] = ratios
         report[f"{prefix}median_speedup"] = statistics.median(ratios)
         shown = ", ".join(f"{r:.2f}x" for r in ratios)
         print(f"[throughput] {prefix}speedup {shown} with {len(devices)} workers", flush=True)
-        after = [(r[f"{prefix}one_worker"], r[f"{prefix}all_workers"]) for r in rounds]
         after_ratios = [
-            b["after_first_jobs_per_minute"] / a["after_first_jobs_per_minute"]
-            for a, b in after
-            if a["after_first_jobs_per_minute"] and b["after_first_jobs_per_minute"]
+            all_["after_first_jobs_per_minute"] / one["after_first_jobs_per_minute"]
+            for one, all_ in pairs
+            if one["after_first_jobs_per_minute"] and all_["after_first_jobs_per_minute"]
         ]
         if after_ratios:
             report[f"{prefix}after_first_speedups"] = after_ratios
