@@ -158,10 +158,11 @@ def _read_slices(
     def decode_into(k: int) -> tuple[tuple[int, ...], np.dtype[Any], bool]:
         """Decode slice k straight into its plane of ``out`` (on a pool thread), or stage it for the device; its
         shape, dtype, colour flag."""
-        plane = out[k]
-        data = images[k].read() if stage is not None else None
-        if data is not None and stage is not None and stage.take(k, data):
-            return plane.shape, plane.dtype, False
+        plane, data = out[k], None
+        if stage is not None:  # read once: staged for the device, or decoded here from the same bytes
+            data = images[k].read()
+            if stage.take(k, data):
+                return plane.shape, plane.dtype, False
         s, g = _decode(images[k], limits, plane, data)
         if s is not plane and s.shape == plane.shape and s.dtype == plane.dtype:  # not decoded in place
             plane[...] = s
