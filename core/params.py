@@ -4,8 +4,9 @@ Most parameters are flat; the engine's optional steps are objects: ``orient`` (h
 ``preprocess`` (the paper's slice preprocessing, off unless given), ``defect`` (the one-sided defect and its
 mirrored template, off unless given), ``roi`` (a box the scan or label map is cropped to first), and ``body`` and
 ``islands`` (bone inside the body outline, speck removal: on unless sent as ``null``). ``labels`` (the upload is a
-label map) and ``pieces`` (a CT's N largest bone pieces as parts) make a label job (``engine.labels``); the worker
-reads them, with ``roi``, through ``JobParams.label_options``. Left out, every step keeps the engine's default
+label map) and ``pieces`` (a CT's N largest bone pieces as parts) make a label job (``engine.labels``). The
+engine's form of a request is a ``engine.job.JobSpec`` (``JobParams.job_spec``), checked by the engine's rules when
+the request is validated and stored with the job, so the worker runs what the API accepted. Left out, every step keeps the engine's default
 (``engine.params.ReconParams()``).
 
 Part of the job's contract, so shared: the API validates a request with it and stores both forms, a PACS routing
@@ -19,6 +20,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from engine.defect.params import DEFAULT_MAX_FACES, DefectParams
+from engine.job.spec import InputSpec, JobSpec
 from engine.params import (
     DEFAULT_SPECK_VOXELS,
     FLOAT32_MAX,
@@ -28,7 +30,6 @@ from engine.params import (
     BodyMaskParams,
     DecimateParams,
     ExportParams,
-    IslandParams,
     IsoParams,
     OrientParams,
     PiecesParams,
@@ -37,6 +38,8 @@ from engine.params import (
     RoiParams,
     SmoothParams,
     check_spacing_zyx_mm,
+    decimate_of,
+    islands_of,
     spacing_order_warning,
 )
 
@@ -244,25 +247,8 @@ class JobParams(BaseModel):
     def _consistent(self) -> JobParams:
         if self.iso is not None and self.preset is not None:
             raise ValueError("give iso or preset, not both")
-        if self.reduction is not None and self.max_triangles is not None:
-            raise ValueError("give reduction or max_triangles, not both")
-        if self.islands is None and self.min_island_mm3 is not None:
-            raise ValueError('give min_island_mm3 or "islands": null (keep pieces of any size), not both')
-        if self.pieces is not None and self.labels:
-            raise ValueError("give pieces (a CT's bone pieces) or labels (a label map), not both")
-        if self.defect is not None and (self.pieces is not None or self.labels or self.segments):
-            raise ValueError("the defect is found on a CT's model, not on pieces or labels: give one or the other")
+        self.job_spec()  # the engine's rules, stated once (engine.job.spec, engine.params): 422 naming the value
         return self
-
-    def label_options(self) -> dict[str, Any]:
-        """What the worker needs beyond ``engine_params``: ``labels`` (forced), ``pieces`` and ``roi`` (the
-        engine's ``PiecesParams`` / ``RoiParams``, or None), ``segments`` (numbers or names, or None)."""
-        return {
-            "labels": bool(self.labels),
-            "pieces": None if self.pieces is None else PiecesParams(count=self.pieces),
-            "roi": None if self.roi is None else self.roi.engine(),
-            "segments": self.segments,
-        }
 
     def warnings(self) -> list[dict[str, Any]]:
         """What a person should check in these parameters, in the API's words: a ``spacing`` whose order looks
@@ -283,36 +269,43 @@ class JobParams(BaseModel):
         data.update({name: None for name in SWITCHES if getattr(self, name) is None})
         return data
 
-    def engine_params(self) -> dict[str, Any]:
-        """The engine's ``ReconParams.to_dict()`` form of these parameters: what a job leaves out keeps the
-        engine's default (``ReconParams()``), speck removal and the body mask included.
+    def job_spec(self) -> JobSpec:
+        """The engine's job specification (``engine.job.JobSpec``) of these parameters: what a job leaves out keeps
+        the engine's default (``ReconParams()``), speck removal and the body mask included. The rules for the
+        decimation's target and speck removal are the engine's (``decimate_of``, ``islands_of``), as the CLI's.
 
         Raises:
             ValueError: the engine refuses a value (the API answers 422).
         """
-        if self.islands is None:  # no speck removal; keep_largest alone may still apply (the CLI's --keep-specks)
-            islands = (
-                None
-                if self.keep_largest is None
-                else IslandParams(keep_largest=self.keep_largest, min_volume_voxels=None)
-            )
-        else:
-            islands = IslandParams(
-                min_volume_mm3=self.min_island_mm3,
-                keep_largest=self.keep_largest,
-                min_volume_voxels=self.islands.min_volume_voxels,
-            )
-        return ReconParams(
+        recon = ReconParams(
             preprocess=None if self.preprocess is None else PreprocessParams(**self.preprocess.model_dump()),
             iso=IsoParams(iso=self.iso, preset=self.preset, hu_offset=self.hu_offset),
-            islands=islands,
-            decimate=DecimateParams(
-                reduction=None if self.max_triangles else (self.reduction or _DECIMATE.reduction),
-                max_triangles=self.max_triangles,
+            islands=islands_of(
+                self.min_island_mm3,
+                self.keep_largest,
+                keep_specks=self.islands is None,
+                min_volume_voxels=DEFAULT_SPECK_VOXELS if self.islands is None else self.islands.min_volume_voxels,
             ),
+            decimate=decimate_of(self.reduction, self.max_triangles),
             smooth=SmoothParams(iterations=self.iterations, angle_deg=self.angle),
             export=ExportParams(phone_max_triangles=self.phone_max_triangles, ar_max_triangles=self.ar_max_triangles),
             orient=OrientParams(**self.orient.model_dump()),
             body=None if self.body is None else BodyMaskParams(outline_hu=self.body.outline_hu),
             defect=None if self.defect is None else self.defect.engine(),
-        ).to_dict()
+        )
+        inp = InputSpec(
+            kind="labels" if self.labels else "auto",
+            spacing_zyx_mm=None if self.spacing is None else tuple(self.spacing),  # type: ignore[arg-type]
+            roi=None if self.roi is None else self.roi.engine(),
+            pieces=None if self.pieces is None else PiecesParams(count=self.pieces),
+            segments=None if self.segments is None else tuple(self.segments),
+        )
+        return JobSpec(recon=recon, input=inp)
+
+    def engine_params(self) -> dict[str, Any]:
+        """The job record's engine form (``JobSpec.to_dict``: ``recon``, ``spacing_zyx_mm``, ``input``, ``outputs``).
+
+        Raises:
+            ValueError: the engine refuses a value (the API answers 422).
+        """
+        return self.job_spec().to_dict()

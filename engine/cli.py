@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
 import os
 import shutil
 import sys
@@ -34,19 +33,20 @@ from pathlib import Path
 
 from engine.cli_args import (
     add_input_args,
+    add_label_args,
     add_orient_args,
     add_recon_args,
     describe_voxel_size,
+    job_spec,
     load_input,
+    no_voxel_size_message,
     orient_params,
     output_file,
     output_folder,
-    recon_params,
     voxel_size_option,
     voxel_size_warning,
 )
-from engine.errors import InputError
-from engine.progress import Progress
+from engine.errors import InputError, NoSpacingError
 from engine.report import Report
 from engine.types import Volume
 
@@ -91,9 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec = sub.add_parser("reconstruct", help="the EMC33 pipeline: model.stl, model.glb, phone.glb, ar.glb, report")
     add_input_args(rec, "output folder")
     add_recon_args(rec)
-    from engine.labels.cli import add_label_args
-
-    add_label_args(rec)  # --labels, --pieces N, --roi (engine.labels.cli)
+    add_label_args(rec)  # --labels, --pieces N, --roi, --segments
     rec.add_argument("--demo", action="store_true", help="use the bundled VTK headsq CT head")
     rec.add_argument("--quiet", action="store_true", help="no progress bar")
     add_sweep_parser(sub)
@@ -200,34 +198,52 @@ def _isosurface(args: argparse.Namespace) -> int:
 
 
 def _reconstruct(args: argparse.Namespace) -> int:
-    from engine.labels.cli import apply_roi, run_labels, summary, wants_labels
-    from engine.outputs import write_outputs
-    from engine.pipeline import reconstruct
-    from engine.progress import span
+    """``reconstruct``: the job's spec and runtime from the flags (resolved here, once), then ``engine.job.run_job``
+    (the worker's path too): a scan's model, a model per label of a label map (found by content), or a CT's pieces."""
+    from engine.job import resolve_runtime, run_job
 
-    params = recon_params(args)
+    spec = job_spec(args)
+    try:
+        runtime = resolve_runtime(args.device, args.max_device_bytes)  # a missing device: exit 2 before loading
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
     out = output_folder(args.output)
     _warn_voxel_size(args)
-    if wants_labels(args):  # a model per label: a label map, or --pieces N of a CT (engine.labels.cli)
-        with _removed_unless_finished(out):
-            summary(run_labels(args, params, out))
-        return 0
-    bar = _Bar(args.quiet)
-    volume, demo_level = load_input(args, on_progress=span(bar, "loading", 0.0, LOAD_SHARE))
-    volume = apply_roi(args, volume, params.orient)  # --roi: cropped before anything runs
     if args.demo:
-        from engine.data import HEADSQ_FIRST_SLICE
-        from engine.params import OrientParams
+        from engine.data import HEADSQ_ZIP
 
-        params = dataclasses.replace(params, orient=OrientParams(first_slice=HEADSQ_FIRST_SLICE))
-        if args.iso is None and args.preset is None:
-            params = dataclasses.replace(params, iso=dataclasses.replace(params.iso, iso=demo_level))
-    budget = args.max_device_bytes
-    recon = reconstruct(volume, params, device=args.device, on_progress=_after_loading(bar), max_device_bytes=budget)
+        source: str | Path = HEADSQ_ZIP
+    elif not args.input:
+        raise InputError("no INPUT given (or use --demo)")
+    elif not Path(args.input).exists():
+        raise InputError(f"{args.input} does not exist")
+    else:
+        source = args.input
+    bar = _Bar(args.quiet)
     with _removed_unless_finished(out):
-        paths = write_outputs(recon, out, params, device=args.device, max_device_bytes=budget)
-    _summary(volume, recon.report, paths)
+        try:
+            result = run_job(
+                source, out, spec, runtime, on_progress=bar, label=Path(source).name, shares=(LOAD_SHARE, 1.0)
+            )
+        except NoSpacingError as exc:  # the library names spacing_zyx_mm: say it with the command's option
+            raise InputError(no_voxel_size_message(str(source), exc)) from None
+    if result.plan == "scan":
+        assert result.volume is not None
+        _summary(result.volume, result.report, result.paths)  # type: ignore[arg-type]
+    else:
+        _label_summary(result.report)
     return 0
+
+
+def _label_summary(report: dict[str, typing.Any]) -> None:
+    """One line per label on stdout."""
+    rows = report["labels"]
+    width = max(len(r["name"]) for r in rows)
+    for r in rows:
+        print(  # noqa: T201 - the command's summary
+            f"{r['name']:<{width}}  {r['faces']:>8,} faces  {r['volume_mm3']:>12,.1f} mm3  {r['area_mm2']:>10,.1f} mm2"
+            f"  watertight {r['watertight']}  {r['file']}"
+        )
 
 
 def _warn_voxel_size(args: argparse.Namespace) -> None:
@@ -250,11 +266,6 @@ def _removed_unless_finished(out: Path) -> Iterator[None]:
         if created:
             shutil.rmtree(out, ignore_errors=True)
         raise
-
-
-def _after_loading(bar: _Bar) -> Progress:
-    """The pipeline's fraction mapped onto the bar after the loading share."""
-    return lambda stage, fraction: bar(stage, LOAD_SHARE + (1 - LOAD_SHARE) * fraction)
 
 
 def _summary(vol: Volume, rep: Report, paths: dict[str, Path]) -> None:

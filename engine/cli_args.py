@@ -22,14 +22,19 @@ from engine.params import (
     IslandParams,
     IsoParams,
     OrientParams,
+    PiecesParams,
     PreprocessParams,
     ReconParams,
     SmoothParams,
+    decimate_of,
+    islands_of,
 )
 from engine.types import Volume
 
 if TYPE_CHECKING:
     from engine.budget import Budget
+    from engine.job.spec import JobSpec
+    from engine.params import RoiParams
     from engine.io.png_rows import DeviceRows
 
 Spacing = tuple[float, float, float]
@@ -200,21 +205,6 @@ def recon_params(args: argparse.Namespace) -> ReconParams:
         InputError: an invalid value or combination (exit code 2).
     """
     try:
-        if args.reduction is not None and args.max_triangles is not None:
-            raise ValueError("give --reduction or --max-triangles, not both")
-        if args.max_triangles is not None:
-            decimate = DecimateParams(reduction=None, max_triangles=args.max_triangles)
-        elif args.reduction is not None:
-            decimate = DecimateParams(reduction=args.reduction)
-        else:
-            decimate = DecimateParams()
-        islands: IslandParams | None = IslandParams(min_volume_mm3=args.min_island_mm3, keep_largest=args.keep_largest)
-        if args.keep_specks:
-            if args.min_island_mm3 is not None:
-                raise ValueError("give --keep-specks or --min-island-mm3, not both")
-            islands = None
-            if args.keep_largest is not None:
-                islands = IslandParams(keep_largest=args.keep_largest, min_volume_voxels=None)
         preprocess = None
         if args.threshold is not None or args.canny_sigma is not None or args.area_opening_px is not None:
             preprocess = PreprocessParams(
@@ -223,12 +213,45 @@ def recon_params(args: argparse.Namespace) -> ReconParams:
         return ReconParams(
             preprocess=preprocess,
             iso=IsoParams(iso=args.iso, preset=args.preset, hu_offset=args.hu_offset, closed=not args.open),
-            islands=islands,
-            decimate=decimate,
+            islands=islands_of(args.min_island_mm3, args.keep_largest, keep_specks=args.keep_specks),
+            decimate=decimate_of(args.reduction, args.max_triangles),
             smooth=SmoothParams(iterations=args.iterations, angle_deg=args.angle),
             orient=orient_params(args),
             body=None if args.keep_outside_body else BodyMaskParams(outline_hu=args.outline_hu),
         )
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
+def job_spec(args: argparse.Namespace) -> JobSpec:
+    """The ``JobSpec`` of ``reconstruct``'s arguments (``engine.job``: the same object the API makes of a request):
+    the pipeline's options, what the input is (``--labels``, ``--pieces``, ``--roi``, ``--segments``, the voxel
+    size) and the CLI's layout of a label job's files; ``--demo``: the bundled scan's orientation, voxel size and
+    bone level (unless a level is given).
+
+    Raises:
+        InputError: an invalid value or combination (exit code 2).
+    """
+    from engine.job.spec import InputSpec, JobSpec, OutputSpec
+
+    recon = recon_params(args)
+    spacing = args.spacing
+    if getattr(args, "demo", False):
+        from engine.data import HEADSQ_FIRST_SLICE, HEADSQ_LEVEL, HEADSQ_SPACING_ZYX_MM
+
+        recon = dataclasses.replace(recon, orient=OrientParams(first_slice=HEADSQ_FIRST_SLICE))
+        if args.iso is None and args.preset is None:
+            recon = dataclasses.replace(recon, iso=dataclasses.replace(recon.iso, iso=HEADSQ_LEVEL))
+        spacing = spacing or HEADSQ_SPACING_ZYX_MM
+    try:
+        inp = InputSpec(
+            kind="labels" if getattr(args, "labels", False) else "auto",
+            spacing_zyx_mm=spacing,
+            roi=roi_params(args),
+            pieces=None if getattr(args, "pieces", None) is None else PiecesParams(count=args.pieces),
+            segments=segments_of(args),
+        )
+        return JobSpec(recon=recon, input=inp, outputs=OutputSpec(label_stl_folder=True))
     except ValueError as exc:
         raise InputError(str(exc)) from None
 
@@ -306,3 +329,45 @@ def no_voxel_size_message(path: str, exc: NoSpacingError) -> str:
         f"{name}: the images do not say how large a voxel is; give --voxel-size Z,Y,X in mm (z: slice step, "
         "y: row spacing, x: column spacing), e.g. --voxel-size z=1.5,y=0.5,x=0.5"
     )
+
+
+def add_label_args(parser: argparse.ArgumentParser) -> None:
+    """``reconstruct``'s label maps, pieces and region of interest (docs/labels.md): a label map is found by its
+    content without ``--labels`` too."""
+    group = parser.add_argument_group("label maps, pieces and a region of interest (docs/labels.md)")
+    group.add_argument(
+        "--labels", action="store_true", help="INPUT is a label map (integer NIfTI/NRRD, DICOM SEG, SEG+CT folder)"
+    )
+    group.add_argument("--pieces", type=int, metavar="N", help="keep the N largest bone pieces as separate parts")
+    group.add_argument("--roi", metavar="A0:A1,B0:B1,C0:C1", help="crop to this box before anything runs")
+    group.add_argument(
+        "--roi-units",
+        choices=("voxels", "mm"),
+        default="voxels",
+        help="voxels: z,y,x indices (end exclusive); mm: x,y,z in the patient (LPS) frame",
+    )
+    group.add_argument("--segments", metavar="S1,S2", help="only these segments (numbers or names, commas between)")
+
+
+def roi_params(args: argparse.Namespace) -> RoiParams | None:
+    """``--roi`` as ``RoiParams`` (None when not given). Raises InputError on a malformed box."""
+    from engine.params import RoiParams
+
+    if not getattr(args, "roi", None):
+        return None
+    try:
+        ranges = [tuple(float(v) for v in part.split(":")) for part in args.roi.split(",")]
+        if len(ranges) != 3 or any(len(r) != 2 for r in ranges):
+            raise ValueError(f"--roi takes three LO:HI ranges separated by commas, got {args.roi!r}")
+        box = ((ranges[0][0], ranges[0][1]), (ranges[1][0], ranges[1][1]), (ranges[2][0], ranges[2][1]))
+        return RoiParams(box, units=args.roi_units)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
+def segments_of(args: argparse.Namespace) -> tuple[int | str, ...] | None:
+    """``--segments``: numbers or names, commas between (None when not given)."""
+    text = getattr(args, "segments", None)
+    if not text:
+        return None
+    return tuple(w.strip() for w in text.split(",") if w.strip())  # a number or a name: select_segments reads both

@@ -297,6 +297,46 @@ class DecimateParams:
         return target_faces(n_faces, self.reduction, self.max_triangles, least=MIN_TRIANGLES)
 
 
+def decimate_of(reduction: float | None = None, max_triangles: int | None = None) -> DecimateParams:
+    """The one rule for a decimation target given by a person or a client (the CLI's ``--reduction`` /
+    ``--max-triangles``, the API's ``reduction`` / ``max_triangles``): one or the other, not both; neither keeps the
+    default reduction.
+
+    Raises:
+        ValueError: both given, or a value ``DecimateParams`` refuses.
+    """
+    if reduction is not None and max_triangles is not None:
+        raise ValueError("give reduction (--reduction) or max_triangles (--max-triangles), not both")
+    if max_triangles is not None:
+        return DecimateParams(reduction=None, max_triangles=max_triangles)
+    return DecimateParams() if reduction is None else DecimateParams(reduction=reduction)
+
+
+def islands_of(
+    min_volume_mm3: float | None = None,
+    keep_largest: int | None = None,
+    *,
+    keep_specks: bool = False,
+    min_volume_voxels: float | None = DEFAULT_SPECK_VOXELS,
+) -> IslandParams | None:
+    """The one rule for speck removal as a person or a client asks for it: ``keep_specks`` (the CLI's
+    ``--keep-specks``, the API's ``"islands": null``) keeps pieces of any size, and only ``keep_largest`` may then
+    still apply (None: no island step at all); otherwise pieces below ``min_volume_mm3`` (else ``min_volume_voxels``
+    voxels' volume) are dropped.
+
+    Raises:
+        ValueError: ``keep_specks`` with ``min_volume_mm3``, or a value ``IslandParams`` refuses.
+    """
+    if keep_specks:
+        if min_volume_mm3 is not None:
+            raise ValueError(
+                'give min_island_mm3 (--min-island-mm3) or keep pieces of any size (--keep-specks, "islands": '
+                "null), not both"
+            )
+        return None if keep_largest is None else IslandParams(keep_largest=keep_largest, min_volume_voxels=None)
+    return IslandParams(min_volume_mm3=min_volume_mm3, keep_largest=keep_largest, min_volume_voxels=min_volume_voxels)
+
+
 @dataclass(frozen=True)
 class SmoothParams:
     """Surface-preserving Laplacian smoothing. Args: iterations (>= 1); angle_deg: largest face-normal turn."""

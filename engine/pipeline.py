@@ -99,7 +99,8 @@ def reconstruct(
         volume: the scan (see ``engine.types.Volume``).
         params: pipeline parameters (defaults: the paper's best combination).
         device: "auto", "cpu", "cuda" or "cuda:N", "opencl" or "opencl:N" (``engine.backend``: every stage on
-            OpenCL), or a Warp device (``engine.device.resolve_device``, ``resolve_backend``).
+            OpenCL), a Warp device, or a ``Backend`` (``engine.job.Runtime.backend``: resolved already;
+            ``engine.device.resolve_device``, ``resolve_backend``).
         on_progress: called as ``on_progress(stage, fraction_done)`` when a stage starts and ends and inside long
             stages (the decimation's passes); the fraction weights stages by their expected time
             (``engine.progress``).
@@ -132,7 +133,7 @@ def reconstruct(
     report: Report = {
         "parameters": params.to_dict(),
         "device": {
-            "spec": device if isinstance(device, str) else str(device),
+            "spec": device if isinstance(device, str) else str(getattr(device, "spec", device)),
             "name": str(dev) if be.kind == "warp" else be.label,
             "description": getattr(dev, "name", str(dev)) if be.kind == "warp" else be.label,
             "backend": be.kind,

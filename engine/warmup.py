@@ -19,21 +19,21 @@ WARMUP_SHAPE = (40, 64, 64)  # a bone phantom this size touches every stage (dec
 
 
 def warm_up(
-    device: str = "auto",
+    device: Any = "auto",
     max_device_bytes: int | str | None = None,
     volume_bytes: int = 0,
     png_rows: bool = True,
 ) -> dict[str, Any]:
-    """Reconstruct a small bone phantom on ``device`` and write its files to a temporary folder (then removed); on a
-    CUDA device, allocate the load's page-locked buffers for a volume of ``volume_bytes`` (the filtered rows' too
+    """Reconstruct a small bone phantom on ``device`` (a spec, or a resolved ``engine.job.Runtime``: its backend,
+    budget and PNG decoder, exactly what its jobs use) and write its files to a temporary folder (then removed); on
+    a CUDA device, allocate the load's page-locked buffers for a volume of ``volume_bytes`` (the filtered rows' too
     where ``png_rows``: PNG slices are unfiltered on the device, ``engine.io.png_rows``).
 
     Returns:
         ``{"device": name, "seconds": wall time, "pinned_bytes": page-locked bytes held for loads}``.
     """
     from engine.data.phantom import bone_phantom
-    from engine.device import resolve_device
-    from engine.io.png_rows import device_rows
+    from engine.job.runtime import Runtime, resolve_runtime
     from engine.outputs import write_outputs
     from engine.params import ReconParams
     from engine.pipeline import reconstruct
@@ -41,15 +41,15 @@ def warm_up(
     from engine.types import Volume
 
     t0 = time.perf_counter()
-    dev = resolve_device(device)
-    spec = device if device.startswith("opencl") else str(dev)  # OpenCL: its own context and programs
+    runtime = device if isinstance(device, Runtime) else resolve_runtime(device, max_device_bytes)
+    backend, budget = runtime.backend, runtime.budget
     hu = bone_phantom(WARMUP_SHAPE, dtype=np.int16) - np.int16(1024)  # the phantom is in HU + 1024
     volume = Volume(hu, (0.5, 0.5, 0.5), units="HU")
-    recon = reconstruct(volume, ReconParams(), device=spec, max_device_bytes=max_device_bytes)
+    recon = reconstruct(volume, ReconParams(), device=backend, max_device_bytes=budget)
     with tempfile.TemporaryDirectory(prefix="bonemesh-warmup-") as out:
-        write_outputs(recon, out, device=spec, max_device_bytes=max_device_bytes)
-    rows = device_rows(spec) if png_rows else None  # a GPU unfilters PNG slices' rows: its kernel loaded too
+        write_outputs(recon, out, device=backend, max_device_bytes=budget)
+    rows = runtime.rows() if png_rows else None  # a GPU unfilters PNG slices' rows: its kernel loaded too
     if rows is not None:
         rows.warm_up()
-    pinned = reserve_load_buffers(spec, volume_bytes, rows=rows is not None)
+    pinned = reserve_load_buffers(backend, volume_bytes, rows=rows is not None)
     return {"device": recon.report["device"]["name"], "seconds": time.perf_counter() - t0, "pinned_bytes": pinned}

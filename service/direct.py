@@ -70,7 +70,7 @@ def begin(
     if size > limit:
         raise Problem(413, f"the upload ({size:,} bytes) is over the limit of {limit:,} bytes")
     try:
-        engine = {"recon": params.engine_params(), "spacing_zyx_mm": params.spacing}
+        engine = params.engine_params()
     except ValueError as exc:
         raise Problem(422, f"params: {exc}", errors=[{"field": "params", "message": str(exc)}]) from None
     if callback is not None:

@@ -75,8 +75,8 @@ def _inspect(storage: Storage, job_id: str, filename: str | None, params: JobPar
 
 
 def parse_params(text: str | None) -> tuple[JobParams, dict[str, Any]]:
-    """The client's parameters and the engine's record of them (``{"recon": ReconParams.to_dict(),
-    "spacing_zyx_mm": [...] | None}``), validated once.
+    """The client's parameters and the engine's record of them (``engine.job.JobSpec.to_dict``: ``recon``,
+    ``spacing_zyx_mm``, ``input``, ``outputs``), validated once.
 
     Raises:
         Problem: 422 naming the field when a value is refused (by the schema or by the engine).
@@ -86,10 +86,10 @@ def parse_params(text: str | None) -> tuple[JobParams, dict[str, Any]]:
     else:
         params = _validate(text)
     try:
-        recon = params.engine_params()
+        engine = params.engine_params()
     except ValueError as exc:
         raise Problem(422, f"params: {exc}", errors=[{"field": "params", "message": str(exc)}]) from None
-    return params, {"recon": recon, "spacing_zyx_mm": params.spacing}
+    return params, engine
 
 
 def _validate(text: str) -> JobParams:

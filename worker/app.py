@@ -7,8 +7,10 @@ process after the fork, so CUDA is initialised there and never in the parent.
 
 from __future__ import annotations
 
+import functools
 import multiprocessing
 import multiprocessing.process
+from typing import TYPE_CHECKING
 
 from celery import Celery
 from celery.signals import worker_process_init
@@ -16,6 +18,9 @@ from celery.signals import worker_process_init
 from core.logsafe import safe_logger
 from core.queue import celery_config
 from core.settings import Settings, get_settings
+
+if TYPE_CHECKING:
+    from engine.job import Runtime
 
 log = safe_logger("bonemesh.worker")
 WARMUP_TIMEOUT_S = 300  # how long the pool waits for a child's start (its warm-up included)
@@ -56,6 +61,33 @@ def _allow_children(**_: object) -> None:
     current._config["authkey"] = multiprocessing.process.AuthenticationString(bytes(current.authkey))
 
 
+@functools.cache
+def _runtime(
+    device: str, max_device_bytes: str | None, png_decoder: str, threads: int | None, processes: bool | None
+) -> Runtime:
+    from engine.job import resolve_runtime
+
+    return resolve_runtime(
+        device, max_device_bytes, png_decoder=png_decoder, decode_threads=threads, decode_processes=processes
+    )
+
+
+def runtime_of(settings: Settings) -> Runtime:
+    """The worker process's runtime (``engine.job.Runtime``: backend, device, budget, decoders), resolved once from
+    its settings (``BONEMESH_DEVICE`` ``auto`` included) and used by its warm-up and every job.
+
+    Raises:
+        ValueError: the device is not present (the reason names it).
+    """
+    return _runtime(
+        settings.device,
+        settings.max_device_bytes,
+        settings.png_decoder,
+        settings.decode_threads,
+        settings.decode_processes,
+    )
+
+
 def warms_up(settings: Settings) -> bool:
     """Whether the worker warms its device up at start: unless ``BONEMESH_WARMUP`` is false, on every device (a
     GPU's context and modules, an OpenCL context's programs, Warp's CPU modules: 1.3 s on the 2-core CI machine,
@@ -74,12 +106,9 @@ def _warm_device(**_: object) -> None:
         from engine.budget import mib
         from engine.warmup import warm_up
 
-        info = warm_up(
-            settings.device,
-            settings.max_device_bytes,
-            volume_bytes=settings.warmup_volume_bytes,
-            png_rows=settings.png_decoder == "auto",
-        )
+        runtime = runtime_of(settings)  # resolved once: the warm-up warms exactly what the jobs use
+        log.info("%s", runtime.describe())
+        info = warm_up(runtime, volume_bytes=settings.warmup_volume_bytes, png_rows=settings.png_decoder == "auto")
     except Exception as exc:
         log.warning("warm-up failed on %s: %s", settings.device, exc)
         return

@@ -12,7 +12,7 @@ import socket
 import threading
 import uuid
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from celery.exceptions import SoftTimeLimitExceeded
 
@@ -21,7 +21,7 @@ from core.logsafe import escape_control, relabel, safe_logger
 from core.settings import Settings, get_settings
 from core.storage import is_storage_full, scrub_exception, scrub_paths, storage_from_settings, version_of
 from engine.export.files import FILES, LABELS_ZIP, triangle_count
-from worker.app import app
+from worker.app import app, runtime_of
 from worker.pacs import (
     SourceIncomplete,
     SourceUnavailable,
@@ -32,9 +32,12 @@ from worker.pacs import (
 )
 from worker.timings import Timings
 
+if TYPE_CHECKING:
+    from engine.job import JobSpec
+
 log = safe_logger("bonemesh.worker")  # job ids and engine messages only: never the upload's name
-# job progress (percent) at each point: loading 0-5, pipeline 5-90, writing the files 90-100
-LOAD_END, PIPELINE_END = 5.0, 90.0
+# job progress (a fraction; the holder records percent) at each point: loading 0-5 %, pipeline 5-90 %, the files
+LOAD_END, PIPELINE_END = 0.05, 0.9
 
 
 class Cancelled(Exception):
@@ -191,80 +194,46 @@ def _run(
     db: Database,
     timer: Timings | None = None,
 ) -> list[dict[str, Any]]:
-    """Load, reconstruct and write the files into ``staged`` (on ``settings.device``, within
-    ``settings.max_device_bytes``: one ``Budget`` for the pipeline and the files, as the CLI's); returns the output
-    descriptions (``engine.export.files``: kind, media type and triangles of each)."""
-    from engine.budget import Budget
-    from engine.errors import InputError
-    from engine.io import codecs, load_volume
-    from engine.io.png_rows import device_rows
-    from engine.labels.job import label_job
-    from engine.labels.pieces import crop_roi
-    from engine.labels.uploads import find_label_upload
-    from engine.outputs import write_outputs
-    from engine.params import ReconParams
-    from engine.pipeline import reconstruct
-    from engine.staging import pinned_volumes
+    """Run the job (``engine.job.run_job``: the plan, the stages and the files, as the CLI runs it) into ``staged``
+    on the worker's runtime (``worker.app.runtime_of``: device and budget resolved once per process), then a PACS
+    job's DICOM objects; returns the output descriptions (``engine.export.files``: kind, media type and triangles of
+    each)."""
+    from engine.job import run_job
 
     timer = timer or Timings()  # the attempt's (reconstruct_job), or one of its own
-    recon_dict, spacing = engine_params_of(job)
-    params = ReconParams.from_dict(recon_dict)
-    options = label_options_of(job)  # a label map (forced), pieces, a region of interest (engine.labels)
+    spec = job_spec_of(job)
     holder.progress("loading", 1.0)
-    timer.lap("prepare")  # the imports above (a new worker's first job), the params, the first beat
+    timer.lap("prepare")  # the imports above (a new worker's first job), the spec, the first beat
     fetch_source(db, job.id, upload)  # a DICOMweb job's series (worker.pacs)
     timer.lap("fetch_source")
-    device, budget = settings.device, Budget.of(settings.max_device_bytes)
-    found = find_label_upload(upload, "upload", force=options["labels"])
-    on_stage = functools.partial(_label_stage, holder)
-    segments = options["segments"]
-    if found is not None:  # a segmentation: a model per label (engine.labels.job)
-        paths, report = label_job(
-            upload, staged, params, found=found, roi=options["roi"], segments=segments, device=device, on_stage=on_stage
-        )
-        timer.lap("label_job")
-        paths.update(write_dicom_labels(db, job.id, upload, staged, report))  # PACS: one Encapsulated STL per label
-        return _described(paths, report)
-    if segments and options["pieces"] is None:
-        raise InputError("segments picks among a label map's segments (or a CT's pieces); this upload is a CT scan")
-    codecs.USE_IMAGECODECS = settings.png_decoder != "pillow"
-    # on a GPU, PNG slices are only inflated on the host: the device undoes the row filters (engine.io.png_rows)
-    rows = device_rows(device) if settings.png_decoder == "auto" else None
-    volume = load_volume(
-        upload,
-        spacing_zyx_mm=tuple(spacing) if spacing else None,
-        threads=settings.decode_threads,
-        processes=settings.decode_processes,
-        allocate=pinned_volumes(device),  # reused from job to job; page-locked for the upload to a CUDA device
-        rows=rows,
+    laps = _Laps(holder, timer)
+    result = run_job(
+        upload, staged, spec, runtime_of(settings), on_progress=laps, label="upload", shares=(LOAD_END, PIPELINE_END)
     )
-    if options["roi"] is not None:  # cropped before anything runs
-        volume = crop_roi(volume, options["roi"], params.orient)
-    timer.lap("load")
-    holder.progress("loading", LOAD_END)
-    if options["pieces"] is not None:  # the N largest bone pieces, each its own part
-        paths, report = label_job(
-            volume, staged, params, pieces=options["pieces"], segments=segments, device=device, on_stage=on_stage
-        )
-        timer.lap("label_job")
-        paths.update(write_dicom_labels(db, job.id, upload, staged, report, volume))
-        return _described(paths, report)
-
-    def on_progress(stage: str, fraction: float) -> None:
-        holder.progress(stage, LOAD_END + (PIPELINE_END - LOAD_END) * fraction)
-
-    recon = reconstruct(volume, params, device=device, on_progress=on_progress, max_device_bytes=budget)
-    timer.lap("reconstruct")
-    holder.progress("writing", PIPELINE_END)
-    paths = write_outputs(recon, staged, params, device=device, max_device_bytes=budget)
-    paths.update(write_dicom_model(db, job.id, upload, staged, volume))  # PACS jobs: Encapsulated STL (worker.pacs)
     timer.lap("write_files")
-    return _described(paths, recon.report)
+    if result.plan == "scan":  # PACS jobs: Encapsulated STL (worker.pacs)
+        extra = write_dicom_model(db, job.id, upload, staged, result.volume)  # type: ignore[arg-type]
+    else:  # PACS: one Encapsulated STL per label
+        extra = write_dicom_labels(db, job.id, upload, staged, result.report, result.volume)
+    timer.lap("dicom_files")
+    return _described({**result.paths, **extra}, result.report)
 
 
-def _label_stage(holder: _Holder, stage: str) -> None:
-    """A label job's progress: meshing the labels as the pipeline, writing the files at its end."""
-    holder.progress(stage, LOAD_END if stage == "labels" else PIPELINE_END)
+class _Laps:
+    """The job's progress to the holder (percent) and its steps to the attempt's timings: ``load`` ends when
+    meshing begins, ``reconstruct`` (the pipeline, or the label models) when the files begin."""
+
+    def __init__(self, holder: _Holder, timer: Timings) -> None:
+        self.holder, self.timer, self.stage = holder, timer, "loading"
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        if stage != self.stage:
+            if self.stage == "loading":
+                self.timer.lap("load")
+            if stage == "writing":
+                self.timer.lap("reconstruct")
+            self.stage = stage
+        self.holder.progress(stage, max(100.0 * fraction, 1.0))
 
 
 def _described(paths: dict[str, Path], report: Any) -> list[dict[str, Any]]:
@@ -279,14 +248,6 @@ def _described(paths: dict[str, Path], report: Any) -> list[dict[str, Any]]:
         }
         for name, path in paths.items()
     ]
-
-
-def label_options_of(job: Any) -> dict[str, Any]:
-    """The job's label options (``core.params.JobParams.label_options``: forced labels, pieces, roi), validated by
-    the API when the job was made."""
-    from core.params import JobParams
-
-    return JobParams.model_validate(getattr(job, "params", None) or {}).label_options()
 
 
 @app.task(name="bonemesh.orient")
@@ -316,7 +277,8 @@ def orient_job(job_id: str, orient: dict[str, Any]) -> str:
             raise InputError("a label job's models are placed by its label map (or are a CT's pieces): not re-oriented")
         storage.copy_outputs(job_id, version, staged)
         wanted = OrientParams(**orient)
-        paths = reorient(staged, wanted, device=settings.device, max_device_bytes=settings.max_device_bytes)
+        runtime = runtime_of(settings)
+        paths = reorient(staged, wanted, device=runtime.backend, max_device_bytes=runtime.budget)
         report = read_report(staged)
         outputs = [
             {**o, "bytes": (staged / o["name"]).stat().st_size, "triangles": triangle_count(o["name"], report)}
@@ -350,16 +312,17 @@ def orient_job(job_id: str, orient: dict[str, Any]) -> str:
         return "failed"
 
 
-def engine_params_of(job: Any) -> tuple[dict[str, Any], list[float] | None]:
-    """The engine's parameter dict and the voxel size the API stored with the job (validated there, once).
+def job_spec_of(job: Any) -> JobSpec:
+    """The job's specification as the API validated and stored it (``engine.job.JobSpec.to_dict``); a job recorded
+    by an older release (its engine form without ``input``, or none) is converted again from its client parameters
+    (``core.params.JobParams.job_spec``)."""
+    from engine.job import JobSpec
 
-    A job recorded before the API stored them (an older release) is converted from its client parameters.
-    """
-    if job.engine_params:
-        return job.engine_params["recon"], job.engine_params.get("spacing_zyx_mm")
-    from core.params import JobParams  # an older record: the client's form only
+    if job.engine_params and "input" in job.engine_params:
+        return JobSpec.from_dict(job.engine_params)
+    from core.params import JobParams  # an older record: the client's form
 
-    return JobParams.model_validate(job.params).engine_params(), job.params.get("spacing")
+    return JobParams.model_validate(job.params or {}).job_spec()
 
 
 def _explain(exc: Exception, filename: str) -> tuple[str, str]:

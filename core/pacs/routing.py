@@ -80,7 +80,7 @@ class Rule(BaseModel):
     @field_validator("params")
     @classmethod
     def _params(cls, value: dict[str, Any]) -> dict[str, Any]:
-        JobParams.model_validate(value).engine_params()  # refused at start, not when a series arrives
+        JobParams.model_validate(value).job_spec()  # refused at start, not when a series arrives
         return value
 
     def job_params(self) -> JobParams:

@@ -11,6 +11,7 @@ the array's type. Every call is ordered on the backend's one queue; ``to_host`` 
 from __future__ import annotations
 
 import abc
+import os
 from dataclasses import dataclass
 from typing import Any
 
@@ -91,6 +92,7 @@ class Backend(abc.ABC):
     kind: str
     label: str
     is_host: bool
+    spec: str  # the concrete device spec it runs on: "cpu", "cuda:N" or "opencl:N" (reports, logs)
 
     # -- memory ---------------------------------------------------------------------------------------------------
     @abc.abstractmethod
@@ -175,3 +177,12 @@ class Backend(abc.ABC):
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.label}>"
+
+
+def host_budget() -> int:
+    """A quarter of the host's available memory: the default working set of a stage on the CPU."""
+    try:
+        avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
+        avail = 8 << 30
+    return int(avail * 0.25)

@@ -19,7 +19,19 @@ from typing import Any
 
 import numpy as np
 
-from engine.backend.base import COMPACT, VEC3F, VEC3I, Backend, DType, Kernel, PeakTracker, Struct, host_dtype, itemsize
+from engine.backend.base import (
+    COMPACT,
+    VEC3F,
+    VEC3I,
+    Backend,
+    DType,
+    Kernel,
+    PeakTracker,
+    Struct,
+    host_budget,
+    host_dtype,
+    itemsize,
+)
 
 SCAN_CHUNKS = 4096  # runs of an exclusive scan (each summed and scanned by one work item)
 _SCAN = "engine.backend.kernels:scan.cl"
@@ -138,6 +150,7 @@ class OpenCLBackend(Backend):
         self.context = cl.Context([device])
         self.queue = cl.CommandQueue(self.context)
         self.is_host = bool(device.type & cl.device_type.CPU)
+        self.spec = f"opencl:{index}"
         self.label = f"opencl:{index} {device.name.strip()} ({device.platform.name.strip()})"
         self.align = max(device.mem_base_addr_align // 8, 1)  # sub-buffer origins, in bytes
         self.options = ["-cl-fp32-correctly-rounded-divide-sqrt"] if self._correct_division() else []
@@ -348,8 +361,6 @@ class OpenCLBackend(Backend):
         return _CLPeak(self)
 
     def default_budget(self) -> int:
-        from engine.backend.select import host_budget
-
         if self.is_host:
             return host_budget()
         return int(self.device.global_mem_size * 0.5)

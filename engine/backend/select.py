@@ -8,9 +8,10 @@ import os
 import re
 from typing import Any
 
-from engine.backend.base import Backend
+from engine.backend.base import Backend, host_budget
 
 _OPENCL = re.compile(r"^opencl(:(\d+))?$")
+SPEC = re.compile(r"^(auto|cpu|cuda(:\d+)?|opencl(:\d+)?)$")  # the device specs every edge accepts
 _MISSING_PYOPENCL = (
     "device 'opencl' needs PyOpenCL: install the engine's `opencl` extra (pip install 'bonemesh[opencl]') and an "
     "OpenCL driver (Debian: pocl-opencl-icd for the CPU; a GPU vendor's ICD)"
@@ -100,7 +101,7 @@ CPU_AUTO = "opencl"
 def auto_spec() -> str:
     """What ``"auto"`` means on this host: CUDA where Warp sees a GPU, else the first OpenCL GPU, else the faster CPU
     path (``CPU_AUTO``: an OpenCL CPU device where one is installed), else Warp's CPU ("cpu")."""
-    from engine.device import cuda_available
+    from engine.backend.warp_device import cuda_available
 
     if cuda_available():
         return "cuda"
@@ -120,20 +121,27 @@ def auto_spec() -> str:
 def get_backend(spec: Any = "auto") -> Backend:
     """The backend of a device spec: ``"opencl"`` / ``"opencl:N"`` (``opencl_devices``' order) gives the OpenCL
     backend (one per device and process, its programs built once); ``"auto"``, ``"cpu"``, ``"cuda[:N]"`` or a Warp
-    device gives the Warp backend on ``engine.device.resolve_device``'s device; a ``Backend`` is returned as is.
+    device gives the Warp backend on that device (``engine.backend.warp_device``); a ``Backend`` is returned as is.
 
     Raises:
         ValueError: a malformed spec, or a device (or PyOpenCL, or any OpenCL platform) that is not present.
     """
     if isinstance(spec, Backend):
         return spec
+    if not isinstance(spec, str):
+        import warp as wp
+
+        if isinstance(spec, wp.Device):  # Warp's public name (``warp.context`` is gone from Warp 1.19's namespace)
+            return _warp_backend(spec)
+    if not isinstance(spec, str) or not SPEC.match(spec):
+        raise ValueError(f"Expected device 'auto', 'cpu', 'cuda', 'cuda:N', 'opencl' or 'opencl:N', got {spec!r}")
     if spec == "auto":
         spec = auto_spec()
     if is_opencl_spec(spec):
         return _opencl_backend(opencl_index(spec))
-    from engine.device import resolve_device
+    from engine.backend.warp_device import warp_device
 
-    return _warp_backend(resolve_device(spec))
+    return _warp_backend(warp_device(spec))
 
 
 _WARP: dict[str, Backend] = {}
@@ -155,12 +163,3 @@ def backend_of(arr: Any) -> Backend:
     if isinstance(owner, Backend):
         return owner
     return _warp_backend(arr.device)
-
-
-def host_budget() -> int:
-    """A quarter of the host's available memory: the default working set of a stage on the CPU."""
-    try:
-        avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
-        avail = 8 << 30
-    return int(avail * 0.25)

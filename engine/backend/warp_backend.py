@@ -55,6 +55,7 @@ class WarpBackend(Backend):
     def __init__(self, device: Any) -> None:
         self.device = device
         self.label = f"warp {device}"
+        self.spec = str(device)
         self.is_host = not device.is_cuda
 
     def empty(self, shape: int | tuple[int, ...], dtype: DType) -> Any:
@@ -152,7 +153,7 @@ class WarpBackend(Backend):
         return _WarpPeak(self.device)
 
     def default_budget(self) -> int:
-        from engine.backend.select import host_budget
+        from engine.backend.base import host_budget
 
         if self.device.is_cuda:
             return int(self.device.free_memory * 0.5)

@@ -72,7 +72,7 @@ async def create_source_job(request: Request, svc: Any, who: str) -> Job:
         detail = "; ".join(f"{f['field']}: {f['message']}" for f in fields) or "the body is not valid JSON"
         raise Problem(422, detail, errors=fields or None) from None
     try:
-        spec.params.engine_params()
+        spec.params.job_spec()
     except ValueError as exc:
         raise Problem(422, f"params: {exc}", errors=[{"field": "params", "message": str(exc)}]) from None
     source = spec.source.dicomweb

@@ -1,7 +1,7 @@
 """A label job's files (``engine.labels.outputs.write_label_outputs``) from the headsq bone halves: the GLB files hold
 one node per label, named and coloured by its segment; labels.zip holds one watertight STL per label (LPS mm); the
 report lists each label's volume, area and faces; the viewing copies share their budget by area. And label-map
-uploads found by content (``engine.labels.uploads``), read as the worker reads them (``engine.labels.job``)."""
+uploads found by content (``engine.labels.uploads``), read as the worker reads them (``engine.job.run_job``)."""
 
 from __future__ import annotations
 
@@ -123,18 +123,18 @@ def test_label_uploads_are_found_by_content(tmp_path: Path) -> None:
 
 
 def test_a_label_job_reads_a_zipped_map_and_crops_it(tmp_path: Path) -> None:
-    from engine.labels.job import label_job
-    from engine.labels.uploads import find_label_upload
+    """``engine.job.run_job`` finds the label map in a nameless upload by its content, as the worker runs it."""
+    from engine.job import InputSpec, JobSpec, resolve_runtime, run_job
     from engine.params import RoiParams
 
     lv = headsq_labels()
     with zipfile.ZipFile(tmp_path / "upload", "w") as zf:
         zf.writestr("halves.nii.gz", nifti_bytes(lv))
-    found = find_label_upload(tmp_path / "upload")
     roi = RoiParams(((0, 60), (0, 64), (0, 64)))
-    paths, report = label_job(
-        tmp_path / "upload", tmp_path / "out", ReconParams.from_dict(BUDGETS), found=found, roi=roi, device="cpu"
-    )
+    spec = JobSpec(recon=ReconParams.from_dict(BUDGETS), input=InputSpec(roi=roi))
+    result = run_job(tmp_path / "upload", tmp_path / "out", spec, resolve_runtime("cpu"))
+    paths, report = result.paths, result.report
+    assert result.plan == "labels" and result.volume is None
     assert list(paths) == list(engine_files(labels=True))
     assert report["input"]["shape_zyx"] == [60, 64, 64] and [r["value"] for r in report["labels"]] == [1, 2]
     assert report["source"]["file"] == "halves.nii.gz"
