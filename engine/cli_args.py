@@ -72,7 +72,7 @@ def _axes(text: str) -> Spacing:
         ) from None
     if not all(math.isfinite(v) and v > 0 for v in vals):
         raise argparse.ArgumentTypeError(f"expected three positive voxel sizes in mm, got {text!r}")
-    return vals  # type: ignore[return-value]
+    return vals
 
 
 def voxel_size_zyx(text: str) -> Spacing:

@@ -40,10 +40,12 @@ def resolve_device(spec: Any = "auto") -> wp.Device:
     """
     from engine.backend.select import get_backend
 
-    return _warp_device_of(get_backend(spec))
+    device: wp.Device = _warp_device_of(get_backend(spec))
+    return device
 
 
 def _warp_device_of(backend: Backend) -> Any:
+    """A Warp backend's device; Warp's CPU device for another backend (Warp's own steps beside OpenCL)."""
     if backend.kind == "warp":
         return backend.device  # type: ignore[attr-defined]
     from engine.backend.warp_device import warp_device

@@ -5,6 +5,7 @@ the job claimed or finished and does nothing; a rerun after a killed worker rebu
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import functools
 import os
@@ -313,16 +314,22 @@ def orient_job(job_id: str, orient: dict[str, Any]) -> str:
 
 
 def job_spec_of(job: Any) -> JobSpec:
-    """The job's specification as the API validated and stored it (``engine.job.JobSpec.to_dict``); a job recorded
-    by an older release (its engine form without ``input``, or none) is converted again from its client parameters
-    (``core.params.JobParams.job_spec``)."""
+    """The job's specification as the API validated and stored it (``engine.job.JobSpec.to_dict``). A job recorded
+    by an older release kept only ``recon`` and ``spacing_zyx_mm`` (or nothing) in its engine form: what the input
+    is comes again from its client parameters (``core.params.JobParams.job_spec``)."""
     from engine.job import JobSpec
 
-    if job.engine_params and "input" in job.engine_params:
-        return JobSpec.from_dict(job.engine_params)
+    engine = getattr(job, "engine_params", None)
+    if engine and "input" in engine:
+        return JobSpec.from_dict(engine)
     from core.params import JobParams  # an older record: the client's form
 
-    return JobParams.model_validate(job.params or {}).job_spec()
+    client = JobParams.model_validate(getattr(job, "params", None) or {}).job_spec()
+    if not engine:
+        return client
+    stored = JobSpec.from_dict(engine)
+    spacing = stored.input.spacing_zyx_mm
+    return dataclasses.replace(stored, input=dataclasses.replace(client.input, spacing_zyx_mm=spacing))
 
 
 def _explain(exc: Exception, filename: str) -> tuple[str, str]:

@@ -97,7 +97,7 @@ class InputSpec:
         segments = data.get("segments")
         return cls(
             kind=data.get("kind", "auto"),
-            spacing_zyx_mm=None if spacing is None else tuple(spacing),  # type: ignore[arg-type]
+            spacing_zyx_mm=None if spacing is None else tuple(spacing),
             roi=roi,
             pieces=None if pieces is None else PiecesParams(**_known(pieces, PiecesParams, "pieces")),
             segments=None if segments is None else tuple(segments),

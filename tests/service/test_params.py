@@ -16,7 +16,7 @@ from core.params import JobParams
 from engine.data import HEADSQ_ZIP
 from engine.params import BodyMaskParams, IslandParams, OrientParams, PreprocessParams, ReconParams
 from tests.service.checks import assert_problem
-from worker.tasks import engine_params_of
+from worker.tasks import job_spec_of
 
 KEY = {"X-API-Key": "key-a"}
 SPACING = {"spacing": [1.5, 3.2, 3.2]}  # the bundled headsq PNG stack needs it
@@ -67,15 +67,15 @@ def test_job_params_reach_the_engine_through_the_job_record(kind: str, client: T
     record = resp.json()["params"]
     assert record == client.get(f"/v1/jobs/{resp.json()['id']}", headers=KEY).json()["params"]
     stored = client.app.state.services.db.get(resp.json()["id"])  # what the worker reads: the engine's dict
-    recon, spacing = engine_params_of(stored)
-    assert ReconParams.from_dict(recon) == expected, record
-    assert spacing == SPACING["spacing"], stored.engine_params
-    assert ReconParams.from_dict(JobParams.model_validate({**SPACING, **(params or {})}).engine_params()) == expected
+    spec = job_spec_of(stored)
+    assert spec.recon == expected, record
+    assert list(spec.input.spacing_zyx_mm or ()) == SPACING["spacing"], stored.engine_params
+    assert JobParams.model_validate({**SPACING, **(params or {})}).job_spec().recon == expected
 
 
 def test_a_job_without_params_runs_the_engine_defaults() -> None:
     """Speck removal and the body mask are on for API jobs, as for the CLI and the library."""
-    recon = ReconParams.from_dict(JobParams().engine_params())
+    recon = JobParams().job_spec().recon
     assert recon == ReconParams()
     assert recon.islands is not None and recon.islands.min_volume_voxels == IslandParams().min_volume_voxels
     assert recon.body == BodyMaskParams()

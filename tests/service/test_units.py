@@ -44,11 +44,11 @@ def test_tokens_open_one_file_until_they_expire() -> None:
 
 def test_job_params_validate_and_become_engine_params() -> None:
     p = JobParams.model_validate({"preset": "bone", "hu_offset": 1024, "spacing": [1.5, 0.9, 0.9], "reduction": 0.3})
-    recon = ReconParams.from_dict(p.engine_params())
+    recon = p.job_spec().recon
     assert recon.iso.preset == "bone" and recon.iso.hu_offset == 1024
     assert recon.decimate is not None and recon.decimate.reduction == 0.3
     assert recon.smooth is not None and recon.smooth.iterations == 1 and recon.smooth.angle_deg == 0.5
-    capped = ReconParams.from_dict(JobParams(max_triangles=5000).engine_params())
+    capped = JobParams(max_triangles=5000).job_spec().recon
     assert capped.decimate is not None and (capped.decimate.reduction, capped.decimate.max_triangles) == (None, 5000)
     for bad in (
         {"iso": 1, "preset": "bone"},

@@ -86,6 +86,7 @@ def test_worker_loads_with_the_decode_settings(monkeypatch: pytest.MonkeyPatch, 
             tasks._run(job, tmp_path / "upload.zip", tmp_path / "staged", holder, settings, None)  # type: ignore[arg-type]
         # the process's page-locked volume buffer on a CUDA device, plain arrays here
         allocate = pinned_volumes(settings.device)
+        assert callable(seen.pop("on_progress"))  # the job's loading progress
         rows = seen.pop("rows")  # PNG rows unfiltered on the job's GPU (auto only); none on a CPU
         on_device = settings.png_decoder == "auto" and device_rows(settings.device) is not None
         assert isinstance(rows, DeviceRows) if on_device else rows is None
