@@ -22,7 +22,7 @@ import numpy as np
 from engine.budget import Budget, BudgetSpec
 from engine.errors import EmptySurfaceError, InputError, StageError
 from engine.params import ReconParams
-from engine.plans import STAGES, State, plan_for
+from engine.plans import STAGES, Stage, State, plan_for
 from engine.progress import StageProgress
 from engine.report import Report
 from engine.types import Mesh, Volume
@@ -121,16 +121,23 @@ def reconstruct(
             BudgetError: the memory budget is too small, with the smallest that would work).
         StageError: a stage failed otherwise.
     """
-    import warp as wp
-
     from engine.device import resolve_backend, resolve_device
 
     params = params or ReconParams()
     dev = resolve_device(device)  # Warp's device: the scope of Warp's stages (Warp's CPU for an OpenCL spec)
     be = resolve_backend(device)  # where the device stages run
     budget = Budget.of(max_device_bytes)
-    plan = plan_for(budget)  # chosen once: the whole volume, or streamed within the budget
-    report: Report = {
+    report = _report_head(volume, params, device, dev, be)
+    st = State(volume, budget, backend=be)
+    _run_plan(st, plan_for(budget), params, report, StageProgress(STAGES, on_progress), dev)
+    defect = _defect_step(st, params, report, dev)
+    report["total_seconds"] = sum(report["stage_seconds"].values())
+    return Reconstruction(report=report, device_mesh=(st.pos, st.faces, st.normals), defect=defect)
+
+
+def _report_head(volume: Volume, params: ReconParams, device: Any, dev: Any, be: Any) -> Report:
+    """The report's blocks known before any stage runs: parameters, device, versions, input."""
+    return {
         "parameters": params.to_dict(),
         "device": {
             "spec": device if isinstance(device, str) else str(getattr(device, "spec", device)),
@@ -149,9 +156,16 @@ def reconstruct(
         "stage_seconds": {},
         "counts": {},
     }
-    st = State(volume, budget, backend=be)
-    progress = StageProgress(STAGES, on_progress)
-    memory = be.peak_tracker()
+
+
+def _run_plan(
+    st: State, plan: tuple[tuple[str, Stage], ...], params: ReconParams, report: Report, progress: Any, dev: Any
+) -> None:
+    """Run the plan's stages in order in Warp's scope of ``dev`` (each stage's failure named: ``StageError``),
+    then the mesh's measures and the memory used into the report."""
+    import warp as wp
+
+    memory = st.backend.peak_tracker()
     with wp.ScopedDevice(dev):
         memory.start()
         for name, stage in plan:
@@ -179,7 +193,7 @@ def reconstruct(
             report["mesh"] = mesh_stats_device(st.pos, st.faces, st.incidence_built())
         report["finish_seconds"] = time.perf_counter() - t0
         report["memory"] = {
-            "budget_bytes": budget.bytes,
+            "budget_bytes": st.budget.bytes,
             "peak_bytes": memory.peak(),
             "measured_by": memory.how,
             "in_use_before_bytes": memory.baseline,
@@ -187,9 +201,6 @@ def reconstruct(
         memory.stop()
         if st.stream is not None:
             report["memory"]["stream"] = st.stream.info
-    defect = _defect_step(st, params, report, dev)
-    report["total_seconds"] = sum(report["stage_seconds"].values())
-    return Reconstruction(report=report, device_mesh=(st.pos, st.faces, st.normals), defect=defect)
 
 
 def _warp_device(arr: Any, dev: Any) -> Any:

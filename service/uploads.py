@@ -62,94 +62,22 @@ async def read_multipart(content_type: str, body: AsyncIterator[bytes], sink: Si
     kind, options = parse_options_header(content_type)
     if kind != b"multipart/form-data" or b"boundary" not in options:
         raise UploadError(415, "send the scan as multipart/form-data with a 'file' part (and optional 'params')")
-    out = ParsedUpload()
-    part = _Part()
-    pending: list[memoryview] = []  # file bytes parsed but not yet handed to the sink: views of the received chunks
-    pending_bytes = 0
-    seen: set[str] = set()
-
-    def on_part_begin() -> None:
-        nonlocal part
-        part = _Part()
-
-    def on_header_bytes(n: int) -> None:
-        part.header_bytes += n
-        if part.header_bytes > MAX_HEADER_BYTES:
-            raise UploadError(400, f"a part's headers are longer than {MAX_HEADER_BYTES:,} bytes")
-
-    def on_header_field(data: bytes, start: int, end: int) -> None:
-        on_header_bytes(end - start)
-        part.hname += data[start:end]
-
-    def on_header_value(data: bytes, start: int, end: int) -> None:
-        on_header_bytes(end - start)
-        part.hvalue += data[start:end]
-
-    def on_header_end() -> None:
-        part.headers[part.hname.lower()] = part.hvalue
-        part.hname, part.hvalue = b"", b""
-
-    def on_headers_finished() -> None:
-        _, opts = parse_options_header(part.headers.get(b"content-disposition", b""))
-        name = opts.get(b"name", b"").decode("utf-8", "replace")
-        if name != "file" and name not in FIELDS:
-            raise UploadError(
-                422,
-                f"unexpected form field {escape_control(name)!r}: send 'file', optionally 'params' and 'callback_url'",
-            )
-        if name in seen:
-            raise UploadError(400, f"the form field {name!r} was sent twice: send each part once")
-        seen.add(name)
-        if name == "file":
-            out.got_file = True
-            raw = opts.get(b"filename")
-            out.filename = escape_control(raw.decode("utf-8", "replace"))[-255:] if raw else None
-        part.name = name
-
-    def on_part_data(data: bytes, start: int, end: int) -> None:
-        nonlocal pending_bytes
-        if part.name == "file":
-            view = memoryview(data)[start:end]  # the received chunk itself (immutable bytes), not a copy
-            pending.append(view if isinstance(data, bytes) else memoryview(bytes(view)))
-            pending_bytes += end - start
-            return
-        part.buf.extend(data[start:end])
-        if len(part.buf) > MAX_FIELD_BYTES:
-            raise UploadError(422, f"form field {part.name!r} is longer than {MAX_FIELD_BYTES:,} bytes")
-
-    def on_part_end() -> None:
-        if part.name in FIELDS:
-            try:
-                out.fields[str(part.name)] = part.buf.decode("utf-8")
-            except UnicodeDecodeError:
-                raise UploadError(422, f"form field {part.name!r} is not UTF-8 text") from None
-
-    parser = MultipartParser(
-        options[b"boundary"],
-        {
-            "on_part_begin": on_part_begin,
-            "on_header_field": on_header_field,
-            "on_header_value": on_header_value,
-            "on_header_end": on_header_end,
-            "on_headers_finished": on_headers_finished,
-            "on_part_data": on_part_data,
-            "on_part_end": on_part_end,
-        },
-    )
+    reader = _Reader()
+    parser = MultipartParser(options[b"boundary"], reader.callbacks())
     writing: asyncio.Future[None] | None = None  # the batch being written while the next one is parsed
 
     async def flush() -> None:
-        nonlocal pending, pending_bytes, writing
+        nonlocal writing
         if writing is not None:
             await writing
-        batch, pending, pending_bytes = pending, [], 0
+        batch = reader.take()
         writing = asyncio.ensure_future(sink(batch)) if batch else None
 
     try:
         try:
             async for chunk in body:
                 parser.write(chunk)
-                if pending_bytes >= FLUSH_BYTES:
+                if reader.pending_bytes >= FLUSH_BYTES:
                     await flush()
             parser.finalize()
         except MultipartParseError as exc:
@@ -163,6 +91,91 @@ async def read_multipart(content_type: str, body: AsyncIterator[bytes], sink: Si
         if writing is not None and not writing.done():
             with contextlib.suppress(BaseException):
                 await asyncio.shield(writing)
-    if not out.got_file:
+    if not reader.out.got_file:
         raise UploadError(422, "the 'file' part is missing: attach the scan archive as 'file'")
-    return out
+    return reader.out
+
+
+class _Reader:
+    """The parser's callbacks: each part's headers checked (known fields, each once, bounded headers), the text
+    fields kept, and the file's bytes queued (``pending``) for the sink as views of the received chunks."""
+
+    def __init__(self) -> None:
+        self.out = ParsedUpload()
+        self.part = _Part()
+        self.pending: list[memoryview] = []  # file bytes parsed but not yet handed to the sink
+        self.pending_bytes = 0
+        self.seen: set[str] = set()
+
+    def callbacks(self) -> dict[str, Callable[..., None]]:
+        return {
+            "on_part_begin": self.on_part_begin,
+            "on_header_field": self.on_header_field,
+            "on_header_value": self.on_header_value,
+            "on_header_end": self.on_header_end,
+            "on_headers_finished": self.on_headers_finished,
+            "on_part_data": self.on_part_data,
+            "on_part_end": self.on_part_end,
+        }
+
+    def take(self) -> list[memoryview]:
+        """The queued file bytes, handed over (the queue starts again empty)."""
+        batch, self.pending, self.pending_bytes = self.pending, [], 0
+        return batch
+
+    def on_part_begin(self) -> None:
+        self.part = _Part()
+
+    def _header_bytes(self, n: int) -> None:
+        self.part.header_bytes += n
+        if self.part.header_bytes > MAX_HEADER_BYTES:
+            raise UploadError(400, f"a part's headers are longer than {MAX_HEADER_BYTES:,} bytes")
+
+    def on_header_field(self, data: bytes, start: int, end: int) -> None:
+        self._header_bytes(end - start)
+        self.part.hname += data[start:end]
+
+    def on_header_value(self, data: bytes, start: int, end: int) -> None:
+        self._header_bytes(end - start)
+        self.part.hvalue += data[start:end]
+
+    def on_header_end(self) -> None:
+        part = self.part
+        part.headers[part.hname.lower()] = part.hvalue
+        part.hname, part.hvalue = b"", b""
+
+    def on_headers_finished(self) -> None:
+        _, opts = parse_options_header(self.part.headers.get(b"content-disposition", b""))
+        name = opts.get(b"name", b"").decode("utf-8", "replace")
+        if name != "file" and name not in FIELDS:
+            raise UploadError(
+                422,
+                f"unexpected form field {escape_control(name)!r}: send 'file', optionally 'params' and 'callback_url'",
+            )
+        if name in self.seen:
+            raise UploadError(400, f"the form field {name!r} was sent twice: send each part once")
+        self.seen.add(name)
+        if name == "file":
+            self.out.got_file = True
+            raw = opts.get(b"filename")
+            self.out.filename = escape_control(raw.decode("utf-8", "replace"))[-255:] if raw else None
+        self.part.name = name
+
+    def on_part_data(self, data: bytes, start: int, end: int) -> None:
+        part = self.part
+        if part.name == "file":
+            view = memoryview(data)[start:end]  # the received chunk itself (immutable bytes), not a copy
+            self.pending.append(view if isinstance(data, bytes) else memoryview(bytes(view)))
+            self.pending_bytes += end - start
+            return
+        part.buf.extend(data[start:end])
+        if len(part.buf) > MAX_FIELD_BYTES:
+            raise UploadError(422, f"form field {part.name!r} is longer than {MAX_FIELD_BYTES:,} bytes")
+
+    def on_part_end(self) -> None:
+        part = self.part
+        if part.name in FIELDS:
+            try:
+                self.out.fields[str(part.name)] = part.buf.decode("utf-8")
+            except UnicodeDecodeError:
+                raise UploadError(422, f"form field {part.name!r} is not UTF-8 text") from None

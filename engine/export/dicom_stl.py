@@ -111,10 +111,8 @@ def to_encapsulated_stl(
         ValueError: the source lacks its Study Instance UID or Frame of Reference UID (the model could not be
             placed beside it), or the mesh is empty.
     """
-    from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.filewriter import dcmwrite
+    from pydicom.dataset import Dataset
     from pydicom.sequence import Sequence as DicomSequence
-    from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian
 
     for keyword in ("StudyInstanceUID", "FrameOfReferenceUID"):
         if not str(getattr(source, keyword, "") or ""):
@@ -124,14 +122,7 @@ def to_encapsulated_stl(
     stl = to_stl(verts_zyx_mm, faces, header="bonemesh model, patient LPS frame, mm")
 
     ds = Dataset()
-    if "SpecificCharacterSet" in source:
-        ds.SpecificCharacterSet = source.SpecificCharacterSet
-    _copy(ds, source, PATIENT_TYPE2, empty=True)
-    _copy(ds, source, PATIENT_OPTIONAL)
-    ds.StudyInstanceUID = source.StudyInstanceUID
-    _copy(ds, source, STUDY_TYPE2, empty=True)
-    _copy(ds, source, STUDY_OPTIONAL)
-
+    _patient_and_study(ds, source)
     # Encapsulated Document Series
     ds.Modality = "M3D"
     ds.SeriesInstanceUID = series_instance_uid
@@ -145,26 +136,9 @@ def to_encapsulated_stl(
     ds.ManufacturerModelName = MANUFACTURER
     ds.DeviceSerialNumber = device_serial_number
     ds.SoftwareVersions = software_version
-    # Encapsulated Document
-    stamp_date, stamp_time = created.strftime("%Y%m%d"), created.strftime("%H%M%S")
-    ds.InstanceNumber = instance_number
-    ds.ContentDate, ds.ContentTime = stamp_date, stamp_time
-    ds.AcquisitionDateTime = created.strftime("%Y%m%d%H%M%S")
-    ds.BurnedInAnnotation = "NO"
-    ds.DocumentTitle = document_title[:64]
-    ds.ConceptNameCodeSequence = DicomSequence()
-    ds.MIMETypeOfEncapsulatedDocument = STL_MIME
+    _document(ds, stl, created, instance_number, document_title)
     if source_instances:
-        refs = [_ref(c, i) for c, i in source_instances]
-        ds.SourceInstanceSequence = DicomSequence(refs)
-        # Common Instance Reference: the same images, under their series (all in this study)
-        series = Dataset()
-        series.SeriesInstanceUID = source_series_uid or source.SeriesInstanceUID
-        series.ReferencedInstanceSequence = DicomSequence([_ref(c, i) for c, i in source_instances])
-        ds.ReferencedSeriesSequence = DicomSequence([series])
-    body = stl if len(stl) % 2 == 0 else stl + b"\x00"  # OB values have even length; the length tag keeps the truth
-    ds.EncapsulatedDocument = body
-    ds.EncapsulatedDocumentLength = len(stl)
+        _references(ds, source_instances, source_series_uid or source.SeriesInstanceUID)
     # Manufacturing 3D Model: the unit of the vertices
     unit = Dataset()
     unit.CodeValue = "mm"
@@ -174,7 +148,57 @@ def to_encapsulated_stl(
     # SOP Common
     ds.SOPClassUID = ENCAPSULATED_STL_STORAGE
     ds.SOPInstanceUID = sop_instance_uid
-    ds.InstanceCreationDate, ds.InstanceCreationTime = stamp_date, stamp_time
+    ds.InstanceCreationDate, ds.InstanceCreationTime = ds.ContentDate, ds.ContentTime
+    return _part10(ds, sop_instance_uid)
+
+
+def _patient_and_study(ds: Any, source: Any) -> None:
+    """The source's character set, Patient and General Study modules (type 2 kept, empty where the source lacks
+    them)."""
+    if "SpecificCharacterSet" in source:
+        ds.SpecificCharacterSet = source.SpecificCharacterSet
+    _copy(ds, source, PATIENT_TYPE2, empty=True)
+    _copy(ds, source, PATIENT_OPTIONAL)
+    ds.StudyInstanceUID = source.StudyInstanceUID
+    _copy(ds, source, STUDY_TYPE2, empty=True)
+    _copy(ds, source, STUDY_OPTIONAL)
+
+
+def _document(ds: Any, stl: bytes, created: dt.datetime, instance_number: int, title: str) -> None:
+    """The Encapsulated Document module: the STL, its title and the content's date and time."""
+    from pydicom.sequence import Sequence as DicomSequence
+
+    stamp_date, stamp_time = created.strftime("%Y%m%d"), created.strftime("%H%M%S")
+    ds.InstanceNumber = instance_number
+    ds.ContentDate, ds.ContentTime = stamp_date, stamp_time
+    ds.AcquisitionDateTime = created.strftime("%Y%m%d%H%M%S")
+    ds.BurnedInAnnotation = "NO"
+    ds.DocumentTitle = title[:64]
+    ds.ConceptNameCodeSequence = DicomSequence()
+    ds.MIMETypeOfEncapsulatedDocument = STL_MIME
+    body = stl if len(stl) % 2 == 0 else stl + b"\x00"  # OB values have even length; the length tag keeps the truth
+    ds.EncapsulatedDocument = body
+    ds.EncapsulatedDocumentLength = len(stl)
+
+
+def _references(ds: Any, source_instances: Sequence[tuple[str, str]], series_uid: str) -> None:
+    """The images the model was built from: Source Instance Sequence, and the same under their series (Common
+    Instance Reference; all in this study)."""
+    from pydicom.dataset import Dataset
+    from pydicom.sequence import Sequence as DicomSequence
+
+    ds.SourceInstanceSequence = DicomSequence([_ref(c, i) for c, i in source_instances])
+    series = Dataset()
+    series.SeriesInstanceUID = series_uid
+    series.ReferencedInstanceSequence = DicomSequence([_ref(c, i) for c, i in source_instances])
+    ds.ReferencedSeriesSequence = DicomSequence([series])
+
+
+def _part10(ds: Any, sop_instance_uid: str) -> bytes:
+    """The dataset as a Part 10 file (Explicit VR Little Endian)."""
+    from pydicom.dataset import FileMetaDataset
+    from pydicom.filewriter import dcmwrite
+    from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian
 
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = ENCAPSULATED_STL_STORAGE
