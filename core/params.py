@@ -6,8 +6,8 @@ mirrored template, off unless given), ``roi`` (a box the scan or label map is cr
 ``islands`` (bone inside the body outline, speck removal: on unless sent as ``null``). ``labels`` (the upload is a
 label map) and ``pieces`` (a CT's N largest bone pieces as parts) make a label job (``engine.labels``). The
 engine's form of a request is a ``engine.job.JobSpec`` (``JobParams.job_spec``), checked by the engine's rules when
-the request is validated and stored with the job, so the worker runs what the API accepted. Left out, every step keeps the engine's default
-(``engine.params.ReconParams()``).
+the request is validated and stored with the job, so the worker runs what the API accepted. Left out, every step
+keeps the engine's default (``engine.params.ReconParams()``).
 
 Part of the job's contract, so shared: the API validates a request with it and stores both forms, a PACS routing
 rule carries one (``core.pacs.routing``), and the worker converts a job recorded by an older release with it.

@@ -33,9 +33,9 @@ from engine.types import Volume
 
 if TYPE_CHECKING:
     from engine.budget import Budget
+    from engine.io.png_rows import DeviceRows
     from engine.job.spec import JobSpec
     from engine.params import RoiParams
-    from engine.io.png_rows import DeviceRows
 
 Spacing = tuple[float, float, float]
 

@@ -120,5 +120,7 @@ def _auto_reason(spec: str) -> str:
         if not get_backend(spec).is_host:
             return "auto: no CUDA GPU; an OpenCL GPU is present"
         return "auto: no GPU; OpenCL on the CPU (every core) is the faster CPU path"
-    return "auto: no GPU and no OpenCL driver; Warp's CPU path (one thread; install pocl-opencl-icd and "\
+    return (
+        "auto: no GPU and no OpenCL driver; Warp's CPU path (one thread; install pocl-opencl-icd and "
         "bonemesh[opencl] for every core)"
+    )
