@@ -100,17 +100,21 @@ def _warm_device(**_: object) -> None:
     """One small job on the device before the first real one (``engine.warmup``); a failure is logged, and the
     first job then pays for what was not warmed (or fails with its own reason)."""
     settings = get_settings()
+    try:
+        runtime = runtime_of(settings)  # resolved once: the warm-up and every job use exactly this
+    except ValueError as exc:
+        log.error("device %s is not usable: %s; this worker's jobs fail until it is", settings.device, exc)
+        return
+    log.info("%s", runtime.describe())
     if not warms_up(settings):
         return
     try:
         from engine.budget import mib
         from engine.warmup import warm_up
 
-        runtime = runtime_of(settings)  # resolved once: the warm-up warms exactly what the jobs use
-        log.info("%s", runtime.describe())
         info = warm_up(runtime, volume_bytes=settings.warmup_volume_bytes, png_rows=settings.png_decoder == "auto")
     except Exception as exc:
-        log.warning("warm-up failed on %s: %s", settings.device, exc)
+        log.warning("warm-up failed on %s: %s", runtime.spec, exc)
         return
     pinned = mib(info["pinned_bytes"])
     log.info("device %s warm in %.2f s (%s page-locked for loads)", info["device"], info["seconds"], pinned)

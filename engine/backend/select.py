@@ -8,7 +8,7 @@ import os
 import re
 from typing import Any
 
-from engine.backend.base import Backend, host_budget
+from engine.backend.base import Backend
 
 _OPENCL = re.compile(r"^opencl(:(\d+))?$")
 SPEC = re.compile(r"^(auto|cpu|cuda(:\d+)?|opencl(:\d+)?)$")  # the device specs every edge accepts
