@@ -27,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.device:
         os.environ["BONEMESH_DEVICE"] = args.device
     if args.max_device_bytes:
-        from engine.budget import parse_bytes
+        from engine.job import parse_bytes
 
         try:
             parse_bytes(args.max_device_bytes)

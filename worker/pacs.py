@@ -20,8 +20,8 @@ from core.db import Database
 from core.logsafe import safe_logger
 from core.pacs.records import PacsRecords, is_uid, label_sop_uid
 from core.pacs.routing import REFERENCE_FOLDER
-from engine.export.files import LABELS_DCM, LABELS_ZIP, MODEL_DCM, PRINT_STL
-from engine.types import Volume
+from engine.job import LABELS_DCM, LABELS_ZIP, MODEL_DCM, PRINT_STL
+from engine.job import Volume
 
 log = safe_logger("bonemesh.worker")
 
@@ -114,7 +114,7 @@ def _seg_reference(folder: Path) -> str | None:
     seg = _seg_header(folder)
     if seg is None:
         return None
-    from engine.labels.dicom_seg import referenced_series
+    from engine.job import referenced_series
 
     wanted = referenced_series(seg)
     if not wanted or not is_uid(wanted):
@@ -159,8 +159,8 @@ def write_dicom_model(db: Database, job_id: str, upload: Path, staged: Path, vol
     if rec is None or not stl_path.is_file():
         return {}
     _require_whole(volume.source.get("completeness"), bool(volume.instances))
-    from engine.export.dicom_stl import to_encapsulated_stl
-    from engine.export.stl import from_stl
+    from engine.job import to_encapsulated_stl
+    from engine.job import from_stl
 
     used = list(dict.fromkeys((cls, uid) for cls, uid, _frame in volume.instances))  # a multi-frame image once
     source = _source_header(upload, volume.source.get("series_uid"), used[0][1])
@@ -235,8 +235,8 @@ def _label_objects(
     """``labels.dcm.zip`` in ``staged``: ``<n>-<name>.dcm`` per label row, in the rows' order."""
     import zipfile
 
-    from engine.export.dicom_stl import to_encapsulated_stl
-    from engine.export.stl import from_stl
+    from engine.job import to_encapsulated_stl
+    from engine.job import from_stl
 
     created, version = dt.datetime.now(dt.UTC), _version()
     path = staged / LABELS_DCM
@@ -265,7 +265,7 @@ def _seg_header(upload: Path) -> Any:
     """The header of the SEG among a job's files (the first, by name), or None."""
     import pydicom
 
-    from engine.labels.uploads import is_seg_file
+    from engine.job import is_seg_file
 
     files = sorted(p for p in upload.rglob("*") if p.is_file()) if upload.is_dir() else [upload]
     seg = next((path for path in files if is_seg_file(path)), None)

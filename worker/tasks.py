@@ -21,7 +21,7 @@ from core.db import Database, utcnow
 from core.logsafe import escape_control, relabel, safe_logger
 from core.settings import Settings, get_settings
 from core.storage import is_storage_full, scrub_exception, scrub_paths, storage_from_settings, version_of
-from engine.export.files import FILES, LABELS_ZIP, triangle_count
+from engine.job import FILES, LABELS_ZIP, triangle_count
 from worker.app import app, runtime_of
 from worker.pacs import (
     SourceIncomplete,
@@ -260,8 +260,8 @@ def orient_job(job_id: str, orient: dict[str, Any]) -> str:
     re-orienting (deleted, or another message done first) is left alone."""
     from core.db import ORIENTING
     from engine.errors import InputError
-    from engine.params import OrientParams
-    from engine.reorient import read_report, reorient
+    from engine.job import OrientParams
+    from engine.job import read_report, reorient
 
     settings = get_settings()
     db = database(settings.db_url)
@@ -335,8 +335,8 @@ def job_spec_of(job: Any) -> JobSpec:
 def _explain(exc: Exception, filename: str) -> tuple[str, str]:
     """An error code and a message a clinician can act on."""
     from engine.errors import IncompleteSeriesError, InputError, NoSpacingError
-    from engine.export.printcheck import PrintCheckError
-    from engine.pipeline import EmptySurfaceError, StageError
+    from engine.errors import PrintCheckError
+    from engine.errors import EmptySurfaceError, StageError
 
     if is_storage_full(exc):
         return "storage_full", (
