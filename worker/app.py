@@ -109,8 +109,7 @@ def _warm_device(**_: object) -> None:
     if not warms_up(settings):
         return
     try:
-        from engine.job import mib
-        from engine.job import warm_up
+        from engine.job import mib, warm_up
 
         info = warm_up(runtime, volume_bytes=settings.warmup_volume_bytes, png_rows=settings.png_decoder == "auto")
     except Exception as exc:

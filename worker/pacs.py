@@ -20,8 +20,7 @@ from core.db import Database
 from core.logsafe import safe_logger
 from core.pacs.records import PacsRecords, is_uid, label_sop_uid
 from core.pacs.routing import REFERENCE_FOLDER
-from engine.job import LABELS_DCM, LABELS_ZIP, MODEL_DCM, PRINT_STL
-from engine.job import Volume
+from engine.job import LABELS_DCM, LABELS_ZIP, MODEL_DCM, PRINT_STL, Volume
 
 log = safe_logger("bonemesh.worker")
 
@@ -159,8 +158,7 @@ def write_dicom_model(db: Database, job_id: str, upload: Path, staged: Path, vol
     if rec is None or not stl_path.is_file():
         return {}
     _require_whole(volume.source.get("completeness"), bool(volume.instances))
-    from engine.job import to_encapsulated_stl
-    from engine.job import from_stl
+    from engine.job import from_stl, to_encapsulated_stl
 
     used = list(dict.fromkeys((cls, uid) for cls, uid, _frame in volume.instances))  # a multi-frame image once
     source = _source_header(upload, volume.source.get("series_uid"), used[0][1])
@@ -235,8 +233,7 @@ def _label_objects(
     """``labels.dcm.zip`` in ``staged``: ``<n>-<name>.dcm`` per label row, in the rows' order."""
     import zipfile
 
-    from engine.job import to_encapsulated_stl
-    from engine.job import from_stl
+    from engine.job import from_stl, to_encapsulated_stl
 
     created, version = dt.datetime.now(dt.UTC), _version()
     path = staged / LABELS_DCM

@@ -260,8 +260,7 @@ def orient_job(job_id: str, orient: dict[str, Any]) -> str:
     re-orienting (deleted, or another message done first) is left alone."""
     from core.db import ORIENTING
     from engine.errors import InputError
-    from engine.job import OrientParams
-    from engine.job import read_report, reorient
+    from engine.job import OrientParams, read_report, reorient
 
     settings = get_settings()
     db = database(settings.db_url)
@@ -334,9 +333,14 @@ def job_spec_of(job: Any) -> JobSpec:
 
 def _explain(exc: Exception, filename: str) -> tuple[str, str]:
     """An error code and a message a clinician can act on."""
-    from engine.errors import IncompleteSeriesError, InputError, NoSpacingError
-    from engine.errors import PrintCheckError
-    from engine.errors import EmptySurfaceError, StageError
+    from engine.errors import (
+        EmptySurfaceError,
+        IncompleteSeriesError,
+        InputError,
+        NoSpacingError,
+        PrintCheckError,
+        StageError,
+    )
 
     if is_storage_full(exc):
         return "storage_full", (
