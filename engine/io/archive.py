@@ -133,7 +133,12 @@ def _check_name(name: str, archive: Path) -> None:
 
 
 def _copy_limited(
-    src: IO[bytes], name: str, declared: int, budget: _Budget, member_ratio_base: int | None
+    src: IO[bytes],
+    name: str,
+    declared: int,
+    budget: _Budget,
+    member_ratio_base: int | None,
+    head_bytes: int = HEAD_BYTES,
 ) -> tuple[IO[bytes], int, bytes]:
     """Copy ``src`` into a temporary file (in memory while the archive's memory allowance lasts) while counting
     bytes against the limits."""
@@ -158,7 +163,7 @@ def _copy_limited(
                 f"archive member {name!r} declares {declared:,} bytes but holds {n:,}: the archive is corrupt"
             )
         spool.seek(0)
-        head = spool.read(HEAD_BYTES)
+        head = spool.read(head_bytes)
     except BaseException:
         spool.close()
         raise
@@ -219,13 +224,15 @@ class _Budget:
             )
 
 
-def _head_only(src: IO[bytes], name: str, declared: int, budget: _Budget) -> tuple[IO[bytes] | None, int, bytes]:
+def _head_only(
+    src: IO[bytes], name: str, declared: int, budget: _Budget, head_bytes: int = HEAD_BYTES
+) -> tuple[IO[bytes] | None, int, bytes]:
     """The first bytes of a member (for ``heads_only`` listings); the declared size stands for its size."""
-    head = src.read(HEAD_BYTES)
+    head = src.read(head_bytes)
     return None, max(declared, len(head)), head
 
 
-def _read_zip(path: Path, limits: InputLimits, heads_only: bool = False) -> Members:
+def _read_zip(path: Path, limits: InputLimits, heads_only: bool = False, head_bytes: int = HEAD_BYTES) -> Members:
     budget = _Budget(limits, path, path.stat().st_size)
     members: list[Member] = []
     ignored: list[str] = []
@@ -253,7 +260,7 @@ def _read_zip(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
                 raise InputError(f"{path.name}: member {info.filename!r} is encrypted; give an unencrypted archive")
             budget.declare(info.filename, info.file_size, info.compress_size)
             with zf.open(info) as src:
-                head = src.read(HEAD_BYTES)
+                head = src.read(head_bytes)
             reader = None if heads_only else handles.reader(info)
             where = Where("zip", str(path), info.filename, info.file_size, index=index)
             members.append(Member(info.filename, max(info.file_size, len(head)), head, _reader=reader, where=where))
@@ -269,7 +276,7 @@ def _read_zip(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
     return Members("zip", members, ignored, _archive=handles)
 
 
-def _read_tar(path: Path, limits: InputLimits, heads_only: bool = False) -> Members:
+def _read_tar(path: Path, limits: InputLimits, heads_only: bool = False, head_bytes: int = HEAD_BYTES) -> Members:
     budget = _Budget(limits, path, path.stat().st_size)
     members: list[Member] = []
     ignored: list[str] = []
@@ -297,16 +304,16 @@ def _read_tar(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
                     src = tf.extractfile(ti)
                     assert src is not None
                     if heads_only:
-                        spool, n, head = _head_only(src, ti.name, ti.size, budget)
+                        spool, n, head = _head_only(src, ti.name, ti.size, budget, head_bytes)
                     elif plain is not None and not ti.issparse():  # read in place later, by offset
-                        head = src.read(HEAD_BYTES)
+                        head = src.read(head_bytes)
                         budget.add(ti.size, ti.name)
                         reader = plain.reader(ti.name, ti.offset_data, ti.size)
                         where = Where("tar", str(path), ti.name, ti.size, offset=ti.offset_data)
                         members.append(Member(ti.name, ti.size, head, _reader=reader, where=where))
                         continue
                     else:
-                        spool, n, head = _copy_limited(src, ti.name, ti.size, budget, None)
+                        spool, n, head = _copy_limited(src, ti.name, ti.size, budget, None, head_bytes)
                     members.append(Member(ti.name, n, head, _spool=spool))
     except InputError:
         Members(kind, members, _archive=plain).close()
@@ -317,7 +324,7 @@ def _read_tar(path: Path, limits: InputLimits, heads_only: bool = False) -> Memb
     return Members(kind, members, ignored, _archive=plain)
 
 
-def _read_folder(path: Path, limits: InputLimits) -> Members:
+def _read_folder(path: Path, limits: InputLimits, head_bytes: int = HEAD_BYTES) -> Members:
     members: list[Member] = []
     ignored: list[str] = []
     total = 0
@@ -342,17 +349,20 @@ def _read_folder(path: Path, limits: InputLimits) -> Members:
                     f"folder {path} holds more than {limits.max_total_bytes:,} bytes; refusing it as too large"
                 )
             with full.open("rb") as fh:
-                head = fh.read(HEAD_BYTES)
+                head = fh.read(head_bytes)
             members.append(Member(rel, size, head, _path=full, where=Where("file", str(full), rel, size)))
     return Members("folder", members, ignored)
 
 
-def open_members(path: str | Path, limits: InputLimits | None = None, *, heads_only: bool = False) -> Members:
+def open_members(
+    path: str | Path, limits: InputLimits | None = None, *, heads_only: bool = False, head_bytes: int = HEAD_BYTES
+) -> Members:
     """List the files of an input: a zip, tar(.gz/.bz2/.xz), a folder, or one plain file.
 
     With ``heads_only`` the members of an archive keep only their first bytes (``Member.head``; ``read`` is not
     available) and sizes are the declared ones: a quick listing that checks names, counts and declared sizes and
-    ratios but not the bytes actually decompressed.
+    ratios but not the bytes actually decompressed. ``head_bytes``: how many first bytes each member keeps (more
+    than the default to tell a file's kind by content, e.g. a DICOM SEG by its file meta).
 
     Raises:
         InputError: the path is missing, or a corrupt archive, or an archive/folder beyond ``limits``.
@@ -360,16 +370,16 @@ def open_members(path: str | Path, limits: InputLimits | None = None, *, heads_o
     limits = limits or InputLimits()
     path = Path(path)
     if path.is_dir():
-        return _read_folder(path, limits)
+        return _read_folder(path, limits, head_bytes)
     if not path.is_file():
         raise InputError(f"{path} does not exist (expected a zip/tar archive, a folder, or a volume file)")
     if zipfile.is_zipfile(path):
-        return _read_zip(path, limits, heads_only)
+        return _read_zip(path, limits, heads_only, head_bytes)
     name = path.name.lower()
     if name.endswith(".zip"):
         raise NotAScanError(f"{path.name} ends in .zip but is not a readable zip archive (corrupt or truncated?)")
     if _is_tar(path):
-        return _read_tar(path, limits, heads_only)
+        return _read_tar(path, limits, heads_only, head_bytes)
     if name.endswith((".tar", ".tgz", ".tar.gz", ".tar.bz2", ".tar.xz")):
         raise InputError(
             f"{path.name} looks like a tar archive by name but cannot be read as one (corrupt or truncated?)"
@@ -378,7 +388,7 @@ def open_members(path: str | Path, limits: InputLimits | None = None, *, heads_o
     if size > limits.max_total_bytes:
         raise InputError(f"{path.name} holds {size:,} bytes, more than the limit of {limits.max_total_bytes:,}")
     with path.open("rb") as fh:
-        head = fh.read(HEAD_BYTES)
+        head = fh.read(head_bytes)
     return Members("file", [Member(path.name, size, head, _path=path, where=Where("file", str(path), path.name, size))])
 
 

@@ -31,6 +31,7 @@ import numpy as np
 from engine.io.archive import Member
 
 PER_FRAME = "PerFrameFunctionalGroupsSequence"
+SEG_CLASSES = ("1.2.840.10008.5.1.4.1.1.66.4", "1.2.840.10008.5.1.4.1.1.66.7")  # Segmentation, Label Map Segmentation
 SHARED = "SharedFunctionalGroupsSequence"
 _ENHANCED = "an Enhanced or Legacy Converted Enhanced image with per-frame functional groups"
 
@@ -98,10 +99,17 @@ def frames(ds: Any, name: str) -> list[Frame]:
     """Every frame of a multi-frame data set, in the file's order.
 
     Raises:
-        FrameError: no functional groups, their count differs from NumberOfFrames, or a frame has no Plane
-            Position (Patient) or Plane Orientation (Patient).
+        FrameError: a Segmentation (its frames are segments' masks, not slices), no functional groups, their count
+            differs from NumberOfFrames, or a frame has no Plane Position (Patient) or Plane Orientation (Patient).
     """
     n = frame_count(ds)
+    if str(ds.get("SOPClassUID", "")) in SEG_CLASSES or str(ds.get("Modality", "")).upper() == "SEG":
+        seq = ds.get("ReferencedSeriesSequence")
+        ref = f" of series {seq[0].get('SeriesInstanceUID', '?')}" if seq else ""
+        raise FrameError(
+            f"{name} is a DICOM Segmentation (SEG){ref}: a label map, not a scan's images; read it as labels "
+            "(with the CT series it was drawn on, or alone on its own grid), not as a scan"
+        )
     per_frame = list(ds.get(PER_FRAME) or ())
     shared_items = list(ds.get(SHARED) or ())
     shared = shared_items[0] if shared_items else None

@@ -14,6 +14,7 @@ Errors: ``MissingReferenceError`` (the SEG's referenced series is not the CT giv
 
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -57,15 +58,29 @@ def lab_to_srgb(dicom_lab: Any) -> tuple[float, float, float]:
     return (r, g, b)
 
 
-def _dataset(path: Path) -> Any:
+def _dataset(source: Any, label: str) -> Any:
+    """The SEG's data set from a path, its bytes or a parsed data set.
+
+    Raises:
+        NotLabelsError: not DICOM, or a DICOM object other than a Segmentation.
+    """
+    import io
+
     import pydicom
 
-    try:
-        ds = pydicom.dcmread(str(path))
-    except Exception as exc:
-        raise NotLabelsError(f"{path.name}: neither a NIfTI, an NRRD nor a DICOM file ({exc})") from None
+    if isinstance(source, (bytes, bytearray)):
+        source = io.BytesIO(source)
+    if isinstance(source, (str, Path, io.BytesIO)):
+        try:
+            ds = pydicom.dcmread(source if isinstance(source, io.BytesIO) else str(source))
+        except Exception:  # pydicom's own message suggests force=True: not for this user
+            raise NotLabelsError(
+                f"{label}: neither a NIfTI, an NRRD nor a DICOM file (no DICOM preamble and file meta)"
+            ) from None
+    else:
+        ds = source
     if str(ds.get("SOPClassUID", "")) not in SEG_CLASSES and ds.get("Modality") != "SEG":
-        raise NotLabelsError(f"{path.name}: a DICOM {ds.get('Modality', '?')} object, not a Segmentation (SEG)")
+        raise NotLabelsError(f"{label}: a DICOM {ds.get('Modality', '?')} object, not a Segmentation (SEG)")
     return ds
 
 
@@ -89,8 +104,7 @@ def _segments(ds: Any) -> tuple[Segment, ...]:
 
 def _frames(ds: Any, label: str) -> _Frames:
     kind = str(ds.get("SegmentationType", "BINARY")).upper()
-    pixels = np.asarray(ds.pixel_array)
-    pixels = pixels.reshape(-1, int(ds.Rows), int(ds.Columns))
+    pixels = seg_pixels(ds, label)
     if kind == "FRACTIONAL":
         pixels = (pixels.astype(np.float32) >= 0.5 * float(ds.get("MaximumFractionalValue", 255))).astype(np.uint8)
     shared = ds.SharedFunctionalGroupsSequence[0] if "SharedFunctionalGroupsSequence" in ds else None
@@ -117,6 +131,145 @@ def _frames(ds: Any, label: str) -> _Frames:
     else:
         numbers = np.array([int(group(f, "SegmentIdentificationSequence").ReferencedSegmentNumber) for f in per])
     return _Frames(pixels, positions, numbers, iop[:3], iop[3:], (spacing[0], spacing[1]), step and float(step))
+
+
+# --- pixels ------------------------------------------------------------------------------------------------------
+
+RLE_LOSSLESS = "1.2.840.10008.1.2.5"
+DEFLATED_FRAMES = "1.2.840.10008.1.2.8.1"  # Deflated Image Frame Compression (PS3.5 8.2.16): raw Deflate per frame
+
+
+def _ts(ds: Any) -> tuple[str, str]:
+    """The transfer syntax's UID and its name, for messages."""
+    uid = ds.file_meta.get("TransferSyntaxUID") if hasattr(ds, "file_meta") else None
+    if uid is None:
+        return "", "an unnamed transfer syntax"
+    name = getattr(uid, "name", "") or str(uid)
+    return str(uid), (f"{name} ({uid})" if name != str(uid) else str(uid))
+
+
+def seg_pixels(ds: Any, label: str) -> np.ndarray:
+    """Every frame of a SEG as (frames, rows, columns) stored values (0/1 for BINARY).
+
+    Native (uncompressed, any byte order, deflated data set), JPEG 2000, JPEG-LS and RLE of 8/16-bit frames are
+    decoded by pydicom; RLE Lossless of 1-bit frames and Deflated Image Frame Compression (any bit depth) here, as
+    pydicom 3.0 does neither: each frame is one encoded item, and its 1-bit values are packed LSB first from a byte
+    boundary (PS3.5 8.2; a writer that packed the frames as one bit stream across frame boundaries is read too).
+
+    Raises:
+        InputError: the pixel data cannot be decoded; the message names the transfer syntax.
+    """
+    uid, ts = _ts(ds)
+    rows, cols, n = int(ds.Rows), int(ds.Columns), _frame_count(ds)
+    bits = int(ds.get("BitsAllocated", 1))
+    if "PixelData" not in ds:
+        raise InputError(f"{label}: a SEG without pixel data")
+    try:
+        if uid == DEFLATED_FRAMES or (uid == RLE_LOSSLESS and bits == 1):
+            raw = [_decode_item(item, uid) for item in _items(ds, n)]
+            pixels = _unpack(raw, n, rows, cols, bits, label)
+        else:
+            pixels = np.asarray(ds.pixel_array)
+    except InputError:
+        raise
+    except Exception as exc:  # pydicom raises NotImplementedError, RuntimeError, ValueError... for what it lacks
+        first = str(exc).strip().splitlines()[-1].strip() if str(exc).strip() else type(exc).__name__
+        raise InputError(
+            f"{label}: its pixel data in transfer syntax {ts} cannot be decoded ({first}); send the SEG in an "
+            "uncompressed transfer syntax (Explicit VR Little Endian), RLE Lossless, JPEG 2000 or Deflated Image "
+            "Frame Compression"
+        ) from None
+    if pixels.size != n * rows * cols:
+        raise InputError(f"{label}: {pixels.size} pixel values for {n} frames of {rows} x {cols} ({ts})")
+    return pixels.reshape(n, rows, cols)
+
+
+def _frame_count(ds: Any) -> int:
+    try:
+        return max(int(ds.get("NumberOfFrames", 1) or 1), 1)
+    except (TypeError, ValueError):
+        return 1
+
+
+def _items(ds: Any, n: int) -> list[bytes]:
+    """The encoded frames of encapsulated pixel data (one item each; several fragments of a frame joined)."""
+    from pydicom.encaps import generate_frames
+
+    if not getattr(ds["PixelData"], "is_undefined_length", True):
+        raise InputError("the transfer syntax is encapsulated but the pixel data are not (a damaged file)")
+    return list(generate_frames(ds.PixelData, number_of_frames=n))
+
+
+def _decode_item(item: bytes, uid: str) -> bytes:
+    """One encoded frame's bytes: raw Deflate (a zlib or gzip wrapper tolerated), or RLE Lossless of one segment."""
+    if uid == DEFLATED_FRAMES:
+        for wbits in (-15, 47):
+            try:
+                return zlib.decompressobj(wbits).decompress(item)
+            except zlib.error:
+                continue
+        raise InputError("a frame is not Deflate data")
+    return _rle_segments(item)
+
+
+def _rle_segments(item: bytes) -> bytes:
+    """An RLE Lossless frame (PS3.5 Annex G) of 1-bit samples: its one segment, PackBits-decoded."""
+    if len(item) < 64:
+        raise InputError(f"an RLE frame of {len(item)} bytes, shorter than its 64-byte header")
+    header = np.frombuffer(item[:64], dtype="<u4")
+    count = int(header[0])
+    if count != 1:
+        raise InputError(f"an RLE frame of 1-bit samples with {count} segments (expected 1)")
+    start = int(header[1])
+    if not 64 <= start < len(item):
+        raise InputError(f"an RLE segment offset {start} outside its frame of {len(item)} bytes")
+    return _packbits(item[start:])
+
+
+def _packbits(data: bytes) -> bytes:
+    """PackBits (TIFF 6.0 / DICOM RLE): a header byte n >= 0 copies n + 1 bytes, n in -127..-1 repeats the next
+    byte 1 - n times, -128 is a no-op."""
+    out = bytearray()
+    i, end = 0, len(data)
+    while i < end:
+        n = data[i]
+        i += 1
+        if n < 128:
+            out += data[i : i + n + 1]
+            i += n + 1
+        elif n > 128:
+            if i < end:
+                out += data[i : i + 1] * (257 - n)
+            i += 1
+    return bytes(out)
+
+
+def _unpack(raw: list[bytes], n: int, rows: int, cols: int, bits: int, label: str) -> np.ndarray:
+    """Decoded frame bytes as (n, rows * cols) values: 1-bit values unpacked LSB first, else little-endian words."""
+    npix = rows * cols
+    if bits != 1:
+        if bits not in (8, 16, 32):
+            raise InputError(f"{label}: {bits} bits allocated per pixel")
+        dtype = np.dtype(f"<u{bits // 8}")
+        need = npix * dtype.itemsize
+        if len(raw) != n or any(len(r) < need for r in raw):
+            raise InputError(f"{label}: {len(raw)} decoded frames shorter than {need} bytes each ({n} expected)")
+        return np.stack([np.frombuffer(r, dtype=dtype, count=npix) for r in raw])
+    per = -(-npix // 8)
+    if len(raw) == n and all(len(r) >= per for r in raw):  # each frame from a byte boundary (PS3.5 8.2)
+        out = np.empty((n, npix), dtype=np.uint8)
+        for f, r in enumerate(raw):
+            out[f] = np.unpackbits(np.frombuffer(r, dtype=np.uint8, count=per), bitorder="little")[:npix]
+        return out
+    stream = b"".join(raw)  # one bit stream across frame boundaries, as native 1-bit pixel data is
+    total = -(-n * npix // 8)
+    if len(stream) < total:
+        raise InputError(
+            f"{label}: the decoded frames hold {len(stream)} bytes, fewer than the {total} that {n} frames of "
+            f"{rows} x {cols} 1-bit pixels need"
+        )
+    flat = np.unpackbits(np.frombuffer(stream, dtype=np.uint8, count=total), bitorder="little")
+    return flat[: n * npix].reshape(n, npix)
 
 
 def _paint(labels: np.ndarray, k: int, j0: int, i0: int, frame: np.ndarray, number: int) -> tuple[int, int]:
@@ -181,35 +334,39 @@ def _own_grid(fr: _Frames, dtype: Any, label: str) -> tuple[np.ndarray, tuple[fl
     return labels, (float(step), fr.spacing_rc[0], fr.spacing_rc[1]), origin, direction
 
 
-def read_dicom_seg(path: str | Path, *, reference: Volume | None = None) -> LabelVolume:
-    """A DICOM SEG as a ``LabelVolume``: on ``reference``'s grid (its referenced CT) when given, else its own.
+def read_dicom_seg(
+    path: str | Path | bytes | Any, *, reference: Volume | None = None, label: str | None = None
+) -> LabelVolume:
+    """A DICOM SEG (a path, its bytes or a pydicom data set) as a ``LabelVolume``: on ``reference``'s grid (its
+    referenced CT) when given, else its own. ``label`` names it in messages (default: the file's name).
 
     Raises:
         MissingReferenceError: ``reference`` is another series than the one the SEG references.
         LabelsOutsideScanError: the SEG's frames are not on the CT's grid, or none of its voxels lands in it.
         NotLabelsError: the file is not a DICOM SEG.
+        InputError: its frames cannot be placed or decoded (the message names the transfer syntax).
     """
-    p = Path(path)
-    ds = _dataset(p)
+    name = label or (Path(path).name if isinstance(path, (str, Path)) else "the SEG")
+    ds = _dataset(path, name)
     segments = _segments(ds)
-    fr = _frames(ds, p.name)
+    fr = _frames(ds, name)
     dtype = np.uint8 if max(s.value for s in segments) < 256 else np.uint16
     wanted = referenced_series(ds)
-    source: dict[str, Any] = {"format": "dicom-seg", "file": p.name, "encoding": str(ds.get("SegmentationType"))}
+    source: dict[str, Any] = {"format": "dicom-seg", "file": name, "encoding": str(ds.get("SegmentationType"))}
     source["referenced_series_uid"] = wanted
     if reference is not None:
         have = reference.source.get("series_uid")
         if wanted and have and wanted != have:
             raise MissingReferenceError(
-                f"{p.name}: the SEG was drawn on series {wanted}, but the CT given is series {have}"
+                f"{name}: the SEG was drawn on series {wanted}, but the CT given is series {have}"
             )
-        labels, painted, overlaps = _into_reference(fr, reference, dtype, p.name)
+        labels, painted, overlaps = _into_reference(fr, reference, dtype, name)
         if painted == 0:
-            raise LabelsOutsideScanError(f"{p.name}: no labelled voxel of the SEG lies inside the referenced CT")
+            raise LabelsOutsideScanError(f"{name}: no labelled voxel of the SEG lies inside the referenced CT")
         source["placed_by"] = "Per-frame Plane Position into the referenced CT's grid"
         spacing, origin, direction = reference.spacing_zyx_mm, reference.origin_mm, reference.direction
     else:
-        labels, sp, o, dmat = _own_grid(fr, dtype, p.name)
+        labels, sp, o, dmat = _own_grid(fr, dtype, name)
         overlaps = 0
         source["placed_by"] = "Per-frame Plane Position on the SEG's own grid"
         spacing = (sp[0], sp[1], sp[2])
@@ -220,34 +377,49 @@ def read_dicom_seg(path: str | Path, *, reference: Volume | None = None) -> Labe
     return make_label_volume(labels, spacing, origin, direction, segments, source)
 
 
-def read_seg_folder(folder: str | Path) -> LabelVolume:
-    """The SEG of a folder placed on its referenced CT series in the same folder (``engine.io.load_volume``).
+def read_seg_folder(folder: str | Path, label: str | None = None) -> LabelVolume:
+    """The SEG of a folder, zip or tar archive placed on its referenced CT series from the same input
+    (``engine.io.load_volume``, which leaves the SEG, a series of its own, aside).
 
     ``source["reference"]`` says what the CT's completeness checks found (``engine.io.completeness``).
 
     Raises:
-        MissingReferenceError: the folder lacks the series the SEG references (or the SEG names none).
+        MissingReferenceError: the input lacks the series the SEG references (or the SEG names none).
+        IncompleteSeriesError: the referenced series is there but incomplete.
+        InputError: not exactly one SEG, or the CT cannot be loaded (the message says why).
     """
-    import pydicom
-
+    from engine.errors import IncompleteSeriesError
     from engine.io import load_volume
-    from engine.labels.uploads import is_seg_file
+    from engine.io.archive import open_members
+    from engine.labels.uploads import SNIFF_BYTES, is_seg
 
     root = Path(folder)
-    segs = [f for f in sorted(q for q in root.rglob("*") if q.is_file()) if is_seg_file(f)]  # by the file meta
-    if len(segs) != 1:
-        raise InputError(f"{root.name}: expected one DICOM SEG in the folder, found {len(segs)}")
-    path = segs[0]
-    wanted = referenced_series(pydicom.dcmread(str(path), stop_before_pixels=True))
+    where = label or root.name
+    with open_members(root, head_bytes=SNIFF_BYTES) as members:
+        segs = [m for m in members.members if is_seg(m.head)]  # by the file meta
+        if len(segs) != 1:
+            raise InputError(f"{where}: expected one DICOM SEG, found {len(segs)}")
+        seg_name, data = segs[0].name, segs[0].read()
+    name = f"{where}: {seg_name}" if members.kind != "file" else where
+    ds = _dataset(data, name)
+    wanted = referenced_series(ds)
     if not wanted:
-        raise MissingReferenceError(f"{path.name}: the SEG names no referenced series to place it on")
+        raise MissingReferenceError(
+            f"{name}: the SEG names no referenced series (ReferencedSeriesSequence) to place it on"
+        )
     try:
         ct = load_volume(root, series_uid=wanted)
+    except IncompleteSeriesError as exc:
+        raise IncompleteSeriesError(f"{name}: the CT series it was drawn on ({wanted}): {exc}") from None
     except InputError as exc:
-        raise MissingReferenceError(
-            f"{path.name}: its referenced series {wanted} is not in {root.name} ({exc})"
-        ) from None
-    lv = read_dicom_seg(path, reference=ct)
+        text = str(exc)
+        if f"has no series {wanted!r}" in text or "holds no DICOM images" in text:
+            raise MissingReferenceError(
+                f"{name}: its referenced series {wanted} (the CT it was drawn on) is not in {where}; send the SEG "
+                "with that series"
+            ) from None
+        raise InputError(f"{name}: its CT series {wanted} cannot be loaded: {text}") from None
+    lv = read_dicom_seg(ds, reference=ct, label=name)
     # what the CT's checks found: a model for the PACS is made only on a CT checked whole (``worker.pacs``)
     lv.source["reference"] = {"images": int(ct.data.shape[0]), "completeness": ct.source.get("completeness")}
     return lv

@@ -20,20 +20,19 @@ import contextlib
 import re
 import shutil
 import tempfile
-import zipfile
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 from engine.errors import InputError, NotLabelsError
 
-__all__ = ["LabelUpload", "find_label_upload", "is_seg_file", "read_label_upload", "sniff"]
+__all__ = ["SNIFF_BYTES", "LabelUpload", "find_label_upload", "is_seg", "is_seg_file", "read_label_upload", "sniff"]
 
 # Segmentation Storage (.66.4) and Label Map Segmentation Storage (.66.7), as a file's meta names its SOP class
 SEG_SOP_CLASS = re.compile(rb"1\.2\.840\.10008\.5\.1\.4\.1\.1\.66\.[47](?![0-9.])")
-_SNIFF_BYTES = 4096  # NIfTI-1's header is 348 bytes, NIfTI-2's 540; a SEG's file meta names its SOP class early
+SNIFF_BYTES = 4096  # NIfTI-1's header is 348 bytes, NIfTI-2's 540; a SEG's file meta names its SOP class early
 _INTEGER_CODES = {2, 4, 8, 256, 512, 768, 1024, 1280}  # NIfTI datatype codes of integer data
 _SUFFIX = {"nifti": ".nii", "nifti-gz": ".nii.gz", "nrrd": ".nrrd"}
 
@@ -53,7 +52,7 @@ class LabelUpload:
 
 def _gunzip_head(head: bytes) -> bytes:
     try:
-        return zlib.decompressobj(16 + zlib.MAX_WBITS).decompress(head, _SNIFF_BYTES)
+        return zlib.decompressobj(16 + zlib.MAX_WBITS).decompress(head, SNIFF_BYTES)
     except zlib.error:
         return b""
 
@@ -112,158 +111,140 @@ def check_nifti_head(head: bytes, label: str) -> None:
         )
 
 
-def _zip_members(path: Path) -> Iterator[tuple[zipfile.ZipInfo, bytes]]:
-    with zipfile.ZipFile(path) as zf:
-        for info in zf.infolist():
-            if info.is_dir():
-                continue
-            with zf.open(info) as fh:
-                yield info, fh.read(_SNIFF_BYTES)
-
-
 def find_label_upload(path: str | Path, label: str = "the upload", *, force: bool = False) -> LabelUpload | None:
-    """Whether an upload (a file, a zip, a folder) is a label map, by content (see the module docstring); None
-    when it is not (a CT), unless ``force``.
+    """Whether an input (a file, a zip or tar archive, a folder) is a label map, by content (see the module
+    docstring); None when it is not (a scan), unless ``force``. The one detection of every path: the CLI, the API's
+    upload check and the worker (``engine.job.run_job``); archives and folders are listed by the scan loader's own
+    reader (``engine.io.archive.open_members``: the same members, junk such as ``__MACOSX/`` left out).
 
     Raises:
-        NotLabelsError: a float or scaled NIfTI; with ``force``, an upload that holds no label map.
-        InputError: a zip with several label maps, or a zip that cannot be read.
+        NotLabelsError: a float or scaled NIfTI; with ``force``, an input that holds no label map.
+        MissingReferenceError: an archive or folder holding a DICOM SEG and no other DICOM file (not the CT series
+            it was drawn on; the message names that series). A SEG file alone is read on its own grid.
+        InputError: several label maps, or an archive that cannot be read.
     """
+    from engine.io.archive import open_members
+
     p = Path(path)
     found: LabelUpload | None = None
-    if p.is_dir():
-        found = _in_folder(p, label)
-    elif p.is_file() and zipfile.is_zipfile(p):
-        found = _in_zip(p, label)
-    elif p.is_file():
-        with p.open("rb") as fh:
-            head = fh.read(_SNIFF_BYTES)
-        kind = sniff(head) or ("dicom-seg" if is_seg(head) else None)
-        if kind is not None and kind.startswith("nifti"):
-            check_nifti_head(head, label)
-        found = LabelUpload(kind) if kind else None
+    if p.exists():
+        with open_members(p, heads_only=True, head_bytes=SNIFF_BYTES) as members:
+            found = _in_members(members, p, label)
     if found is None and force:
         raise NotLabelsError(
-            f"{label} holds no label map bonemesh reads (an integer NIfTI, an NRRD or .seg.nrrd, or a zip of one, or "
-            "of a DICOM SEG with its CT series)"
+            f"{label} holds no label map bonemesh reads (an integer NIfTI, an NRRD or .seg.nrrd, a DICOM SEG, or a "
+            "zip or folder of one, or of a DICOM SEG with its CT series)"
         )
     return found
 
 
-def _in_zip(path: Path, label: str) -> LabelUpload | None:
+def _in_members(members: Any, path: Path, label: str) -> LabelUpload | None:
+    """The label map among an input's members (``engine.io.archive.Members``)."""
     maps: list[tuple[str, str]] = []
-    seg = other_dicom = 0
-    try:
-        for info, head in _zip_members(path):
-            kind = sniff(head)
-            if kind is not None:
-                if kind.startswith("nifti"):
-                    check_nifti_head(head, f"{label}: {info.filename}")
-                maps.append((info.filename, kind))
-            elif is_seg(head):
-                seg += 1
-            elif head[128:132] == b"DICM":
-                other_dicom += 1
-    except (zipfile.BadZipFile, OSError, EOFError, zlib.error) as exc:
-        raise InputError(f"{label}: the zip cannot be read ({exc})") from None
+    segs: list[str] = []
+    other_dicom = 0
+    single = members.kind == "file"
+    for m in members.members:
+        kind = sniff(m.head)
+        if kind is not None:
+            if kind.startswith("nifti"):
+                check_nifti_head(m.head, label if single else f"{label}: {m.name}")
+            maps.append((m.name, kind))
+        elif is_seg(m.head):
+            segs.append(m.name)
+        elif m.head[128:132] == b"DICM":
+            other_dicom += 1
+    if single:
+        return LabelUpload(maps[0][1]) if maps else LabelUpload("dicom-seg") if segs else None
     if len(maps) > 1:
         shown = ", ".join(name for name, _ in maps[:4])
         raise InputError(f"{label} holds {len(maps)} label maps ({shown}); send one per job")
     if maps:
         return LabelUpload(maps[0][1], maps[0][0])
-    return _seg_found(
-        seg,
-        other_dicom,
-        f"{label} holds a DICOM SEG but no other DICOM file: zip the SEG with the CT series it was drawn on",
+    if not segs:
+        return None
+    if len(segs) > 1:
+        raise InputError(f"{label} holds {len(segs)} DICOM SEG files ({', '.join(segs[:4])}); send one per job")
+    if not other_dicom:
+        from engine.errors import MissingReferenceError
+
+        raise MissingReferenceError(f"{label} holds a DICOM SEG {_without_ct(path, segs[0])}")
+    return LabelUpload("dicom-seg")
+
+
+def _without_ct(path: Path, member: str) -> str:
+    """'without the CT series it was drawn on (...)', naming that series where the SEG says it."""
+    from engine.io.archive import open_members
+
+    uid = None
+    with contextlib.suppress(Exception), open_members(path) as members:
+        m = next(m for m in members.members if m.name == member)
+        uid = seg_referenced_series(m.read())
+    named = f"series {uid}" if uid else "a series the SEG does not name"
+    return (
+        f"without the CT series it was drawn on ({named} is missing: it was not sent, received or fetched); send "
+        "the SEG with that series, or the SEG file alone to place it on its own grid"
     )
+
+
+def seg_referenced_series(data: bytes) -> str | None:
+    """The SeriesInstanceUID a SEG's bytes say it was drawn on (ReferencedSeriesSequence), if any."""
+    import io
+
+    import pydicom
+
+    from engine.labels.dicom_seg import referenced_series
+
+    return referenced_series(pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True, force=True))
 
 
 def is_seg_file(path: Path) -> bool:
     """Whether the file at ``path`` is a DICOM SEG (by its first bytes)."""
     with path.open("rb") as fh:
-        return is_seg(fh.read(_SNIFF_BYTES))
-
-
-def _seg_found(seg: int, other_dicom: int, missing: str) -> LabelUpload | None:
-    """A SEG upload when there is a SEG; ``MissingReferenceError(missing)`` when nothing else is DICOM."""
-    if seg and not other_dicom:
-        from engine.errors import MissingReferenceError
-
-        raise MissingReferenceError(missing)
-    return LabelUpload("dicom-seg") if seg else None
-
-
-def _in_folder(path: Path, label: str) -> LabelUpload | None:
-    """A folder of DICOM files (a PACS job's upload) holding a SEG: its first bytes name the SOP class."""
-    seg = other_dicom = 0
-    for f in sorted(q for q in path.rglob("*") if q.is_file()):
-        with f.open("rb") as fh:
-            head = fh.read(_SNIFF_BYTES)
-        if is_seg(head):  # (is_seg_file, with the head kept for the next test)
-            seg += 1
-        elif head[128:132] == b"DICM":
-            other_dicom += 1
-    return _seg_found(
-        seg,
-        other_dicom,
-        f"{label} holds a DICOM SEG without the CT series it was drawn on (its "
-        "referenced series was not received or could not be fetched)",
-    )
-
-
-def _copy(src: IO[bytes], dest: Path, limit: int, label: str) -> None:
-    n = 0
-    with dest.open("wb") as out:
-        while chunk := src.read(1 << 20):
-            n += len(chunk)
-            if n > limit:
-                raise InputError(f"{label} expands to more than {limit:,} bytes; crop or downsample it first")
-            out.write(chunk)
+        return is_seg(fh.read(SNIFF_BYTES))
 
 
 @contextlib.contextmanager
-def _unpacked(path: Path, found: LabelUpload, label: str) -> Iterator[Path]:
-    """A local path the readers take: the label map under a name with its suffix, or a SEG zip's folder."""
-    from engine.io.archive import InputLimits, open_members
+def _unpacked(path: Path, found: LabelUpload) -> Iterator[Path]:
+    """The label map as a local file under a name with its suffix (the readers go by it): the input itself, or its
+    member copied out of the archive or folder (read through ``open_members``: names, counts and sizes checked as
+    for any input)."""
+    from engine.io.archive import open_members
 
-    limits = InputLimits()
     tmp = Path(tempfile.mkdtemp(prefix="bonemesh-labels-"))
     try:
-        if found.kind == "dicom-seg" and not zipfile.is_zipfile(path):  # a folder with its CT, or one SEG file
-            yield path  # (placed on its own grid)
-            return
-        if found.kind == "dicom-seg":
-            folder = tmp / "seg"
-            folder.mkdir()
-            with open_members(path, limits) as members:  # names, counts and sizes checked as for any upload
-                for i, m in enumerate(members.members):
-                    (folder / f"{i:06d}.dcm").write_bytes(m.read())
-            yield folder
-            return
         target = tmp / f"labels{_SUFFIX[found.kind]}"
         if found.member is None:
             target.symlink_to(path.resolve())
         else:
-            with open_members(path, limits, heads_only=True), zipfile.ZipFile(path) as zf, zf.open(found.member) as fh:
-                _copy(fh, target, limits.max_total_bytes, label)
+            with open_members(path) as members:
+                member = next((m for m in members.members if m.name == found.member), None)
+                if member is None:
+                    raise InputError(f"{path.name}: its member {found.member!r} is gone")
+                target.write_bytes(member.read())
         yield target
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
 def read_label_upload(path: str | Path, found: LabelUpload, label: str = "the upload") -> Any:
-    """The ``LabelVolume`` of an upload ``find_label_upload`` found to be a label map.
+    """The ``LabelVolume`` of an input ``find_label_upload`` found to be a label map: a NIfTI / NRRD (alone or a
+    member), a SEG file alone (on its own grid), or a SEG with its CT series in an archive or folder (on the CT).
 
     Raises:
         LabelError (NotLabelsError, EmptyLabelError, MissingReferenceError, LabelsOutsideScanError), InputError.
     """
+    from engine.io.archive import open_members
     from engine.io.labelmaps import read_labels
     from engine.labels.dicom_seg import read_dicom_seg, read_seg_folder
 
-    with _unpacked(Path(path), found, label) as local:
-        if found.kind != "dicom-seg":
+    p = Path(path)
+    if found.kind == "dicom-seg":
+        with open_members(p, heads_only=True) as members:
+            single = members.kind == "file"
+        lv = read_dicom_seg(p, label=label) if single else read_seg_folder(p, label)
+    else:
+        with _unpacked(p, found) as local:
             lv = read_labels(local)
-        else:
-            lv = read_seg_folder(local) if local.is_dir() else read_dicom_seg(local)
     lv.source["file"] = found.member or label
     return lv
