@@ -63,7 +63,7 @@ def _params(volume: Volume) -> ReconParams:
 
 
 def _run(volume: Volume, device: str, repeat: int) -> dict[str, Any]:
-    from engine.pipeline import reconstruct
+    from engine.job.pipeline import reconstruct
 
     params = _params(volume)
     t0 = time.perf_counter()

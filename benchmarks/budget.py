@@ -35,7 +35,7 @@ PAPER = ReconParams(iso=IsoParams(preset="bone", hu_offset=1024.0), body=None, i
 
 
 def _run(volume: Volume, device: str, budget: int | None, write: bool, repeat: int) -> dict[str, Any]:
-    from engine.pipeline import reconstruct
+    from engine.job.pipeline import reconstruct
 
     times = []
     recon = None
@@ -77,8 +77,8 @@ def _run(volume: Volume, device: str, budget: int | None, write: bool, repeat: i
         out["final_pass_faces_in"] = dec.get("final_pass", {}).get("input_faces")
     if write:
         from engine.device import resolve_device
-        from engine.memory import PeakMemory
-        from engine.outputs import write_outputs
+        from engine.backend.memory import PeakMemory
+        from engine.job.outputs import write_outputs
 
         with tempfile.TemporaryDirectory() as tmp:
             # the job's device (a model finished on the host is laid out there, outside the budget, and its
@@ -108,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     import warp as wp
 
     from engine.device import resolve_device
-    from engine.pipeline import reconstruct
+    from engine.job.pipeline import reconstruct
 
     dev = resolve_device(args.device)
     shape = tuple(int(s) for s in args.phantom.split(","))

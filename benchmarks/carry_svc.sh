@@ -60,7 +60,7 @@ PYTHONPATH=$SITE:$PWD "$PY" - <<'PY'
 import importlib
 for name in ("fastapi", "fastapi_offline", "starlette", "uvicorn", "uvloop", "httptools", "python_multipart",
              "pydantic", "pydantic_settings", "sqlalchemy", "celery", "kombu", "billiard", "redis", "httpx",
-             "service.app", "worker.tasks", "engine.io", "engine.pipeline", "engine.outputs"):
+             "service.app", "worker.tasks", "engine.io", "engine.job.pipeline", "engine.job.outputs"):
     importlib.import_module(name)
 print("service, worker and engine import")
 PY

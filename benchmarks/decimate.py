@@ -166,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     from engine.decimation.passes import decimate_device
     from engine.device import resolve_device
     from engine.io.stack import load_slice_zip
-    from engine.pipeline import _versions
+    from engine.job.pipeline import _versions
 
     dev = resolve_device(args.device)
     reductions = [float(x) for x in args.reductions.split(",")]

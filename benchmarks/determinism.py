@@ -5,8 +5,8 @@
 A refactor that claims "same meshes" shows it here: run the old and the new code on one device, in one call, and
 compare the fingerprints (the mesh's vertex and face arrays, ``model.stl``). Inputs: the bundled headsq scan and
 the bone phantom of ``benchmarks.phantom`` at ``--phantom`` (each with every budget: ``none`` runs the whole
-volume at once, a size forces the streamed plan). Only stable public paths are imported (``engine.pipeline``,
-``engine.outputs``, ``engine.params``, ``engine.types``, ``engine.io``), so the same script runs on old and new
+volume at once, a size forces the streamed plan). Only stable public paths are imported (``engine.job.pipeline``,
+``engine.job.outputs``, ``engine.params``, ``engine.types``, ``engine.io``), so the same script runs on old and new
 checkouts.
 """
 
@@ -41,8 +41,8 @@ def _inputs(phantom: tuple[int, int, int]) -> dict[str, tuple[Any, Any]]:
 
 def fingerprint(volume: Any, params: Any, device: str, budget: str | None, files: bool = True) -> dict[str, Any]:
     """SHA-256 of the mesh (vertices, faces) and, with ``files``, of ``model.stl``; counts and the time taken."""
-    from engine.outputs import write_outputs
-    from engine.pipeline import reconstruct
+    from engine.job.outputs import write_outputs
+    from engine.job.pipeline import reconstruct
 
     t0 = time.perf_counter()
     recon = reconstruct(volume, params, device=device, max_device_bytes=budget)

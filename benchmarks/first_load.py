@@ -1,4 +1,4 @@
-"""A fresh worker's first loads: the warm-up (``engine.warmup``) with and without the load buffers page-locked for
+"""A fresh worker's first loads: the warm-up (``engine.job.warmup``) with and without the load buffers page-locked for
 the scan's size, then the loads a worker's first jobs make.
 
     python -m benchmarks.first_load [--phantom 476,1024,1024] [--device cuda:0] [--threads 16] [--loads 3]
@@ -43,7 +43,7 @@ def _child(args: argparse.Namespace) -> dict[str, Any]:
     from engine.io import load_volume
     from engine.io.png_rows import device_rows
     from engine.staging import pinned_volumes
-    from engine.warmup import warm_up
+    from engine.job.warmup import warm_up
 
     t0 = time.perf_counter()
     info = warm_up(args.device, volume_bytes=args.child_reserve)

@@ -22,7 +22,7 @@ Neither is timed. Then each measurement runs ``engine.io.load_volume`` in a fres
   many processes really ran (0 would mean it fell back to threads).
 
 Each is the median of ``--repeat`` processes. With ``--device cuda:N`` the child also times the upload that makes
-the volume device-ready, ``wp.array(volume)`` from pageable memory as ``engine.pipeline`` does, and the same
+the volume device-ready, ``wp.array(volume)`` from pageable memory as ``engine.job.pipeline`` does, and the same
 through a pinned host buffer (copy into it, then upload), so the lead can see whether pinning pays. No network.
 """
 
@@ -135,7 +135,7 @@ def _upload(data: Any, device: str) -> dict[str, Any]:
         wp.array(np.zeros(1 << 20, np.uint8))
         wp.synchronize()
         t0 = time.perf_counter()
-        dev = wp.array(data)  # as engine.pipeline's upload stage does: from pageable memory
+        dev = wp.array(data)  # as engine.job.pipeline's upload stage does: from pageable memory
         wp.synchronize()
         pageable = time.perf_counter() - t0
         del dev

@@ -56,8 +56,8 @@ CONFIGS = {
 
 
 def _bench(volume: Volume, device: str, repeat: int, params: ReconParams) -> dict[str, Any]:
-    from engine.outputs import write_outputs
-    from engine.pipeline import reconstruct
+    from engine.job.outputs import write_outputs
+    from engine.job.pipeline import reconstruct
 
     # warm-up (kernel compilation) on the first slices only: a full extra run of a 1 G voxel job costs minutes
     nz = volume.data.shape[0]

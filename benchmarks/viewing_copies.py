@@ -1,4 +1,4 @@
-"""Viewing-copy benchmark: the phone and AR copies of ``engine.outputs`` (issue 9) on the bone phantom.
+"""Viewing-copy benchmark: the phone and AR copies of ``engine.job.outputs`` (issue 9) on the bone phantom.
 
     python -m benchmarks.viewing_copies --device cpu|cuda:0 [--phantom Z,Y,X] [--budgets PHONE,AR ...]
                                         [--repeat N] [--quality] --out result.json
@@ -35,7 +35,7 @@ TOPOLOGY = ("n_faces", "watertight", "manifold", "components", "euler", "boundar
 
 
 def _copies(pos: Any, faces: Any, budgets: list[int], pieces: int | None, closed: bool) -> list[tuple]:
-    import engine.outputs as eo
+    import engine.job.outputs as eo
 
     if hasattr(eo, "viewing_copies"):
         return eo.viewing_copies(pos, faces, budgets, pieces, closed)
@@ -46,7 +46,7 @@ def _copies(pos: Any, faces: Any, budgets: list[int], pieces: int | None, closed
 def _budget_run(recon: Any, lay: Any, device: str, budgets: list[int], repeat: int, quality: Any) -> dict[str, Any]:
     import warp as wp
 
-    from engine.outputs import write_outputs
+    from engine.job.outputs import write_outputs
     from engine.surface.devmesh import mesh_stats_device
 
     stats = recon.report["mesh"]
@@ -90,8 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     from engine.device import resolve_device
-    from engine.outputs import write_outputs
-    from engine.pipeline import reconstruct
+    from engine.job.outputs import write_outputs
+    from engine.job.pipeline import reconstruct
 
     device = str(resolve_device(args.device))
     shape = tuple(int(s) for s in args.phantom.split(","))
@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     import warp as wp
 
     from engine.orient import Frame
-    from engine.outputs import lay_out
+    from engine.job.outputs import lay_out
 
     with wp.ScopedDevice(device):  # the print model as write_outputs lays it out (the viewing copies' frame)
         lay = lay_out(*recon.device_mesh, Frame.from_dict(recon.report.get("frame")))

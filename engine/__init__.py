@@ -4,11 +4,19 @@ Public API (loaded lazily through ``engine._lazy``, so ``import engine.params`` 
 ``write_outputs``, ``Reconstruction``, ``ReconParams``, ``Budget``, ``Volume``, ``Mesh``, ``load_volume``,
 ``marching_cubes_33``.
 
-The floor plan: the contracts on the ground floor (``params``, ``types``, ``errors``, ``budget``, ``device``); one
-package per stage of the paper, each with its kernels in a ``kernels`` folder (``volume``, ``isosurface``,
-``decimation``, ``surface``); ``export`` (Mesh -> bytes, and ``export.files``: the registry of output files) and
-``io`` (files -> Volume); ``pipeline`` and its ``plans``, ``outputs``, and ``report`` (the report's declared type);
-and the paper's sweep and metrics in ``paper``.
+The floor plan, at a glance:
+
+* the ground floor (12 modules): the contracts (``params``, ``types``, ``errors``, ``report``: the report's declared
+  type), the budget and the device specs (``budget``, ``device``), and the shared basics of several stages
+  (``level``: the iso level; ``orient``: the patient frame; ``staging``: page-locked host buffers);
+* ``backend``: the one interface the device stages run on (Warp or OpenCL), device memory measured;
+* one package per stage of the paper, each with its kernels in a ``kernels`` folder (``volume``, ``isosurface``,
+  ``decimation``, ``surface``), and the product's own stages: ``labels`` (a model per label) and ``defect``;
+* ``io`` (files -> Volume) and ``export`` (Mesh -> bytes, and ``export.files``: the registry of output files);
+* ``job``: a job from its spec to its files (``spec``, ``runtime``, ``run``; the ``pipeline`` and its ``plans``,
+  ``outputs``, ``reorient``, ``warmup``, ``progress``), the one public face of the worker;
+* ``cli``: the ``bonemesh`` commands (``args``, ``defect``, ``orient``, ``sweep``), thin callers of ``job``;
+* ``paper``: the paper's sweep and metrics; ``data``: the bundled scan and the phantom.
 """
 
 from __future__ import annotations
@@ -21,9 +29,9 @@ if TYPE_CHECKING:
     from engine.budget import Budget
     from engine.io import load_volume
     from engine.isosurface import marching_cubes_33
-    from engine.outputs import write_outputs
+    from engine.job.outputs import write_outputs
+    from engine.job.pipeline import Reconstruction, reconstruct
     from engine.params import ReconParams
-    from engine.pipeline import Reconstruction, reconstruct
     from engine.types import Mesh, Volume
 
 __all__ = [
@@ -43,11 +51,11 @@ __getattr__, __dir__ = attach(
         "Budget": "engine.budget",
         "Mesh": "engine.types",
         "ReconParams": "engine.params",
-        "Reconstruction": "engine.pipeline",
+        "Reconstruction": "engine.job.pipeline",
         "Volume": "engine.types",
         "load_volume": "engine.io",
         "marching_cubes_33": "engine.isosurface",
-        "reconstruct": "engine.pipeline",
-        "write_outputs": "engine.outputs",
+        "reconstruct": "engine.job.pipeline",
+        "write_outputs": "engine.job.outputs",
     },
 )

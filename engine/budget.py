@@ -12,10 +12,10 @@
   where a stage past the budget goes (the host), the plane feed's ring. Tests and diagnosis set these fields to
   take a path on purpose, instead of patching the modules.
 
-``engine.pipeline.reconstruct`` chooses its plan once from the budget (the whole volume at once, or streamed in
+``engine.job.pipeline.reconstruct`` chooses its plan once from the budget (the whole volume at once, or streamed in
 slabs), and every stage gets the ``Budget`` (``beside(held)`` where part of it is already taken) rather than bytes
-to branch on. The peak actually used is measured by ``engine.memory.PeakMemory``. Importing this module never loads
-Warp.
+to branch on. The peak actually used is measured by ``engine.backend.memory.PeakMemory``. Importing this module
+never loads Warp.
 """
 
 from __future__ import annotations
@@ -101,7 +101,7 @@ class Costs:
         return n_faces * self.finish + min(n_faces, self.stats_chunk_faces) * 20
 
     def layout_bytes(self, n_faces: int) -> int:
-        """Device bytes of laying out an ``n_faces`` model for its files (``engine.outputs.lay_out``)."""
+        """Device bytes of laying out an ``n_faces`` model for its files (``engine.job.outputs.lay_out``)."""
         return n_faces * self.layout + min(n_faces, self.layout_chunk_faces) * 48
 
 

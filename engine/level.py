@@ -11,7 +11,7 @@ The automatic level (neither ``iso`` nor ``preset``):
   classes.
 
 ``skin_warning`` flags a model that still looks like a skin surface (it fills most of the body outline, or it holds
-a second, brighter class inside); the pipeline puts it in the report's ``warnings`` (``engine.plans``).
+a second, brighter class inside); the pipeline puts it in the report's ``warnings`` (``engine.job.plans``).
 """
 
 from __future__ import annotations

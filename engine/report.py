@@ -1,6 +1,6 @@
 """The shape of a reconstruction's report (``report.json``): one declared type that its writers
-(``engine.pipeline`` and its ``engine.plans``, ``engine.outputs``) and its readers (``engine.cli``'s summary,
-``engine.export.files``' triangle counts for ``worker.tasks``, ``engine.paper``) share, checked by mypy.
+(``engine.job.pipeline`` and its ``engine.job.plans``, ``engine.job.outputs``) and its readers (``engine.cli``'s
+summary, ``engine.export.files``' triangle counts for ``worker.tasks``, ``engine.paper``) share, checked by mypy.
 
 The report stays a plain ``dict`` at run time (``TypedDict``s): ``report.json`` is ``json.dumps`` of it, so its keys,
 their order and its structure are what clients have always read. ``reconstruct`` fills the blocks marked below as
@@ -142,7 +142,7 @@ class Placement(TypedDict):
 
 class MemoryInfo(TypedDict):
     """The device memory budget (bytes, None: none) and the peak the run used beyond what was in use before it
-    (``engine.memory.PeakMemory``); ``stream``: the streamed plan's account."""
+    (``engine.backend.memory.PeakMemory``); ``stream``: the streamed plan's account."""
 
     budget_bytes: int | None
     peak_bytes: int | None
@@ -185,7 +185,7 @@ class Report(TypedDict):
     device: DeviceInfo
     versions: dict[str, str]
     input: InputInfo
-    stage_seconds: dict[str, float]  # per stage, in order (engine.plans.STAGES)
+    stage_seconds: dict[str, float]  # per stage, in order (engine.job.plans.STAGES)
     counts: Counts
     frame: NotRequired[FrameInfo]  # preprocess; write_outputs adds the glTF centre
     body_mask: NotRequired[dict[str, Any]]  # preprocess, HU data (engine.volume.bodymask)
@@ -208,7 +208,7 @@ class Report(TypedDict):
     exports: NotRequired[dict[str, ExportInfo]]  # write_outputs: every file but report.json, by name
     write_seconds: NotRequired[dict[str, float | dict[str, float]]]  # write_outputs (encode_parts: per file)
     defect: NotRequired[dict[str, Any]]  # ReconParams.defect: found or refused (engine.defect.step.DefectOutcome)
-    reoriented: NotRequired[dict[str, Any]]  # engine.reorient: {"from": OrientParams, "to": OrientParams} as dicts
+    reoriented: NotRequired[dict[str, Any]]  # engine.job.reorient: {"from": OrientParams, "to": OrientParams} as dicts
 
 
 def report_json(report: Report) -> str:

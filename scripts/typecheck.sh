@@ -9,8 +9,8 @@ cd "$(dirname "$0")/.."
 .venv/bin/python -m mypy --strict --follow-imports=silent --ignore-missing-imports \
     --untyped-calls-exclude=warp --untyped-calls-exclude=skimage \
     engine/__init__.py engine/_lazy.py engine/errors.py engine/types.py engine/params.py engine/budget.py \
-    engine/device.py engine/memory.py engine/level.py engine/orient.py engine/progress.py engine/staging.py \
-    engine/plans.py engine/pipeline.py engine/outputs.py engine/report.py engine/warmup.py engine/cli.py \
+    engine/device.py engine/backend/memory.py engine/level.py engine/orient.py engine/job/progress.py engine/staging.py \
+    engine/job/plans.py engine/job/pipeline.py engine/job/outputs.py engine/report.py engine/job/warmup.py engine/cli/__init__.py \
     engine/export/__init__.py engine/export/files.py engine/export/viewers.py \
     engine/volume/__init__.py engine/isosurface/__init__.py engine/decimation/__init__.py \
     engine/surface/__init__.py engine/paper/__init__.py \
@@ -18,4 +18,4 @@ cd "$(dirname "$0")/.."
     engine/backend/__init__.py engine/backend/base.py engine/backend/select.py engine/backend/warp_backend.py \
     engine/backend/opencl_backend.py engine/io/png_rows.py engine/io/kernels/steps.py \
     engine/job/__init__.py engine/job/spec.py engine/job/runtime.py engine/job/run.py engine/backend/warp_device.py \
-    engine/cli_args.py
+    engine/cli/args.py

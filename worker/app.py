@@ -97,7 +97,7 @@ def warms_up(settings: Settings) -> bool:
 
 @worker_process_init.connect
 def _warm_device(**_: object) -> None:
-    """One small job on the device before the first real one (``engine.warmup``); a failure is logged, and the
+    """One small job on the device before the first real one (``engine.job.warmup``); a failure is logged, and the
     first job then pays for what was not warmed (or fails with its own reason)."""
     settings = get_settings()
     try:

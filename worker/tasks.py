@@ -253,7 +253,7 @@ def _described(paths: dict[str, Path], report: Any) -> list[dict[str, Any]]:
 
 @app.task(name="bonemesh.orient")
 def orient_job(job_id: str, orient: dict[str, Any]) -> str:
-    """Re-publish a succeeded job's outputs with the stack placed by ``orient`` (``engine.reorient``: no
+    """Re-publish a succeeded job's outputs with the stack placed by ``orient`` (``engine.job.reorient``: no
     reconstruction): the outputs are copied into a staging folder, written again there and published in one rename
     (``Storage.publish``); the job's outputs, its params' ``orient`` and its stage (``orienting`` -> ``done``) follow.
     Idempotent: the orientation is absolute, so a redelivered message writes the same files; a job no longer

@@ -28,10 +28,11 @@ def _wp_dtype(dtype: DType) -> Any:
 
 
 class _WarpPeak(PeakTracker):
-    """``engine.memory.PeakMemory`` (the CUDA pool's high-water mark, or Warp's allocation tracker on the CPU)."""
+    """``engine.backend.memory.PeakMemory`` (the CUDA pool's high-water mark, or Warp's allocation tracker on the
+    CPU)."""
 
     def __init__(self, device: Any) -> None:
-        from engine.memory import PeakMemory
+        from engine.backend.memory import PeakMemory
 
         self._peak = PeakMemory(device)
 

@@ -12,7 +12,7 @@ from typing import Any
 SIDES = ("left", "right")  # the patient's: +x of the LPS frame is the patient's left
 # the implant is decimated (lightly) only above this many triangles
 DEFAULT_MAX_FACES = 200_000
-# a model made with its defect template is not re-oriented (engine.reorient, the API's orient route): the
+# a model made with its defect template is not re-oriented (engine.job.reorient, the API's orient route): the
 # template's side (left/right), plane and measures in defect.json belong to the orientation they were found in
 DEFECT_REORIENT = (
     "{job} has a defect template: its side, plane and measures were found in the orientation the scan was given, "

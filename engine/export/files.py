@@ -2,7 +2,7 @@
 what it is for, the mesh it is made from (and so its triangle count in the report), which jobs have it and the
 exporter of its format.
 
-Everything that names output files reads ``FILES``: the writer (``engine.outputs``, ``engine.export.viewers``), the
+Everything that names output files reads ``FILES``: the writer (``engine.job.outputs``, ``engine.export.viewers``), the
 exporters' table (``EXPORTERS``, re-exported by ``engine.export``), the storage (``core.storage``: only these
 names are served), the worker (``worker.tasks``: each output's kind, media type and triangles; ``worker.pacs``:
 ``model.dcm``) and the API (``service.routes.files``: the download's media type; ``service.schemas`` and
@@ -84,14 +84,14 @@ class OutputFile:
             returning the file's bytes), imported only by ``exporter_of``; None for the report.
         when: which jobs have it: every job (``"always"``), a closed surface, the default (``"closed"``), an open
             surface (``"open"``, ``IsoParams.closed=False``), a PACS job (``"pacs"``: written by ``worker.pacs``,
-            every other file by ``engine.outputs.write_outputs``), a job that asked for the defect (``"defect"``:
+            every other file by ``engine.job.outputs.write_outputs``), a job that asked for the defect (``"defect"``:
             ``ReconParams.defect``), a label job (``"labels"``: a segmentation, or a CT's bone ``pieces``;
             ``engine.labels.outputs.write_label_outputs``).
         parts: whether the exporter shows named parts beside the model (``engine.export.glb.Part``: the defect
             template as its own coloured node).
         labels: whether a label job has it too (its model.glb, phone.glb and ar.glb hold one named, coloured node
             per label; ``engine_files(labels=True)``).
-        device: whether its exporter runs Warp kernels (the preview's rasteriser): ``engine.outputs`` runs it on
+        device: whether its exporter runs Warp kernels (the preview's rasteriser): ``engine.job.outputs`` runs it on
             the calling thread, and the exporters without (native codecs, numpy) in threads beside it.
     """
 
@@ -264,7 +264,7 @@ VIEWING_ENTRY: Mapping[MeshSource, str] = MappingProxyType({"phone": "phone.glb"
 
 
 def engine_files(closed: bool = True, defect: bool = False, labels: bool = False) -> tuple[str, ...]:
-    """The files ``engine.outputs.write_outputs`` writes, in order, for a closed surface (the print model
+    """The files ``engine.job.outputs.write_outputs`` writes, in order, for a closed surface (the print model
     ``model.stl``) or an open one (``surface_open.stl``), with the defect's (``defect.json``; ``implant.stl``
     when a template was made) when asked; with ``labels``, those of a label job instead
     (``engine.labels.outputs.write_label_outputs``: the files marked ``labels`` and ``labels.zip``)."""
@@ -317,7 +317,7 @@ def _resolve(path: str) -> Exporter:
     ``load_native``), on the calling thread. A native library's first load from two threads at once can deadlock:
     USD's initialisers take the GIL inside ``dlopen`` (holding the loader's lock) while a thread holding the GIL
     waits in ``dlopen`` for that lock (ctypes loading meshoptimizer's library). That hung
-    ``engine.outputs.write_outputs`` on the H100 host once and in the tests here; its threads encode with exporters
+    ``engine.job.outputs.write_outputs`` on the H100 host once and in the tests here; its threads encode with exporters
     looked up before they start."""
     name, _, function = path.partition(":")
     module = importlib.import_module(name)

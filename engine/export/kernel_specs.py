@@ -1,5 +1,5 @@
 """The named kernels of the output layout (``engine.backend.Kernel``): the Warp kernels of ``layout.py`` and their
-OpenCL C twins in ``layout.cl``, launched by ``engine.outputs.lay_out``."""
+OpenCL C twins in ``layout.cl``, launched by ``engine.job.outputs.lay_out``."""
 
 from __future__ import annotations
 

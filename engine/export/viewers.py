@@ -16,7 +16,7 @@ def small_files(
 ) -> dict[str, Callable[[], bytes]]:
     """Every small file of a model as a function that encodes it, from meshes with ``vertices``, ``faces`` and
     ``normals`` (engine order, mm; centred as the glTF files are), in the registry's order: ``phone.glb``,
-    ``ar.glb``, ``phone_meshopt.glb``, ``model.usdz``, ``preview.png`` (``engine.outputs`` runs them one after
+    ``ar.glb``, ``phone_meshopt.glb``, ``model.usdz``, ``preview.png`` (``engine.job.outputs`` runs them one after
     another). ``parts``: named parts beside each copy (``{"phone": [Part, ...], "ar": [...]}``, e.g. the defect
     template), given to the files whose exporter takes them (``OutputFile.parts``). The exporters are looked up
     when this is called."""

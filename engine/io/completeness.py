@@ -96,9 +96,7 @@ def _leaves_out_slices(ratio: float) -> bool:
     return ratio > MAX_BRIDGE or (ratio >= 2 - WHOLE_STEPS and abs(ratio - round(ratio)) <= WHOLE_STEPS)
 
 
-def check_positions(
-    d: np.ndarray, names: Sequence[str], label: str, thickness_mm: float | None = None
-) -> Completeness:
+def check_positions(d: np.ndarray, names: Sequence[str], label: str, thickness_mm: float | None = None) -> Completeness:
     """Check slice positions along the normal (sorted, duplicates already removed) for missing slices.
 
     Args:

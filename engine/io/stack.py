@@ -348,7 +348,7 @@ def _resolve_spacing(
             f"give the voxel size in mm in z, y, x order (CLI --voxel-size z=..,y={y:g},x={x:g}; job params "
             f'"spacing": [z, {y:g}, {x:g}]; Python spacing_zyx_mm=(z, {y:g}, {x:g}))'
         )
-        err.pixel_yx_mm = (y, x)  # type: ignore[attr-defined]  # for the front ends' own wording (engine.cli_args)
+        err.pixel_yx_mm = (y, x)  # type: ignore[attr-defined]  # for the front ends' own wording (engine.cli.args)
         raise err
     note = f" ({geo['note']})" if "note" in geo else ""
     raise NoSpacingError(f"{label}: an image stack does not carry its voxel size{note}; {SPACING_HINT}")

@@ -21,15 +21,15 @@ if TYPE_CHECKING:
     from engine.export.dicom_stl import to_encapsulated_stl
     from engine.export.files import FILES, LABELS_DCM, LABELS_ZIP, MODEL_DCM, PRINT_STL, triangle_count
     from engine.export.stl import from_stl
+    from engine.job.reorient import read_report, reorient
     from engine.job.run import JobResult, run_job
     from engine.job.runtime import Runtime, resolve_runtime
     from engine.job.spec import InputSpec, JobSpec, OutputSpec
+    from engine.job.warmup import warm_up
     from engine.labels.dicom_seg import referenced_series
     from engine.labels.uploads import is_seg_file
     from engine.params import OrientParams
-    from engine.reorient import read_report, reorient
     from engine.types import Volume
-    from engine.warmup import warm_up
 
 __all__ = [
     "FILES",
@@ -81,8 +81,8 @@ __getattr__, __dir__ = attach(
         "referenced_series": "engine.labels.dicom_seg",
         "mib": "engine.budget",
         "parse_bytes": "engine.budget",
-        "read_report": "engine.reorient",
-        "reorient": "engine.reorient",
-        "warm_up": "engine.warmup",
+        "read_report": "engine.job.reorient",
+        "reorient": "engine.job.reorient",
+        "warm_up": "engine.job.warmup",
     },
 )

@@ -5,7 +5,8 @@ It picks the plan once from the spec and the input's content:
 * ``labels``: the input holds a label map (an integer NIfTI, NRRD / .seg.nrrd, a DICOM SEG with or without its CT;
   found by content, ``engine.labels.uploads.find_label_upload``, the same on every path): a model per label;
 * ``pieces``: a scan's N largest bone pieces, each its own part;
-* ``scan``: the EMC33 pipeline (``engine.pipeline.reconstruct``) and its files (``engine.outputs.write_outputs``),
+* ``scan``: the EMC33 pipeline (``engine.job.pipeline.reconstruct``) and its files
+  (``engine.job.outputs.write_outputs``),
   the defect and its template included as a stage of it when ``spec.recon.defect`` asks.
 
 A ``roi`` crops the scan or the label map first. Every file goes through the output registry
@@ -119,8 +120,8 @@ def _scan(
     shares: tuple[float, float],
 ) -> JobResult:
     """The EMC33 pipeline and its files (the defect as one of its stages)."""
-    from engine.outputs import write_outputs
-    from engine.pipeline import reconstruct
+    from engine.job.outputs import write_outputs
+    from engine.job.pipeline import reconstruct
 
     load_end, mesh_end = shares
 

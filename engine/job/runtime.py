@@ -3,7 +3,7 @@ backend the device stages run on, Warp's device for Warp's own steps, the memory
 Everything below the edge takes it (or its ``backend``) and never resolves a device spec again.
 
 ``auto`` is resolved here once, with the reason (``Runtime.reason``), so a worker logs what it chose and its
-warm-up (``engine.warmup.warm_up``) warms the very backend its jobs use.
+warm-up (``engine.job.warmup.warm_up``) warms the very backend its jobs use.
 """
 
 from __future__ import annotations

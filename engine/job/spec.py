@@ -1,6 +1,6 @@
 """What a job is, validated once: ``JobSpec`` (the reconstruction's parameters, what the input is, the outputs
 wanted), built by every edge (the API's request model, ``core.params.JobParams.job_spec``; the CLI's flags,
-``engine.cli_args.job_spec``; a PACS routing rule) and handed, already checked, to ``engine.job.run_job``.
+``engine.cli.args.job_spec``; a PACS routing rule) and handed, already checked, to ``engine.job.run_job``.
 
 Each rule is stated here or in ``engine.params`` once: a decimation target (``decimate_of``), speck removal
 (``islands_of``), the voxel size's range (``check_spacing_zyx_mm``; its order is warned about by

@@ -199,6 +199,9 @@ def _report(
 ) -> dict[str, Any]:
     rows = models.report["labels"]
     frame = {**models.report.get("frame", {}), "gltf_centre_lps_mm": [round(float(c), 6) for c in _centre_xyz(models)]}
+    placed = (models.report.get("source") or {}).get("placed_by")
+    if placed and placed != "none" and "placed_by" in frame:  # what placed the map (its NIfTI affine, NRRD space...)
+        frame["placed_by"] = placed
     return {
         **models.report,
         **(extra or {}),

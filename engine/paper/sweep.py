@@ -1,5 +1,5 @@
 """The paper's parameter sweep (its Tables 1 and 2) on one scan: ``run_sweep`` (the command ``bonemesh sweep`` is
-parsed in ``engine.paper.cli_sweep``; this library never imports the CLI).
+parsed in ``engine.cli.sweep``; this library never imports the CLI).
 
     bonemesh sweep INPUT --spacing Z,Y,X (--iso V | --preset bone --hu-offset 1024) -o OUTDIR
                    [--reductions 0.2,0.3,...] [--iterations 1,5,...] [--repeats 3] [--slices 64] [--points 200000]
@@ -154,7 +154,7 @@ class _Sweep:
         )
 
     def reconstruct(self, params: Any) -> tuple[Any, list[float]]:
-        from engine.pipeline import reconstruct
+        from engine.job.pipeline import reconstruct
 
         runs, recon = [], None
         for _ in range(self.cfg.repeats):
@@ -164,8 +164,8 @@ class _Sweep:
 
     def warm_up(self) -> None:
         """Compile and load every kernel on a thin slab, so that no timed run pays for it."""
+        from engine.job.pipeline import reconstruct
         from engine.paper.metrics import SurfaceQuery
-        from engine.pipeline import reconstruct
 
         nz = self.volume.data.shape[0]
         lo = max(0, nz // 2 - 8)
@@ -187,7 +187,7 @@ class _Sweep:
         )
 
     def reconstruct_once(self, params: Any) -> tuple[Any, float]:
-        from engine.pipeline import reconstruct
+        from engine.job.pipeline import reconstruct
 
         recon = reconstruct(self.volume, params, device=self.device)
         return recon, float(sum(recon.report["stage_seconds"].values()))
@@ -326,7 +326,7 @@ def run_sweep(
     Raises:
         InputError: no surface at the level, or ``resume`` on an outdir of another input.
     """
-    from engine.pipeline import _versions
+    from engine.job.pipeline import _versions
 
     cfg = config or SweepConfig()
     out = Path(outdir)

@@ -8,7 +8,7 @@ import pytest
 from engine.errors import InputError, NoBoneInBodyError
 from engine.io import load_volume
 from engine.params import BodyMaskParams, IsoParams, ReconParams
-from engine.pipeline import reconstruct
+from engine.job.pipeline import reconstruct
 from engine.types import Volume
 from engine.volume.bodymask import body_outline, isolate_bone
 from tests.conftest import shared_file

@@ -13,7 +13,7 @@ from engine.budget import Budget, Costs, parse_bytes
 from engine.data.phantom import bone_phantom
 from engine.errors import BudgetError
 from engine.params import ReconParams
-from engine.pipeline import reconstruct
+from engine.job.pipeline import reconstruct
 from engine.types import Volume
 
 pytestmark = pytest.mark.both_backends  # device tests run on Warp's CPU and on OpenCL (tests/conftest.py)
@@ -219,7 +219,7 @@ def test_write_outputs_within_a_budget_tiles_the_viewing_copies(unbounded, tmp_p
     """A budget too small for the phone copy's decimation in one piece: it is decimated in tiles, within budget."""
     import json
 
-    from engine.outputs import write_outputs
+    from engine.job.outputs import write_outputs
     from engine.params import ExportParams
 
     params = dataclasses.replace(ReconParams(), export=ExportParams(phone_max_triangles=5000, ar_max_triangles=2000))
@@ -281,7 +281,7 @@ def test_model_over_the_layout_budget_is_laid_out_on_the_host(unbounded, tmp_pat
     within the whole budget; the files are those of the unbounded run."""
     import json
 
-    from engine.outputs import write_outputs
+    from engine.job.outputs import write_outputs
     from engine.params import ExportParams
 
     params = dataclasses.replace(ReconParams(), export=ExportParams(phone_max_triangles=5000, ar_max_triangles=2000))

@@ -194,9 +194,9 @@ def phi_series() -> dict[str, bytes]:
 
 
 def test_free_text_stays_out_of_the_report_and_the_viewer_files(tmp_path: Path) -> None:
-    from engine.outputs import write_outputs
+    from engine.job.outputs import write_outputs
     from engine.params import ReconParams
-    from engine.pipeline import reconstruct
+    from engine.job.pipeline import reconstruct
 
     vol = load_volume(_zip(tmp_path / "phi.zip", phi_series()))
     params = ReconParams.from_dict({"iso": {"preset": "bone"}, "body": None})

@@ -198,9 +198,9 @@ def _gltf_to_lps(positions_m: np.ndarray, centre_lps: np.ndarray) -> np.ndarray:
 def with_template(headsq, tmp_path_factory):
     """A 30 mm left-temple trephination, reconstructed with ``defect`` on, and its files."""
     from engine.defect.params import DefectParams
-    from engine.outputs import write_outputs
+    from engine.job.outputs import write_outputs
     from engine.params import IsoParams, ReconParams
-    from engine.pipeline import reconstruct
+    from engine.job.pipeline import reconstruct
 
     cut = _cut(headsq, (1.0, -0.1, 0.0), 30.0)
     params = ReconParams(iso=IsoParams(iso=HEADSQ_LEVEL), orient=HEADSQ_ORIENT, defect=DefectParams())
@@ -271,9 +271,9 @@ def test_the_phone_copies_carry_a_lighter_template_node(with_template):
 
 def test_reconstruct_without_a_defect_says_why_and_makes_no_implant(headsq, tmp_path):
     from engine.defect.params import DefectParams
-    from engine.outputs import write_outputs
+    from engine.job.outputs import write_outputs
     from engine.params import IsoParams, ReconParams
-    from engine.pipeline import reconstruct
+    from engine.job.pipeline import reconstruct
 
     params = ReconParams(iso=IsoParams(iso=HEADSQ_LEVEL), orient=HEADSQ_ORIENT, defect=DefectParams())
     recon = reconstruct(headsq, params, device="cpu")
@@ -288,7 +288,7 @@ def test_reconstruct_without_a_defect_says_why_and_makes_no_implant(headsq, tmp_
 
 def test_a_model_with_a_template_is_not_reoriented(with_template):
     from engine.params import OrientParams
-    from engine.reorient import reorient
+    from engine.job.reorient import reorient
 
     *_, out = with_template
     before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}

@@ -21,7 +21,7 @@ def test_reconstruct_takes_a_warp_device(device):
     import warp as wp
 
     from engine.params import ReconParams
-    from engine.pipeline import reconstruct
+    from engine.job.pipeline import reconstruct
     from engine.types import Volume
 
     z, y, x = np.mgrid[:20, :20, :20].astype(np.float32)

@@ -132,7 +132,7 @@ def test_thumbnail_ties_go_to_the_lower_triangle() -> None:
 def test_small_files_encode_beside_each_other_with_warp_on_the_calling_thread(
     monkeypatch: pytest.MonkeyPatch, ball_on_rod: trimesh.Trimesh
 ) -> None:
-    """``engine.outputs`` encodes the viewer files at once; an exporter that runs Warp kernels (the preview) stays
+    """``engine.job.outputs`` encodes the viewer files at once; an exporter that runs Warp kernels (the preview) stays
     on the calling thread (Warp copies from a second thread hung the H100 host once), the others run in threads;
     every file comes out as its exporter alone makes it."""
     import threading
@@ -175,7 +175,7 @@ def test_a_fresh_process_encodes_the_small_files_in_threads_without_hanging() ->
 
     code = (
         "import trimesh, numpy as np\n"
-        "from engine.outputs import _encode_small\n"
+        "from engine.job.outputs import _encode_small\n"
         "from engine.types import Mesh\n"
         "m = trimesh.creation.icosphere(3, radius=20.0)\n"
         "mesh = Mesh(m.vertices[:, ::-1].astype(np.float32), m.faces.astype(np.int32), None)\n"

@@ -168,7 +168,7 @@ def test_no_import_cycle_among_the_engines_modules_at_load_time():
 
 
 def test_the_ground_floor_imports_no_stage_package():
-    stages = (*(f"engine.{p}" for p in STAGE_PACKAGES), "engine.pipeline", "engine.plans", "engine.outputs")
+    stages = (*(f"engine.{p}" for p in STAGE_PACKAGES), "engine.job.pipeline", "engine.job.plans", "engine.job.outputs")
     bad = [
         f"{mod} imports {name}"
         for mod in GROUND_FLOOR
@@ -189,7 +189,7 @@ def test_other_packages_reach_a_stage_package_through_its_public_face():
     """Inside a stage package anything goes; from outside (the exporters above all), only ``engine.<package>`` and
     its kernels' owners themselves. The pipeline, its plans, the outputs, the CLI and the paper's wing are the
     stages' orchestrators and may use their modules."""
-    orchestrators = ("engine.pipeline", "engine.plans", "engine.outputs", "engine.cli", "engine.warmup")
+    orchestrators = ("engine.job.pipeline", "engine.job.plans", "engine.job.outputs", "engine.cli", "engine.job.warmup")
     bad = []
     for mod in _sources():
         if not mod.startswith("engine.export"):

@@ -14,7 +14,7 @@ import pytest
 
 from core.params import JobParams
 from engine.cli import build_parser
-from engine.cli_args import job_spec
+from engine.cli.args import job_spec
 from engine.errors import InputError, NotLabelsError
 from engine.export.files import engine_files
 from engine.job import InputSpec, JobSpec, OutputSpec, resolve_runtime, run_job
@@ -173,7 +173,7 @@ def test_run_job_picks_the_plan_from_the_spec_and_the_input(tmp_path: Path) -> N
 
 def test_the_warm_up_warms_the_backend_jobs_use() -> None:
     """A worker resolves ``auto`` once; its warm-up runs on that very backend (on PoCL: OpenCL, not Warp's CPU)."""
-    from engine.warmup import WARMUP_SHAPE, warm_up
+    from engine.job.warmup import WARMUP_SHAPE, warm_up
 
     runtime = resolve_runtime("auto")
     info = warm_up(runtime, png_rows=False)

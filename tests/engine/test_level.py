@@ -19,7 +19,7 @@ from engine.level import (
     skin_warning,
 )
 from engine.params import IsoParams, ReconParams
-from engine.pipeline import reconstruct
+from engine.job.pipeline import reconstruct
 from engine.types import Volume
 
 

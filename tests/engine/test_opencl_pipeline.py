@@ -30,7 +30,7 @@ def _digest(recon) -> str:
 
 @pytest.mark.parametrize("budget", [None, "6MiB"], ids=["whole", "streamed"])
 def test_reconstruct_on_opencl_is_warps_model_bit_for_bit(headsq, budget):
-    from engine.pipeline import reconstruct
+    from engine.job.pipeline import reconstruct
 
     params = ReconParams(iso=IsoParams(iso=HEADSQ_LEVEL))
     warp = reconstruct(headsq, params, device="cpu", max_device_bytes=budget)
@@ -46,8 +46,8 @@ def test_reconstruct_on_opencl_is_warps_model_bit_for_bit(headsq, budget):
 
 
 def test_write_outputs_on_opencl_writes_warps_files(headsq, tmp_path):
-    from engine.outputs import write_outputs
-    from engine.pipeline import reconstruct
+    from engine.job.outputs import write_outputs
+    from engine.job.pipeline import reconstruct
 
     params = ReconParams(iso=IsoParams(iso=HEADSQ_LEVEL))
     files = {}

@@ -1,5 +1,5 @@
 """The surface stages (``engine.surface``: stars and vertex classes, compaction, mesh statistics, components and
-island removal, surface-preserving smoothing, normals) and the output layout (``engine.outputs.lay_out``) on OpenCL
+island removal, surface-preserving smoothing, normals) and the output layout (``engine.job.outputs.lay_out``) on OpenCL
 (``engine.backend``, PoCL in CI) give what Warp's CPU path gives, on the same real mesh (MC33 of the bundled headsq
 at its bone level): the same topology (faces, stars, classes, components, Euler characteristic) and positions,
 normals and file buffers equal to float tolerance (bit for bit on PoCL). The Warp CPU run is the reference."""
@@ -196,7 +196,7 @@ def _mirroring_frame():
 
 def test_layout_is_the_same(backends):
     """The patient frame, the STL facets (in chunks), the glTF buffers and bounds, the zero-area count."""
-    from engine.outputs import lay_out
+    from engine.job.outputs import lay_out
     from engine.surface.normals import normals_device
 
     frame = _mirroring_frame()

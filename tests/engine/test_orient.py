@@ -90,8 +90,8 @@ def test_demo_head_is_upright_in_every_glb(tmp_path):
     """headsq: slice 0 is the top of the head; in model.glb the top of the skull is +Y and the model is centred."""
     from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
     from engine.io import load_volume
-    from engine.outputs import write_outputs
-    from engine.pipeline import reconstruct
+    from engine.job.outputs import write_outputs
+    from engine.job.pipeline import reconstruct
 
     trimesh = pytest.importorskip("trimesh")
     vol = load_volume(HEADSQ_ZIP, spacing_zyx_mm=HEADSQ_SPACING_ZYX_MM)

@@ -115,9 +115,9 @@ def test_reading_the_registry_loads_no_exporter_numpy_or_warp():
 @pytest.fixture(scope="module")
 def written(tmp_path_factory):
     """A small sphere's files (closed, and as an open surface), with copies budgets small enough to differ."""
-    from engine.outputs import write_outputs
+    from engine.job.outputs import write_outputs
     from engine.params import ReconParams
-    from engine.pipeline import reconstruct
+    from engine.job.pipeline import reconstruct
     from engine.types import Volume
 
     z, y, x = np.mgrid[:22, :24, :26].astype(np.float32)

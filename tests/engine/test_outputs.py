@@ -1,4 +1,4 @@
-"""engine.outputs: the files laid out on the device match the host exporters (the slow obvious reference)."""
+"""engine.job.outputs: the files laid out on the device match the host exporters (the slow obvious reference)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from engine.export.printcheck import zero_area_faces
 from engine.export.stl import to_stl
 from engine.isosurface import marching_cubes_33
 from engine.orient import Frame, export_meshes
-from engine.outputs import STL_HEADER, lay_out, write_outputs
-from engine.pipeline import Reconstruction
+from engine.job.outputs import STL_HEADER, lay_out, write_outputs
+from engine.job.pipeline import Reconstruction
 from engine.surface.normals import vertex_normals
 from engine.types import Mesh
 
@@ -71,7 +71,7 @@ def test_files_match_the_host_exporters(blob, tmp_path, mirrored, chunk):
 
 def test_device_and_host_meshes_give_the_same_files(tmp_path):
     from engine.params import ReconParams
-    from engine.pipeline import reconstruct
+    from engine.job.pipeline import reconstruct
     from engine.types import Volume
 
     z, y, x = np.mgrid[:20, :22, :24].astype(np.float32)

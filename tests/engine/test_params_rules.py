@@ -117,7 +117,7 @@ def test_the_defaults_and_their_json_round_trip_still_pass_the_rules():
 def test_the_cli_turns_a_refused_value_into_an_input_error():
     import argparse
 
-    from engine.cli_args import recon_params
+    from engine.cli.args import recon_params
 
     args = argparse.Namespace(
         reduction=None, max_triangles=2, keep_specks=False, min_island_mm3=None, keep_largest=None, threshold=None,

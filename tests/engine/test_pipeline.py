@@ -11,9 +11,9 @@ import pytest
 from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
 from engine.errors import InputError
 from engine.io.stack import load_slice_zip
-from engine.outputs import write_outputs
+from engine.job.outputs import write_outputs
 from engine.params import DecimateParams, IslandParams, IsoParams, ReconParams, SmoothParams
-from engine.pipeline import STAGES, EmptySurfaceError, reconstruct
+from engine.job.pipeline import STAGES, EmptySurfaceError, reconstruct
 from engine.types import Volume
 from tests.engine.meshutil import assert_closed_manifold, signed_volume
 from tests.engine.scans import scan_file

@@ -166,7 +166,7 @@ def test_real_scans_equal_libpng(backend: Any, where: str) -> None:
 
 
 def test_the_cli_unfilters_on_its_gpu_only() -> None:
-    from engine.cli_args import _png_rows
+    from engine.cli.args import _png_rows
 
     assert _png_rows(None) is None and _png_rows("cpu") is None
     assert _png_rows("cuda:99") is None  # not present: the reconstruction says so, not the loader

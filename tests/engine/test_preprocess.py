@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from engine.params import IsoParams, PreprocessParams, ReconParams
-from engine.pipeline import reconstruct
+from engine.job.pipeline import reconstruct
 from engine.types import Volume
 from engine.volume.preprocess import crop_volume, preprocess_volume
 

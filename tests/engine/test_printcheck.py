@@ -12,9 +12,9 @@ import trimesh
 
 from engine.errors import PrintCheckError
 from engine.export.printcheck import OPEN_STL, PRINT_STL, check_print_model
-from engine.outputs import write_outputs
+from engine.job.outputs import write_outputs
 from engine.params import IsoParams, ReconParams
-from engine.pipeline import Reconstruction
+from engine.job.pipeline import Reconstruction
 from engine.surface.meshcheck import mesh_stats
 from engine.types import Mesh
 

@@ -8,8 +8,8 @@ import pytest
 from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
 from engine.io import load_volume
 from engine.params import IsoParams, ReconParams
-from engine.pipeline import STAGES, reconstruct
-from engine.progress import STAGE_WEIGHTS, StageProgress, span
+from engine.job.pipeline import STAGES, reconstruct
+from engine.job.progress import STAGE_WEIGHTS, StageProgress, span
 
 
 def test_weights_cover_the_stages_and_decimation_dominates():

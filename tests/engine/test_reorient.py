@@ -1,4 +1,4 @@
-"""engine.reorient: a finished model placed in another stack orientation gives the files that reconstructing with
+"""engine.job.reorient: a finished model placed in another stack orientation gives the files that reconstructing with
 that orientation gives, up to float rounding; the report records the new frame; a DICOM model is refused."""
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ from engine.errors import InputError
 from engine.export.glb import read_glb
 from engine.export.stl import from_stl
 from engine.isosurface import marching_cubes_33
-from engine.outputs import write_outputs
+from engine.job.outputs import write_outputs
 from engine.params import IsoParams, OrientParams, ReconParams
-from engine.pipeline import Reconstruction, reconstruct
-from engine.reorient import reorient
+from engine.job.pipeline import Reconstruction, reconstruct
+from engine.job.reorient import reorient
 from engine.types import Mesh
 from tests.engine.test_orient import SPACING, marked_volume
 

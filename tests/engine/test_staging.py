@@ -115,7 +115,7 @@ def test_a_reserved_volume_buffer_serves_the_first_load_without_growing(monkeypa
 
 def test_warm_up_reserves_load_buffers_only_on_cuda():
     from engine.staging import reserve_load_buffers
-    from engine.warmup import warm_up
+    from engine.job.warmup import warm_up
 
     assert reserve_load_buffers("cpu", 1 << 20, rows=True) == 0  # plain arrays off CUDA: nothing to page-lock
     info = warm_up("cpu", volume_bytes=1 << 20)
@@ -163,7 +163,7 @@ def test_cuda_workers_load_into_one_reused_pinned_buffer(tmp_path):
 @pytest.mark.gpu
 def test_a_cuda_warm_up_page_locks_the_load_buffers_for_the_size_asked():
     from engine.staging import pinned_rows, pinned_volumes
-    from engine.warmup import warm_up
+    from engine.job.warmup import warm_up
 
     nbytes = 3 * 256 * 256 * 2
     info = warm_up("cuda:0", volume_bytes=nbytes)

@@ -93,9 +93,9 @@ def test_deliver_route(tmp_path: Path) -> None:
 def test_model_references_exactly_the_images_used(tmp_path: Path) -> None:
     """The upload holds the series (one image sent twice) and an image of another series: the object references
     the series and its 9 distinct images, nothing else."""
-    from engine.outputs import write_outputs
+    from engine.job.outputs import write_outputs
     from engine.params import ReconParams
-    from engine.pipeline import reconstruct
+    from engine.job.pipeline import reconstruct
     from worker.pacs import UncheckedSource, write_dicom_model
 
     files = series(_ball, positions_mm=[float(k) for k in range(9)], shape=(24, 24), origin=(-6, -6, 0))

@@ -1,6 +1,6 @@
 """``bonemesh orient OUTPUT_FOLDER --first-slice superior|inferior [--flip-lr] [--flip-ap]``: place a finished
 model of an image stack in another orientation and write every output file again, without reconstructing
-(``engine.reorient``). The options are those of ``bonemesh reconstruct`` and mean the same: the orientation the
+(``engine.job.reorient``). The options are those of ``bonemesh reconstruct`` and mean the same: the orientation the
 stack has, absolute (repeating the command changes nothing); the report records the new frame.
 
 The cranium PNG stack, reconstructed with the defaults, comes out upside down and facing backwards:
@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from engine.cli_args import add_orient_args, orient_params
+from engine.cli.args import add_orient_args, orient_params
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -30,8 +30,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Re-orient the folder; one line on stdout: the new frame and the files written."""
+    from engine.job.reorient import reorient
     from engine.orient import describe_stack_convention
-    from engine.reorient import reorient
 
     orient = orient_params(args)
     paths = reorient(args.folder, orient, device=args.device)

@@ -1,4 +1,4 @@
-"""The two plans of ``engine.pipeline.reconstruct``, chosen once from the memory budget (``engine.budget``): each an
+"""The two plans of ``engine.job.pipeline.reconstruct``, chosen once from the memory budget (``engine.budget``): each an
 ordered tuple of named stages over a small typed state (``State``).
 
 * ``WHOLE_VOLUME`` (no budget): the volume goes up once, the Gaussian and MC33 run on the whole field, the mesh is

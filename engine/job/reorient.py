@@ -5,7 +5,7 @@ An image stack carries no orientation: ``OrientParams`` (first slice, flips) pla
 (``engine.orient.patient_frame``). When the model comes out upside down, facing backwards or mirrored, the mesh is
 right and only its placement is wrong. ``reorient`` reads the print model back (``model.stl``: the exact float32
 patient positions; ``model.glb``: the same mesh indexed, with its normals, in the pipeline's vertex order), takes
-it back to the grid through the report's frame, and writes every output again (``engine.outputs.write_outputs``)
+it back to the grid through the report's frame, and writes every output again (``engine.job.outputs.write_outputs``)
 with the frame of the new ``OrientParams``: the same files as reconstructing with those params, up to float
 rounding. ``report.json`` keeps every block but the frame (the new one), ``parameters.orient`` (the new params),
 ``reoriented`` (from which orientation, when) and what ``write_outputs`` writes again. The files are written into
@@ -134,8 +134,8 @@ def reorient(
     Raises:
         InputError: not an output folder, its print model is missing, or the model is of a DICOM series.
     """
-    from engine.outputs import write_outputs
-    from engine.pipeline import Reconstruction
+    from engine.job.outputs import write_outputs
+    from engine.job.pipeline import Reconstruction
 
     src = Path(folder)
     report = read_report(src)

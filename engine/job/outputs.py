@@ -33,7 +33,7 @@ from engine.types import Mesh
 
 if TYPE_CHECKING:
     from engine.device import DeviceSpec
-    from engine.pipeline import Reconstruction
+    from engine.job.pipeline import Reconstruction
     from engine.staging import HostCopies
 
 STL_HEADER = "bonemesh model, patient LPS frame, mm"

@@ -33,10 +33,10 @@ def warm_up(
         ``{"device": name, "seconds": wall time, "pinned_bytes": page-locked bytes held for loads}``.
     """
     from engine.data.phantom import bone_phantom
+    from engine.job.outputs import write_outputs
+    from engine.job.pipeline import reconstruct
     from engine.job.runtime import Runtime, resolve_runtime
-    from engine.outputs import write_outputs
     from engine.params import ReconParams
-    from engine.pipeline import reconstruct
     from engine.staging import reserve_load_buffers
     from engine.types import Volume
 

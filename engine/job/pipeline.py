@@ -1,9 +1,9 @@
-"""The EMC33 pipeline: volume in, mesh and report out (``reconstruct``); the output files are ``engine.outputs``'.
+"""The EMC33 pipeline: volume in, mesh and report out (``reconstruct``); the output files are ``engine.job.outputs``'.
 
 Stages, in order (``STAGES``): preprocess (host: optional crop and slice filters, then the body mask of
 ``engine.volume.bodymask`` for HU data), upload (the volume, once), gaussian, isosurface (MC33), decimate
 (quadric edge collapse), islands (optional, on the decimated mesh), smooth (surface-preserving Laplacian), normals.
-``reconstruct`` chooses its plan once from the memory budget (``engine.plans``: the whole volume at once, or
+``reconstruct`` chooses its plan once from the memory budget (``engine.job.plans``: the whole volume at once, or
 streamed in slabs within the budget) and runs its stages in order; everything after preprocess runs on the device
 where the data already is, and only the finished mesh comes back. A failing stage raises ``StageError`` naming it
 (or the raw error with ``BONEMESH_DEBUG=1``); bad input raises ``InputError``.
@@ -21,9 +21,9 @@ import numpy as np
 
 from engine.budget import Budget, BudgetSpec
 from engine.errors import EmptySurfaceError, InputError, StageError
+from engine.job.plans import STAGES, Stage, State, plan_for
+from engine.job.progress import StageProgress
 from engine.params import ReconParams
-from engine.plans import STAGES, Stage, State, plan_for
-from engine.progress import StageProgress
 from engine.report import Report
 from engine.types import Mesh, Volume
 
@@ -103,9 +103,9 @@ def reconstruct(
             ``engine.device.resolve_device``, ``resolve_backend``).
         on_progress: called as ``on_progress(stage, fraction_done)`` when a stage starts and ends and inside long
             stages (the decimation's passes); the fraction weights stages by their expected time
-            (``engine.progress``).
+            (``engine.job.progress``).
         max_device_bytes: a device memory budget (bytes, text such as ``"2GiB"``, or an ``engine.budget.Budget``,
-            parsed once by ``Budget.of``) that every stage keeps to (the ``STREAMED`` plan of ``engine.plans``):
+            parsed once by ``Budget.of``) that every stage keeps to (the ``STREAMED`` plan of ``engine.job.plans``):
             the volume is streamed in z slabs through the Gaussian and MC33, and a mesh whose decimation does not
             fit is decimated in groups of slabs and then in z tiles with pinned borders (``engine.isosurface.stream``,
             ``engine.decimation.tiles``). The volume stages' result is the same as without a budget; the decimation

@@ -5,13 +5,13 @@
     bonemesh reconstruct --demo -o OUTDIR
     bonemesh isosurface INPUT -o OUT.stl --iso LEVEL [--voxel-size Z,Y,X] [--device ...] [--open]
     bonemesh isosurface --demo -o OUT.stl
-    bonemesh sweep ...   (engine.paper.cli_sweep)
-    bonemesh orient OUTDIR [--first-slice superior|inferior] [--flip-lr] [--flip-ap]   (engine.cli_orient)
+    bonemesh sweep ...   (engine.cli.sweep)
+    bonemesh orient OUTDIR [--first-slice superior|inferior] [--flip-lr] [--flip-ap]   (engine.cli.orient)
 
 INPUT is anything ``engine.io.load_volume`` reads: a DICOM series (zip or folder), an archive or folder of
 slice images, a multi-page TIFF or a ``.npy`` (z, y, x) volume. ``--voxel-size`` is z, y, x in mm (the API's
 and the page's order; ``--spacing`` is the same option) or named axes (``z=1.5,y=0.5,x=0.5``); a size that looks
-swapped is warned about. Arguments are parsed in ``engine.cli_args`` (their defaults come from ``engine.params``).
+swapped is warned about. Arguments are parsed in ``engine.cli.args`` (their defaults come from ``engine.params``).
 
 Exit codes: 0 done, 2 bad input or arguments (the reason in one line on stderr, argument errors with a pointer to
 ``--help``; no output), 1 internal error, 130 interrupted (Ctrl-C: one line, no output folder left behind). The
@@ -31,7 +31,7 @@ import typing
 from collections.abc import Iterator
 from pathlib import Path
 
-from engine.cli_args import (
+from engine.cli.args import (
     add_input_args,
     add_label_args,
     add_orient_args,
@@ -76,8 +76,8 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``bonemesh`` parser with the engine's subcommands."""
-    from engine.cli_orient import add_parser as add_orient_parser
-    from engine.paper.cli_sweep import add_parser as add_sweep_parser
+    from engine.cli.orient import add_parser as add_orient_parser
+    from engine.cli.sweep import add_parser as add_sweep_parser
 
     parser = _Parser(prog="bonemesh", description="Bone surface models from CT slice stacks.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -96,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--quiet", action="store_true", help="no progress bar")
     add_sweep_parser(sub)
     add_orient_parser(sub)
-    from engine.cli_defect import add_parser as add_defect_parser
+    from engine.cli.defect import add_parser as add_defect_parser
 
     add_defect_parser(sub)
     return parser
@@ -350,15 +350,15 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "reconstruct":
             return _reconstruct(args)
         if args.command == "sweep":
-            from engine.paper.cli_sweep import run as run_sweep
+            from engine.cli.sweep import run as run_sweep
 
             return run_sweep(args)
         if args.command == "orient":
-            from engine.cli_orient import run as run_orient
+            from engine.cli.orient import run as run_orient
 
             return run_orient(args)
         if args.command == "defect":
-            from engine.cli_defect import run as run_defect
+            from engine.cli.defect import run as run_defect
 
             return run_defect(args)
     except InputError as exc:

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from engine.cli_args import add_level_args, add_orient_args, orient_params, voxel_size_zyx
+from engine.cli.args import add_level_args, add_orient_args, orient_params, voxel_size_zyx
 from engine.errors import InputError
 
 
@@ -75,7 +75,7 @@ def _output(args: argparse.Namespace) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     """``bonemesh defect``: find the defect, write its files, print the summary. Returns the exit code (0)."""
-    from engine.cli_args import load_input
+    from engine.cli.args import load_input
     from engine.defect import DefectParams, write_defect
     from engine.defect import run as find_defect
     from engine.level import resolve_level

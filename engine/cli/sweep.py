@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from engine.cli_args import add_input_args, add_level_args, default, output_folder
+from engine.cli.args import add_input_args, add_level_args, default, output_folder
 from engine.errors import InputError
 from engine.paper.sweep import SweepConfig
 from engine.types import Volume
@@ -72,7 +72,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _input(args: argparse.Namespace) -> tuple[Volume, float]:
-    from engine.cli_args import load_input
+    from engine.cli.args import load_input
     from engine.level import choose_level
     from engine.params import IsoParams, ReconParams
 
