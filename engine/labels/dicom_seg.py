@@ -166,8 +166,11 @@ def seg_pixels(ds: Any, label: str) -> np.ndarray:
         raise InputError(f"{label}: a SEG without pixel data")
     try:
         if uid == DEFLATED_FRAMES or (uid == RLE_LOSSLESS and bits == 1):
-            raw = [_decode_item(item, uid) for item in _items(ds, n)]
-            pixels = _unpack(raw, n, rows, cols, bits, label)
+            try:
+                raw = [_decode_item(item, uid) for item in _items(ds, n)]
+            except InputError as exc:
+                raise InputError(f"{label}: its pixel data in transfer syntax {ts} cannot be decoded: {exc}") from None
+            pixels = _unpack(raw, n, rows, cols, bits, f"{label} ({ts})")
         else:
             pixels = np.asarray(ds.pixel_array)
     except InputError:
@@ -314,8 +317,8 @@ def _into_reference(fr: _Frames, ref: Volume, dtype: Any, label: str) -> tuple[n
     return labels, painted, overlaps
 
 
-def _own_grid(fr: _Frames, dtype: Any, label: str) -> tuple[np.ndarray, tuple[float, ...], np.ndarray, np.ndarray]:
-    """The frames on the SEG's own grid: (labels, spacing zyx, origin, direction)."""
+def _own_grid(fr: _Frames, dtype: Any, label: str) -> tuple[np.ndarray, tuple[float, ...], np.ndarray, np.ndarray, int]:
+    """The frames on the SEG's own grid: (labels, spacing zyx, origin, direction, overlaps)."""
     normal = np.cross(fr.row, fr.col)
     d = fr.positions @ normal
     levels = np.unique(np.round(d, 4))
@@ -328,10 +331,11 @@ def _own_grid(fr: _Frames, dtype: Any, label: str) -> tuple[np.ndarray, tuple[fl
     origin = fr.positions[first]
     rows, cols = fr.pixels.shape[1:]
     labels = np.zeros((int(k.max()) + 1, rows, cols), dtype=dtype)
+    overlaps = 0
     for f in range(len(fr.pixels)):
-        _paint(labels, int(k[f]), 0, 0, fr.pixels[f], int(fr.numbers[f]))
+        overlaps += _paint(labels, int(k[f]), 0, 0, fr.pixels[f], int(fr.numbers[f]))[1]
     direction = np.column_stack([fr.row, fr.col, normal])
-    return labels, (float(step), fr.spacing_rc[0], fr.spacing_rc[1]), origin, direction
+    return labels, (float(step), fr.spacing_rc[0], fr.spacing_rc[1]), origin, direction, overlaps
 
 
 def read_dicom_seg(
@@ -366,8 +370,7 @@ def read_dicom_seg(
         source["placed_by"] = "Per-frame Plane Position into the referenced CT's grid"
         spacing, origin, direction = reference.spacing_zyx_mm, reference.origin_mm, reference.direction
     else:
-        labels, sp, o, dmat = _own_grid(fr, dtype, name)
-        overlaps = 0
+        labels, sp, o, dmat, overlaps = _own_grid(fr, dtype, name)
         source["placed_by"] = "Per-frame Plane Position on the SEG's own grid"
         spacing = (sp[0], sp[1], sp[2])
         origin = (float(o[0]), float(o[1]), float(o[2]))
