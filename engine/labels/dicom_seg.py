@@ -68,15 +68,27 @@ def _dataset(source: Any, label: str) -> Any:
 
     import pydicom
 
+    from engine.labels.uploads import looks_like_dicom
+
+    if isinstance(source, (str, Path)):
+        source = Path(source).read_bytes()
     if isinstance(source, (bytes, bytearray)):
-        source = io.BytesIO(source)
-    if isinstance(source, (str, Path, io.BytesIO)):
-        try:
-            ds = pydicom.dcmread(source if isinstance(source, io.BytesIO) else str(source))
+        not_dicom = NotLabelsError(f"{label}: neither a NIfTI, an NRRD nor a DICOM file")
+        if not looks_like_dicom(bytes(source[:132])):
+            raise not_dicom
+        try:  # force: a data set without preamble and file meta, as the scan loader reads them
+            ds = pydicom.dcmread(io.BytesIO(source), force=True)
+            if "TransferSyntaxUID" not in ds.file_meta:
+                implicit, little = ds.original_encoding
+                ds.file_meta.TransferSyntaxUID = (
+                    pydicom.uid.ImplicitVRLittleEndian
+                    if implicit
+                    else pydicom.uid.ExplicitVRLittleEndian
+                    if little
+                    else pydicom.uid.ExplicitVRBigEndian
+                )
         except Exception:  # pydicom's own message suggests force=True: not for this user
-            raise NotLabelsError(
-                f"{label}: neither a NIfTI, an NRRD nor a DICOM file (no DICOM preamble and file meta)"
-            ) from None
+            raise not_dicom from None
     else:
         ds = source
     if str(ds.get("SOPClassUID", "")) not in SEG_CLASSES and ds.get("Modality") != "SEG":

@@ -74,9 +74,45 @@ def sniff(head: bytes) -> str | None:
     return "nifti" if _nifti_version(head) else None
 
 
+_RAW_GROUPS = (b"\x08\x00", b"\x02\x00", b"\x00\x08")  # a data set without preamble (as engine.io.dicom reads)
+_MEDIA_SOP_CLASS = b"\x02\x00\x02\x00"  # (0002,0002) Media Storage SOP Class UID, file meta (explicit VR LE)
+_SOP_CLASS = b"\x08\x00\x16\x00"  # (0008,0016) SOP Class UID, a raw little-endian data set
+
+
+def looks_like_dicom(head: bytes) -> bool:
+    """Whether a file's first bytes could start a DICOM file (preamble + DICM, or a raw data set), as the scan
+    loader tells them (``engine.io.dicom.looks_like_dicom``)."""
+    return head[128:132] == b"DICM" or head[:4] == b"DICM" or head[:2] in _RAW_GROUPS
+
+
+def _uid_element(data: bytes, tag: bytes) -> bytes | None:
+    """The UID value of the first element ``tag`` in ``data`` (explicit VR ``UI`` or implicit VR), if it is there."""
+    i = data.find(tag)
+    while 0 <= i:
+        rest = data[i + 4 :]
+        if rest[:2] == b"UI":
+            value = rest[4 : 4 + int.from_bytes(rest[2:4], "little")]
+        else:
+            n = int.from_bytes(rest[:4], "little")
+            value = rest[4 : 4 + n] if n <= 64 else b""
+        value = value.rstrip(b"\x00 ")
+        if value and re.fullmatch(rb"[0-9.]+", value):
+            return value
+        i = data.find(tag, i + 1)
+    return None
+
+
 def is_seg(head: bytes) -> bool:
-    """Whether a file's first bytes are a DICOM SEG's (its file meta names a segmentation SOP class)."""
-    return head[128:132] == b"DICM" and SEG_SOP_CLASS.search(head) is not None
+    """Whether a file's first bytes are a DICOM SEG's: the SOP class its file meta names (Media Storage SOP Class
+    UID), or for a data set without file meta its SOP Class UID, is Segmentation or Label Map Segmentation Storage.
+    (A report that only references a SEG is not one.)"""
+    if head[128:132] == b"DICM" or head[:4] == b"DICM":
+        uid = _uid_element(head[132:] if head[128:132] == b"DICM" else head[4:], _MEDIA_SOP_CLASS)
+    elif head[:2] in _RAW_GROUPS:
+        uid = _uid_element(head, _SOP_CLASS)
+    else:
+        return False
+    return uid is not None and SEG_SOP_CLASS.fullmatch(uid) is not None
 
 
 def check_nifti_head(head: bytes, label: str) -> None:
@@ -152,7 +188,7 @@ def _in_members(members: Any, path: Path, label: str) -> LabelUpload | None:
             maps.append((m.name, kind))
         elif is_seg(m.head):
             segs.append(m.name)
-        elif m.head[128:132] == b"DICM":
+        elif looks_like_dicom(m.head):
             other_dicom += 1
     if single:
         return LabelUpload(maps[0][1]) if maps else LabelUpload("dicom-seg") if segs else None

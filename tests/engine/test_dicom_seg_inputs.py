@@ -329,3 +329,45 @@ def test_a_zip_member_copy_is_not_kept(tmp_path: Path) -> None:
     assert found is not None and (found.kind, found.member) == ("nifti", "sub/labels.nii")
     lv = read_label_upload(tmp_path / "map.zip", found)
     assert int(lv.labels.sum()) == 64 and lv.source["file"] == "sub/labels.nii"
+
+
+def _raw(path: Path) -> bytes:
+    """The file's data set without preamble and file meta (implicit VR little endian), as some exports hold."""
+    from pydicom.filebase import DicomBytesIO
+    from pydicom.filewriter import write_dataset
+
+    ds = pydicom.dcmread(path)
+    buf = DicomBytesIO()
+    buf.is_little_endian, buf.is_implicit_VR = True, True
+    write_dataset(buf, ds)
+    return buf.getvalue()
+
+
+@needs_ct2
+def test_a_seg_without_file_meta_and_a_ct_that_only_references_a_seg(tmp_path: Path) -> None:
+    """Detection reads the SOP class itself: a SEG data set without preamble and file meta (as the scan loader
+    takes a CT without them) is a SEG; a CT whose header references a Segmentation is not one."""
+    from engine.labels.uploads import is_seg
+
+    raw = _raw(DATA / "seg_image_ct_binary.dcm")
+    assert raw[:4] != b"DICM" and is_seg(raw[:4096])
+    ct = pydicom.dcmread(CT2 / "17136")
+    ct.ReferencedImageSequence = [pydicom.Dataset()]
+    ct.ReferencedImageSequence[0].ReferencedSOPClassUID = "1.2.840.10008.5.1.4.1.1.66.4"
+    ct.ReferencedImageSequence[0].ReferencedSOPInstanceUID = "1.2.3"
+    buf = io.BytesIO()
+    ct.save_as(buf)
+    assert b"1.2.840.10008.5.1.4.1.1.66.4" in buf.getvalue()[:4096] and not is_seg(buf.getvalue()[:4096])
+    path = tmp_path / "raw.zip"
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr("seg", raw)
+        for name in CONTIGUOUS:
+            zf.write(CT2 / name, f"ct/{name}")
+    found = find_label_upload(path, "raw.zip")
+    assert found is not None and found.kind == "dicom-seg"
+    got = read_label_upload(path, found, "raw.zip")
+    want = read_dicom_seg(DATA / "seg_image_ct_binary.dcm", reference=load_volume(path, series_uid=CT2_SERIES))
+    np.testing.assert_array_equal(got.labels, want.labels)
+    lone = tmp_path / "seg"
+    lone.write_bytes(raw)
+    np.testing.assert_array_equal(read_dicom_seg(lone).labels, read_dicom_seg(DATA / "seg_image_ct_binary.dcm").labels)
