@@ -137,7 +137,7 @@ def test_small_files_encode_beside_each_other_with_warp_on_the_calling_thread(
     every file comes out as its exporter alone makes it."""
     import threading
 
-    from engine import outputs
+    from engine.job import outputs
     from engine.export import viewers
     from engine.export.files import FILES, viewing_files
     from engine.types import Mesh
