@@ -371,3 +371,53 @@ def test_a_seg_without_file_meta_and_a_ct_that_only_references_a_seg(tmp_path: P
     lone = tmp_path / "seg"
     lone.write_bytes(raw)
     np.testing.assert_array_equal(read_dicom_seg(lone).labels, read_dicom_seg(DATA / "seg_image_ct_binary.dcm").labels)
+
+
+# --- dcmqi's 23 x 38 x 3 SEG (BrainLAB), frames of 874 bits --------------------------------------------------------
+
+DCMQI = DATA / "dcmqi_23x38x3"
+
+
+def test_dcmqi_seg_on_its_ct_is_dcmqis_label_map(tmp_path: Path) -> None:
+    """dcmqi's SEG (23 columns x 38 rows: a frame is 109.25 bytes, so native frames run across byte boundaries) on
+    its CT, from the folder and from a zip, and on its own grid: voxel for voxel and place for place the label map
+    dcmqi converted it to (label.nrrd)."""
+    from engine.io.labelmaps import read_labels
+
+    want = read_labels(DCMQI / "label.nrrd")
+    folder = tmp_path / "up"
+    shutil.copytree(DCMQI / "ct", folder / "ct")
+    shutil.copy(DCMQI / "label.seg", folder / "label.seg")
+    zipped = tmp_path / "up.zip"
+    with zipfile.ZipFile(zipped, "w") as zf:
+        for f in sorted(folder.rglob("*")):
+            zf.write(f, f.relative_to(folder).as_posix())
+    for path in (folder, zipped):
+        found = find_label_upload(path, path.name, force=True)
+        assert found is not None and found.kind == "dicom-seg"
+        got = read_label_upload(path, found, path.name)
+        np.testing.assert_array_equal(got.labels, want.labels)
+        assert [s.name for s in got.segments] == ["Liver"] and int(got.labels.sum()) == 322
+        for v in [(0, 0, 0), (2, 37, 22), (1, 20, 11)]:
+            np.testing.assert_allclose(got.position(v), want.position(v), atol=1e-4)
+    own = read_dicom_seg(DCMQI / "label.seg")
+    np.testing.assert_array_equal(own.labels, want.labels)
+    np.testing.assert_allclose(own.position((2, 37, 22)), want.position((2, 37, 22)), atol=1e-4)
+
+
+@pytest.mark.parametrize("uid", [RLE_LOSSLESS, DEFLATED_FRAMES])
+@pytest.mark.parametrize("packing", ["per-frame", "stream"])
+def test_dcmqi_seg_reencoded(tmp_path: Path, uid: str, packing: str) -> None:
+    """The same SEG with its 874-bit frames RLE- or Deflate-encoded, each from a byte boundary (PS3.5) or cut from
+    one bit stream: the same masks."""
+    ds = pydicom.dcmread(DCMQI / "label.seg")
+    native = seg_pixels(ds, "native")
+    assert native.shape == (3, 38, 23) and (38 * 23) % 8 != 0
+    if packing == "per-frame":
+        pieces = [np.packbits(f.reshape(-1), bitorder="little").tobytes() for f in native]
+    else:
+        pieces = _bit_stream_frames(native)
+    encode = _rle_frame if uid == RLE_LOSSLESS else (lambda b: zlib.compress(b, 9)[2:-4])
+    path = _with_frames(DCMQI / "label.seg", uid, [encode(p) for p in pieces], tmp_path / "seg.dcm")
+    np.testing.assert_array_equal(seg_pixels(pydicom.dcmread(path), "made"), native)
+    np.testing.assert_array_equal(read_dicom_seg(path).labels, read_dicom_seg(DCMQI / "label.seg").labels)
