@@ -76,6 +76,9 @@ class LabelVolume:
         segments: the labels, one per value present (``value`` > 0).
         source: what was read (format, file, how it was placed, overlaps resolved...).
         patient_frame: False when the file did not place the grid (an NRRD without ``space``).
+        masks: where segments overlap (a SEG's or a multi-layer seg.nrrd's segments are independent masks), the
+            whole mask (bool, the map's shape) of each segment that lost voxels to a later one in ``labels``;
+            ``layers`` gives maps in which every segment has all its voxels.
     """
 
     labels: npt.NDArray[np.integer[Any]]
@@ -85,6 +88,7 @@ class LabelVolume:
     segments: tuple[Segment, ...] = ()
     source: dict[str, Any] = field(default_factory=dict)
     patient_frame: bool = True
+    masks: dict[int, npt.NDArray[np.bool_]] = field(default_factory=dict)
 
     def position(self, index_zyx: Sequence[float] | npt.NDArray[Any]) -> npt.NDArray[np.float64]:
         """LPS (x, y, z) mm of voxel index/indices (k, j, i) (shape (3,) or (N, 3))."""
@@ -113,6 +117,50 @@ class LabelVolume:
 
     def segment(self, value: int) -> Segment:
         return next(s for s in self.segments if s.value == value)
+
+    def layers(self) -> list[LabelVolume]:
+        """The map as layers in which no two segments overlap and every segment has all its voxels: ``[self]``
+        when none overlaps (``masks`` empty); else the map without the segments that lost voxels, then as few
+        layers as hold those segments' whole masks (a segment joins the first layer it does not overlap). Each
+        layer keeps the grid, source and frame, its segments in the map's order; mesh each one and join the parts
+        in segment order (``Segment.value`` says which is which).
+
+        Raises:
+            ValueError: ``masks`` do not have the map's shape (cropped apart from it).
+        """
+        masked = {v: m for v, m in self.masks.items() if any(s.value == v for s in self.segments)}
+        if not masked:
+            return [self]
+        if any(m.shape != self.labels.shape for m in masked.values()):
+            raise ValueError("the segments' masks do not have the label map's shape (crop them with the map)")
+        base = self.labels.copy()
+        base[np.isin(base, list(masked))] = 0
+        maps, members = [base], [[s.value for s in self.segments if s.value not in masked]]
+        for value in (s.value for s in self.segments if s.value in masked):
+            mask = masked[value]
+            k = next((i for i in range(1, len(maps)) if not np.any(maps[i][mask])), len(maps))
+            if k == len(maps):
+                maps.append(np.zeros_like(self.labels))
+                members.append([])
+            maps[k][mask] = value
+            members[k].append(value)
+        out = []
+        for labels, values in zip(maps, members, strict=True):
+            if values:
+                segments = tuple(s for s in self.segments if s.value in values)
+                source = {**self.source, "layer": len(out)}
+                out.append(
+                    LabelVolume(
+                        labels,
+                        self.spacing_zyx_mm,
+                        self.origin_mm,
+                        self.direction,
+                        segments,
+                        source,
+                        self.patient_frame,
+                    )
+                )
+        return out
 
 
 def check_overlap(lv: LabelVolume, scan: Volume) -> float:
@@ -228,8 +276,11 @@ def read_nrrd_labels(path: str | Path) -> LabelVolume:
     matrix, origin, placed = _nrrd_frame(header, spatial, label)
     spacing, direction, origin_lps = _geometry(matrix, origin, label)
     segs = _seg_nrrd_segments(header)
+    masks: dict[int, np.ndarray] = {}
     if segs:
         merged, segments, overlap = _merge_layers(layers, segs)
+        if overlap:  # segments are independent masks: each that lost voxels keeps its whole mask
+            masks = _lost_masks(layers, segs, merged)
     elif len(layers) == 1:
         merged, segments, overlap = _three_d(layers[0], label), (), 0
     else:
@@ -237,7 +288,9 @@ def read_nrrd_labels(path: str | Path) -> LabelVolume:
     source = {"format": "seg.nrrd" if segs else "nrrd", "file": label, "placed_by": placed, "layers": len(layers)}
     if overlap:
         source["overlap_voxels"] = overlap
-    return make_label_volume(_zyx(merged), spacing, origin_lps, direction, segments, source, patient=placed != "none")
+    return make_label_volume(
+        _zyx(merged), spacing, origin_lps, direction, segments, source, patient=placed != "none", masks=masks
+    )
 
 
 def _nrrd_frame(header: dict[str, Any], spatial: list[int], label: str) -> tuple[np.ndarray, np.ndarray, str]:
@@ -297,6 +350,16 @@ def _merge_layers(layers: np.ndarray, segs: list[dict[str, Any]]) -> tuple[np.nd
     return merged, segments, overlap
 
 
+def _lost_masks(layers: np.ndarray, segs: list[dict[str, Any]], merged: np.ndarray) -> dict[int, np.ndarray]:
+    """The whole (z, y, x) mask of each merged segment (value n, 1..) that lost voxels to a later one."""
+    masks: dict[int, np.ndarray] = {}
+    for n, s in enumerate(segs, start=1):
+        mask = layers[s["layer"]] == s["value"]
+        if np.any(mask & (merged != n)):
+            masks[n] = np.ascontiguousarray(np.transpose(mask, (2, 1, 0)))
+    return masks
+
+
 # --- shared ------------------------------------------------------------------------------------------------------
 
 
@@ -346,10 +409,14 @@ def make_label_volume(
     source: dict[str, Any],
     *,
     patient: bool = True,
+    masks: dict[int, np.ndarray] | None = None,
 ) -> LabelVolume:
-    """The ``LabelVolume``, with a segment for every value present and none declared but empty."""
+    """The ``LabelVolume``, with a segment for every value present and none declared but empty (a segment whose
+    voxels all went to a later one is present by its mask in ``masks``)."""
     counts = label_counts(labels)
     present = [int(v) for v in np.flatnonzero(counts) if v > 0] if counts is not None else _present(labels)
+    masks = {v: m for v, m in (masks or {}).items() if m.any()}
+    present = sorted(set(present) | set(masks))
     if not present:
         raise EmptyLabelError(f"{source.get('file', 'the label map')}: no label in the map (every voxel is 0)")
     if len(present) > MAX_LABELS and not segments:
@@ -366,7 +433,7 @@ def make_label_volume(
         segments = segments + tuple(Segment(v, f"label_{v}", palette(v)) for v in extra)
     else:
         segments = tuple(Segment(v, f"label_{v}", palette(v)) for v in present)
-    return LabelVolume(labels, spacing, origin, direction, segments, source, patient)
+    return LabelVolume(labels, spacing, origin, direction, segments, source, patient, masks)
 
 
 def label_counts(labels: np.ndarray) -> np.ndarray | None:

@@ -287,26 +287,61 @@ def _unpack(raw: list[bytes], n: int, rows: int, cols: int, bits: int, label: st
     return flat[: n * npix].reshape(n, npix)
 
 
-def _paint(labels: np.ndarray, k: int, j0: int, i0: int, frame: np.ndarray, number: int) -> tuple[int, int]:
-    """Frame pixels into slice k at (j0, i0), clipped to the grid; returns (voxels painted, overlaps)."""
+@dataclass
+class _Placement:
+    """Where each frame goes: the grid's shape, each frame's slice and corner (k, j0, i0), and whether its rows and
+    columns run backwards along the grid's."""
+
+    shape: tuple[int, int, int]
+    at: np.ndarray  # (F, 3) k, j0, i0
+    flip_rows: bool = False  # the frame's row direction runs along -x
+    flip_cols: bool = False  # the frame's column direction runs along -y
+
+
+@dataclass
+class _Painted:
+    labels: np.ndarray
+    painted: int
+    overlaps: int
+    losers: set[int]  # segments that lost voxels to a later one
+
+
+def _paint(labels: np.ndarray, k: int, j0: int, i0: int, frame: np.ndarray, number: int) -> tuple[int, int, set[int]]:
+    """Frame pixels into slice k at (j0, i0), clipped to the grid; returns (voxels painted, overlaps, the segments
+    whose voxels the frame took)."""
     nz, ny, nx = labels.shape
     if not 0 <= k < nz:
-        return 0, 0
+        return 0, 0, set()
     r0, c0 = max(0, -j0), max(0, -i0)
     r1, c1 = min(frame.shape[0], ny - j0), min(frame.shape[1], nx - i0)
     if r0 >= r1 or c0 >= c1:
-        return 0, 0
+        return 0, 0, set()
     part = frame[r0:r1, c0:c1]
     dst = labels[k, j0 + r0 : j0 + r1, i0 + c0 : i0 + c1]
     values = part.astype(labels.dtype) if number == 0 else np.where(part != 0, number, 0).astype(labels.dtype)
     on = values != 0
-    overlaps = int(np.count_nonzero(on & (dst != 0)))
+    taken = on & (dst != 0) & (dst != values)
+    losers = {int(v) for v in np.unique(dst[taken])} if taken.any() else set()
     dst[on] = values[on]
-    return int(np.count_nonzero(on)), overlaps
+    return int(np.count_nonzero(on)), int(np.count_nonzero(taken)), losers
 
 
-def _into_reference(fr: _Frames, ref: Volume, dtype: Any, label: str) -> tuple[np.ndarray, int, int]:
-    """The frames painted into the CT's grid: (labels, voxels painted, overlaps)."""
+def _paint_all(fr: _Frames, pl: _Placement, dtype: Any, only: int | None = None) -> _Painted:
+    """The frames (only segment ``only``'s when given) painted on the placement's grid."""
+    labels = np.zeros(pl.shape, dtype=dtype)
+    out = _Painted(labels, 0, 0, set())
+    for f in range(len(fr.pixels)):
+        if only is not None and int(fr.numbers[f]) != only:
+            continue
+        frame = fr.pixels[f][:: -1 if pl.flip_cols else 1, :: -1 if pl.flip_rows else 1]
+        k, j0, i0 = (int(v) for v in pl.at[f])
+        n, o, lost = _paint(labels, k, j0, i0, frame, int(fr.numbers[f]))
+        out.painted, out.overlaps, out.losers = out.painted + n, out.overlaps + o, out.losers | lost
+    return out
+
+
+def _into_reference(fr: _Frames, ref: Volume, label: str) -> _Placement:
+    """Where the frames go in the CT's grid."""
     direction = np.asarray(ref.direction, dtype=np.float64)
     if abs(fr.row @ direction[:, 0]) < 0.999 or abs(fr.col @ direction[:, 1]) < 0.999:
         raise LabelsOutsideScanError(
@@ -317,20 +352,17 @@ def _into_reference(fr: _Frames, ref: Volume, dtype: Any, label: str) -> tuple[n
     if np.abs(idx - np.round(idx)).max() > _GRID_TOL:
         raise LabelsOutsideScanError(f"{label}: the SEG's frames do not lie on the CT's grid (off by a fraction)")
     idx = np.round(idx).astype(np.int64)
-    row_sign, col_sign = np.sign(fr.row @ direction[:, 0]), np.sign(fr.col @ direction[:, 1])
-    labels = np.zeros(ref.data.shape, dtype=dtype)
-    painted = overlaps = 0
-    for f in range(len(fr.pixels)):
-        frame = fr.pixels[f][:: int(col_sign), :: int(row_sign)]
-        j0 = idx[f, 1] - (frame.shape[0] - 1 if col_sign < 0 else 0)
-        i0 = idx[f, 0] - (frame.shape[1] - 1 if row_sign < 0 else 0)
-        n, o = _paint(labels, int(idx[f, 2]), int(j0), int(i0), frame, int(fr.numbers[f]))
-        painted, overlaps = painted + n, overlaps + o
-    return labels, painted, overlaps
+    flip_rows, flip_cols = bool(fr.row @ direction[:, 0] < 0), bool(fr.col @ direction[:, 1] < 0)
+    rows, cols = fr.pixels.shape[1:]
+    at = np.column_stack(
+        [idx[:, 2], idx[:, 1] - (rows - 1 if flip_cols else 0), idx[:, 0] - (cols - 1 if flip_rows else 0)]
+    )
+    nz, ny, nx = ref.data.shape
+    return _Placement((int(nz), int(ny), int(nx)), at, flip_rows, flip_cols)
 
 
-def _own_grid(fr: _Frames, dtype: Any, label: str) -> tuple[np.ndarray, tuple[float, ...], np.ndarray, np.ndarray, int]:
-    """The frames on the SEG's own grid: (labels, spacing zyx, origin, direction, overlaps)."""
+def _own_grid(fr: _Frames, label: str) -> tuple[_Placement, tuple[float, ...], np.ndarray, np.ndarray]:
+    """Where the frames go on the SEG's own grid, and that grid: (placement, spacing zyx, origin, direction)."""
     normal = np.cross(fr.row, fr.col)
     d = fr.positions @ normal
     levels = np.unique(np.round(d, 4))
@@ -342,12 +374,10 @@ def _own_grid(fr: _Frames, dtype: Any, label: str) -> tuple[np.ndarray, tuple[fl
     first = int(np.argmin(d))
     origin = fr.positions[first]
     rows, cols = fr.pixels.shape[1:]
-    labels = np.zeros((int(k.max()) + 1, rows, cols), dtype=dtype)
-    overlaps = 0
-    for f in range(len(fr.pixels)):
-        overlaps += _paint(labels, int(k[f]), 0, 0, fr.pixels[f], int(fr.numbers[f]))[1]
+    at = np.column_stack([k, np.zeros_like(k), np.zeros_like(k)])
     direction = np.column_stack([fr.row, fr.col, normal])
-    return labels, (float(step), fr.spacing_rc[0], fr.spacing_rc[1]), origin, direction, overlaps
+    placement = _Placement((int(k.max()) + 1, int(rows), int(cols)), at)
+    return placement, (float(step), fr.spacing_rc[0], fr.spacing_rc[1]), origin, direction
 
 
 def read_dicom_seg(
@@ -376,20 +406,26 @@ def read_dicom_seg(
             raise MissingReferenceError(
                 f"{name}: the SEG was drawn on series {wanted}, but the CT given is series {have}"
             )
-        labels, painted, overlaps = _into_reference(fr, reference, dtype, name)
-        if painted == 0:
-            raise LabelsOutsideScanError(f"{name}: no labelled voxel of the SEG lies inside the referenced CT")
+        placement = _into_reference(fr, reference, name)
         source["placed_by"] = "Per-frame Plane Position into the referenced CT's grid"
         spacing, origin, direction = reference.spacing_zyx_mm, reference.origin_mm, reference.direction
     else:
-        labels, sp, o, dmat, overlaps = _own_grid(fr, dtype, name)
+        placement, sp, o, dmat = _own_grid(fr, name)
         source["placed_by"] = "Per-frame Plane Position on the SEG's own grid"
         spacing = (sp[0], sp[1], sp[2])
         origin = (float(o[0]), float(o[1]), float(o[2]))
         direction = tuple((float(r[0]), float(r[1]), float(r[2])) for r in dmat)
-    if overlaps:
-        source["overlap_voxels"] = overlaps
-    return make_label_volume(labels, spacing, origin, direction, segments, source)
+    done = _paint_all(fr, placement, dtype)
+    if reference is not None and done.painted == 0:
+        raise LabelsOutsideScanError(f"{name}: no labelled voxel of the SEG lies inside the referenced CT")
+    labels = done.labels
+    # segments are independent masks: each that lost voxels to a later one keeps its whole mask
+    masks: dict[int, np.ndarray] = {}
+    for value in sorted(done.losers):
+        masks[value] = _paint_all(fr, placement, np.uint8, only=value).labels != 0
+    if done.overlaps:
+        source["overlap_voxels"] = done.overlaps
+    return make_label_volume(labels, spacing, origin, direction, segments, source, masks=masks)
 
 
 def read_seg_folder(folder: str | Path, label: str | None = None) -> LabelVolume:
