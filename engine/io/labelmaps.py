@@ -144,7 +144,7 @@ class LabelVolume:
                 members.append([])
             maps[k][mask] = value
             members[k].append(value)
-        out = []
+        out: list[LabelVolume] = []
         for labels, values in zip(maps, members, strict=True):
             if values:
                 segments = tuple(s for s in self.segments if s.value in values)

@@ -5,11 +5,21 @@ Segments come from the SegmentSequence (SegmentNumber is the label value, Segmen
 RecommendedDisplayCIELabValue the colour, turned into sRGB). Each frame is placed by its Per-frame Plane Position
 (ImagePositionPatient): into the referenced CT's grid when that CT is given (``reference``: the frames must lie on
 its grid, with its row and column directions), else on the SEG's own grid (its slice positions along the normal of
-ImageOrientationPatient; a SEG leaves out empty frames, so missing positions are empty slices). A voxel in two
-segments goes to the later one (``source["overlap_voxels"]``).
+ImageOrientationPatient; a SEG leaves out empty frames, so missing positions are empty slices). Segments are
+independent masks: in ``labels`` a voxel in two segments goes to the later one (``source["overlap_voxels"]``), and
+each segment that lost voxels keeps its whole mask in ``LabelVolume.masks`` (``LabelVolume.layers()``).
 
-Errors: ``MissingReferenceError`` (the SEG's referenced series is not the CT given, or not in the folder),
-``LabelsOutsideScanError`` (no labelled voxel lands in the CT's grid), ``NotLabelsError`` (not a SEG).
+Pixels (``seg_pixels``): every transfer syntax pydicom decodes (native in any byte order, a deflated data set,
+JPEG 2000, JPEG-LS, RLE of 8/16-bit frames), plus RLE Lossless of 1-bit frames and Deflated Image Frame
+Compression (1.2.840.10008.1.2.8.1), which pydicom 3.0 lacks, decoded here; anything else is an ``InputError``
+naming the transfer syntax.
+
+A SEG with its CT in a folder, zip or tar (``read_seg_folder``) is placed on the series it references, loaded from
+the same input by ``engine.io.load_volume``; a SEG file alone is placed on its own grid.
+
+Errors: ``MissingReferenceError`` (the SEG's referenced series is not the CT given, or not in the input),
+``LabelsOutsideScanError`` (no labelled voxel lands in the CT's grid), ``NotLabelsError`` (not a SEG),
+``InputError`` (frames that cannot be placed or decoded).
 """
 
 from __future__ import annotations
@@ -25,7 +35,7 @@ from engine.errors import InputError, LabelsOutsideScanError, MissingReferenceEr
 from engine.io.labelmaps import LabelVolume, Segment, make_label_volume, palette
 from engine.types import Volume
 
-__all__ = ["lab_to_srgb", "read_dicom_seg", "read_seg_folder", "referenced_series"]
+__all__ = ["lab_to_srgb", "read_dicom_seg", "read_seg_folder", "referenced_series", "seg_pixels"]
 
 SEG_CLASSES = ("1.2.840.10008.5.1.4.1.1.66.4", "1.2.840.10008.5.1.4.1.1.66.7")  # Segmentation, Label Map Seg.
 _GRID_TOL = 0.05  # frame positions this far (in voxels) from the CT's grid are not on it
