@@ -1,15 +1,19 @@
-"""Label maps as uploads (a job's one file, stored without its name): found by content, checked before the job is
-queued (``find_label_upload``), and read by the worker (``read_label_upload``).
+"""Label maps as inputs (an upload is stored without its name): found by content, the same way on every path (the
+CLI, the API's check before the job is queued, the worker: ``find_label_upload``, called by
+``engine.job.run_job`` and ``service.upload_check``), and read (``read_label_upload``).
 
-A label upload is one of:
+A label input is one of:
 
 * a NIfTI-1/2 file (``n+1`` / ``n+2`` magic), gzipped or not; an integer map without intensity scaling (a float
   or scaled NIfTI is an image, not labels: ``NotLabelsError``, also before the job is queued);
 * an NRRD or Slicer ``.seg.nrrd`` (``NRRD000`` magic; attached data);
-* a zip holding exactly one of those (other members ignored), or a zip of a DICOM SEG with its referenced CT
-  series (``engine.labels.dicom_seg.read_seg_folder``), or a DICOM SEG file alone (placed on its own grid);
-* a folder of DICOM files holding a SEG and its referenced CT series (a PACS job's upload: a SEG received by
-  C-STORE or fetched by DICOMweb, with its CT beside it).
+* a DICOM SEG file alone (placed on its own grid): a SEG is told by the SOP class its file meta names (Media
+  Storage SOP Class UID), or for a data set without preamble and file meta by its SOP Class UID;
+* a zip, a tar (plain or compressed) or a folder holding exactly one of those maps (other members ignored), or a
+  DICOM SEG with its referenced CT series (``engine.labels.dicom_seg.read_seg_folder``; a PACS job's upload is
+  such a folder). Archives and folders are listed by the scan loader's reader (``engine.io.archive.open_members``):
+  the same members, limits and junk rules (``__MACOSX/``, dot files) as for a scan. One holding a SEG and no other
+  DICOM file is refused naming the series the SEG references (``MissingReferenceError``).
 
 Nothing here loads Warp: the API imports this module to check uploads.
 """
