@@ -111,7 +111,8 @@ def is_seg(head: bytes) -> bool:
     UID), or for a data set without file meta its SOP Class UID, is Segmentation or Label Map Segmentation Storage.
     (A report that only references a SEG is not one.)"""
     if head[128:132] == b"DICM" or head[:4] == b"DICM":
-        uid = _uid_element(head[132:] if head[128:132] == b"DICM" else head[4:], _MEDIA_SOP_CLASS)
+        body = head[132:] if head[128:132] == b"DICM" else head[4:]
+        uid = _uid_element(body, _MEDIA_SOP_CLASS) or _uid_element(body, _SOP_CLASS)  # file meta without it
     elif head[:2] in _RAW_GROUPS:
         uid = _uid_element(head, _SOP_CLASS)
     else:
