@@ -421,3 +421,59 @@ def test_dcmqi_seg_reencoded(tmp_path: Path, uid: str, packing: str) -> None:
     path = _with_frames(DCMQI / "label.seg", uid, [encode(p) for p in pieces], tmp_path / "seg.dcm")
     np.testing.assert_array_equal(seg_pixels(pydicom.dcmread(path), "made"), native)
     np.testing.assert_array_equal(read_dicom_seg(path).labels, read_dicom_seg(DCMQI / "label.seg").labels)
+
+
+@needs_ct2
+def test_a_label_map_seg_in_every_encoding(tmp_path: Path) -> None:
+    """A LABELMAP SEG (Label Map Segmentation Storage, 8-bit values) written by highdicom on pydicom's CT slices,
+    native and RLE (highdicom's encoders) and Deflated Image Frame Compression (here): the same label map, on the
+    CT's grid and on its own."""
+    import highdicom as hd
+    from pydicom.sr.codedict import codes
+
+    sources = [pydicom.dcmread(CT2 / name) for name in CONTIGUOUS]
+    labels = np.zeros((3, 16, 16), np.uint8)
+    labels[0, 2:9, 3:12], labels[1, 5:14, 1:7], labels[2, 8:15, 8:15] = 1, 2, 3
+    segments = [
+        hd.seg.SegmentDescription(
+            segment_number=n,
+            segment_label=f"part {n}",
+            segmented_property_category=codes.SCT.Tissue,
+            segmented_property_type=codes.SCT.Bone,
+            algorithm_type="MANUAL",
+        )
+        for n in (1, 2, 3)
+    ]
+    paths = {}
+    for name, uid in (("native", pydicom.uid.ExplicitVRLittleEndian), ("rle", pydicom.uid.RLELossless)):
+        seg = hd.seg.Segmentation(
+            source_images=sources,
+            pixel_array=labels,
+            segmentation_type="LABELMAP",
+            segment_descriptions=segments,
+            series_instance_uid=pydicom.uid.generate_uid(),
+            series_number=9,
+            sop_instance_uid=pydicom.uid.generate_uid(),
+            instance_number=1,
+            manufacturer="bonemesh tests",
+            manufacturer_model_name="labels",
+            software_versions="0",
+            device_serial_number="0",
+            transfer_syntax_uid=uid,
+        )
+        paths[name] = tmp_path / f"{name}.dcm"
+        seg.save_as(paths[name])
+    native = seg_pixels(pydicom.dcmread(paths["native"]), "native")
+    assert native.dtype.itemsize == 1
+    frames = [zlib.compress(f.tobytes(), 6)[2:-4] for f in native]
+    paths["deflate"] = _with_frames(paths["native"], DEFLATED_FRAMES, frames, tmp_path / "deflate.dcm")
+    folder = tmp_path / "ct"
+    folder.mkdir()
+    for name in CONTIGUOUS:
+        shutil.copy(CT2 / name, folder / name)
+    ct = load_volume(folder)
+    for name, path in paths.items():
+        on_ct = read_dicom_seg(path, reference=ct)
+        np.testing.assert_array_equal(on_ct.labels, labels, err_msg=name)
+        assert [s.name for s in on_ct.segments] == ["part 1", "part 2", "part 3"]
+        np.testing.assert_array_equal(read_dicom_seg(path).labels, labels, err_msg=name)
