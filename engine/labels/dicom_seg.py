@@ -124,7 +124,8 @@ def _segments(ds: Any) -> tuple[Segment, ...]:
     return tuple(out)
 
 
-def _frames(ds: Any, label: str) -> _Frames:
+def _frames(ds: Any, label: str, alone: bool = False) -> _Frames:
+    """The SEG's frames and their geometry (``alone``: no CT given, a missing geometry names the series wanted)."""
     kind = str(ds.get("SegmentationType", "BINARY")).upper()
     pixels = seg_pixels(ds, label)
     if kind == "FRACTIONAL":
@@ -139,7 +140,11 @@ def _frames(ds: Any, label: str) -> _Frames:
             return item[name].value[0]
         if shared is not None and name in shared:
             return shared[name].value[0]
-        raise InputError(f"{label}: no {name} (per-frame or shared): the frames cannot be placed")
+        ref = referenced_series(ds)
+        raise InputError(
+            f"{label}: no {name} (per-frame or shared): the frames cannot be placed"
+            + (f" without the referenced series {ref} (send the SEG with that series)" if ref and alone else "")
+        )
 
     iop = np.asarray(group(per[0], "PlaneOrientationSequence").ImageOrientationPatient, dtype=np.float64)
     measures = group(per[0], "PixelMeasuresSequence")
@@ -405,7 +410,7 @@ def read_dicom_seg(
     name = label or (Path(path).name if isinstance(path, (str, Path)) else "the SEG")
     ds = _dataset(path, name)
     segments = _segments(ds)
-    fr = _frames(ds, name)
+    fr = _frames(ds, name, alone=reference is None)
     dtype = np.uint8 if max(s.value for s in segments) < 256 else np.uint16
     wanted = referenced_series(ds)
     source: dict[str, Any] = {"format": "dicom-seg", "file": name, "encoding": str(ds.get("SegmentationType"))}

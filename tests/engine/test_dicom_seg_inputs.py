@@ -477,3 +477,12 @@ def test_a_label_map_seg_in_every_encoding(tmp_path: Path) -> None:
         np.testing.assert_array_equal(on_ct.labels, labels, err_msg=name)
         assert [s.name for s in on_ct.segments] == ["part 1", "part 2", "part 3"]
         np.testing.assert_array_equal(read_dicom_seg(path).labels, labels, err_msg=name)
+
+
+def test_a_seg_alone_without_its_geometry_names_the_series_it_needs(tmp_path: Path) -> None:
+    ds = pydicom.dcmread(DATA / "seg_image_ct_binary_overlap.dcm")
+    for item in ds.PerFrameFunctionalGroupsSequence:
+        del item.PlanePositionSequence
+    ds.save_as(tmp_path / "seg.dcm")
+    with pytest.raises(InputError, match=rf"no PlanePositionSequence .* without the referenced series {CT2_SERIES}"):
+        read_dicom_seg(tmp_path / "seg.dcm")
