@@ -20,6 +20,8 @@ from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 from fastapi_offline import FastAPIOffline
+from starlette.datastructures import MutableHeaders
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from core.settings import Settings, get_settings
 from service import problems
@@ -35,6 +37,48 @@ DESCRIPTION = (
 # what a browser client may send and read across origins
 CORS_HEADERS = ["X-API-Key", "Content-Type", "If-None-Match"]
 CORS_EXPOSED = ["Location", "ETag", "Content-Disposition", "Content-Length", "Cache-Control"]
+
+
+def page_csp(settings: Settings) -> str:
+    """The page's Content-Security-Policy: scripts from this server only (no inline script, no eval; WebAssembly
+    compiled for the Draco and meshopt decoders), workers from this server or blob: (three.js's Draco worker),
+    fetches and images from this server (and the S3 store: direct uploads, ``download_links=store``), no framing."""
+    store = ""
+    if settings.storage_location()[0] == "s3":
+        endpoint = settings.s3_endpoint_url
+        store = " " + ("/".join(endpoint.split("/")[:3]) if endpoint else "https://*.amazonaws.com")
+    return (
+        "default-src 'none'; script-src 'self' 'wasm-unsafe-eval'; worker-src 'self' blob:; "
+        f"connect-src 'self' blob: data:{store}; img-src 'self' blob: data:{store}; style-src 'self' 'unsafe-inline'; "
+        "font-src 'self'; manifest-src 'self'; base-uri 'none'; form-action 'none'; object-src 'none'; "
+        "frame-ancestors 'none'"
+    )
+
+
+class SecurityHeaders:
+    """Every answer: ``nosniff`` and no Referer (download links carry their signature); the page (``/``): its CSP
+    and no framing."""
+
+    def __init__(self, app: ASGIApp, csp: str) -> None:
+        self.app, self.csp = app, csp
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        is_page = scope.get("path") == "/"
+
+        async def send_with_headers(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                headers = MutableHeaders(scope=message)
+                headers.setdefault("x-content-type-options", "nosniff")
+                headers.setdefault("referrer-policy", "no-referrer")
+                if is_page:
+                    headers["content-security-policy"] = self.csp
+                    headers["x-frame-options"] = "DENY"
+            await send(message)
+
+        await self.app(scope, receive, send_with_headers)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -66,6 +110,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             expose_headers=CORS_EXPOSED,
             max_age=600,
         )
+    app.add_middleware(SecurityHeaders, csp=page_csp(settings))
     routers = (
         page.router,
         health.router,

@@ -1,6 +1,16 @@
-// The bonemesh page: key in sessionStorage (never in a URL), upload with progress, job polling, cancel,
-// the 3D view (<model-viewer>, decoders served by this server), downloads, QR code and the key's recent jobs.
+// The bonemesh page: the API key (this tab's sessionStorage, or the device's localStorage when asked; never in a
+// URL), upload with progress, job polling, cancel, the 3D view (<model-viewer>, decoders served by this server),
+// downloads, QR code and the key's recent jobs. Every value from the API is put on the page as text (textContent,
+// attributes), never as HTML; the page runs under a Content-Security-Policy without inline script.
 "use strict";
+// model-viewer reads this before it defines itself (this script runs first: see index.html): every decoder comes
+// from this server, none from a CDN
+self.ModelViewerElement = Object.assign(self.ModelViewerElement || {}, {
+  dracoDecoderLocation: "/vendor/draco/",
+  ktx2TranscoderLocation: "/vendor/basis/",
+  meshoptDecoderLocation: "/vendor/meshopt_decoder.js",
+  lottieLoaderLocation: "/vendor/lottie-not-used.js",
+});
 const $ = (id) => document.getElementById(id);
 const KEY = "bonemesh-api-key";
 // the files are the job's outputs as the API lists them: each with its kind and purpose from the server's registry
@@ -10,7 +20,22 @@ let polling = null;
 let current = null;
 let following = 0; // which call of follow() the running poll belongs to
 
-function key() { return sessionStorage.getItem(KEY) || ""; }
+// the key: in this tab (sessionStorage: gone when the tab closes, never shared with other tabs, never sent but in
+// the X-API-Key header), or on this device (localStorage) only when "remember it on this device" is ticked
+function key() { return sessionStorage.getItem(KEY) || localStorage.getItem(KEY) || ""; }
+function setKey(value, remember) {
+  sessionStorage.removeItem(KEY); localStorage.removeItem(KEY);
+  if (value) (remember ? localStorage : sessionStorage).setItem(KEY, value);
+  showKeyState();
+}
+function showKeyState() {
+  const remembered = !!localStorage.getItem(KEY), set = !!key();
+  $("key-remember").checked = remembered;
+  $("key-forget").hidden = !set;
+  $("key-state").textContent = !set ? "kept in this browser tab only, until the tab is closed; never in a link"
+    : remembered ? "key remembered on this device (Forget the key removes it)"
+      : "key set for this tab: forgotten when the tab is closed";
+}
 function headers() { return { "X-API-Key": key() }; }
 function human(bytes) {
   const u = ["B", "kB", "MB", "GB"]; let i = 0;
@@ -20,7 +45,9 @@ function human(bytes) {
 async function api(path, options = {}) {
   const resp = await fetch(path, { ...options, headers: { ...headers(), ...(options.headers || {}) } });
   const body = resp.status === 204 ? null : await resp.json().catch(() => null);
-  if (!resp.ok) throw Object.assign(new Error((body && body.detail) || `${resp.status} ${resp.statusText}`), { status: resp.status });
+  if (!resp.ok) {
+    throw Object.assign(new Error((body && body.detail) || `${resp.status} ${resp.statusText}`), { status: resp.status, body });
+  }
   return body;
 }
 
@@ -65,14 +92,26 @@ async function entriesOf(entry, prefix = "") { // files of a dropped folder
 }
 // files that are never slices nor DICOM: refused here under their own names (a zip of them would be "slices.zip")
 const NOT_A_SCAN = /\.(txt|md|csv|json|xml|html?|pdf|docx?|xlsx?|rtf|log)$/i;
+function pickedText(text, error = false) {
+  $("picked").textContent = text;
+  $("picked").className = error ? "error" : "muted";
+  $("picked").dataset.state = error ? "refused" : "";
+}
 async function pick(files) {
+  resetUpload();
+  const hidden = files.filter((f) => f.name.startsWith("."));
   files = files.filter((f) => !f.name.startsWith("."));
-  if (!files.length) return;
+  if (!files.length) {
+    picked = null;
+    pickedText(hidden.length ? `${hidden.map((f) => f.name).join(", ")}: hidden files only; choose a zip, a folder `
+      + "of slices or the files of a DICOM series" : "nothing to upload in what was dropped (an empty folder?)", true);
+    return;
+  }
   const odd = files.filter((f) => NOT_A_SCAN.test(f.name));
   if (odd.length === files.length) {
     picked = null;
-    $("picked").textContent = `${odd.map((f) => f.name).join(", ")}: not slice images or DICOM files; choose a zip, `
-      + "a folder of slices or the files of a DICOM series";
+    pickedText(`${odd.map((f) => f.name).join(", ")}: not slice images or DICOM files; choose a zip, `
+      + "a folder of slices or the files of a DICOM series", true);
     return;
   }
   files = files.filter((f) => !NOT_A_SCAN.test(f.name)); // a folder's notes or readme are left out
@@ -80,9 +119,9 @@ async function pick(files) {
   // messages name it; several are packed into one zip named after their folder
   const single = files.length === 1;
   const folder = (files[0].webkitRelativePath || "").split("/")[0] || files[0].name.replace(/\.[^.]*$/, "");
-  $("picked").textContent = single ? `${files[0].name} (${human(files[0].size)})` : `${files.length} files: packing…`;
+  pickedText(single ? `${files[0].name} (${human(files[0].size)})` : `${files.length} files: packing…`);
   picked = single ? { name: files[0].name, blob: files[0] } : { name: `${folder}.zip`, blob: await zipFiles(files) };
-  if (!single) $("picked").textContent = `${files.length} files (${human(picked.blob.size)} as a zip)`;
+  if (!single) pickedText(`${files.length} files (${human(picked.blob.size)} as a zip)`);
 }
 
 // --- upload, then follow the job ----------------------------------------------------------------------------
@@ -93,7 +132,7 @@ function voxelSize() {
   const parts = text.split(/[ ,;xX×]+/).filter(Boolean);
   const values = parts.map(Number);
   if (values.length !== 3 || values.some((v) => !Number.isFinite(v) || v <= 0)) {
-    throw new Error(`Voxel size: give three positive numbers z, y, x in mm (e.g. 1.5, 0.957, 0.957); got "${text}"`);
+    throw Object.assign(new Error(`Voxel size: give three positive numbers z, y, x in mm (e.g. 1.5, 0.957, 0.957); got "${text}"`), { field: "spacing" });
   }
   return values;
 }
@@ -120,14 +159,16 @@ function partsParams() {
   const pieces = $("pieces").value.trim();
   if (pieces) {
     const n = Number(pieces);
-    if (!Number.isInteger(n) || n < 1 || n > 1000) throw new Error(`Pieces: give a whole number from 1 to 1000; got "${pieces}"`);
+    if (!Number.isInteger(n) || n < 1 || n > 1000) {
+      throw Object.assign(new Error(`Pieces: give a whole number from 1 to 1000; got "${pieces}"`), { field: "pieces" });
+    }
     p.pieces = n;
   }
   const text = $("roi").value.trim();
   if (text) {
     const box = text.split(",").map((r) => r.split(":").map((v) => Number(v.trim())));
     if (box.length !== 3 || box.some((r) => r.length !== 2 || r.some((v) => !Number.isFinite(v)) || r[0] >= r[1])) {
-      throw new Error(`Region: give three ranges lo:hi separated by commas (e.g. 0:60, 0:256, 0:256); got "${text}"`);
+      throw Object.assign(new Error(`Region: give three ranges lo:hi separated by commas (e.g. 0:60, 0:256, 0:256); got "${text}"`), { field: "roi" });
     }
     p.roi = { box, units: $("roi-units").value };
   }
@@ -136,17 +177,20 @@ function partsParams() {
 // the scan goes straight to the store when the API says it can (S3 storage: GET /v1/upload-options), in parts sent
 // 4 at a time; otherwise, or when the store cannot be reached from this page (e.g. no CORS rule), through the API
 async function upload() {
-  if (!key()) { alert("Enter your API key first."); return; }
-  if (!picked) { alert("Choose a scan first."); return; }
+  resetUpload();
   $("upload-progress").hidden = false;
+  if (!key()) { refused("Enter your API key first (at the top of the page).", "api-key"); reveal($("key-box")); return; }
+  if (!picked) { refused("Choose a scan first: drop it on the page, or use Choose a zip or files.", "drop"); return; }
   reveal($("upload-progress"));
   let fields;
-  try { fields = params(); } catch (e) { $("upload-bar").value = 0; $("upload-text").textContent = e.message; $("spacing").focus(); return; }
+  try { fields = params(); } catch (e) {
+    refused(e.message, e.field); return;
+  }
   $("start").disabled = true;
   const options = await api("/v1/upload-options").catch(() => ({ direct: false }));
   if (options.direct) {
     try { uploaded(await directUpload(fields, options.parallel_parts || 4)); return; } catch (e) {
-      if (e.status && e.status !== 409) { refused(e.message); return; } // the API's answer: the same through it
+      if (e.status && e.status !== 409) { refused(e.message, null, e.body); return; } // the API's answer: the same through it
       console.warn("direct upload failed, uploading through the API", e);
     }
   }
@@ -157,9 +201,33 @@ function uploaded(job) {
   $("upload-bar").value = 100; $("upload-text").textContent = "uploaded";
   follow(job.id); loadJobs();
 }
-function refused(detail) {
+function resetUpload() {
+  $("upload-bar").value = 0; $("upload-text").textContent = ""; $("upload-progress").dataset.state = "";
+  $("spacing").classList.remove("needed");
+}
+// the scan lacks its voxel size (the API's no_spacing: a refused upload or a failed job): the page's own words,
+// pointing at the field, never the API's ("send "spacing" in params")
+const NO_SPACING = "The files do not say how large a voxel is: fill in the Voxel size field above (z, y, x in mm, "
+  + "e.g. 1.5, 0.5, 0.5), then press Make the model again.";
+function isNoSpacing(code, detail) {
+  return code === "no_spacing" || /no_spacing/.test(code || "") || /how large a voxel is|"spacing"/.test(detail || "");
+}
+function askForSpacing() {
+  const field = $("spacing");
+  field.classList.add("needed"); reveal(field); field.focus({ preventScroll: true });
+}
+// the upload refused (by the form's check, or by the API: 4xx problem+json): the reason in red, the bar gone
+function refused(detail, field = null, body = null) {
   $("start").disabled = false;
-  $("upload-text").textContent = `refused: ${detail}`; reveal($("upload-progress"));
+  $("upload-bar").value = 0; $("upload-progress").dataset.state = "refused";
+  const code = body && (body.code || body.type);
+  if (field === null && isNoSpacing(code, String(detail))) {
+    $("upload-text").textContent = `refused: ${NO_SPACING}`; askForSpacing();
+  } else {
+    $("upload-text").textContent = field ? detail : `refused: ${detail}`;
+    if (field) { $(field).focus({ preventScroll: true }); if (field === "spacing") $("spacing").classList.add("needed"); }
+  }
+  reveal($("upload-progress"));
 }
 function uploading(loaded, total, where) {
   $("upload-bar").value = (100 * loaded) / total;
@@ -176,10 +244,10 @@ function formUpload(fields) {
   xhr.upload.onprogress = (e) => { if (e.lengthComputable) uploading(e.loaded, e.total, ""); };
   xhr.onload = () => {
     let body = null; try { body = JSON.parse(xhr.responseText); } catch (e) { /* not JSON */ }
-    if (xhr.status !== 202) { refused((body && body.detail) || xhr.status); return; }
+    if (xhr.status !== 202) { refused((body && body.detail) || `the server answered ${xhr.status}`, null, body); return; }
     uploaded(body);
   };
-  xhr.onerror = () => { $("start").disabled = false; $("upload-text").textContent = "the upload failed (network)"; };
+  xhr.onerror = () => refused("the upload failed (the network or the server went away); try again");
   xhr.send(form);
 }
 // one part: PUT to its presigned link with exactly the headers the API listed; resolves to its ETag (null when the
@@ -224,10 +292,14 @@ async function directUpload(fields, parallel) {
 function reveal(el) { if (el && el.scrollIntoView) el.scrollIntoView({ block: "nearest", behavior: "auto" }); }
 const QUICK_POLL_MS = 250, QUICK_FOR_MS = 10000, POLL_MS = 1000;
 function follow(id) {
-  clearTimeout(polling); current = id;
+  clearTimeout(polling);
+  if (id !== current) clearResult(); // nothing of another job stays on the page (its model, AR files, links)
+  current = id;
   const mine = ++following; // a request still in flight from an earlier follow() ends its poll when it returns
   $("job-box").hidden = false; $("result-box").hidden = true; $("job-error").hidden = true;
   $("job-id").textContent = id; $("cancel").hidden = false;
+  $("job-state").textContent = "asking…"; $("job-bar").value = 0; $("job-box").dataset.state = "";
+  for (const li of $("jobs").children) li.classList.toggle("current", li.dataset.job === id);
   reveal($("job-box"));
   const since = Date.now();
   const tick = async () => {
@@ -244,18 +316,34 @@ function follow(id) {
   };
   tick();
 }
-function show(job) {
-  $("job-bar").value = job.progress;
+// a job's state in words: a percentage only while it runs or when it is done; a job that failed says what failed
+function stateText(job) {
+  if (job.state === "failed") return job.stage ? `failed (while ${job.stage})` : "failed";
+  if (job.state === "cancelled") return "cancelled";
   const stage = (job.state === "running" || job.stage === "orienting") && job.stage ? ` (${job.stage})` : "";
-  $("job-state").textContent = `${job.state}${stage}: ${job.progress.toFixed(0)} %`;
+  return `${job.state}${stage}: ${job.progress.toFixed(0)} %`;
+}
+function failureText(error) {
+  if (!error) return "It did not work (no reason was given).";
+  if (isNoSpacing(error.code, error.message)) return `It did not work. ${NO_SPACING}`;
+  const message = String(error.message || error.code || "").replace(/\.$/, "");
+  return `It did not work: ${message}.`;
+}
+let lastJob = null; // the job resource shown last (the placement compares with it)
+function show(job) {
+  lastJob = job;
+  const ended = job.state === "failed" || job.state === "cancelled";
+  $("job-bar").value = ended ? 0 : job.progress;
+  $("job-bar").hidden = ended;
+  $("job-state").textContent = stateText(job);
   $("job-box").dataset.state = job.state;
   const active = job.state === "queued" || job.state === "running";
   $("cancel").hidden = !active;
   $("job-error").hidden = true;
   if (job.state === "failed") {
-    const hint = job.error.code === "no_spacing" ? " Fill in the Voxel size field (z, y, x in mm) and try again." : "";
-    $("job-error").hidden = false; $("job-error").textContent = `It did not work: ${job.error.message}.${hint}`;
-    reveal($("job-error"));
+    $("job-error").hidden = false; $("job-error").textContent = failureText(job.error);
+    $("job-error").dataset.code = (job.error && job.error.code) || "";
+    if (job.error && isNoSpacing(job.error.code, job.error.message)) askForSpacing(); else reveal($("job-error"));
   }
   if (job.state === "succeeded" && job.error) { // a re-orientation that failed: the model is unchanged
     $("job-error").hidden = false; $("job-error").textContent = `It could not be turned: ${job.error.message}`;
@@ -263,32 +351,70 @@ function show(job) {
   if (job.state === "cancelled") { $("job-error").hidden = false; $("job-error").textContent = "Cancelled: its files were removed."; }
   if (job.state === "succeeded") result(job);
 }
+// the viewer's sources, the table, the links and the QR code: emptied when another job is shown, so nothing of the
+// previous job (its model, its poster, its iOS AR file) can stay
+function setSource(viewer, name, url) { if (url) viewer.setAttribute(name, url); else viewer.removeAttribute(name); }
+function clearResult() {
+  const viewer = $("viewer");
+  for (const name of ["src", "ios-src", "poster"]) viewer.removeAttribute(name);
+  viewer.dataset.shown = ""; viewer.dataset.job = ""; viewer.dataset.loaded = ""; viewer.dataset.arSrc = "";
+  $("facts").tBodies[0].replaceChildren(); $("qr").replaceChildren(); $("share-url").value = "";
+  $("model-warnings").replaceChildren(); $("model-warnings").hidden = true;
+  $("defect-text").hidden = true; $("labels-box").hidden = true; $("labels-list").replaceChildren();
+  $("orient-state").textContent = ""; $("job-error").hidden = true; $("job-bar").hidden = false;
+}
 function result(job) {
   const outs = Object.fromEntries(job.outputs.map((o) => [o.kind, o]));
   const viewer = $("viewer");
   const shown = `${job.id}:${JSON.stringify(job.params && job.params.orient || {})}`;
   viewer.dataset.arSrc = outs.ar ? outs.ar.url : "";
   $("orient-tools").dataset.busy = job.stage === "orienting" ? "yes" : "";
-  for (const b of ["turn-over", "face-front", "mirror"]) $(b).disabled = job.stage === "orienting";
-  if (job.stage === "orienting") { $("orient-state").textContent = "turning the model…"; return; }
+  if (job.stage === "orienting") { $("orient-state").textContent = "placing the model…"; placeControls(job, true); return; }
   if (viewer.dataset.shown !== shown) {
     viewer.dataset.shown = shown; viewer.dataset.job = job.id; viewer.dataset.loaded = "";
-    if (outs.ar_ios) viewer.setAttribute("ios-src", outs.ar_ios.url);
-    viewer.setAttribute("src", (outs.phone || outs.model).url);
+    $("place-box").hidden = true; // until its frame is read (a DICOM series, a defect or label job: not placed here)
+    // every source of the viewer is this job's, or none: the model, iOS's AR file, the poster while it loads
+    setSource(viewer, "ios-src", outs.ar_ios && outs.ar_ios.url);
+    setSource(viewer, "poster", outs.preview && outs.preview.url);
+    setSource(viewer, "src", (outs.phone || outs.model || {}).url);
     showFrame(job, outs.report);
     showDefect(job, outs.defect);
-    showLabels(outs.labels ? outs.report : null);
+    showLabels(job, outs.labels ? outs.report : null);
   }
-  const rows = job.outputs.map((o) => `<tr><td>${o.name}</td><td>${o.purpose || o.kind}</td>
-    <td>${o.triangles == null ? "" : o.triangles.toLocaleString("en")}</td><td>${human(o.bytes)}</td>
-    <td><a class="button download" href="${o.url}" download="${o.name}" data-name="${o.name}">Download</a></td></tr>`);
-  $("facts").tBodies[0].innerHTML = rows.join("");
+  placeControls(job, false);
+  $("facts").tBodies[0].replaceChildren(...job.outputs.map(fileRow));
   const phone = outs.phone;
-  if (phone) {
-    $("share-url").value = phone.url;
-    if (window.qrcode) { const qr = qrcode(0, "L"); qr.addData(phone.url); qr.make(); $("qr").innerHTML = qr.createSvgTag(4, 0); }
-  }
+  $("share-url").value = phone ? phone.url : "";
+  $("qr").replaceChildren(...(phone && window.qrcode ? [qrSvg(phone.url)] : []));
   $("result-box").hidden = false;
+}
+// one output file: its name, what it is for, triangles, size and a download link, all as text and attributes
+function fileRow(o) {
+  const tr = document.createElement("tr");
+  const cell = (text, cls) => { const td = document.createElement("td"); td.textContent = text; if (cls) td.className = cls; return td; };
+  const link = document.createElement("a");
+  link.className = "button download"; link.href = o.url; link.download = o.name; link.dataset.name = o.name;
+  link.textContent = "Download";
+  const last = document.createElement("td"); last.append(link);
+  tr.append(cell(o.name), cell(o.purpose || o.kind), cell(o.triangles == null ? "" : o.triangles.toLocaleString("en"), "num"),
+    cell(human(o.bytes), "num"), last);
+  return tr;
+}
+// the QR code as SVG elements (no markup string: nothing is parsed as HTML)
+function qrSvg(text) {
+  const qr = qrcode(0, "L"); qr.addData(text); qr.make();
+  const n = qr.getModuleCount(), ns = "http://www.w3.org/2000/svg";
+  const svg = document.createElementNS(ns, "svg");
+  svg.setAttribute("viewBox", `-2 -2 ${n + 4} ${n + 4}`); svg.setAttribute("role", "img");
+  svg.setAttribute("aria-label", "QR code of the phone link");
+  const bg = document.createElementNS(ns, "rect");
+  for (const [k, v] of [["x", -2], ["y", -2], ["width", n + 4], ["height", n + 4], ["fill", "#fff"]]) bg.setAttribute(k, v);
+  let d = "";
+  for (let r = 0; r < n; r++) for (let c = 0; c < n; c++) if (qr.isDark(r, c)) d += `M${c} ${r}h1v1h-1z`;
+  const path = document.createElementNS(ns, "path");
+  path.setAttribute("d", d); path.setAttribute("fill", "#000");
+  svg.append(bg, path);
+  return svg;
 }
 
 // --- where the patient is: direction labels on the model, and turning it (POST /v1/jobs/{id}/orient) ----------
@@ -313,6 +439,7 @@ async function showFrame(job, report) {
   if (report) {
     try { const r = await (await fetch(report.url)).json(); frame = r.frame; warnings = r.warnings || []; } catch (e) { frame = null; }
   }
+  if ($("viewer").dataset.job !== job.id) return; // another job is shown by now
   // what the engine doubts about this model (a skin-like surface, a voxel size that looks swapped): said, not hidden
   const box = $("model-warnings");
   box.replaceChildren(...warnings.map((w) => { const li = document.createElement("li"); li.dataset.code = w.code; li.textContent = w.message; return li; }));
@@ -320,12 +447,13 @@ async function showFrame(job, report) {
   const dicom = frame && String(frame.placed_by || "").startsWith("DICOM");
   // a DICOM series is placed by its headers; a defect template's side and measures belong to its orientation
   const fixed = dicom || !!(job.params && job.params.defect) || isLabelJob(job);
-  for (const b of ["turn-over", "face-front", "mirror"]) $(b).hidden = fixed;
+  $("place-box").hidden = fixed;
+  $("place-box").dataset.fixed = fixed ? "yes" : "";
   $("frame-text").textContent = frame
     ? `S/I: head/feet, A/P: front/back, L/R: the patient's left/right. Placed by ${frame.placed_by}.`
     : "S/I: head/feet, A/P: front/back, L/R: the patient's left/right.";
   $("frame-text").dataset.placedBy = frame ? frame.placed_by : "";
-  $("orient-state").textContent = fixed || !stack ? "" : `stack: first slice ${stack.first_slice}${stack.flip_lr ? ", mirrored L/R" : ""}${stack.flip_ap ? ", top posterior" : ""}`;
+  $("orient-state").textContent = fixed || !stack ? "" : `Now: ${placeWords(stack)}.`;
 }
 // the defect's answer (defect.json): the template's size beside the model, or why none was made
 async function showDefect(job, defect) {
@@ -334,6 +462,7 @@ async function showDefect(job, defect) {
   if (!defect) return;
   let d = null;
   try { d = await (await fetch(defect.url)).json(); } catch (e) { box.textContent = "The defect's report could not be read."; return; }
+  if ($("viewer").dataset.job !== job.id) return; // another job is shown by now
   box.dataset.found = d.found ? "yes" : "no";
   if (!d.found) { box.textContent = `No defect template: ${d.message}`; return; }
   const f = d.defect, mm = (v) => v.toLocaleString("en", { maximumFractionDigits: 0 });
@@ -346,12 +475,13 @@ async function showDefect(job, defect) {
 function isLabelJob(job) { return (job.outputs || []).some((o) => o.kind === "labels"); }
 // the labels from report.json (name, colour, volume, faces), each a checkbox that shows or hides its node: the
 // node's material (named as the label) is cut away (alpha mask) when unticked, opaque in its colour when ticked
-async function showLabels(report) {
+async function showLabels(job, report) {
   const box = $("labels-box"), list = $("labels-list");
   box.hidden = !report; list.replaceChildren(); box.dataset.count = "";
   if (!report) return;
   let rows = [];
   try { rows = (await (await fetch(report.url)).json()).labels || []; } catch (e) { return; }
+  if ($("viewer").dataset.job !== job.id) return; // another job is shown by now
   list.replaceChildren(...rows.map(labelRow));
   box.dataset.count = String(rows.length);
 }
@@ -398,19 +528,53 @@ function setLabelVisible(name, color, visible) {
   if (!visible) material.setAlphaCutoff(0.5);
   return true;
 }
-// a half turn about left-right (turn over), about head-feet (face front), or a mirror: the new stack orientation
-const TURNS = {
-  "turn-over": (o) => ({ ...o, first_slice: o.first_slice === "superior" ? "inferior" : "superior", flip_ap: !o.flip_ap }),
-  "face-front": (o) => ({ ...o, flip_lr: !o.flip_lr, flip_ap: !o.flip_ap }),
-  "mirror": (o) => ({ ...o, flip_lr: !o.flip_lr }),
-};
-async function turn(which, job) {
-  const now = { first_slice: "superior", flip_lr: false, flip_ap: false, ...(job.params && job.params.orient || {}) };
+// --- placing the model: absolute choices (the stack's orientation, as the upload form and `bonemesh orient` say it),
+// never toggles: the choice already published is checked, choosing it again sends nothing
+function stackOf(job) {
+  return { first_slice: "superior", flip_lr: false, flip_ap: false, ...(job.params && job.params.orient || {}) };
+}
+function placeWords(o) {
+  return `head end (S) = the ${o.first_slice === "superior" ? "first" : "last"} slice, front (A) = the `
+    + `${o.flip_ap ? "bottom" : "top"} of each image, the patient's left (L) = the image's ${o.flip_lr ? "left" : "right"}`;
+}
+function chosenPlace() {
+  const value = (name) => (document.querySelector(`input[name="${name}"]:checked`) || {}).value;
+  return { first_slice: value("place-first"), flip_ap: value("place-ap") === "posterior", flip_lr: value("place-lr") === "left" };
+}
+function samePlace(a, b) { return a.first_slice === b.first_slice && a.flip_lr === b.flip_lr && a.flip_ap === b.flip_ap; }
+// the radios show the job's published orientation (when it changed, or another job is shown)
+function placeControls(job, busy) {
+  const now = stackOf(job), box = $("place-box"), key = `${job.id}:${JSON.stringify(now)}`;
+  if (box.dataset.shown !== key) {
+    box.dataset.shown = key;
+    const check = (name, value) => { for (const r of document.getElementsByName(name)) r.checked = r.value === value; };
+    check("place-first", now.first_slice); check("place-ap", now.flip_ap ? "posterior" : "anterior");
+    check("place-lr", now.flip_lr ? "left" : "right");
+  }
+  box.dataset.busy = busy ? "yes" : "";
+  for (const input of box.querySelectorAll("input")) input.disabled = busy;
+  placeChanged(job);
+}
+// the button says what pressing it does; it is off while the choice is the published one
+function placeChanged(job = lastJob) {
+  const button = $("place-apply");
+  if (!job) { button.disabled = true; return; }
+  const now = stackOf(job), want = chosenPlace(), busy = $("place-box").dataset.busy === "yes";
+  const same = samePlace(now, want);
+  button.disabled = busy || same;
+  button.textContent = same ? "Placed so" : "Place it so";
+  button.title = same ? "the model is placed as chosen" : `write every file again with ${placeWords(want)}`;
+}
+async function place() {
+  const job = await api(`/v1/jobs/${current}`);
+  const want = chosenPlace();
+  if (samePlace(stackOf(job), want)) { placeChanged(job); return; } // nothing to change: nothing sent
+  $("place-apply").disabled = true;
   try {
     show(await api(`/v1/jobs/${job.id}/orient`, { method: "POST", headers: { "Content-Type": "application/json" },
-      body: JSON.stringify(TURNS[which](now)) }));
+      body: JSON.stringify(want) }));
     follow(job.id);
-  } catch (e) { $("orient-state").textContent = e.message; }
+  } catch (e) { $("orient-state").textContent = e.message; placeChanged(job); }
 }
 const isAndroid = () => /Android/i.test(navigator.userAgent);
 
@@ -418,35 +582,52 @@ const isAndroid = () => /Android/i.test(navigator.userAgent);
 async function loadJobs() {
   if (!key()) return;
   let list;
-  try { list = await api("/v1/jobs?limit=20"); } catch (e) { $("jobs").innerHTML = `<li class="error">${e.message}</li>`; return; }
-  $("jobs").innerHTML = "";
-  for (const job of list.items) {
-    const li = document.createElement("li");
-    const thumb = (job.outputs || []).find((o) => o.kind === "preview");
-    const img = document.createElement(thumb ? "img" : "span");
-    if (thumb) { img.src = thumb.url; img.alt = "preview"; } else { img.style.width = "56px"; }
-    const text = document.createElement("span");
-    text.innerHTML = `<b>${job.upload_name.replace(/[<>&]/g, "")}</b> · <span class="state-${job.state}">${job.state}</span>`
-      + ` · ${new Date(job.created_at).toLocaleString()}`;
-    li.append(img, text); li.onclick = () => follow(job.id);
-    $("jobs").append(li);
+  try { list = await api("/v1/jobs?limit=20"); } catch (e) {
+    const li = document.createElement("li"); li.className = "error"; li.textContent = e.message;
+    $("jobs").replaceChildren(li); return;
   }
+  $("jobs").replaceChildren(...list.items.map(jobRow));
+}
+// one job of the list: its thumbnail, upload name, state and time, all as text
+function jobRow(job) {
+  const li = document.createElement("li");
+  li.dataset.job = job.id; li.tabIndex = 0; li.classList.toggle("current", job.id === current);
+  const thumb = (job.outputs || []).find((o) => o.kind === "preview");
+  const img = document.createElement(thumb ? "img" : "span");
+  if (thumb) { img.src = thumb.url; img.alt = "preview"; } else img.className = "thumb";
+  const text = document.createElement("span");
+  const name = document.createElement("b"); name.textContent = job.upload_name || job.id;
+  const state = document.createElement("span"); state.className = `state-${job.state}`; state.textContent = job.state;
+  text.append(name, " · ", state, ` · ${new Date(job.created_at).toLocaleString()}`);
+  li.append(img, text);
+  li.onclick = () => follow(job.id);
+  li.onkeydown = (e) => { if (e.key === "Enter" || e.key === " ") { e.preventDefault(); follow(job.id); } };
+  return li;
+}
+
+// files dropped anywhere on the page are taken as the scan (a browser would otherwise open them in place of the page)
+async function dropped(e) {
+  e.preventDefault(); $("drop").classList.remove("over");
+  const items = [...(e.dataTransfer.items || [])];
+  const entries = items.map((i) => i.webkitGetAsEntry && i.webkitGetAsEntry()).filter(Boolean);
+  const files = entries.some((x) => x.isDirectory) ? (await Promise.all(entries.map((x) => entriesOf(x)))).flat()
+    : [...e.dataTransfer.files];
+  reveal($("drop"));
+  pick(files);
 }
 
 window.addEventListener("DOMContentLoaded", () => {
-  if (key()) { $("api-key").value = key(); $("key-state").textContent = "key set for this tab"; loadJobs(); }
-  $("key-save").onclick = () => { sessionStorage.setItem(KEY, $("api-key").value.trim()); $("key-state").textContent = "key set for this tab"; loadJobs(); };
+  showKeyState();
+  if (key()) { $("api-key").value = key(); loadJobs(); }
+  $("key-save").onclick = () => { setKey($("api-key").value.trim(), $("key-remember").checked); loadJobs(); };
+  $("key-remember").onchange = () => { if (key()) setKey(key(), $("key-remember").checked); };
+  $("key-forget").onclick = () => { setKey("", false); $("api-key").value = ""; $("jobs").replaceChildren(); };
   $("file-input").onchange = (e) => pick([...e.target.files]);
   $("folder-input").onchange = (e) => pick([...e.target.files]);
   const drop = $("drop");
-  drop.ondragover = (e) => { e.preventDefault(); drop.classList.add("over"); };
-  drop.ondragleave = () => drop.classList.remove("over");
-  drop.ondrop = async (e) => {
-    e.preventDefault(); drop.classList.remove("over");
-    const entries = [...e.dataTransfer.items].map((i) => i.webkitGetAsEntry && i.webkitGetAsEntry()).filter(Boolean);
-    const files = entries.some((x) => x.isDirectory) ? (await Promise.all(entries.map((x) => entriesOf(x)))).flat() : [...e.dataTransfer.files];
-    pick(files);
-  };
+  window.addEventListener("dragover", (e) => { e.preventDefault(); drop.classList.add("over"); });
+  window.addEventListener("dragleave", (e) => { if (!e.relatedTarget) drop.classList.remove("over"); });
+  window.addEventListener("drop", dropped);
   $("start").onclick = upload;
   $("cancel").onclick = async () => { try { show(await api(`/v1/jobs/${current}/cancel`, { method: "POST" })); } catch (e) { alert(e.message); } };
   $("refresh").onclick = loadJobs;
@@ -457,9 +638,8 @@ window.addEventListener("DOMContentLoaded", () => {
   };
   const viewer = $("viewer");
   viewer.addEventListener("load", () => { viewer.dataset.loaded = "yes"; placeLabels(); });
-  for (const b of ["turn-over", "face-front", "mirror"]) {
-    $(b).onclick = async () => { if (current) turn(b, await api(`/v1/jobs/${current}`)); };
-  }
+  $("place-box").addEventListener("change", () => placeChanged());
+  $("place-apply").onclick = () => { if (current) place(); };
   // Android's Scene Viewer opens model-viewer's src: give it ar.glb (plain glTF; it cannot open Draco's phone.glb)
   $("ar-button").addEventListener("click", () => {
     const ar = viewer.dataset.arSrc;
