@@ -123,10 +123,46 @@ def label_models(
 ) -> LabelModels:
     """Every segment of ``lv`` meshed in one batch (``engine.labels.extract.mesh_labels``) and placed in the patient
     frame (``engine.orient.patient_frame``: the map's own geometry, or ``orient`` for a grid without one).
+    Segments that overlap (a DICOM SEG's segments are independent masks: ``LabelVolume.masks``) are meshed in as
+    few batches as keep each one whole (``LabelVolume.layers``), the parts in the map's segment order.
 
     Raises:
         EmptyLabelError: a segment has no voxels; StageError: the device work failed otherwise.
     """
+    layers = lv.layers()  # segments that overlap (a SEG's independent masks) are meshed in layers, each whole
+    names = dict(zip((s.value for s in lv.segments), file_names(lv), strict=True))
+    if len(layers) == 1:
+        return _layer_models(lv, params, device, orient, names)
+    done = [_layer_models(layer, params, device, orient, names, empty_ok=True) for layer in layers]
+    order = {s.value: i for i, s in enumerate(lv.segments)}
+    pairs = sorted(
+        ((part, row) for m in done for part, row in zip(m.parts, m.report["labels"], strict=True)),
+        key=lambda pr: order[pr[0].value],
+    )
+    if not pairs:
+        from engine.errors import EmptySurfaceError
+
+        raise EmptySurfaceError("no label gives a surface (each is thinner than a voxel after smoothing)")
+    report = {
+        **done[0].report,
+        "labels": [row for _, row in pairs],
+        "labels_without_surface": [d for m in done for d in m.report["labels_without_surface"]],
+        "labels_mesh": {**done[0].report["labels_mesh"], "layers": len(layers)},
+        "source": lv.source,
+    }
+    return LabelModels([part for part, _ in pairs], report)
+
+
+def _layer_models(
+    lv: LabelVolume,
+    params: ReconParams | None,
+    device: Any,
+    orient: OrientParams | None,
+    names: dict[int, str],
+    empty_ok: bool = False,
+) -> LabelModels:
+    """The segments of one layer (no two overlap) meshed in one batch and placed; ``names``: each segment's file
+    name (unique over the whole map)."""
     from engine.labels.extract import mesh_labels
     from engine.orient import patient_frame, to_patient
 
@@ -141,7 +177,8 @@ def label_models(
     volumes, areas = _measures(joined.vertices, joined.faces, joined.slot, n)
     closed = bool(joined.info.get("watertight", False))
     pieces = _split(joined.vertices, joined.faces, joined.slot, n)
-    for i, (seg, name, (v, f)) in enumerate(zip(lv.segments, file_names(lv), pieces, strict=True)):
+    for i, (seg, (v, f)) in enumerate(zip(lv.segments, pieces, strict=True)):
+        name = names[seg.value]
         if len(f) == 0:  # voxels, but thinner than the smoothed level keeps (one voxel wide): no model
             dropped.append(seg.to_dict())
             continue
@@ -159,7 +196,7 @@ def label_models(
         xyz = np.ascontiguousarray(placed.vertices[:, ::-1])
         parts.append(LabelPart(seg.name, seg.value, seg.color, xyz, placed.faces, stats))
         rows.append({**seg.to_dict(), "file": f"labels/{name}.stl", **stats})
-    if not parts:
+    if not parts and not empty_ok:
         from engine.errors import EmptySurfaceError
 
         raise EmptySurfaceError("no label gives a surface (each is thinner than a voxel after smoothing)")

@@ -76,13 +76,17 @@ def crop_roi(grid: Grid, roi: RoiParams, orient: OrientParams | None = None) -> 
     }
     if isinstance(grid, LabelVolume):
         labels = np.ascontiguousarray(grid.labels[sl])
-        present = set(np.unique(labels).tolist())
+        masks = {v: np.ascontiguousarray(m[sl]) for v, m in grid.masks.items()}  # overlapping segments' own masks
+        masks = {v: m for v, m in masks.items() if m.any()}
+        present = set(np.unique(labels).tolist()) | set(masks)
         segments = tuple(s for s in grid.segments if s.value in present)
         if not segments:
             from engine.errors import EmptyLabelError
 
             raise EmptyLabelError("no label lies inside the region of interest")
-        out: Grid = dataclasses.replace(grid, labels=labels, origin_mm=origin, segments=segments, source=source)  # type: ignore[call-arg]
+        out: Grid = dataclasses.replace(  # type: ignore[call-arg]
+            grid, labels=labels, origin_mm=origin, segments=segments, source=source, masks=masks
+        )
         return out
     return dataclasses.replace(grid, data=np.ascontiguousarray(grid.data[sl]), origin_mm=origin, source=source)
 

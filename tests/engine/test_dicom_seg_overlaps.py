@@ -122,5 +122,29 @@ def test_each_overlapping_segment_meshed_whole(tmp_path: Path) -> None:
         zyx = np.argwhere(mask)
         np.testing.assert_allclose(lo, zyx.min(axis=0)[::-1], atol=1.0)
         np.testing.assert_allclose(hi, zyx.max(axis=0)[::-1], atol=1.0)
-    single = {p.name: float(p.stats["volume_mm3"]) for p in label_models(lv, device="cpu").parts}
+    import dataclasses
+
+    whole_models = label_models(lv, device="cpu")  # what a job meshes: the layers, joined in segment order
+    assert [p.name for p in whole_models.parts] == ["A", "B"]
+    assert [r["name"] for r in whole_models.report["labels"]] == ["A", "B"]
+    assert {p.name: float(p.stats["volume_mm3"]) for p in whole_models.parts} == pytest.approx(volumes, rel=1e-6)
+    assert whole_models.report["labels_mesh"]["layers"] == 2
+    one_map = label_models(dataclasses.replace(lv, masks={}), device="cpu")  # the masks ignored: one map
+    single = {p.name: float(p.stats["volume_mm3"]) for p in one_map.parts}
     assert single["A"] < 0.6 * volumes["A"]  # "later segment wins": what the layers fix
+
+
+def test_a_job_with_overlapping_segments_gives_each_its_whole_model(tmp_path: Path) -> None:
+    """``engine.job.run_job`` (the CLI's and the worker's path) on the two-layer .seg.nrrd, also cropped to a box
+    that keeps both: each box's model has all its voxels, as meshed alone."""
+    from engine.job import InputSpec, JobSpec, resolve_runtime, run_job
+    from engine.params import ReconParams, RoiParams
+
+    path, whole = _boxes(tmp_path)
+    recon = ReconParams.from_dict({"export": {"phone_max_triangles": 2000, "ar_max_triangles": 800}})
+    for roi in (None, RoiParams(((0, 40), (0, 40), (0, 48)))):
+        out = tmp_path / f"out{roi is not None}"
+        result = run_job(path, out, JobSpec(recon=recon, input=InputSpec(roi=roi)), resolve_runtime("cpu"))
+        rows = {r["name"]: r for r in result.report["labels"]}
+        assert list(rows) == ["A", "B"] and rows["A"]["voxels"] == int(whole[1].sum()) == 8000
+        assert abs(rows["A"]["volume_mm3"] - 8000) < 2400 and abs(rows["B"]["volume_mm3"] - 8000) < 2400
