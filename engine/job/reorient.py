@@ -132,13 +132,18 @@ def reorient(
         The files written, by name (as ``write_outputs``).
 
     Raises:
-        InputError: not an output folder, its print model is missing, or the model is of a DICOM series.
+        InputError: not an output folder, a label job's, its print model is missing, or the model is of a DICOM
+            series.
     """
     from engine.job.outputs import write_outputs
     from engine.job.pipeline import Reconstruction
 
     src = Path(folder)
     report = read_report(src)
+    if report.get("labels") is not None:  # a label job (engine.labels): its map places every model
+        raise InputError(
+            f"{src}: a label job's models are placed by their label map (or are a CT's pieces): not re-oriented"
+        )
     if not _is_stack(report):
         raise InputError(
             f"{src}: a DICOM series is placed in the patient by its headers; only an image stack can be re-oriented"

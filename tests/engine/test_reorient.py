@@ -3,6 +3,7 @@ that orientation gives, up to float rounding; the report records the new frame; 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -13,9 +14,9 @@ from engine.export.glb import read_glb
 from engine.export.stl import from_stl
 from engine.isosurface import marching_cubes_33
 from engine.job.outputs import write_outputs
-from engine.params import IsoParams, OrientParams, ReconParams
 from engine.job.pipeline import Reconstruction, reconstruct
 from engine.job.reorient import reorient
+from engine.params import IsoParams, OrientParams, ReconParams
 from engine.types import Mesh
 from tests.engine.test_orient import SPACING, marked_volume
 
@@ -77,6 +78,22 @@ def test_a_dicom_model_is_refused(tmp_path):
         reorient(tmp_path, TURNED, device="cpu")
     with pytest.raises(InputError, match=r"report\.json"):
         reorient(tmp_path / "nothing", TURNED, device="cpu")
+
+
+def test_a_label_jobs_folder_is_refused_as_one(tmp_path):
+    """A label job's files (``labels`` in its report) are placed by its label map: refused saying so, not as a
+    missing print model."""
+    from engine.job import InputSpec, JobSpec, resolve_runtime, run_job
+    from tests.engine.test_labels_outputs import nifti_bytes
+    from tests.engine.test_labels_util import headsq_labels
+
+    (tmp_path / "map.nii.gz").write_bytes(nifti_bytes(headsq_labels()))
+    spec = JobSpec(recon=ReconParams.from_dict({"export": {"phone_max_triangles": 2000, "ar_max_triangles": 800}}))
+    run_job(
+        tmp_path / "map.nii.gz", tmp_path / "out", dataclasses.replace(spec, input=InputSpec()), resolve_runtime("cpu")
+    )
+    with pytest.raises(InputError, match="label job's models are placed by their label map"):
+        reorient(tmp_path / "out", TURNED, device="cpu")
 
 
 def test_cli_orient_command(tmp_path, capsys):
