@@ -34,7 +34,6 @@ __all__ = [
     "label_counts",
     "make_label_volume",
     "palette",
-    "read_labels",
     "read_nifti_labels",
     "read_nrrd_labels",
 ]
@@ -198,26 +197,6 @@ def is_label_path(path: str | Path) -> bool:
     """Whether a file name says label map (``LABEL_SUFFIXES``)."""
     name = Path(path).name.lower()
     return any(name.endswith(s) for s in LABEL_SUFFIXES)
-
-
-def read_labels(path: str | Path, *, reference: Volume | None = None) -> LabelVolume:
-    """Read a label map by its suffix (NIfTI, NRRD / seg.nrrd) or, for other files, as a DICOM SEG placed into
-    ``reference``'s grid when given (``engine.labels.dicom_seg``).
-
-    Raises:
-        NotLabelsError, EmptyLabelError, LabelsOutsideScanError, MissingReferenceError, InputError.
-    """
-    p = Path(path)
-    name = p.name.lower()
-    if not p.is_file():
-        raise InputError(f"{p}: no such file")
-    if name.endswith((".nii", ".nii.gz")):
-        return read_nifti_labels(p)
-    if name.endswith((".nrrd", ".nhdr")):
-        return read_nrrd_labels(p)
-    from engine.labels.dicom_seg import read_dicom_seg
-
-    return read_dicom_seg(p, reference=reference)
 
 
 # --- NIfTI -------------------------------------------------------------------------------------------------------

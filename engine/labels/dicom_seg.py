@@ -78,7 +78,7 @@ def _dataset(source: Any, label: str) -> Any:
 
     import pydicom
 
-    from engine.labels.uploads import looks_like_dicom
+    from engine.labels.sniff import looks_like_dicom
 
     if isinstance(source, (str, Path)):
         source = Path(source).read_bytes()
@@ -457,7 +457,7 @@ def read_seg_folder(folder: str | Path, label: str | None = None) -> LabelVolume
     from engine.errors import IncompleteSeriesError
     from engine.io import load_volume
     from engine.io.archive import open_members
-    from engine.labels.uploads import SNIFF_BYTES, is_seg
+    from engine.labels.sniff import SNIFF_BYTES, is_seg
 
     root = Path(folder)
     where = label or root.name

@@ -382,7 +382,7 @@ def test_dcmqi_seg_on_its_ct_is_dcmqis_label_map(tmp_path: Path) -> None:
     """dcmqi's SEG (23 columns x 38 rows: a frame is 109.25 bytes, so native frames run across byte boundaries) on
     its CT, from the folder and from a zip, and on its own grid: voxel for voxel and place for place the label map
     dcmqi converted it to (label.nrrd)."""
-    from engine.io.labelmaps import read_labels
+    from engine.labels.uploads import read_labels
 
     want = read_labels(DCMQI / "label.nrrd")
     folder = tmp_path / "up"

@@ -225,3 +225,92 @@ def test_every_engine_exception_lives_in_the_error_tree():
     for name in names:
         assert issubclass(getattr(errors, name), errors.EngineError)
         assert name in (errors.__doc__ or ""), f"{name} is not drawn in engine.errors' tree"
+
+
+def _runtime_edges() -> dict[str, set[str]]:
+    """Every engine module's imports that can run, at load time or later inside a function (``TYPE_CHECKING``
+    blocks left out), each to the module that defines the name: a name taken from a package's lazy public face
+    (``engine._lazy.attach``) counts as an import of the module it names."""
+    sources = _sources()
+    faces: dict[str, dict[str, str]] = {}
+    for module, path in sources.items():
+        if path.name != "__init__.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "attach" and len(node.args) == 2:
+                where = node.args[1]
+                if isinstance(where, ast.Dict):
+                    faces[module] = {
+                        k.value: (module + v.value if v.value.startswith(".") else v.value)
+                        for k, v in zip(where.keys, where.values, strict=True)
+                        if isinstance(k, ast.Constant) and isinstance(v, ast.Constant)
+                    }
+    edges: dict[str, set[str]] = {}
+    for module, path in sources.items():
+        package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+        found: set[str] = set()
+
+        def add(name: str, module: str = module, found: set[str] = found) -> None:
+            while name and name not in sources:
+                name = name.rpartition(".")[0]
+            if name and name != module:
+                found.add(name)
+
+        def visit(node: ast.AST, add=add, package=package) -> None:
+            if isinstance(node, ast.If) and _is_type_checking(node):
+                for child in node.orelse:
+                    visit(child)
+                return
+            if isinstance(node, ast.Import):
+                for a in node.names:
+                    add(a.name)
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    up = package.split(".")[: len(package.split(".")) - node.level + 1]
+                    base = ".".join(up + ([node.module] if node.module else []))
+                for a in node.names:
+                    if f"{base}.{a.name}" in sources:
+                        add(f"{base}.{a.name}")
+                    else:
+                        add(faces.get(base, {}).get(a.name, base))
+            for child in ast.iter_child_nodes(node):
+                visit(child)
+
+        visit(ast.parse(path.read_text()))
+        edges[module] = found
+    return edges
+
+
+def test_no_import_cycle_among_the_engines_modules_counting_imports_inside_functions():
+    """No two engine modules need each other, even through an import inside a function or a package's lazy face
+    (such cycles hide in the import order: ``backend.select`` and ``device`` once resolved each other)."""
+    edges = _runtime_edges()
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    cycles: list[list[str]] = []
+
+    def strong(v: str) -> None:  # Tarjan's strongly connected components
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in edges[v]:
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                cycles.append(sorted(component))
+
+    for v in sorted(edges):
+        if v not in index:
+            strong(v)
+    assert not cycles, cycles

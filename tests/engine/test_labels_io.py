@@ -17,8 +17,9 @@ import pytest
 
 from engine.errors import EmptyLabelError, LabelsOutsideScanError, MissingReferenceError, NotLabelsError
 from engine.io import load_volume
-from engine.io.labelmaps import LabelVolume, check_overlap, is_label_path, read_labels
+from engine.io.labelmaps import LabelVolume, check_overlap, is_label_path
 from engine.labels.dicom_seg import lab_to_srgb, read_dicom_seg, read_seg_folder
+from engine.labels.uploads import read_labels
 from tests.engine.dicom_factory import ct_slice
 from tests.engine.test_labels_util import headsq_data, headsq_labels
 
