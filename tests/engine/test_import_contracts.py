@@ -4,9 +4,10 @@
 * kernel modules (``engine/<package>/kernels/*.py``) hold Warp code only: they import ``warp``, ``numpy``, ``typing``
   and other kernel modules, and no host module;
 * no import cycle among the engine's modules at load time (module-level imports; those inside functions or under
-  ``TYPE_CHECKING`` run later, and each package's public names load lazily through ``engine._lazy``);
-* the ground floor (``errors``, ``types``, ``params``, ``budget``, ``device``, ``report``) imports no stage package, and importing
-  it or a stage package loads no Warp;
+  ``TYPE_CHECKING`` run later, and each package's public names load lazily through ``engine._lazy``), nor counting
+  the imports inside functions and through the lazy faces;
+* the ground floor (``errors``, ``types``, ``params``, ``budget``, ``device``, ``report``) imports no stage package,
+  and importing it or a stage package loads no Warp;
 * the exporters and the other packages reach a stage package through its public face, never a module inside it
   (the print check uses ``engine.surface``'s functions);
 * every engine exception is defined in ``engine.errors`` and drawn in its tree.
