@@ -52,13 +52,23 @@ def test_upload_watch_view_download(
     downloads = tmp_path / "downloads"
     downloads.mkdir()
     driver = start_chromium(*chromium_paths, downloads)
+    # every Content-Security-Policy violation of the page, from its first byte on
+    driver.execute_cdp_cmd(
+        "Page.addScriptToEvaluateOnNewDocument",
+        {
+            "source": "window.__csp = []; document.addEventListener('securitypolicyviolation',"
+            " (e) => window.__csp.push(`${e.violatedDirective} ${e.blockedURI}`));"
+        },
+    )
     try:
+        assert "script-src 'self' 'wasm-unsafe-eval'" in httpx.get(stack.base_url + "/").headers["content-security-policy"]
         driver.get(stack.base_url + "/")
         assert "bonemesh" in driver.title
         assert not driver.find_elements(By.ID, "assets-missing"), "the service found no node_modules"
         driver.find_element(By.ID, "api-key").send_keys("key-a")
         driver.find_element(By.ID, "key-save").click()
-        assert _js(driver, "return sessionStorage.getItem('bonemesh-api-key')") == "key-a"
+        assert _js(driver, "return sessionStorage.getItem('bonemesh-api-key')") == "key-a"  # this tab only
+        assert _js(driver, "return localStorage.getItem('bonemesh-api-key')") is None  # not on the device unasked
         assert "key-a" not in driver.current_url
         file_input = driver.find_element(By.ID, "file-input")
         _js(driver, "arguments[0].hidden = false", file_input)
@@ -130,6 +140,8 @@ def test_upload_watch_view_download(
         urls = _js(driver, "return performance.getEntriesByType('resource').map(e => e.name)")
         assert urls and all(u.startswith(stack.base_url) or u.startswith(("blob:", "data:")) for u in urls), urls
         assert any("/vendor/draco/" in u for u in urls), urls  # the Draco decoder was served here
+        # ... and it ran under the page's CSP (WebAssembly compiled, its blob: worker started): nothing was blocked
+        assert _js(driver, "return window.__csp") == [], _js(driver, "return window.__csp")
     finally:
         driver.quit()
 
@@ -159,18 +171,19 @@ def _severe(driver: Any) -> list[str]:
     return [str(e) for e in driver.get_log("browser") if e.get("level") == "SEVERE"]
 
 
-def _no_overflow(driver: Any) -> None:
+def _no_overflow(driver: Any, width: int) -> None:
     widths = _js(driver, "return [document.documentElement.scrollWidth, window.innerWidth]")
-    assert widths[0] <= widths[1], f"the page is {widths[0]} px wide in a {widths[1]} px window"
+    assert widths[0] <= width and widths[1] == width, f"the page is {widths[0]} px wide on a {width} px screen"
 
 
 @pytest.mark.parametrize("width", [412, 1366])
 def test_phone_and_desktop_orient_ar_and_messages(
     stack: ServiceStack, chromium_paths: tuple[str, str], tmp_path: Path, width: int
 ) -> None:
-    """Issue 27: orientation before upload and after (turn over), direction labels, no horizontal overflow, the
-    AR file for Android, progress in view, the voxel size's own error, a refused .txt under its own name, a
-    dark backdrop, and no console error (the favicon)."""
+    """Issue 27: orientation before upload and after (placed again: absolute choices, the one already published
+    sends nothing), direction labels, no horizontal overflow (on an emulated phone screen: headless Chromium's
+    window is never narrower than 500 px), the AR file for Android, progress in view, the voxel size's own error,
+    a refused .txt under its own name, a dark backdrop, and no console error (the favicon)."""
     from selenium.webdriver.common.by import By
 
     from tests.service.conftest import slice_zip, sphere_volume
@@ -185,6 +198,10 @@ def test_phone_and_desktop_orient_ar_and_messages(
     readme.write_text("nor this")
     driver = start_chromium(*chromium_paths, tmp_path, width=width, height=860)
     try:
+        driver.execute_cdp_cmd(
+            "Emulation.setDeviceMetricsOverride",
+            {"width": width, "height": 860, "deviceScaleFactor": 1, "mobile": width < 1000},
+        )
         driver.get(stack.base_url + "/")
         driver.find_element(By.ID, "api-key").send_keys("key-a")
         driver.find_element(By.ID, "key-save").click()
@@ -222,7 +239,7 @@ def test_phone_and_desktop_orient_ar_and_messages(
         _js(driver, "document.getElementById('viewer').scrollIntoView()")  # model-viewer loads once in view
         wait_until(lambda: _js(driver, "return document.getElementById('viewer').dataset.loaded"), 60, "the view")
         assert _js(driver, "return document.getElementById('viewer').dataset.loaded") == "yes", _console(driver)
-        _no_overflow(driver)
+        _no_overflow(driver, width)
         # what the report doubts is shown beside the model (here: the voxel size's order)
         wait_until(lambda: driver.find_element(By.ID, "model-warnings").is_displayed(), 10, "the model's warnings")
         codes = _js(driver, "return [...document.querySelectorAll('#model-warnings li')].map(li => li.dataset.code)")
@@ -251,9 +268,21 @@ def test_phone_and_desktop_orient_ar_and_messages(
         )
         src = _js(driver, "return document.getElementById('viewer').getAttribute('src')")
         assert src.split("/")[-1][:20] == ar_url.split("/")[-1][:20], (src, ar_url)
-        # turn over: the outputs re-published, the report's frame turned back to the default convention
+        # placed again: the published orientation is checked, choosing it again sends nothing; the head end on the
+        # first slice and the front on the top of the images (the default convention) re-publish every output
         before = json.loads(httpx.get(next(o["url"] for o in job["outputs"] if o["name"] == "report.json")).text)
-        driver.find_element(By.ID, "turn-over").click()
+        apply = driver.find_element(By.ID, "place-apply")
+        wait_until(lambda: driver.find_element(By.ID, "place-box").is_displayed(), 30, "the placement")
+        checked = "return [...document.querySelectorAll('#place-box input:checked')].map((r) => r.value)"
+        assert _js(driver, checked) == ["inferior", "posterior", "right"]
+        assert not apply.is_enabled() and apply.text == "Placed so"
+        assert "the last slice" in driver.find_element(By.ID, "orient-state").text
+        driver.find_element(By.CSS_SELECTOR, "input[name=place-first][value=inferior]").click()  # the same again
+        assert not apply.is_enabled()
+        driver.find_element(By.CSS_SELECTOR, "input[name=place-first][value=superior]").click()
+        driver.find_element(By.CSS_SELECTOR, "input[name=place-ap][value=anterior]").click()
+        assert apply.is_enabled() and apply.text == "Place it so"
+        apply.click()
         with stack.client("key-a") as client:
             job = wait_for_job(
                 client,
@@ -265,7 +294,9 @@ def test_phone_and_desktop_orient_ar_and_messages(
         assert after["frame"]["patient_from_grid_xyz"] != before["frame"]["patient_from_grid_xyz"]
         assert after["parameters"]["orient"] == {"first_slice": "superior", "flip_lr": False, "flip_ap": False}
         wait_until(lambda: "first slice superior" in driver.find_element(By.ID, "frame-text").text, 30, "new frame")
-        _no_overflow(driver)
+        wait_until(lambda: _js(driver, checked) == ["superior", "anterior", "right"], 30, "the new placement")
+        assert not apply.is_enabled()  # placed so: pressing again would change nothing
+        _no_overflow(driver, width)
         assert not _severe(driver), _severe(driver)
     finally:
         driver.quit()
