@@ -86,6 +86,20 @@ def _quiet(stage: str, fraction: float) -> None:
     """No progress wanted."""
 
 
+class _Steps:
+    """A stage's own fraction (0..1, e.g. slices decoded) as the job's, passed on only when it moved by a hundredth
+    of the job: a worker records each report in its database, and a scan has thousands of slices."""
+
+    def __init__(self, progress: OnProgress, stage: str, share: float) -> None:
+        self.progress, self.stage, self.share, self.last = progress, stage, share, -1.0
+
+    def __call__(self, fraction: float) -> None:
+        done = self.share * fraction
+        if done - self.last >= 0.01 or (fraction >= 1.0 and done > self.last):
+            self.last = done
+            self.progress(self.stage, done)
+
+
 def _load(source: str | Path | Volume, spec: JobSpec, runtime: Runtime, progress: OnProgress, end: float) -> Volume:
     """The scan, loaded on the runtime's decoders (``engine.io.load_volume``) and cropped to the roi."""
     if isinstance(source, Volume):
@@ -101,7 +115,7 @@ def _load(source: str | Path | Volume, spec: JobSpec, runtime: Runtime, progress
             processes=runtime.decode_processes,
             allocate=runtime.volumes(),  # reused from job to job; page-locked for the upload to a CUDA device
             rows=runtime.rows(),  # on a GPU, PNG slices are only inflated on the host (engine.io.png_rows)
-            on_progress=lambda fraction: progress("loading", end * fraction),
+            on_progress=_Steps(progress, "loading", end),
         )
     if spec.input.roi is not None:  # cropped before anything runs
         from engine.labels.pieces import crop_roi
