@@ -260,7 +260,8 @@ def orient_job(job_id: str, orient: dict[str, Any]) -> str:
     re-orienting (deleted, or another message done first) is left alone."""
     from core.db import ORIENTING
     from engine.errors import InputError
-    from engine.job import OrientParams, read_report, reorient
+    from engine.job import OrientParams
+    from engine.job.reorient import read_report, reorient
 
     settings = get_settings()
     db = database(settings.db_url)

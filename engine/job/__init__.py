@@ -3,9 +3,9 @@ runtime it runs on (``Runtime``: backend, device, budget, decoders; resolved onc
 stages and the files). The worker and the CLI are thin callers of ``run_job``.
 
 This package is also the job runner's one public face (the worker imports the engine through it and
-``engine.errors``): the output registry's names (``FILES``, ``triangle_count``, ...), the warm-up, re-orientation,
-and the PACS's DICOM encodings of a model (``to_encapsulated_stl``, ``from_stl``, ``is_seg_file``,
-``referenced_series``).
+``engine.errors``): the output registry's names (``FILES``, ``triangle_count``, ...), the warm-up (re-orientation:
+``engine.job.reorient``), and the PACS's DICOM encodings of a model (``to_encapsulated_stl``, ``from_stl``,
+``is_seg_file``, ``referenced_series``).
 
 Importing this package loads none of its modules (``engine._lazy``); ``engine.job.spec`` never loads Warp.
 """
@@ -21,7 +21,6 @@ if TYPE_CHECKING:
     from engine.export.dicom_stl import to_encapsulated_stl
     from engine.export.files import FILES, LABELS_DCM, LABELS_ZIP, MODEL_DCM, PRINT_STL, triangle_count
     from engine.export.stl import from_stl
-    from engine.job.reorient import read_report, reorient
     from engine.job.run import JobResult, run_job
     from engine.job.runtime import Runtime, resolve_runtime
     from engine.job.spec import InputSpec, JobSpec, OutputSpec
@@ -48,9 +47,7 @@ __all__ = [
     "is_seg_file",
     "mib",
     "parse_bytes",
-    "read_report",
     "referenced_series",
-    "reorient",
     "resolve_runtime",
     "run_job",
     "to_encapsulated_stl",
@@ -81,8 +78,6 @@ __getattr__, __dir__ = attach(
         "referenced_series": "engine.labels.dicom_seg",
         "mib": "engine.budget",
         "parse_bytes": "engine.budget",
-        "read_report": "engine.job.reorient",
-        "reorient": "engine.job.reorient",
         "warm_up": "engine.job.warmup",
     },
 )

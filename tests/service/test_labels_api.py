@@ -74,7 +74,9 @@ def test_a_dicom_seg_with_its_ct(stack: ServiceStack, client_a: httpx.Client, an
     outs = {o["name"]: o for o in job["outputs"]}
     assert _nodes(anon.get(outs["model.glb"]["url"]).content) == ["right half", "left half"]
     resp = submit(client_a, seg_zip(with_ct=False), SMALL, filename="seg_only.zip")
-    assert resp.status_code == 422 and "seg_only.zip holds a DICOM SEG but no other" in resp.text, resp.text
+    assert (
+        resp.status_code == 422 and "seg_only.zip holds a DICOM SEG without the CT series it was drawn on" in resp.text
+    ), resp.text
 
 
 def test_pieces_of_a_cropped_ct(stack: ServiceStack, client_a: httpx.Client, anon: httpx.Client) -> None:
