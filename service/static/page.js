@@ -380,6 +380,8 @@ function result(job) {
     showFrame(job, outs.report);
     showDefect(job, outs.defect);
     showLabels(job, outs.labels ? outs.report : null);
+    $("result-box").hidden = false;
+    reveal(viewer); // a finished job's model comes into view (once, not at every poll)
   }
   placeControls(job, false);
   $("facts").tBodies[0].replaceChildren(...job.outputs.map(fileRow));
