@@ -9,6 +9,12 @@ Redis: ``BONEMESH_REDIS_URL`` when set (an existing server), else a private ``re
 ``kill -TERM`` (or SIGHUP): either stops Redis, the API and the worker and removes the private Redis folder.
 The data (uploads, outputs, database) go to ``--data-dir``, by default ``$XDG_CACHE_HOME/bonemesh-demo``
 (``~/.cache/bonemesh-demo``), outside the repository.
+
+The terminal shows the demo's own lines only: the worker's output (Celery's start-up banner, its log, and, when the
+demo runs as root, as in a container, Celery's warning about a worker with superuser privileges) goes to
+``worker.log`` in the data folder, whose path is printed, and whose last lines are printed when the worker stops or
+the job fails. The warning stays in the log on purpose: it is true (a worker should not run as root in production),
+but a demo run as root is expected, and the worker accepts JSON messages only (no pickle), so Celery only warns.
 """
 
 from __future__ import annotations
@@ -74,11 +80,20 @@ def _multipart(path: Path, params: dict[str, Any]) -> tuple[bytes, str]:
     return b"".join(parts), f"multipart/form-data; boundary={boundary}"
 
 
-def _wait_http(url: str, procs: list[subprocess.Popen[bytes]], timeout: float) -> None:
+def _tail(path: Path, lines: int = 20) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+    except OSError:
+        return ""
+
+
+def _wait_http(url: str, procs: list[subprocess.Popen[bytes]], timeout: float, worker_log: Path) -> None:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         if any(p.poll() is not None for p in procs):
-            raise SystemExit("a service process stopped while starting; see the logs above")
+            raise SystemExit(
+                f"a service process stopped while starting; the worker's log ({worker_log}):\n{_tail(worker_log)}"
+            )
         try:
             with urllib.request.urlopen(url, timeout=2):
                 return
@@ -111,6 +126,8 @@ def main(argv: list[str] | None = None) -> int:
 
     env = dict(os.environ)
     env.setdefault("BONEMESH_DATA_DIR", str((args.data_dir or default_data_dir()).resolve()))
+    worker_log = Path(env["BONEMESH_DATA_DIR"]) / "worker.log"
+    worker_log.parent.mkdir(parents=True, exist_ok=True)
     key = env.setdefault("BONEMESH_API_KEYS", DEV_API_KEY).split(",")[0].strip()
     procs: list[subprocess.Popen[bytes]] = []
     bin_dir = Path(sys.executable).parent
@@ -143,8 +160,14 @@ def main(argv: list[str] | None = None) -> int:
             env["BONEMESH_REDIS_URL"] = f"redis://127.0.0.1:{port}/0"
         base = f"http://127.0.0.1:{args.port}"
         procs.append(subprocess.Popen([bonemesh, "serve", "--port", str(args.port), "--log-level", "warning"], env=env))
-        procs.append(subprocess.Popen([bonemesh, "worker", "--loglevel", "WARNING"], env=env))
-        _wait_http(f"{base}/readyz", procs, 60)
+        # the worker's banner, log and warnings go to its log file, not between the demo's lines
+        with worker_log.open("ab") as log_file:
+            procs.append(
+                subprocess.Popen(
+                    [bonemesh, "worker", "--loglevel", "WARNING"], env=env, stdout=log_file, stderr=subprocess.STDOUT
+                )
+            )
+        _wait_http(f"{base}/readyz", procs, 60, worker_log)
         params = {"iso": 1150, "spacing": list(HEADSQ_SPACING_ZYX_MM)}
         body, ctype = _multipart(HEADSQ_ZIP, params)
         t0 = time.perf_counter()
@@ -159,12 +182,14 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"  {time.perf_counter() - t0:6.1f} s  {job['state']:<9} {stage} {job['progress']:.0f}%")  # noqa: T201
         if job["state"] != "succeeded":
             print(f"job {job['state']}: {job['error']}", file=sys.stderr)  # noqa: T201
+            print(f"the worker's log ({worker_log}):\n{_tail(worker_log)}", file=sys.stderr)  # noqa: T201
             return 1
         print(f"done in {time.perf_counter() - t0:.1f} s; downloads (no key needed, valid 1 h):")  # noqa: T201
+        width = max(len(o["name"]) for o in job["outputs"])
         for o in job["outputs"]:
             tri = f"{o['triangles']:,} triangles" if o["triangles"] else ""
-            print(f"  {o['name']:<11} {o['bytes']:>10,} B  {tri:<18} {o['url']}")  # noqa: T201
-        print(f"API: {base}/docs  (X-API-Key: {key})")  # noqa: T201
+            print(f"  {o['name']:<{width}} {o['bytes']:>10,} B  {tri:<18} {o['url']}")  # noqa: T201
+        print(f"page: {base}/  API: {base}/docs  (X-API-Key: {key}); the worker's log: {worker_log}")  # noqa: T201
         if not args.exit:
             print("serving; Ctrl-C (or kill -TERM) stops Redis, the API and the worker", flush=True)  # noqa: T201
             while True:

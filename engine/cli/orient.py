@@ -77,7 +77,8 @@ def run(args: argparse.Namespace) -> int:
     from engine.job.reorient import current_orient, read_report, reorient
 
     report = read_report(args.folder)
-    placed_by = str((report.get("frame") or {}).get("placed_by", ""))
+    frame = report.get("frame")
+    placed_by = str(frame.get("placed_by", "")) if frame else ""
     params = report.get("parameters") or {}
     if report.get("labels") is not None or placed_by.startswith("DICOM") or params.get("defect") is not None:
         reorient(args.folder, OrientParams(), device=args.device)  # refuses, saying why (a DICOM series, ...)

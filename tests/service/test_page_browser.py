@@ -61,7 +61,9 @@ def test_upload_watch_view_download(
         },
     )
     try:
-        assert "script-src 'self' 'wasm-unsafe-eval'" in httpx.get(stack.base_url + "/").headers["content-security-policy"]
+        assert (
+            "script-src 'self' 'wasm-unsafe-eval'" in httpx.get(stack.base_url + "/").headers["content-security-policy"]
+        )
         driver.get(stack.base_url + "/")
         assert "bonemesh" in driver.title
         assert not driver.find_elements(By.ID, "assets-missing"), "the service found no node_modules"

@@ -49,7 +49,8 @@ for (const el of document.querySelectorAll('body *')) {
     limit = Math.min(vw, c.right - parseFloat(s.paddingRight) - parseFloat(s.borderRightWidth));
   }
   if (r.right > limit + 0.5 || r.left < -0.5) {
-    out.push(`${el.tagName.toLowerCase()}#${el.id}.${el.className} [${r.left.toFixed(0)}, ${r.right.toFixed(0)}] > ${limit.toFixed(0)}`);
+    const name = `${el.tagName.toLowerCase()}#${el.id}.${el.className}`;
+    out.push(`${name} [${r.left.toFixed(0)}, ${r.right.toFixed(0)}] > ${limit.toFixed(0)}`);
   }
 }
 for (const el of document.querySelectorAll('button, a.button, th, h1, h2, legend, #facts td:first-child')) {
@@ -261,7 +262,9 @@ def test_switching_jobs_changes_every_viewer_source(
         assert _sources(driver)["src"] == (job_id, "ar.glb")
 
 
-def test_refusals_in_the_pages_words(stack: ServiceStack, jobs: dict[str, dict[str, Any]], browser: Any, tmp_path: Path) -> None:
+def test_refusals_in_the_pages_words(
+    stack: ServiceStack, jobs: dict[str, dict[str, Any]], browser: Any, tmp_path: Path
+) -> None:
     """A .txt dropped on the page is refused naming it; a refused upload empties the bar and says why in red;
     a zip of 2 images fails saying so, without "failed: 1 %"; a scan without its voxel size points at the Voxel
     size field (never the API's ``"spacing"`` in params)."""
@@ -351,7 +354,8 @@ def test_values_from_the_api_are_text(stack: ServiceStack, jobs: dict[str, dict[
     li = _js(
         driver,
         "const li = jobRow({id: 'j1', upload_name: '<img src=x onerror=alert(1)>.zip', state: 'failed',"
-        " created_at: '2026-11-28T10:00:00Z', outputs: []}); return [li.textContent, li.querySelectorAll('img').length];",
+        " created_at: '2026-11-28T10:00:00Z', outputs: []});"
+        "return [li.textContent, li.querySelectorAll('img').length];",
     )
     assert li[0].startswith("<img src=x onerror=alert(1)>.zip · failed") and li[1] == 0, li
 
