@@ -6,7 +6,7 @@
     bonemesh isosurface INPUT -o OUT.stl --iso LEVEL [--voxel-size Z,Y,X] [--device ...] [--open]
     bonemesh isosurface --demo -o OUT.stl
     bonemesh sweep ...   (engine.cli.sweep)
-    bonemesh orient OUTDIR [--first-slice superior|inferior] [--flip-lr] [--flip-ap]   (engine.cli.orient)
+    bonemesh orient OUTDIR (--first-slice superior|inferior [--flip-lr] [--flip-ap] | --reset)   (engine.cli.orient)
 
 INPUT is anything ``engine.io.load_volume`` reads: a DICOM series (zip or folder), an archive or folder of
 slice images, a multi-page TIFF or a ``.npy`` (z, y, x) volume. ``--voxel-size`` is z, y, x in mm (the API's
