@@ -3,6 +3,7 @@
     bonemesh reconstruct INPUT -o OUTDIR [--voxel-size Z,Y,X] [--iso V | --preset bone ...]
                          [--first-slice superior|inferior] [--flip-lr] [--flip-ap] [--reduction R] ...
     bonemesh reconstruct --demo -o OUTDIR
+    bonemesh reconstruct INPUT -o OUTDIR --defect [--hint-side left|right] [--hint-point L,P,S]   (implant.stl too)
     bonemesh isosurface INPUT -o OUT.stl --iso LEVEL [--voxel-size Z,Y,X] [--device ...] [--open]
     bonemesh isosurface --demo -o OUT.stl
     bonemesh sweep ...   (engine.cli.sweep)
@@ -32,6 +33,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from engine.cli.args import (
+    add_defect_args,
     add_input_args,
     add_label_args,
     add_orient_args,
@@ -92,6 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_input_args(rec, "output folder")
     add_recon_args(rec)
     add_label_args(rec)  # --labels, --pieces N, --roi, --segments
+    add_defect_args(rec, command=False)  # --defect and its hints: the defect as a stage of the job
     rec.add_argument("--demo", action="store_true", help="use the bundled VTK headsq CT head")
     rec.add_argument("--quiet", action="store_true", help="no progress bar")
     add_sweep_parser(sub)
@@ -305,6 +308,9 @@ def _summary(vol: Volume, rep: Report, paths: dict[str, Path]) -> None:
             f"{_volume(mesh['volume_mm3'])}, area {_number(mesh['area_mm2'])} mm2",
         )
     )
+    defect = rep.get("defect")
+    if defect:
+        rows.append(("defect", _defect_text(defect)))
     for warning in rep.get("warnings", []):
         rows.append(("WARNING", _warning_text(warning)))
     for name, path in paths.items():
@@ -312,6 +318,18 @@ def _summary(vol: Volume, rep: Report, paths: dict[str, Path]) -> None:
     width = max(len(r[0]) for r in rows)
     for key, value in rows:
         print(f"{key:<{width}}  {value}")  # noqa: T201 - the command's summary table
+
+
+def _defect_text(defect: dict[str, typing.Any]) -> str:
+    """The defect step's answer in one line: where and how large, or why there is no template."""
+    if not defect.get("found"):
+        return f"none: {defect.get('message', defect.get('code', 'not found'))}"
+    rim = defect.get("rim") or {}
+    return (
+        f"{defect['side']} side, {_number(defect['volume_mm3'])} mm3, slices {defect['slices'][0]}-"
+        f"{defect['slices'][1]}, rim gap {rim.get('gap_mm', float('nan')):.2f} mm, implant {defect['implant_faces']:,}"
+        " triangles (implant.stl, defect.json)"
+    )
 
 
 def _number(value: float) -> str:

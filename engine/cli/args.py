@@ -33,6 +33,7 @@ from engine.types import Volume
 
 if TYPE_CHECKING:
     from engine.budget import Budget
+    from engine.defect.params import DefectParams
     from engine.io.png_rows import DeviceRows
     from engine.job.spec import JobSpec
     from engine.params import RoiParams
@@ -235,6 +236,8 @@ def job_spec(args: argparse.Namespace) -> JobSpec:
     from engine.job.spec import InputSpec, JobSpec, OutputSpec
 
     recon = recon_params(args)
+    if getattr(args, "defect", False):
+        recon = dataclasses.replace(recon, defect=defect_params(args))
     spacing = args.spacing
     if getattr(args, "demo", False):
         from engine.data import HEADSQ_FIRST_SLICE, HEADSQ_LEVEL, HEADSQ_SPACING_ZYX_MM
@@ -371,3 +374,56 @@ def segments_of(args: argparse.Namespace) -> tuple[int | str, ...] | None:
     if not text:
         return None
     return tuple(w.strip() for w in text.split(",") if w.strip())  # a number or a name: select_segments reads both
+
+
+def _point(text: str) -> tuple[float, float, float]:
+    """``--hint-point L,P,S``: three finite numbers, mm in the patient frame (LPS: model.stl's x, y, z)."""
+    try:
+        vals = tuple(float(p) for p in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z in mm (patient frame, LPS), got {text!r}") from None
+    if len(vals) != 3 or not all(math.isfinite(v) for v in vals):
+        raise argparse.ArgumentTypeError(f"expected three finite numbers X,Y,Z in mm, got {text!r}")
+    return vals[0], vals[1], vals[2]
+
+
+def add_defect_args(parser: argparse.ArgumentParser, *, command: bool) -> None:
+    """The defect's hints and limits (defaults from ``DefectParams``): for ``bonemesh defect`` (``command``) as
+    ``--min-volume`` / ``--max-faces``; for ``reconstruct``, ``--defect`` turns the step on and the limits are
+    ``--defect-min-volume`` / ``--defect-max-faces`` (beside the model's own ``--max-triangles``)."""
+    from engine.defect.params import DEFAULT_MAX_FACES, SIDES
+
+    group = parser.add_argument_group("the defect and its mirrored fill template (docs/defect.md)")
+    if not command:
+        group.add_argument(
+            "--defect", action="store_true",
+            help="also find the bone's one-sided defect: implant.stl, defect.json, a template node in the GLB files",
+        )  # fmt: skip
+    group.add_argument("--hint-side", choices=SIDES, help="the defect is on the patient's left or right")
+    group.add_argument("--hint-point", type=_point, metavar="L,P,S",
+                       help="a point in or next to the defect, mm in the patient frame (LPS): toward the patient's "
+                       "left, posterior, superior, as model.stl's x, y, z")  # fmt: skip
+    prefix = "--" if command else "--defect-"
+    group.add_argument(f"{prefix}min-volume", dest="defect_min_volume", type=float, metavar="MM3",
+                       help="smallest defect reported (default: the rule)")  # fmt: skip
+    group.add_argument(f"{prefix}max-faces", dest="defect_max_faces", type=int, default=DEFAULT_MAX_FACES,
+                       help="decimate the implant to at most this many triangles (default %(default)s)")  # fmt: skip
+
+
+def defect_params(args: argparse.Namespace) -> DefectParams:
+    """The ``DefectParams`` of the defect's arguments.
+
+    Raises:
+        InputError: a value ``DefectParams`` refuses (exit code 2).
+    """
+    from engine.defect.params import DefectParams
+
+    try:
+        return DefectParams(
+            side=args.hint_side,
+            point_lps_mm=args.hint_point,
+            min_volume_mm3=args.defect_min_volume,
+            max_faces=args.defect_max_faces,
+        )
+    except ValueError as exc:
+        raise InputError(str(exc)) from None

@@ -2,7 +2,7 @@
 
     bonemesh defect SCAN [-o OUTDIR] [--voxel-size Z,Y,X] [--iso V | --preset bone [--hu-offset N]]
                     [--first-slice superior|inferior] [--flip-lr] [--flip-ap] [--hint-side left|right]
-                    [--hint-point X,Y,Z] [--min-volume MM3] [--max-faces N] [--device ...]
+                    [--hint-point L,P,S] [--min-volume MM3] [--max-faces N] [--device ...]
     bonemesh defect --demo -o OUTDIR     (the bundled headsq head: no defect, a clear refusal)
 
 Writes ``OUTDIR/implant.stl`` (binary STL, mm, the patient frame of ``model.stl``) and ``OUTDIR/defect.json``, and
@@ -15,29 +15,26 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import math
+import json
+import os
 import time
 from pathlib import Path
 from typing import Any
 
-from engine.cli.args import add_level_args, add_orient_args, orient_params, voxel_size_zyx
+from engine.cli.args import (
+    add_defect_args,
+    add_level_args,
+    add_orient_args,
+    defect_params,
+    orient_params,
+    voxel_size_zyx,
+)
 from engine.errors import InputError
-
-
-def _point(text: str) -> tuple[float, float, float]:
-    try:
-        vals = tuple(float(p) for p in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected X,Y,Z in mm (patient frame, LPS), got {text!r}") from None
-    if len(vals) != 3 or not all(math.isfinite(v) for v in vals):
-        raise argparse.ArgumentTypeError(f"expected three finite numbers X,Y,Z in mm, got {text!r}")
-    return vals  # type: ignore[return-value]
+from engine.export.files import DEFECT_JSON, IMPLANT_STL
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``bonemesh defect`` on an ``argparse`` subparsers object (defaults from ``DefectParams``)."""
-    from engine.defect.params import DEFAULT_MAX_FACES, SIDES
-
     p = subparsers.add_parser(
         "defect", help="the bone defect: its symmetry plane, size and a mirrored fill template (implant.stl)"
     )
@@ -49,12 +46,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     size.add_argument("--spacing", dest="spacing", type=voxel_size_zyx, metavar="Z,Y,X", help="same as --voxel-size")
     add_level_args(p)
     add_orient_args(p)
-    p.add_argument("--hint-side", choices=SIDES, help="the defect is on the patient's left or right")
-    p.add_argument("--hint-point", type=_point, metavar="X,Y,Z",
-                   help="a point in or next to the defect, patient frame (LPS) mm")  # fmt: skip
-    p.add_argument("--min-volume", type=float, metavar="MM3", help="smallest defect reported (default: the rule)")
-    p.add_argument("--max-faces", type=int, default=DEFAULT_MAX_FACES,
-                   help="decimate the implant to at most this many triangles (default %(default)s)")  # fmt: skip
+    add_defect_args(p, command=True)
     p.add_argument("--device", default="auto", help="auto, cpu, cuda[:N] or opencl[:N] (default auto)")
     p.add_argument("--demo", action="store_true", help="use the bundled VTK headsq CT head")
     return p
@@ -74,19 +66,21 @@ def _output(args: argparse.Namespace) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    """``bonemesh defect``: find the defect, write its files, print the summary. Returns the exit code (0)."""
+    """``bonemesh defect``: find the defect on the scan as a job's model sees it (``engine.job.plans.prepare_volume``:
+    the level, bone inside the body outline), as ``reconstruct --defect`` and a job with ``defect`` do, write its
+    files, print the summary. Returns the exit code (0); a refusal (no defect, one across the midline, no symmetry)
+    exits 2 with its reason."""
     from engine.cli.args import load_input
-    from engine.defect import DefectParams, write_defect
-    from engine.defect import run as find_defect
-    from engine.level import resolve_level
+    from engine.defect.step import find_defect, measured_on
+    from engine.job.plans import prepare_volume
+    from engine.job.runtime import resolve_runtime
     from engine.params import IsoParams, ReconParams
 
     out = _output(args)
+    params = defect_params(args)
     try:
-        params = DefectParams(
-            side=args.hint_side, point_lps_mm=args.hint_point, min_volume_mm3=args.min_volume, max_faces=args.max_faces
-        )
         iso = IsoParams(iso=args.iso, preset=args.preset, hu_offset=args.hu_offset)
+        runtime = resolve_runtime(args.device)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     volume, demo_level = load_input(args)
@@ -97,13 +91,30 @@ def run(args: argparse.Namespace) -> int:
         orient = dataclasses.replace(orient, first_slice=HEADSQ_FIRST_SLICE)
         if args.iso is None and args.preset is None:
             iso = dataclasses.replace(iso, iso=demo_level)
-    choice = resolve_level(volume, ReconParams(iso=iso, orient=orient))
+    prepared = prepare_volume(volume, ReconParams(iso=iso, orient=orient))  # a job's defaults: as its model
+    choice = prepared.choice
+    on = measured_on(orient, dict(choice.report(prepared.volume.units)), prepared.body)
     t0 = time.perf_counter()
-    result = find_defect(volume, params, choice.value, args.device, orient=orient)
+    outcome = find_defect(prepared.volume, params, choice.value, runtime.backend, orient, on)
     seconds = time.perf_counter() - t0
-    paths = write_defect(result, out)
-    _summary(result.to_json(), choice, paths, seconds)
+    if outcome.result is None:
+        raise InputError((outcome.refusal or {}).get("message", "no defect found"))
+    paths = _write(outcome.files(), out)
+    _summary(json.loads(paths[DEFECT_JSON].read_bytes()), choice, paths, seconds)
     return 0
+
+
+def _write(files: dict[str, bytes], out: Path) -> dict[str, Path]:
+    """The defect's files into ``out``, each written beside and renamed (no partial file), in name order."""
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {}
+    for name in sorted(files, key=lambda n: n != IMPLANT_STL):  # implant.stl, then defect.json
+        path = out / name
+        tmp = path.with_name(f".{name}.part")
+        tmp.write_bytes(files[name])
+        os.replace(tmp, path)
+        paths[name] = path
+    return paths
 
 
 def _summary(info: dict[str, Any], choice: Any, paths: dict[str, Path], seconds: float) -> None:

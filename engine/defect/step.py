@@ -29,16 +29,19 @@ VIEW_SHARE, VIEW_MIN_FACES = 0.1, 2_000
 
 @dataclass
 class DefectOutcome:
-    """What the defect step found: a ``result`` (the template) or a ``refusal`` (``{"code", "message"}``)."""
+    """What the defect step found: a ``result`` (the template) or a ``refusal`` (``{"code", "message"}``), and what
+    it was measured on (``measured_on``: ``measured_on()``, written into defect.json and the report)."""
 
     result: DefectResult | None
     refusal: dict[str, str] | None
     seconds: float
+    measured_on: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
         """``report.json``'s ``defect`` block: found or not, the refusal, or the template's size and plane."""
+        on = {} if self.measured_on is None else {"measured_on": self.measured_on}
         if self.result is None:
-            return {"found": False, **(self.refusal or {}), "seconds": round(self.seconds, 4)}
+            return {"found": False, **(self.refusal or {}), **on, "seconds": round(self.seconds, 4)}
         info = self.result.to_json()
         keep = ("side", "volume_mm3", "area_mm2", "slices", "rim")
         return {
@@ -46,14 +49,16 @@ class DefectOutcome:
             **{k: info["defect"][k] for k in keep},
             "plane_residual_mm": info["plane"]["residual_mm"],
             "implant_faces": info["implant"]["faces"],
+            **on,
             "seconds": round(self.seconds, 4),
         }
 
     def files(self) -> dict[str, bytes]:
         """The step's files by name: ``defect.json`` always, ``implant.stl`` with a template."""
+        on = {} if self.measured_on is None else {"measured_on": self.measured_on}
         if self.result is None:
-            return {DEFECT_JSON: defect_json({"format": FORMAT, "found": False, **(self.refusal or {})})}
-        return {DEFECT_JSON: defect_json(self.result.to_json()), IMPLANT_STL: implant_stl(self.result)}
+            return {DEFECT_JSON: defect_json({"format": FORMAT, "found": False, **(self.refusal or {}), **on})}
+        return {DEFECT_JSON: defect_json({**self.result.to_json(), **on}), IMPLANT_STL: implant_stl(self.result)}
 
     def part(self, centre_zyx_mm: Any, max_faces: int | None, device: Any = "auto") -> Any:
         """The template as a glTF ``Part`` centred as the model's glTF files are (``centre_zyx_mm`` subtracted),
@@ -75,7 +80,23 @@ def view_faces(budget: int) -> int:
     return max(VIEW_MIN_FACES, int(budget * VIEW_SHARE))
 
 
-def find_defect(volume: Any, params: DefectParams, level: float, device: Any, orient: Any) -> DefectOutcome:
+def measured_on(orient: Any, level: dict[str, Any], body: dict[str, Any] | None) -> dict[str, Any]:
+    """What a defect was measured on, for defect.json: the stack's orientation (``OrientParams``: a DICOM series is
+    placed by its headers), the level (``LevelChoice.report``) and the scan it was found in (bone inside the body
+    outline, or the whole scan)."""
+    import dataclasses
+
+    applied = bool(body and body.get("applied"))
+    return {
+        "orientation": dataclasses.asdict(orient) if orient is not None else None,
+        "level": level,
+        "scan": "bone inside the body outline" if applied else "the whole scan",
+    }
+
+
+def find_defect(
+    volume: Any, params: DefectParams, level: float, device: Any, orient: Any, on: dict[str, Any] | None = None
+) -> DefectOutcome:
     """``engine.defect.run`` at the model's level; its refusals (``REFUSALS``) become the outcome's ``refusal``.
 
     Raises:
@@ -88,5 +109,5 @@ def find_defect(volume: Any, params: DefectParams, level: float, device: Any, or
         result = run(volume, params, level, device, orient=orient)
     except tuple(kind for kind, _ in REFUSALS) as exc:
         code = next(code for kind, code in REFUSALS if isinstance(exc, kind))
-        return DefectOutcome(None, {"code": code, "message": str(exc)}, time.perf_counter() - t0)
-    return DefectOutcome(result, None, time.perf_counter() - t0)
+        return DefectOutcome(None, {"code": code, "message": str(exc)}, time.perf_counter() - t0, on)
+    return DefectOutcome(result, None, time.perf_counter() - t0, on)

@@ -216,11 +216,12 @@ def _defect_step(st: State, params: ReconParams, report: Report, dev: Any) -> An
     the body), at the model's level, when ``params.defect`` asks; None otherwise."""
     if params.defect is None:
         return None
-    from engine.defect.step import find_defect
+    from engine.defect.step import find_defect, measured_on
 
     t0 = time.perf_counter()
+    on = measured_on(params.orient, dict(report["iso_level"]), report.get("body_mask"))
     try:
-        outcome = find_defect(st.volume, params.defect, st.level, dev, params.orient)
+        outcome = find_defect(st.volume, params.defect, st.level, st.backend, params.orient, on)
     except InputError:
         raise
     except Exception as exc:

@@ -62,19 +62,42 @@ class State:
 Stage = Callable[[State, ReconParams, Report, Progress], None]
 
 
-def _preprocess(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
-    from engine.orient import patient_frame
+@dataclass
+class Prepared:
+    """The scan as the model sees it (``prepare_volume``): preprocessed and, on HU data, bone of the body only; the
+    level chosen once; the body mask's report (None without one)."""
+
+    volume: Volume
+    choice: LevelChoice
+    body: dict[str, Any] | None
+
+
+def prepare_volume(volume: Volume, params: ReconParams) -> Prepared:
+    """The paper's slice preprocessing (when asked), the level (given, a preset, or automatic: ``engine.level``) and
+    the bone inside the body outline (``params.body``, HU data: ``engine.volume.bodymask``): what the model and the
+    defect (the pipeline's stage and ``bonemesh defect`` alike) are made from."""
     from engine.volume.preprocess import preprocess_volume
 
     if params.preprocess is not None:
-        st.volume = preprocess_volume(st.volume, params.preprocess)
-    report["counts"]["voxels"] = int(st.volume.data.size)
-    report["frame"] = patient_frame(st.volume, params.orient).to_dict()  # engine.orient: STL/glTF frames
-    st.choice = resolve_level(st.volume, params)  # given, a preset, or automatic (HU + offset detected: bone)
-    if params.body is not None:  # bone of the body only (HU data): engine.volume.bodymask
+        volume = preprocess_volume(volume, params.preprocess)
+    choice = resolve_level(volume, params)
+    body = None
+    if params.body is not None:
         from engine.volume.bodymask import isolate_bone
 
-        st.volume, report["body_mask"] = isolate_bone(st.volume, st.choice.value, params.body, st.choice.hu_offset)
+        volume, body = isolate_bone(volume, choice.value, params.body, choice.hu_offset)
+    return Prepared(volume, choice, body)
+
+
+def _preprocess(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
+    from engine.orient import patient_frame
+
+    prepared = prepare_volume(st.volume, params)
+    report["counts"]["voxels"] = int(prepared.volume.data.size)
+    report["frame"] = patient_frame(prepared.volume, params.orient).to_dict()  # engine.orient: STL/glTF frames
+    st.volume, st.choice = prepared.volume, prepared.choice
+    if prepared.body is not None:
+        report["body_mask"] = prepared.body
     report["warnings"] = model_warnings(st.volume, st.choice)  # voxel size order, a skin surface (engine.level)
 
 
