@@ -47,6 +47,7 @@ ACTIVE = ("queued", "running")
 TERMINAL = ("succeeded", "failed", "cancelled")
 OPEN = "running"  # the outcome of an attempt not ended yet
 LOST = "lost"  # the outcome of an attempt whose worker stopped (killed, or silent past the staleness limit)
+OUTAGE = "outage"  # the outcome of an attempt given back because the database or the store was down
 ORIENTING = "orienting"  # the stage of a succeeded job whose outputs are being re-oriented (worker.tasks.orient_job)
 
 
@@ -277,6 +278,25 @@ class Database:
             if res.rowcount == 1:
                 _end_attempts(s, job_id, LOST)
             return res.rowcount == 1
+
+    def release(self, job_id: str, worker: str, stage: str) -> bool:
+        """Put a job this ``worker`` holds back in the queue because something it depends on is down (an outage, not
+        the worker's doing: its attempt ends as ``outage``, not counted against ``max_attempts``); ``stage`` says what
+        it waits for. False when the worker no longer holds it."""
+        with self.session() as s:
+            res = s.execute(
+                update(Job)
+                .where(Job.id == job_id, Job.state == "running", Job.worker == worker)
+                .values(state="queued", stage=stage, worker=None)
+            )
+            if res.rowcount == 1:
+                _end_attempts(s, job_id, OUTAGE, worker)
+            return res.rowcount == 1
+
+    def outages(self, job_id: str) -> int:
+        """How often the job was given back for an outage (``release``)."""
+        with self.session() as s:
+            return int(s.scalar(select(func.count()).where(Attempt.job_id == job_id, Attempt.outcome == OUTAGE)) or 0)
 
     def start_orient(self, job_id: str, stale_before: dt.datetime) -> bool:
         """Mark a succeeded job as being re-oriented (``stage="orienting"``; it stays succeeded, its files

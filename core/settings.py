@@ -87,6 +87,15 @@ class Settings(BaseSettings):
         description="auto: plain grayscale PNG inflated on the host and unfiltered on the job's GPU (on a CPU: "
         "libpng); libpng: libpng on the host; pillow: every PNG through Pillow (slower)",
     )
+    outage_seconds: float = Field(
+        default=60.0,
+        ge=0,
+        description="a worker retries a store or database call this long (backoff with jitter) before it re-queues "
+        "the job; 0: at once",
+    )
+    outage_requeues: int = Field(
+        default=3, ge=0, le=100, description="a job re-queued this often for an outage fails with its code"
+    )
     job_soft_time_limit: int = 3600
     job_time_limit: int = 3900
     max_attempts: int = 3

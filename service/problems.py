@@ -19,6 +19,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from core.faults import RETRY_AFTER_SECONDS, Outage, outage_of
 from core.logsafe import escape_control, safe_logger
 
 log = safe_logger("bonemesh.api")
@@ -53,11 +54,22 @@ def title_of(status: int) -> str:
         return "Error"
 
 
+def problem_type(code: str) -> str:
+    """The stable URI of a problem type (``urn:bonemesh:problem:<code>``, listed in docs/storage.md)."""
+    return f"urn:bonemesh:problem:{code}"
+
+
 def problem_response(
-    status: int, detail: str, *, title: str | None = None, headers: dict[str, str] | None = None, **extra: Any
+    status: int,
+    detail: str,
+    *,
+    title: str | None = None,
+    headers: dict[str, str] | None = None,
+    type: str = "about:blank",
+    **extra: Any,
 ) -> JSONResponse:
     """A problem+json response."""
-    body = {"type": "about:blank", "title": title or title_of(status), "status": status}
+    body = {"type": type, "title": title or title_of(status), "status": status}
     body["detail"] = escape_control(detail)
     return JSONResponse({**body, **extra}, status_code=status, media_type=PROBLEM, headers=headers)
 
@@ -122,11 +134,32 @@ class LastResort:
 
         try:
             await self.app(scope, receive, _send)
-        except Exception:
+        except Exception as exc:
+            outage = outage_of(exc)
+            if outage is not None:  # transient: the database or the store is down for now (core.faults)
+                log.warning(
+                    "%s %s: %s unreachable (%s)", scope.get("method"), scope.get("path"), outage.kind, outage.seen
+                )
+                if not started:
+                    await outage_response(outage)(scope, receive, send)
+                return
             log.exception("unexpected error answering %s %s", scope.get("method"), scope.get("path"))
             if not started:
                 detail = "the server met an unexpected error; it is logged, and the request was not carried out"
                 await problem_response(500, detail)(scope, receive, send)
+
+
+def outage_response(outage: Outage) -> JSONResponse:
+    """503 with ``Retry-After`` and the outage's own problem type (``database_unavailable``, ``storage_unavailable``):
+    nothing was done, the same request can be sent again."""
+    what = "the job database" if outage.kind == "database" else "the file store"
+    return problem_response(
+        503,
+        f"{what} is unreachable for the moment ({outage.seen}); nothing was done: try again in {RETRY_AFTER_SECONDS} s",
+        headers={"Retry-After": str(RETRY_AFTER_SECONDS)},
+        type=problem_type(outage.code),
+        code=outage.code,
+    )
 
 
 def fix_openapi(schema: dict[str, Any]) -> dict[str, Any]:

@@ -70,9 +70,10 @@ class AttemptOut(BaseModel):
     host: str = Field(description="the host the worker ran on")
     started_at: dt.datetime
     finished_at: dt.datetime | None
-    outcome: Literal["running", "succeeded", "failed", "cancelled", "lost"] = Field(
-        description="running (not ended yet), succeeded, failed, cancelled, or lost (its worker stopped, killed or "
-        "silent, and the job went to another attempt)"
+    outcome: Literal["running", "succeeded", "failed", "cancelled", "lost", "outage"] = Field(
+        description="running (not ended yet), succeeded, failed, cancelled, lost (its worker stopped, killed or "
+        "silent, and the job went to another attempt), or outage (the database or the file store was unreachable: "
+        "the job went back to the queue, and this attempt does not count against the job's limit)"
     )
 
 

@@ -5,10 +5,12 @@ the job claimed or finished and does nothing; a rerun after a killed worker rebu
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime as dt
 import functools
 import os
+import random
 import socket
 import threading
 import uuid
@@ -18,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 from celery.exceptions import SoftTimeLimitExceeded
 
 from core.db import Database, utcnow
+from core.faults import Outage, outage_of, retrying
 from core.logsafe import escape_control, relabel, safe_logger
 from core.settings import Settings, get_settings
 from core.storage import is_storage_full, scrub_exception, scrub_paths, storage_from_settings, version_of
@@ -115,13 +118,14 @@ def reconstruct_job(self: Any, job_id: str) -> str:
     if job is None:
         log.info("job %s: already taken, finished or cancelled; message dropped", job_id)
         return "skipped"
-    if job.attempts > settings.max_attempts:
+    lost = job.attempts - db.outages(job_id)  # attempts given back for an outage are not the worker's doing
+    if lost > settings.max_attempts:
         db.finish(
             job_id,
             worker,
             "failed",
             error_code="worker_lost",
-            error_message=f"the job stopped its worker {job.attempts - 1} times (out of memory or a crash); "
+            error_message=f"the job stopped its worker {lost - 1} times (out of memory or a crash); "
             "try a smaller scan or crop it",
         )
         return "failed"
@@ -142,14 +146,22 @@ def reconstruct_job(self: Any, job_id: str) -> str:
             timer.lap("release")
             if holder.lost.is_set():
                 raise Cancelled(job_id)
-            version = storage.publish(job_id, staged)  # invisible until the commit below records it
-            timer.lap("publish")
+            within = settings.outage_seconds  # the store or the database down for a moment: tried again (core.faults)
+            ready = staged
+            version = retrying(lambda: storage.publish(job_id, ready), within=within, doing="publishing the models")
+            timer.lap("publish")  # invisible until the commit below records it
             staged = None
             outputs = [{**o, "version": version} for o in outputs]
-            if not db.finish(job_id, worker, "succeeded", outputs=outputs, stage="done", progress=100.0):
+            done = retrying(
+                lambda: db.finish(job_id, worker, "succeeded", outputs=outputs, stage="done", progress=100.0),
+                within=within,
+                doing="recording the job's success",
+            )
+            if not done:
                 raise Cancelled(job_id)
             timer.lap("finish")
-            storage.retire(job_id, keep=version)
+            with contextlib.suppress(Exception):  # older versions: removed now, or by the next attempt or deletion
+                storage.retire(job_id, keep=version)
             timer.lap("retire")
         return "succeeded"
     except Cancelled:
@@ -172,6 +184,9 @@ def reconstruct_job(self: Any, job_id: str) -> str:
         if staged is not None:  # free the space before recording the failure (the disk may be full)
             storage.drop_staging(staged)
             staged = None
+        outage = outage_of(exc)
+        if outage is not None:  # transient: given back to the queue, or failed with its own code once bounded
+            return _outage(self, db, storage, job_id, worker, outage, settings)
         code, message = _explain(scrub_exception(exc, labels), job.upload_name)
         message = scrub_paths(message, labels)  # no server path in what a client reads
         if code == "internal_error":
@@ -184,6 +199,30 @@ def reconstruct_job(self: Any, job_id: str) -> str:
         if staged is not None:
             storage.drop_staging(staged)
         timer.log(job)
+
+
+def _outage(task: Any, db: Database, storage: Any, job_id: str, worker: str, outage: Outage, settings: Settings) -> str:
+    """The database or the store stayed down past ``outage_seconds``: the job goes back to the queue and its message
+    is sent again after a backoff (an attempt that ends so is not counted against ``max_attempts``); after
+    ``outage_requeues`` of them it fails with the outage's code (``database_unavailable``, ``storage_unavailable``),
+    and its half-published versions are removed. Where the database itself is down, nothing can be recorded: the
+    message comes back once the job's heartbeat is stale, and a worker claims it then."""
+    try:
+        given_back = db.outages(job_id)
+        if given_back >= settings.outage_requeues:
+            log.warning("job %s failed: %s still unreachable after %d re-queues", job_id, outage.kind, given_back)
+            db.finish(job_id, worker, "failed", error_code=outage.code, error_message=outage.message())
+            with contextlib.suppress(Exception):
+                storage.retire(job_id, keep="")  # no version of a failed job is whole
+            return "failed"
+        db.release(job_id, worker, stage=f"waiting: the {outage.kind} is unreachable")
+        delay = min(settings.outage_seconds * 2**given_back, 900.0) + random.uniform(0, 5)
+    except Exception as exc:  # the database is down too: the heartbeat stops, the job becomes claimable when stale
+        log.warning("job %s: could not record the %s outage (%s)", job_id, outage.kind, type(exc).__name__)
+        delay = settings.stale_seconds + random.uniform(1, 5)
+    log.info("job %s: %s unreachable (%s); re-queued, again in %.0f s", job_id, outage.kind, outage.seen, delay)
+    task.apply_async(args=[job_id], task_id=job_id, countdown=delay, queue=settings.queue)
+    return "requeued"
 
 
 def _run(
@@ -212,10 +251,13 @@ def _run(
         upload, staged, spec, runtime_of(settings), on_progress=laps, label="upload", shares=(LOAD_END, PIPELINE_END)
     )
     timer.lap("write_files")
-    if result.plan == "scan":  # PACS jobs: Encapsulated STL (worker.pacs)
-        extra = write_dicom_model(db, job.id, upload, staged, result.volume)  # type: ignore[arg-type]
-    else:  # PACS: one Encapsulated STL per label
-        extra = write_dicom_labels(db, job.id, upload, staged, result.report, result.volume)
+
+    def dicom_files() -> dict[str, Path]:  # a PACS job's Encapsulated STL (worker.pacs; reads its PACS records)
+        if result.plan == "scan":
+            return write_dicom_model(db, job.id, upload, staged, result.volume)  # type: ignore[arg-type]
+        return write_dicom_labels(db, job.id, upload, staged, result.report, result.volume)  # one per label
+
+    extra = retrying(dicom_files, within=settings.outage_seconds, doing="writing the DICOM model")
     timer.lap("dicom_files")
     return _described({**result.paths, **extra}, result.report)
 

@@ -60,6 +60,16 @@ class SeaweedServer:
     def endpoint(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
+    def stop(self) -> None:
+        """Stop the server (its data kept): the store is down until ``restart``."""
+        if self.proc is not None:
+            self.proc.stop(grace=1)
+            self.proc = None
+
+    def restart(self) -> None:
+        """Start the stopped server again on the same ports and data (buckets and objects as they were)."""
+        self._start()
+
     def _start(self) -> None:
         config = self.root / "s3.json"
         identity = {
@@ -68,10 +78,12 @@ class SeaweedServer:
             "actions": ["Admin", "Read", "Write", "List", "Tagging"],
         }
         config.write_text(json.dumps({"identities": [identity]}))
-        ports = {name: free_port() for name in ("master", "volume", "filer")}
-        grpc = {name: free_port() for name in ("master", "volume", "filer", "s3")}
+        if not hasattr(self, "ports"):  # the same ports on a restart: the volume server is known by its address
+            self.ports = {name: free_port() for name in ("master", "volume", "filer")}
+            self.grpc = {name: free_port() for name in ("master", "volume", "filer", "s3")}
+        ports, grpc = self.ports, self.grpc
         data = self.root / "data"
-        data.mkdir()
+        data.mkdir(exist_ok=True)
         argv = [self.weed, "server", f"-dir={data}", "-ip=127.0.0.1", "-ip.bind=127.0.0.1"]
         argv += [f"-{name}.port={port}" for name, port in ports.items()]
         argv += [f"-{name}.port.grpc={port}" for name, port in grpc.items()]
