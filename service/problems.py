@@ -162,15 +162,26 @@ def outage_response(outage: Outage) -> JSONResponse:
     )
 
 
+OUTAGE_DESCRIPTION = (
+    "the job database or the file store is unreachable for the moment (problem type "
+    "urn:bonemesh:problem:database_unavailable or urn:bonemesh:problem:storage_unavailable); nothing was done"
+)
+RETRY_AFTER_HEADER = {
+    "Retry-After": {"description": "seconds to wait before sending the same request", "schema": {"type": "integer"}}
+}
+
+
 def fix_openapi(schema: dict[str, Any]) -> dict[str, Any]:
-    """Declare every error response as problem+json (FastAPI writes application/json), add the last-resort 500 to
-    every operation, and drop the validation-error schemas FastAPI adds (the 422s are problems too)."""
+    """Declare every error response as problem+json (FastAPI writes application/json), add the last-resort 500 and
+    the outage's 503 (with ``Retry-After``) to every operation, and drop the validation-error schemas FastAPI adds (the 422s are problems too)."""
     components = schema.setdefault("components", {}).setdefault("schemas", {})
     components["Problem"] = ProblemBody.model_json_schema()
     for ops in schema.get("paths", {}).values():
         for op in ops.values():
             responses = op.setdefault("responses", {})
             responses.setdefault("500", {"description": "unexpected error (problem document, no traceback)"})
+            if not op.get("operationId", "").startswith(("health", "ready", "live")):
+                responses.setdefault("503", {"description": OUTAGE_DESCRIPTION, "headers": RETRY_AFTER_HEADER})
             for code, response in responses.items():
                 if code[0] in "45" and _generated(response.get("content")):
                     response["content"] = {PROBLEM: {"schema": PROBLEM_REF}}
