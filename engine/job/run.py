@@ -63,7 +63,7 @@ def run_job(
             with a message naming ``label``; nothing is written.
         StageError: a stage failed otherwise.
     """
-    progress = on_progress or _quiet
+    job = _Job(Path(outdir), spec, runtime, on_progress or _quiet, shares)
     inp = spec.input
     found = None
     if not isinstance(source, Volume) and inp.kind != "scan" and inp.pieces is None:
@@ -73,13 +73,24 @@ def run_job(
     elif isinstance(source, Volume) and inp.kind == "labels":
         raise InputError(f"{label} is a loaded scan, not a label map")
     if found is not None:
-        return _label_map(source, found, outdir, spec, runtime, progress, label, shares)
+        return _label_map(job, source, found, label)
     if inp.segments and inp.pieces is None:
         raise InputError("segments picks among a label map's segments (or a CT's pieces); this upload is a CT scan")
-    volume = _load(source, spec, runtime, progress, shares[0])
+    volume = _load(job, source)
     if inp.pieces is not None:
-        return _pieces(volume, outdir, spec, runtime, progress, shares)
-    return _scan(volume, outdir, spec, runtime, progress, shares)
+        return _pieces(job, volume)
+    return _scan(job, volume)
+
+
+@dataclass(frozen=True)
+class _Job:
+    """What every step of one job reads: where the files go, the spec, the runtime, its progress and shares."""
+
+    outdir: Path
+    spec: JobSpec
+    runtime: Runtime
+    progress: OnProgress
+    shares: tuple[float, float]
 
 
 def _quiet(stage: str, fraction: float) -> None:
@@ -100,8 +111,9 @@ class _Steps:
             self.progress(self.stage, done)
 
 
-def _load(source: str | Path | Volume, spec: JobSpec, runtime: Runtime, progress: OnProgress, end: float) -> Volume:
+def _load(job: _Job, source: str | Path | Volume) -> Volume:
     """The scan, loaded on the runtime's decoders (``engine.io.load_volume``) and cropped to the roi."""
+    spec, runtime, progress, end = job.spec, job.runtime, job.progress, job.shares[0]
     if isinstance(source, Volume):
         volume = source
     else:
@@ -125,76 +137,46 @@ def _load(source: str | Path | Volume, spec: JobSpec, runtime: Runtime, progress
     return volume
 
 
-def _scan(
-    volume: Volume,
-    outdir: str | Path,
-    spec: JobSpec,
-    runtime: Runtime,
-    progress: OnProgress,
-    shares: tuple[float, float],
-) -> JobResult:
+def _scan(job: _Job, volume: Volume) -> JobResult:
     """The EMC33 pipeline and its files (the defect as one of its stages)."""
     from engine.job.outputs import write_outputs
     from engine.job.pipeline import reconstruct
 
-    load_end, mesh_end = shares
+    load_end, mesh_end = job.shares
 
     def within(stage: str, fraction: float) -> None:
-        progress(stage, load_end + (mesh_end - load_end) * fraction)
+        job.progress(stage, load_end + (mesh_end - load_end) * fraction)
 
-    device, budget = runtime.backend, runtime.budget
-    recon = reconstruct(volume, spec.recon, device=device, on_progress=within, max_device_bytes=budget)
-    progress("writing", mesh_end)
-    paths = write_outputs(recon, outdir, spec.recon, device=device, max_device_bytes=budget)
-    return JobResult("scan", paths, dict(recon.report), volume)
+    device, budget, recon = job.runtime.backend, job.runtime.budget, job.spec.recon
+    result = reconstruct(volume, recon, device=device, on_progress=within, max_device_bytes=budget)
+    job.progress("writing", mesh_end)
+    paths = write_outputs(result, job.outdir, recon, device=device, max_device_bytes=budget)
+    return JobResult("scan", paths, dict(result.report), volume)
 
 
-def _label_map(
-    source: Any,
-    found: Any,
-    outdir: str | Path,
-    spec: JobSpec,
-    runtime: Runtime,
-    progress: OnProgress,
-    label: str,
-    shares: tuple[float, float],
-) -> JobResult:
+def _label_map(job: _Job, source: Any, found: Any, label: str) -> JobResult:
     """A model per label of a label map (cropped to the roi; only the segments asked for)."""
     from engine.labels.pieces import crop_roi
     from engine.labels.uploads import read_label_upload
 
     lv = read_label_upload(source, found, label)
-    if spec.input.roi is not None:
-        lv = crop_roi(lv, spec.input.roi, spec.recon.orient)
-    paths, report = _label_models(lv, outdir, spec, runtime, progress, shares)
+    if job.spec.input.roi is not None:
+        lv = crop_roi(lv, job.spec.input.roi, job.spec.recon.orient)
+    paths, report = _label_models(job, lv)
     return JobResult("labels", paths, report)
 
 
-def _pieces(
-    volume: Volume,
-    outdir: str | Path,
-    spec: JobSpec,
-    runtime: Runtime,
-    progress: OnProgress,
-    shares: tuple[float, float],
-) -> JobResult:
+def _pieces(job: _Job, volume: Volume) -> JobResult:
     """A scan's largest bone pieces, each its own part."""
     from engine.labels.pieces import bone_pieces
 
-    assert spec.input.pieces is not None
-    lv = bone_pieces(volume, spec.recon, spec.input.pieces)
-    paths, report = _label_models(lv, outdir, spec, runtime, progress, shares)
+    assert job.spec.input.pieces is not None
+    lv = bone_pieces(volume, job.spec.recon, job.spec.input.pieces)
+    paths, report = _label_models(job, lv)
     return JobResult("pieces", paths, report, volume)
 
 
-def _label_models(
-    lv: Any,
-    outdir: str | Path,
-    spec: JobSpec,
-    runtime: Runtime,
-    progress: OnProgress,
-    shares: tuple[float, float],
-) -> tuple[dict[str, Path], dict[str, Any]]:
+def _label_models(job: _Job, lv: Any) -> tuple[dict[str, Path], dict[str, Any]]:
     """Mesh every label (``engine.labels.parts.label_models``) and write a label job's files."""
     import json
 
@@ -203,14 +185,15 @@ def _label_models(
     from engine.labels.parts import label_models
     from engine.labels.pieces import select_segments
 
+    spec, device = job.spec, job.runtime.backend
     if spec.input.segments:
         lv = select_segments(lv, list(spec.input.segments))
-    progress("labels", shares[0])
-    models = label_models(lv, spec.recon, device=runtime.backend, orient=spec.recon.orient)
-    progress("writing", shares[1])
+    job.progress("labels", job.shares[0])
+    models = label_models(lv, spec.recon, device=device, orient=spec.recon.orient)
+    job.progress("writing", job.shares[1])
     extra = {"input": _label_input(lv)}
     paths = write_label_outputs(
-        models, outdir, spec.recon, device=runtime.backend, extra=extra, stl_folder=spec.outputs.label_stl_folder
+        models, job.outdir, spec.recon, device=device, extra=extra, stl_folder=spec.outputs.label_stl_folder
     )
     return paths, json.loads(paths[REPORT_JSON].read_text())
 

@@ -462,3 +462,23 @@ def pacs_client(pacs: Any) -> Iterator[httpx.Client]:
     """A client of the PACS environment's API with the first API key."""
     with pacs.stack.client(API_KEYS[0]) as c:
         yield c
+
+
+# -- the page in a real browser (tests marked ``browser``) -----------------------------------------------------
+@pytest.fixture(scope="module")
+def chromium_paths() -> tuple[str, str]:
+    """Debian's Chromium and its driver (skipped, with the reason, where they cannot be installed)."""
+    from tests.service.browser import find_chromium
+
+    paths = find_chromium()
+    if isinstance(paths, str):
+        pytest.skip(paths)
+    return paths
+
+
+@pytest.fixture(scope="module")
+def artefacts(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Where the browser tests keep their screenshots (printed by the tests that write them)."""
+    folder = tmp_path_factory.getbasetemp() / "artefacts"
+    folder.mkdir(exist_ok=True)
+    return folder

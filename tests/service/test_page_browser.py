@@ -17,26 +17,11 @@ import numpy as np
 import pytest
 
 from engine.export.files import FILES
-from tests.service.browser import find_chromium, start_chromium
+from tests.service.browser import start_chromium
 from tests.service.conftest import HEADSQ
 from tests.service.procs import ServiceStack, wait_for_job, wait_until
 
 pytestmark = pytest.mark.browser
-
-
-@pytest.fixture(scope="module")
-def chromium_paths() -> tuple[str, str]:
-    paths = find_chromium()
-    if isinstance(paths, str):
-        pytest.skip(paths)
-    return paths
-
-
-@pytest.fixture(scope="module")
-def artefacts(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    folder = tmp_path_factory.getbasetemp() / "artefacts"
-    folder.mkdir(exist_ok=True)
-    return folder
 
 
 def _js(driver: Any, script: str, *args: Any) -> Any:

@@ -27,7 +27,7 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.service.browser import find_chromium, start_chromium
+from tests.service.browser import start_chromium
 from tests.service.conftest import HEADSQ, slice_zip, sphere_volume
 from tests.service.procs import ServiceStack, wait_for_job, wait_until
 
@@ -74,21 +74,6 @@ CSP_WATCH = (
 )
 
 pytestmark = pytest.mark.browser
-
-
-@pytest.fixture(scope="module")
-def chromium_paths() -> tuple[str, str]:
-    paths = find_chromium()
-    if isinstance(paths, str):
-        pytest.skip(paths)
-    return paths
-
-
-@pytest.fixture(scope="module")
-def artefacts(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    folder = tmp_path_factory.getbasetemp() / "artefacts"
-    folder.mkdir(exist_ok=True)
-    return folder
 
 
 @pytest.fixture(scope="module")
