@@ -1,13 +1,19 @@
 # Sourced by demo.sh and test.sh: a virtual environment with the project (extras in $BONEMESH_EXTRAS), the
 # system libraries MeshLab needs, and redis-server (the broker), installed with apt-get where missing.
-python3 -m venv .venv
-.venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e ".${BONEMESH_EXTRAS:-}"
+# PYTHON: the interpreter the environment is made with (default python3; 3.11 to 3.13); VENV: its folder (default
+# .venv), e.g. PYTHON=~/.pyenv/versions/3.12.1/bin/python VENV=.venv312 bash scripts/test.sh
+# The versions come from constraints.txt (scripts/lock.py), as in the Docker image.
+PYTHON="${PYTHON:-python3}"
+VENV="${VENV:-.venv}"
+export VENV
+[ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV"
+"$VENV/bin/python" -m pip install -q --upgrade pip
+"$VENV/bin/python" -m pip install -q -c constraints.txt -e ".${BONEMESH_EXTRAS:-}"
 SUDO=""
 if [ "$(id -u)" != 0 ] && command -v sudo >/dev/null; then SUDO=sudo; fi
 need=""
 # MeshLab (pymeshlab, the decimation) needs the system's OpenGL loader where a slim image lacks it
-.venv/bin/python -c "import pymeshlab" 2>/dev/null || need="$need libgl1 libglib2.0-0"
+"$VENV/bin/python" -c "import pymeshlab" 2>/dev/null || need="$need libgl1 libglib2.0-0"
 command -v redis-server >/dev/null || need="$need redis-server"
 # the page's browser test drives Debian's headless Chromium; npm installs the page's pinned assets
 command -v chromium >/dev/null && command -v chromedriver >/dev/null || need="$need chromium chromium-driver"

@@ -8,4 +8,4 @@
 set -e
 cd "$(dirname "$0")/.."
 source scripts/_setup.sh
-exec .venv/bin/python -m service.demo "$@"
+exec "$VENV/bin/python" -m service.demo "$@"

@@ -6,7 +6,7 @@
 # run this script: tests/engine/test_typecheck.py).
 set -ex
 cd "$(dirname "$0")/.."
-.venv/bin/python -m mypy --strict --follow-imports=silent --ignore-missing-imports \
+"${VENV:-.venv}/bin/python" -m mypy --strict --follow-imports=silent --ignore-missing-imports \
     --untyped-calls-exclude=warp --untyped-calls-exclude=skimage \
     engine/__init__.py engine/_lazy.py engine/errors.py engine/types.py engine/params.py engine/budget.py \
     engine/device.py engine/backend/memory.py engine/level.py engine/orient.py engine/job/progress.py engine/staging.py \
