@@ -7,17 +7,24 @@
 # stops or dies, and a restarted or added replica takes the GPU that is free. The claimed GPU is the only one the
 # worker sees (CUDA_VISIBLE_DEVICES), as cuda:0, with a Warp kernel cache of its own.
 #
-# BONEMESH_DEVICE=cpu (the CPU worker) claims nothing. BONEMESH_GPUS overrides the GPU count (default: the
-# /dev/nvidiaN device nodes the NVIDIA runtime mounted). The Celery node name is bonemesh@<container hostname>, which
-# the compose health check pings.
+# BONEMESH_DEVICE=cpu (the CPU worker) and opencl[:N] (the OpenCL worker: a GPU's OpenCL driver or PoCL on the
+# CPU, engine.backend) claim no NVIDIA GPU and start without one. BONEMESH_GPUS overrides the GPU count (default:
+# the /dev/nvidiaN device nodes the NVIDIA runtime mounted). The Celery node name is bonemesh@<container hostname>,
+# which the compose health check pings.
 set -eu
 node="bonemesh@$(hostname)"
-if [ "${BONEMESH_DEVICE:-auto}" = "cpu" ]; then
-  exec bonemesh worker --hostname "$node" "$@"
-fi
+case "${BONEMESH_DEVICE:-auto}" in
+  cpu | opencl | opencl:*)
+    exec bonemesh worker --hostname "$node" "$@" ;;
+esac
 locks="${BONEMESH_GPU_LOCKS:-/run/bonemesh-gpus}"
 mkdir -p "$locks"
 gpus="${BONEMESH_GPUS:-$(ls /dev/nvidia[0-9]* 2>/dev/null | wc -l)}"
+if [ "$gpus" -eq 0 ]; then
+  echo "bonemesh worker $node: no NVIDIA GPU in this container (no /dev/nvidiaN: is the NVIDIA container runtime" \
+    "installed and the GPU reserved?); without a GPU run the worker-cpu or worker-opencl service" >&2
+  exit 1
+fi
 i=0
 while [ "$i" -lt "$gpus" ]; do
   exec 9>>"$locks/gpu$i.lock"
