@@ -6,13 +6,68 @@ in :mod:`service.pacs.gateway`; every other command (``reconstruct``, ``isosurfa
     bonemesh worker [--loglevel INFO] [--device auto|cpu|cuda:N]   (worker.cli)
     bonemesh pacs [--host H] [--port P] [--ae-title AE]   (service.pacs.gateway)
 
-Each reads its settings from ``BONEMESH_*`` environment variables (:mod:`core.settings`).
+Each reads its settings from ``BONEMESH_*`` environment variables (:mod:`core.settings`). ``bonemesh --help`` lists
+every command (the service's and the engine's, read from the engine's own parser); ``bonemesh --version`` prints the
+installed version.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from typing import Any
+
+# the service's commands, listed by `bonemesh --help` before the engine's
+SERVICE_COMMANDS = {
+    "serve": "start the API (uvicorn): the web page and the HTTP API",
+    "worker": "start a worker: one job at a time (run one per GPU)",
+    "pacs": "start the DICOM node: CT series from a PACS in, models back (the pacs extra)",
+}
+
+
+def version() -> str:
+    """The installed distribution's version (``bonemesh --version``)."""
+    import importlib.metadata as md
+
+    try:
+        return md.version("bonemesh")
+    except md.PackageNotFoundError:  # a source tree that was never installed
+        return "unknown (not installed)"
+
+
+def engine_commands(engine_cli: Any) -> dict[str, str]:
+    """{name: help} of the engine's subcommands, read from its parser (``engine.cli.build_parser``)."""
+    build = getattr(engine_cli, "build_parser", None)
+    if build is None:
+        return {}
+    parser = build()
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            helps = {a.dest: a.help or "" for a in action._choices_actions}
+            return {name: helps.get(name, "") for name in action.choices}
+    return {}
+
+
+def help_text(engine_cli: Any) -> str:
+    """``bonemesh --help``: usage, then every command with its one line."""
+    commands = {**SERVICE_COMMANDS, **engine_commands(engine_cli)}
+    width = max(len(name) for name in commands) + 2
+    lines = [
+        "usage: bonemesh [-h] [--version] COMMAND ...",
+        "",
+        "Bone surface models from CT and micro-CT slice stacks: the service (API, worker, PACS node) and the",
+        "engine's commands.",
+        "",
+        "commands:",
+        *(f"  {name:<{width}}{text}" for name, text in commands.items()),
+        "",
+        "options:",
+        f"  {'-h, --help':<{width}}show this help and exit",
+        f"  {'--version':<{width}}print the version and exit",
+        "",
+        "`bonemesh COMMAND --help` shows a command's options.",
+    ]
+    return "\n".join(lines) + "\n"
 
 
 def _serve(argv: list[str]) -> int:
@@ -45,6 +100,9 @@ def _serve(argv: list[str]) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "--version":
+        print(f"bonemesh {version()}")  # noqa: T201
+        return 0
     if argv and argv[0] == "serve":
         return _serve(argv[1:])
     if argv and argv[0] == "worker":
@@ -64,7 +122,11 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
     if not argv or argv[0] in ("-h", "--help"):
-        print("bonemesh serve | worker | pacs: the service, its worker, the PACS node (see bonemesh serve --help)")  # noqa: T201
+        import engine.cli
+
+        # no command: the same list on stderr, and the usage error's status
+        print(help_text(engine.cli), end="", file=sys.stdout if argv else sys.stderr)
+        return 0 if argv else 2
     return engine_main(argv)
 
 
