@@ -73,8 +73,10 @@ def test_a_job_on_an_intact_side_says_why_and_has_no_implant(
     outs = {o["name"]: o for o in job["outputs"]}
     assert "implant.stl" not in outs and "model.stl" in outs
     info = anon.get(outs["defect.json"]["url"]).json()
-    assert info == {"format": info["format"], "found": False, "code": "no_defect", "message": info["message"]}
+    keys = {"format": info["format"], "found": False, "code": "no_defect", "message": info["message"]}
+    assert info == {**keys, "measured_on": info["measured_on"]}
     assert "right side" in info["message"]
+    assert set(info["measured_on"]) == {"orientation", "level", "scan"}  # what the answer was measured on
 
 
 @pytest.mark.parametrize(
