@@ -539,3 +539,24 @@ def test_cli_version_and_help_list_every_command() -> None:
         assert "--version" in out.stdout
     bare = _bonemesh()
     assert bare.returncode == 2 and "serve" in bare.stderr and bare.stdout == ""
+
+
+def test_reference_and_paper_extras_missing_say_which_extra(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """Without the `reference` / `paper` extras the base install still imports everything; the one call that needs
+    them names the extra to install."""
+    import importlib.util
+
+    import numpy as np
+
+    from engine.decimation import meshlab
+    from engine.paper import sweep_report
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "pymeshlab" else real(name, *a))
+    pts = np.zeros((4, 3))
+    faces = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]], dtype=np.int32)
+    with pytest.raises(ImportError, match=r"pip install 'bonemesh\[reference\]'"):
+        meshlab.collapse_meshlab(pts, faces, 2, True)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # `import matplotlib` raises ImportError
+    with pytest.raises(ImportError, match=r"pip install 'bonemesh\[paper\]'"):
+        sweep_report.plot([], tmp_path)

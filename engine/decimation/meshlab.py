@@ -16,6 +16,7 @@ tetrahedron), the result keeps more faces than asked and ``info["limited_by_wate
 
 from __future__ import annotations
 
+import importlib.util
 import os
 from dataclasses import dataclass
 from typing import Any
@@ -208,6 +209,9 @@ def collapse_meshlab(
 
     Returns float32 (z, y, x) vertices, int32 faces and the report entries of this path.
     """
+    if importlib.util.find_spec("pymeshlab") is None:  # found, not imported: the slab processes import it
+        # the `reference` extra: GPL-3 and 100 MB, not in the base install
+        raise ImportError("MeshLab's decimation needs pymeshlab: pip install 'bonemesh[reference]'")
     info: dict[str, Any] = {
         "method": "MeshLab quadric edge collapse (preservetopology, preserveboundary, preservenormal)"
     }

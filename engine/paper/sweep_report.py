@@ -144,7 +144,10 @@ def write_tables(rows: list[dict[str, Any]], outdir: Path, info: dict[str, Any])
 
 def plot(rows: list[dict[str, Any]], outdir: Path) -> dict[str, Path]:
     """``accuracy_vs_faces.png`` (RMSE % and SSIM % against faces) and ``time_vs_iterations.png``."""
-    import matplotlib
+    try:
+        import matplotlib
+    except ImportError as exc:  # the `paper` extra: not in the base install
+        raise ImportError("the sweep's plots need matplotlib: pip install 'bonemesh[paper]'") from exc
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
