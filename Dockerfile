@@ -54,8 +54,8 @@ RUN apt-get update \
 
 WORKDIR /app
 # dependencies first (a layer that survives source edits): the project's requirements and extras read from
-# pyproject.toml, pinned by constraints.txt, meshoptimizer from the wheels stage. Extras: pacs (the PACS gateway),
-# postgres (psycopg, BONEMESH_DATABASE_URL=postgresql+psycopg://...), s3 (boto3, BONEMESH_STORAGE_URL=s3://...),
+# pyproject.toml, pinned by constraints.txt, wheels only (meshoptimizer's from the wheels stage). Extras: pacs (the
+# PACS gateway), postgres (psycopg, BONEMESH_DATABASE_URL=postgresql+psycopg://...), s3 (boto3, BONEMESH_STORAGE_URL=s3://...),
 # and with BONEMESH_OPENCL=1 opencl (pyopencl, BONEMESH_DEVICE=opencl)
 COPY pyproject.toml constraints.txt ./
 RUN --mount=type=bind,from=wheels,source=/wheels,target=/wheels \
@@ -63,7 +63,7 @@ RUN --mount=type=bind,from=wheels,source=/wheels,target=/wheels \
     && python -c "import sys, tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['project']; \
 print('\n'.join(p['dependencies'] + [r for e in sys.argv[1].split(',') if e for r in p['optional-dependencies'][e]]))" \
         "$extras" > /tmp/requirements.txt \
-    && pip install --find-links /wheels -c constraints.txt -r /tmp/requirements.txt \
+    && pip install --only-binary=:all: --find-links /wheels -c constraints.txt -r /tmp/requirements.txt \
     && rm /tmp/requirements.txt
 
 # then the source: only these layers are rebuilt by a code edit

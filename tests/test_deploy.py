@@ -378,7 +378,8 @@ def test_dockerfile_final_stage_has_no_compiler_and_installs_dependencies_before
         i for i in final if i.startswith("RUN") and any(re.search(rf"\b{re.escape(c)}\b", i) for c in compilers)
     ]
     order = [i.split()[0] + " " + i.split()[1] for i in final if i.startswith(("COPY", "RUN"))]
-    deps = next(k for k, i in enumerate(final) if "pip install --find-links /wheels -c constraints.txt" in i)
+    install = "pip install --only-binary=:all: --find-links /wheels -c constraints.txt"  # wheels only, pinned
+    deps = next(k for k, i in enumerate(final) if install in i)
     manifest = final.index("COPY pyproject.toml constraints.txt ./")
     source = final.index("COPY engine ./engine")
     assert manifest < deps < source, order  # dependencies before the source, so code edits keep that layer
