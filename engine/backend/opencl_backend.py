@@ -43,6 +43,7 @@ _C_TYPES = {
     np.dtype(np.uint16): "ushort",
     np.dtype(np.int16): "short",
     np.dtype(np.int32): "int",
+    np.dtype(np.uint32): "uint",
     np.dtype(np.float32): "float",
 }
 
@@ -207,7 +208,7 @@ class OpenCLBackend(Backend):
         if dtype in (VEC3F, VEC3I):
             return self._alloc((host.size // 3,), dtype, host.astype(host_dtype(dtype), copy=False))
         if host.dtype not in _C_TYPES:
-            raise ValueError(f"Expected an array of uint8, uint16, int16, int32 or float32, got {host.dtype}")
+            raise ValueError(f"Expected an array of uint8, uint16, int16, int32, uint32 or float32, got {host.dtype}")
         if self.is_host or host.nbytes < PINNED_FROM_BYTES:
             return self._alloc(host.shape, host.dtype, host)
         arr = self._alloc(host.shape, host.dtype)

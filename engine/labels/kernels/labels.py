@@ -1,6 +1,8 @@
 """Warp kernels of the per-label meshing (``engine.labels.extract``): label boxes in one pass over the map, the
 indicator atlas of a group of labels, the move of each label's vertices from the atlas to the grid, and per-label
-sums. Generic over the label map's integer type (uint8, uint16, int32, uint32)."""
+sums. Generic over the label map's integer type (uint8, uint16, int32, uint32). ``labels.cl`` holds their OpenCL C
+twins: same names, same arguments (shapes passed as ints, as OpenCL has no array shapes), same arithmetic in the
+same order."""
 
 from __future__ import annotations
 
@@ -10,12 +12,13 @@ import warp as wp
 
 
 @wp.kernel
-def mark_extent(labels: wp.array3d(dtype=Any), lut: wp.array(dtype=wp.int32), fz: wp.array2d(dtype=wp.int32),
-                fy: wp.array2d(dtype=wp.int32), fx: wp.array2d(dtype=wp.int32)):  # fmt: skip
+def mark_extent(labels: wp.array3d(dtype=Any), lut: wp.array(dtype=wp.int32), n_lut: int,
+                fz: wp.array2d(dtype=wp.int32), fy: wp.array2d(dtype=wp.int32), fx: wp.array2d(dtype=wp.int32),
+                nz: int, ny: int, nx: int):  # fmt: skip
     """Per label slot, which z planes, y rows and x columns hold it (a read before the write keeps stores few)."""
     z, y, x = wp.tid()
     v = int(labels[z, y, x])
-    if v <= 0 or v >= lut.shape[0]:
+    if v <= 0 or v >= n_lut:
         return
     s = lut[v]
     if s < 0:
@@ -30,9 +33,10 @@ def mark_extent(labels: wp.array3d(dtype=Any), lut: wp.array(dtype=wp.int32), fz
 
 @wp.kernel
 def fill_atlas(labels: wp.array3d(dtype=Any), plane_crop: wp.array(dtype=wp.int32), crops: wp.array2d(dtype=wp.int32),
-               other: float, out: wp.array3d(dtype=wp.float32)):  # fmt: skip
+               other: float, out: wp.array3d(dtype=wp.float32), nz: int, ny: int, nx: int):  # fmt: skip
     """One group's atlas: crops stacked along z; crops[c] = (atlas z0, grid z0, y0, x0, dy, dx, value).
-    1 on the crop's label, ``other`` (< 0) on another label, 0 on background and outside the map or the crop."""
+    1 on the crop's label, ``other`` (< 0) on another label, 0 on background and outside the map or the crop;
+    ``nz, ny, nx`` is the map's shape."""
     z, y, x = wp.tid()
     c = plane_crop[z]
     val = 0.0
@@ -40,7 +44,7 @@ def fill_atlas(labels: wp.array3d(dtype=Any), plane_crop: wp.array(dtype=wp.int3
         gz = crops[c, 1] + z - crops[c, 0]
         gy = crops[c, 2] + y
         gx = crops[c, 3] + x
-        if gz >= 0 and gy >= 0 and gx >= 0 and gz < labels.shape[0] and gy < labels.shape[1] and gx < labels.shape[2]:
+        if gz >= 0 and gy >= 0 and gx >= 0 and gz < nz and gy < ny and gx < nx:
             v = int(labels[gz, gy, gx])
             if v == crops[c, 6]:
                 val = 1.0
@@ -50,24 +54,25 @@ def fill_atlas(labels: wp.array3d(dtype=Any), plane_crop: wp.array(dtype=wp.int3
 
 
 @wp.kernel
-def place_vertices(pos: wp.array(dtype=wp.vec3), plane_crop: wp.array(dtype=wp.int32),
+def place_vertices(pos: wp.array(dtype=wp.vec3), plane_crop: wp.array(dtype=wp.int32), n_planes: int,
                    crops: wp.array2d(dtype=wp.int32), crop_slot: wp.array(dtype=wp.int32),
-                   labels: wp.array3d(dtype=Any), spacing: wp.vec3, first: int, out_pos: wp.array(dtype=wp.vec3),
-                   slot: wp.array(dtype=wp.int32), near: wp.array(dtype=wp.int32)):  # fmt: skip
+                   labels: wp.array3d(dtype=Any), sz: float, sy: float, sx: float, first: int,
+                   out_pos: wp.array(dtype=wp.vec3), slot: wp.array(dtype=wp.int32), near: wp.array(dtype=wp.int32),
+                   nz: int, ny: int, nx: int):  # fmt: skip
     """Atlas (z, y, x) mm -> grid (z, y, x) mm, each vertex's label slot (its crop's), and whether another label
     holds a corner of its cell (``near``: pinned by the decimation), into ``first + i``."""
     i = wp.tid()
     p = pos[i]
-    plane = int(wp.floor(p[0] / spacing[0] + 0.5))
-    plane = wp.clamp(plane, 0, plane_crop.shape[0] - 1)
+    plane = int(wp.floor(p[0] / sz + 0.5))
+    plane = wp.clamp(plane, 0, n_planes - 1)
     c = plane_crop[plane]
-    g = wp.vec3(p[0] + float(crops[c, 1] - crops[c, 0]) * spacing[0], p[1] + float(crops[c, 2]) * spacing[1],
-                p[2] + float(crops[c, 3]) * spacing[2])  # fmt: skip
+    g = wp.vec3(p[0] + float(crops[c, 1] - crops[c, 0]) * sz, p[1] + float(crops[c, 2]) * sy,
+                p[2] + float(crops[c, 3]) * sx)  # fmt: skip
     out_pos[first + i] = g
     slot[first + i] = crop_slot[c]
-    bz = int(wp.floor(g[0] / spacing[0]))
-    by = int(wp.floor(g[1] / spacing[1]))
-    bx = int(wp.floor(g[2] / spacing[2]))
+    bz = int(wp.floor(g[0] / sz))
+    by = int(wp.floor(g[1] / sy))
+    bx = int(wp.floor(g[2] / sx))
     own = crops[c, 6]
     flag = 0
     for dz in range(0, 2):
@@ -76,7 +81,7 @@ def place_vertices(pos: wp.array(dtype=wp.vec3), plane_crop: wp.array(dtype=wp.i
                 z = bz + dz
                 y = by + dy
                 x = bx + dx
-                if z >= 0 and y >= 0 and x >= 0 and z < labels.shape[0] and y < labels.shape[1] and x < labels.shape[2]:
+                if z >= 0 and y >= 0 and x >= 0 and z < nz and y < ny and x < nx:
                     v = int(labels[z, y, x])
                     if v != 0 and v != own:
                         flag = 1
@@ -98,14 +103,24 @@ def gather_slots(slot: wp.array(dtype=wp.int32), kept: wp.array(dtype=wp.int32),
 
 @wp.kernel
 def face_sums(pos: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.vec3i), slot: wp.array(dtype=wp.int32),
-              count: wp.array(dtype=wp.int32), area: wp.array(dtype=wp.float32)):  # fmt: skip
-    """Faces and area (mm^2) per label slot."""
+              scale: float, count: wp.array(dtype=wp.int32), area: wp.array(dtype=wp.int64)):  # fmt: skip
+    """Faces and area per label slot; the area in fixed point (``scale`` units per mm^2, rounded per face) so the
+    sums are exact and the same in any order, on every backend."""
     i = wp.tid()
     f = faces[i]
     s = slot[f[0]]
-    a = 0.5 * wp.length(wp.cross(pos[f[1]] - pos[f[0]], pos[f[2]] - pos[f[0]]))
+    a = pos[f[0]]
+    b = pos[f[1]]
+    c = pos[f[2]]
+    e0 = wp.vec3(b[0] - a[0], b[1] - a[1], b[2] - a[2])
+    e1 = wp.vec3(c[0] - a[0], c[1] - a[1], c[2] - a[2])
+    cz = e0[1] * e1[2] - e0[2] * e1[1]
+    cy = e0[2] * e1[0] - e0[0] * e1[2]
+    cx = e0[0] * e1[1] - e0[1] * e1[0]
+    sq = cz * cz + cy * cy + cx * cx
+    tri = 0.5 * wp.sqrt(sq)
     wp.atomic_add(count, s, 1)
-    wp.atomic_add(area, s, a)
+    wp.atomic_add(area, s, wp.int64(tri * scale + 0.5))
 
 
 @wp.kernel
