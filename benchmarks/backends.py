@@ -1,9 +1,11 @@
 """The whole ``reconstruct`` on each backend (issue 28): Warp (CPU or CUDA) against OpenCL (PoCL on the CPU, or a
-GPU's OpenCL driver), on every real scan in ../shared/data and a bone phantom, with the final model's topology.
+GPU's OpenCL driver), on every real scan in ../shared/data and a bone phantom, with the final model's topology; and
+(``--labels N@Z,Y,X``) a synthetic N-label map through ``label_models`` (issue 40: label maps on every backend).
 
     python -m benchmarks.backends --devices cpu,opencl [--data ../shared/data] [--phantom Z,Y,X] [--repeat N]
                                   [--scans cranium_ct,...] --out benchmarks/results/backends_cpu.json
     python -m benchmarks.backends --devices cuda:0,opencl:0 --phantom 952,1024,1024 --no-scans --out ...
+    python -m benchmarks.backends --devices cuda:0,opencl:0 --phantom '' --no-scans --labels 100@400,512,512 --out ...
 
 Per input and device: one warm-up run (kernel builds), then the median of ``repeat`` runs of ``reconstruct`` (the
 paper's pipeline: Gaussian, MC33, decimation to 0.2, one smoothing iteration, no cleaning; the scan's bone level
@@ -89,6 +91,51 @@ def _run(volume: Volume, device: str, repeat: int) -> dict[str, Any]:
     }
 
 
+def _label_map(spec: str) -> Any:
+    """``N@Z,Y,X``: the labels benchmark's synthetic N-label map (touching cells in a body, 1 x 0.8 x 0.8 mm)."""
+    from benchmarks.labels_speed import synthetic_map
+    from engine.io.labelmaps import make_label_volume
+
+    n, _, size = spec.partition("@")
+    shape = tuple(int(v) for v in size.split(","))
+    data = synthetic_map((shape[0], shape[1], shape[2]), int(n))
+    eye = ((1, 0, 0), (0, 1, 0), (0, 0, 1))
+    return make_label_volume(data, (1.0, 0.8, 0.8), (0.0, 0.0, 0.0), eye, (), {"format": "synthetic"})
+
+
+def _run_labels(lv: Any, device: str, repeat: int) -> dict[str, Any]:
+    """``label_models`` (every label meshed in one batch, decimated to 0.2 by area, smoothed, split into parts)."""
+    from engine.labels import label_models
+
+    t0 = time.perf_counter()
+    label_models(lv, device=device)  # warm-up: kernel builds, contexts
+    first = time.perf_counter() - t0
+    runs = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        models = label_models(lv, device=device)
+        runs.append((time.perf_counter() - t0, models))
+    runs.sort(key=lambda r: r[0])
+    seconds, models = runs[len(runs) // 2]
+    digest = hashlib.sha256()
+    for part in models.parts:
+        digest.update(part.vertices_xyz.tobytes() + part.faces.tobytes())
+    info = models.report["labels_mesh"]
+    return {
+        "device": info.get("backend", device),
+        "first_run_seconds": first,
+        "seconds": seconds,
+        "all_seconds": sorted(r[0] for r in runs),
+        "stage_seconds": info["seconds"],
+        "topology": {
+            "parts": len(models.parts),
+            "n_faces": int(sum(p.stats["faces"] for p in models.parts)),
+            "watertight_parts": int(sum(bool(p.stats["watertight"]) for p in models.parts)),
+        },
+        "mesh_sha256": digest.hexdigest(),
+    }
+
+
 def _compare(entry: dict[str, Any], devices: list[str]) -> None:
     base = entry[devices[0]]
     for dev in devices[1:]:
@@ -105,6 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scans", default="", help="only these ../shared/data folders (default: every one)")
     parser.add_argument("--no-scans", action="store_true", help="only the phantom")
     parser.add_argument("--phantom", default="256,256,256", help="Z,Y,X of the bone phantom ('' for none)")
+    parser.add_argument("--labels", default="", help="N@Z,Y,X: also a synthetic N-label map ('' for none)")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--machine", default=platform.node())
     parser.add_argument("--out", type=Path, required=True)
@@ -114,6 +162,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.phantom:
         shape = tuple(int(v) for v in args.phantom.split(","))
         inputs[f"phantom_{'x'.join(map(str, shape))}"] = _phantom(shape)  # type: ignore[arg-type]
+    if args.labels:
+        inputs[f"labels_{args.labels.replace('@', '_').replace(',', 'x')}"] = _label_map(args.labels)
     report: dict[str, Any] = {
         "benchmark": "backends",
         "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
@@ -125,10 +175,13 @@ def main(argv: list[str] | None = None) -> int:
         "inputs": {},
     }
     for name, volume in inputs.items():
-        entry: dict[str, Any] = {"shape_zyx": list(volume.data.shape), "level": volume.source["level"]}
+        labels = not isinstance(volume, Volume)
+        shape = list(volume.labels.shape if labels else volume.data.shape)
+        entry: dict[str, Any] = {"shape_zyx": shape}
+        entry["level" if not labels else "labels"] = volume.source["level"] if not labels else len(volume.segments)
         for dev in devices:
-            print(f"[backends] {name} {list(volume.data.shape)} on {dev}", flush=True)
-            entry[dev] = _run(volume, dev, args.repeat)
+            print(f"[backends] {name} {shape} on {dev}", flush=True)
+            entry[dev] = (_run_labels if labels else _run)(volume, dev, args.repeat)
             print(f"  {entry[dev]['seconds']:.3f} s, {entry[dev]['topology']}", flush=True)
         _compare(entry, devices)
         report["inputs"][name] = entry

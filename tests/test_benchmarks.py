@@ -221,13 +221,16 @@ def test_backends(tmp_path: Path) -> None:
     from benchmarks.backends import main
 
     out = tmp_path / "backends.json"
-    args = ["--devices", "cpu,opencl", "--no-scans", "--phantom", "24,32,32", "--repeat", "1"]
+    args = ["--devices", "cpu,opencl", "--no-scans", "--phantom", "24,32,32", "--labels", "4@20,32,32", "--repeat", "1"]
     assert main([*args, "--out", str(out)]) == 0
     report = load(out)
     has_keys(report, "benchmark", "host", "devices", "inputs", "min_ratio")
-    (entry,) = report["inputs"].values()
-    assert entry["identical_topology"]["opencl"] and entry["identical_mesh"]["opencl"]
-    assert finite(entry["ratio_first_over"]["opencl"]) and entry["cpu"]["topology"]["watertight"]
+    scan, labels = report["inputs"].values()
+    for entry in (scan, labels):
+        assert entry["identical_topology"]["opencl"] and entry["identical_mesh"]["opencl"]
+        assert finite(entry["ratio_first_over"]["opencl"])
+    assert scan["cpu"]["topology"]["watertight"]
+    assert labels["labels"] == labels["cpu"]["topology"]["watertight_parts"] == labels["cpu"]["topology"]["parts"]
 
 
 # -- benchmarks that start processes of their own: python -m benchmarks.X --------------------------------------
