@@ -9,7 +9,9 @@ settings come from ``BONEMESH_*`` environment variables (:mod:`core.settings`). 
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import subprocess
 import sys
 
 
@@ -37,6 +39,10 @@ def main(argv: list[str] | None = None) -> int:
     from core.settings import get_settings
 
     settings = get_settings()
+    refused = _cuda_refusal(settings.device)
+    if refused:
+        sys.stderr.write(f"bonemesh worker: {refused}\n")
+        return 2
     from worker.app import app
 
     node = args.hostname or f"bonemesh@%h-{os.getpid()}"
@@ -54,6 +60,30 @@ def main(argv: list[str] | None = None) -> int:
         ]
     )
     return 0
+
+
+def _cuda_refusal(device: str) -> str | None:
+    """For a ``cuda[:N]`` worker whose GPU Warp cannot use, the one line saying why (the driver Warp needs and the
+    one present, say): the worker does not start. For ``auto``, the same reason is written as a warning and the
+    worker starts on what ``auto`` picks. The probe runs in a process of its own: CUDA initialised here, before
+    the pool forks, would be unusable in the children."""
+    if not (device == "auto" or device.startswith("cuda")):
+        return None
+    probe = [sys.executable, "-m", "engine.backend.warp_device"]
+    try:
+        done = subprocess.run(probe, capture_output=True, text=True, timeout=300, check=True)
+        found = json.loads(done.stdout.strip().splitlines()[-1])
+    except (subprocess.SubprocessError, OSError, ValueError, IndexError) as exc:
+        return f"{device}: the CUDA probe failed ({exc})" if device != "auto" else None
+    index = int(device.split(":")[1]) if ":" in device else 0
+    if device == "auto":
+        if found["nvidia_driver"] and found["why"]:
+            sys.stderr.write(f"bonemesh worker: WARNING: auto does not use the GPU: {found['why']}\n")
+        return None
+    if found["cuda_devices"] > index:
+        return None
+    why = found["why"] or f"{found['cuda_devices']} CUDA device(s) present"
+    return f"{device} is not usable: {why}"
 
 
 if __name__ == "__main__":

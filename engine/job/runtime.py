@@ -111,16 +111,21 @@ def resolve_runtime(
 
 
 def _auto_reason(spec: str) -> str:
-    """Why ``auto`` meant ``spec`` (``engine.backend.select.auto_spec``'s order)."""
+    """Why ``auto`` meant ``spec`` (``engine.backend.select.auto_spec``'s order), and why CUDA was passed over where
+    an NVIDIA driver is loaded (a driver too old for Warp's CUDA build, say: loud, not a quiet CPU run)."""
     if spec.startswith("cuda"):
         return "auto: a CUDA GPU is present"
+    from engine.backend.warp_device import cuda_problem
+
+    nvidia, why = cuda_problem()
+    unusable = f"; an NVIDIA driver is loaded but CUDA is unusable: {why}" if nvidia and why else ""
     if spec.startswith("opencl"):
         from engine.backend.select import get_backend
 
         if not get_backend(spec).is_host:
-            return "auto: no CUDA GPU; an OpenCL GPU is present"
-        return "auto: no GPU; OpenCL on the CPU (every core) is the faster CPU path"
+            return f"auto: no CUDA GPU; an OpenCL GPU is present{unusable}"
+        return f"auto: no GPU; OpenCL on the CPU (every core) is the faster CPU path{unusable}"
     return (
         "auto: no GPU and no OpenCL driver; Warp's CPU path (one thread; install pocl-opencl-icd and "
-        "bonemesh[opencl] for every core)"
+        f"bonemesh[opencl] for every core){unusable}"
     )
