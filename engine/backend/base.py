@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import abc
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,22 +20,33 @@ import numpy as np
 
 VEC3F = "vec3f"  # three float32, packed (12 bytes)
 VEC3I = "vec3i"  # three int32, packed (12 bytes)
+VEC10D = "vec10d"  # ten float64, packed (80 bytes): a quadric
+VECTORS = {VEC3F: (3, np.float32), VEC3I: (3, np.int32), VEC10D: (10, np.float64)}  # components, component type
 DType = Any  # a numpy dtype (or type) or VEC3F / VEC3I
+
+
+def is_vector(dtype: DType) -> bool:
+    """Whether ``dtype`` is one of the packed vector types."""
+    return isinstance(dtype, str) and dtype in VECTORS
+
+
+def components(dtype: DType) -> int:
+    """Values per element: a vector type's length, else 1."""
+    return VECTORS[dtype][0] if is_vector(dtype) else 1
 
 
 def itemsize(dtype: DType) -> int:
     """Bytes of one element of ``dtype``."""
-    if dtype in (VEC3F, VEC3I):
-        return 12
+    if is_vector(dtype):
+        n, t = VECTORS[dtype]
+        return n * int(np.dtype(t).itemsize)
     return int(np.dtype(dtype).itemsize)
 
 
 def host_dtype(dtype: DType) -> np.dtype[Any]:
     """The numpy scalar type of an element (the vector types' component type)."""
-    if dtype == VEC3F:
-        return np.dtype(np.float32)
-    if dtype == VEC3I:
-        return np.dtype(np.int32)
+    if is_vector(dtype):
+        return np.dtype(VECTORS[dtype][1])
     return np.dtype(dtype)
 
 
@@ -118,7 +130,7 @@ class Backend(abc.ABC):
     # -- copies ---------------------------------------------------------------------------------------------------
     @abc.abstractmethod
     def from_host(self, host: np.ndarray, dtype: DType | None = None) -> Any:
-        """A new device array with ``host``'s values (``dtype`` VEC3F / VEC3I for an (n, 3) array)."""
+        """A new device array with ``host``'s values (``dtype`` a vector type for an (n, components) array)."""
 
     @abc.abstractmethod
     def upload(self, dst: Any, host: np.ndarray, dst_offset: int = 0) -> None:
@@ -126,7 +138,8 @@ class Backend(abc.ABC):
 
     @abc.abstractmethod
     def to_host(self, arr: Any, count: int | None = None) -> np.ndarray:
-        """Device to host (a sync point): the first ``count`` elements (all by default); vector arrays as (n, 3)."""
+        """Device to host (a sync point): the first ``count`` elements (all by default); vector arrays as
+        (n, components)."""
 
     @abc.abstractmethod
     def download(self, dst: np.ndarray, src: Any, src_offset: int = 0) -> None:
@@ -142,6 +155,10 @@ class Backend(abc.ABC):
     def view(self, arr: Any, lo: int, hi: int) -> Any:
         """Rows ``lo:hi`` of ``arr`` along its first axis, sharing memory where the device allows (else a copy)."""
 
+    @abc.abstractmethod
+    def clone(self, arr: Any) -> Any:
+        """A new device array with ``arr``'s values."""
+
     # -- kernels --------------------------------------------------------------------------------------------------
     @abc.abstractmethod
     def struct(self, spec: Struct, **values: Any) -> Any:
@@ -153,8 +170,31 @@ class Backend(abc.ABC):
         ``struct`` values); ``dtype`` picks the variant of a kernel generic over the volume's sample type."""
 
     @abc.abstractmethod
+    def scalar(self, value: float, dtype: DType) -> Any:
+        """A kernel argument of type ``dtype`` (``np.float64``, ``np.int64``: Python numbers pass as 32-bit)."""
+
+    @abc.abstractmethod
+    def vector(self, values: Any, dtype: DType) -> Any:
+        """Three values as one kernel argument passed by value: ``np.float32`` (Warp's ``vec3``; OpenCL C: a struct
+        of three floats) or ``np.float64`` (``vec3d``; OpenCL C: ``origin_t``, three doubles)."""
+
+    @abc.abstractmethod
+    def prepared(self, kernel: Kernel, dim: int, args: list[Any]) -> Callable[[], None]:
+        """A launch whose arguments are packed once, run by calling it (packing a short kernel's arguments costs
+        more than its launch: Warp records the command)."""
+
+    @abc.abstractmethod
     def exclusive_scan(self, src: Any, dst: Any) -> int:
         """``dst[i] = sum(src[:i])`` over int32 arrays; returns the total (a sync point)."""
+
+    @abc.abstractmethod
+    def prefix_sum(self, src: Any, dst: Any) -> None:
+        """``exclusive_scan`` without reading the total back (no sync point)."""
+
+    @abc.abstractmethod
+    def sort_pairs(self, keys: Any, values: Any, n: int) -> None:
+        """Sort the first ``n`` int64 ``keys`` and their int32 ``values`` by key, stably (equal keys keep their
+        order), in place; both arrays hold at least ``2 n`` elements (room a radix sort may work in)."""
 
     @abc.abstractmethod
     def compact(self, flags: Any) -> tuple[Any, Any, int]:

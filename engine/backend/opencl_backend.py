@@ -15,21 +15,22 @@ import re
 import threading
 import warnings
 import weakref
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from engine.backend.base import (
     COMPACT,
-    VEC3F,
-    VEC3I,
     Backend,
     DType,
     Kernel,
     PeakTracker,
     Struct,
+    components,
     host_budget,
     host_dtype,
+    is_vector,
     itemsize,
 )
 
@@ -172,7 +173,7 @@ class OpenCLBackend(Backend):
             buf = self.cl.Buffer(self.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=hostbuf)
         else:
             buf = self.cl.Buffer(self.context, mf.READ_WRITE, size=nbytes)
-        arr = CLArray(self, buf, shape, dtype if dtype in (VEC3F, VEC3I) else np.dtype(dtype))
+        arr = CLArray(self, buf, shape, dtype if is_vector(dtype) else np.dtype(dtype))
         with self.lock:
             self.live += nbytes
             self.high = max(self.high, self.live)
@@ -205,8 +206,8 @@ class OpenCLBackend(Backend):
     # -- copies ---------------------------------------------------------------------------------------------------
     def from_host(self, host: np.ndarray, dtype: DType | None = None) -> CLArray:
         host = np.ascontiguousarray(host)
-        if dtype in (VEC3F, VEC3I):
-            return self._alloc((host.size // 3,), dtype, host.astype(host_dtype(dtype), copy=False))
+        if is_vector(dtype):
+            return self._alloc((host.size // components(dtype),), dtype, host.astype(host_dtype(dtype), copy=False))
         if host.dtype not in _C_TYPES:
             raise ValueError(f"Expected an array of uint8, uint16, int16, int32, uint32 or float32, got {host.dtype}")
         if self.is_host or host.nbytes < PINNED_FROM_BYTES:
@@ -246,8 +247,7 @@ class OpenCLBackend(Backend):
 
     def to_host(self, arr: CLArray, count: int | None = None) -> np.ndarray:
         n = arr.shape[0] if count is None else count
-        vec = arr.dtype in (VEC3F, VEC3I)
-        shape = (n, 3) if vec else (n, *arr.shape[1:])
+        shape = (n, components(arr.dtype)) if is_vector(arr.dtype) else (n, *arr.shape[1:])
         out = np.empty(shape, host_dtype(arr.dtype))
         if out.nbytes:
             self.cl.enqueue_copy(self.queue, out, arr.buf, is_blocking=True)
@@ -284,7 +284,24 @@ class OpenCLBackend(Backend):
         self.copy(out, arr, 0, lo * row // itemsize(arr.dtype), int(np.prod(shape)))
         return out
 
+    def clone(self, arr: CLArray) -> CLArray:
+        out = self._alloc(arr.shape, arr.dtype)
+        self.copy(out, arr)
+        return out
+
     # -- kernels --------------------------------------------------------------------------------------------------
+    def scalar(self, value: float, dtype: DType) -> Any:
+        return np.array(value, np.dtype(dtype))  # a 0-d array: ``_arg`` passes a Python or numpy float as float32
+
+    def vector(self, values: Any, dtype: DType) -> Any:
+        t = np.dtype(dtype)
+        rec = np.zeros((), [("x", t), ("y", t), ("z", t)])  # float64: the kernels' ``origin_t``
+        rec["x"], rec["y"], rec["z"] = (float(v) for v in values)
+        return rec
+
+    def prepared(self, kernel: Kernel, dim: int, args: list[Any]) -> Callable[[], None]:
+        return lambda: self.launch(kernel, dim, args)
+
     def struct(self, spec: Struct, **values: Any) -> Any:
         dtype = np.dtype([(name, t) for name, t in spec.fields])
         rec = np.zeros((), dtype)
@@ -331,10 +348,22 @@ class OpenCLBackend(Backend):
             self.cl.enqueue_nd_range_kernel(self.queue, k, gsize, None)
 
     def exclusive_scan(self, src: CLArray, dst: CLArray) -> int:
-        """In ``scan.cl``'s three launches: up to ``SCAN_CHUNKS`` runs summed, the sums scanned, the runs scanned."""
+        sums = self._scan(src, dst)
+        if sums is None:
+            return 0
+        total = np.empty(1, np.int32)
+        self.cl.enqueue_copy(self.queue, total, sums.buf, src_offset=(sums.size - 1) * 4, is_blocking=True)
+        return int(total[0])
+
+    def prefix_sum(self, src: CLArray, dst: CLArray) -> None:
+        self._scan(src, dst)
+
+    def _scan(self, src: CLArray, dst: CLArray) -> CLArray | None:
+        """In ``scan.cl``'s three launches: up to ``SCAN_CHUNKS`` runs summed, the sums scanned, the runs scanned;
+        returns the run sums (their last element is the total), None for an empty ``src``."""
         n = src.size
         if n == 0:
-            return 0
+            return None
         chunks = min(SCAN_CHUNKS, n)
         run = -(-n // chunks)
         chunks = -(-n // run)
@@ -342,9 +371,17 @@ class OpenCLBackend(Backend):
         self.launch(_SCAN_SUMS, chunks, [src, np.int64(n), np.int64(run), sums])
         self.launch(_SCAN_TOP, 1, [sums, chunks])
         self.launch(_SCAN_RUNS, chunks, [src, np.int64(n), np.int64(run), sums, dst])
-        total = np.empty(1, np.int32)
-        self.cl.enqueue_copy(self.queue, total, sums.buf, src_offset=chunks * 4, is_blocking=True)
-        return int(total[0])
+        return sums
+
+    def sort_pairs(self, keys: CLArray, values: CLArray, n: int) -> None:
+        """On the host (a sync point; the same stable order as a device radix sort): the interface's one step
+        without an OpenCL kernel yet."""
+        if n == 0:
+            return
+        k, v = self.to_host(keys, n), self.to_host(values, n)
+        order = np.argsort(k, kind="stable")
+        self.upload(keys, k[order])
+        self.upload(values, v[order])
 
     def compact(self, flags: CLArray) -> tuple[CLArray, CLArray, int]:
         n_in = flags.size

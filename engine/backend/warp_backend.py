@@ -4,11 +4,24 @@ from __future__ import annotations
 
 import functools
 import importlib
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from engine.backend.base import COMPACT, VEC3F, VEC3I, Backend, DType, Kernel, PeakTracker, Struct
+from engine.backend.base import (
+    COMPACT,
+    VEC3F,
+    VEC3I,
+    VEC10D,
+    Backend,
+    DType,
+    Kernel,
+    PeakTracker,
+    Struct,
+    components,
+    is_vector,
+)
 
 
 @functools.cache
@@ -24,6 +37,10 @@ def _wp_dtype(dtype: DType) -> Any:
         return wp.vec3
     if dtype == VEC3I:
         return wp.vec3i
+    if dtype == VEC10D:
+        from engine.backend.kernels.vectors import vec10d
+
+        return vec10d
     return wp.dtype_from_numpy(np.dtype(dtype))
 
 
@@ -84,8 +101,8 @@ class WarpBackend(Backend):
         import warp as wp
 
         host = np.ascontiguousarray(host)
-        if dtype in (VEC3F, VEC3I):
-            return wp.array(host.reshape(-1, 3), dtype=_wp_dtype(dtype), device=self.device)
+        if is_vector(dtype):
+            return wp.array(host.reshape(-1, components(dtype)), dtype=_wp_dtype(dtype), device=self.device)
         return wp.array(host, device=self.device)
 
     def upload(self, dst: Any, host: np.ndarray, dst_offset: int = 0) -> None:
@@ -114,6 +131,26 @@ class WarpBackend(Backend):
     def view(self, arr: Any, lo: int, hi: int) -> Any:
         return arr[lo:hi]
 
+    def clone(self, arr: Any) -> Any:
+        import warp as wp
+
+        return wp.clone(arr)
+
+    def scalar(self, value: float, dtype: DType) -> Any:
+        return _wp_dtype(dtype)(value)
+
+    def vector(self, values: Any, dtype: DType) -> Any:
+        import warp as wp
+
+        x, y, z = (float(v) for v in values)
+        return wp.vec3d(x, y, z) if np.dtype(dtype) == np.float64 else wp.vec3(x, y, z)
+
+    def prepared(self, kernel: Kernel, dim: int, args: list[Any]) -> Callable[[], None]:
+        import warp as wp
+
+        cmd = wp.launch(_resolve(kernel.warp), dim=dim, inputs=args, device=self.device, record_cmd=True)
+        return cmd.launch  # type: ignore[no-any-return]
+
     def struct(self, spec: Struct, **values: Any) -> Any:
         s = _resolve(spec.warp)()
         for name, _ in spec.fields:
@@ -133,6 +170,18 @@ class WarpBackend(Backend):
             return 0
         wp.utils.array_scan(src, dst, inclusive=False)
         return int(dst[n - 1 : n].numpy()[0] + src[n - 1 : n].numpy()[0])  # sync point
+
+    def prefix_sum(self, src: Any, dst: Any) -> None:
+        import warp as wp
+
+        if len(src):
+            wp.utils.array_scan(src, dst, inclusive=False)
+
+    def sort_pairs(self, keys: Any, values: Any, n: int) -> None:
+        import warp as wp
+
+        if n:
+            wp.utils.radix_sort_pairs(keys, values, n)
 
     def compact(self, flags: Any) -> tuple[Any, Any, int]:
         import warp as wp

@@ -44,7 +44,7 @@ def _cells(pos: Any, lo: Any, h: float) -> tuple[Any, Any, Any, int]:
     n = len(pos)
     keys, order = be.empty(2 * n, np.int64), be.empty(2 * n, np.int32)
     be.launch(K.CELL_KEYS, n, [pos, lo, 1.0 / h, keys, order])
-    meshops.sort_pairs(be, keys, order, n)
+    be.sort_pairs(keys, order, n)
     flag, scan = be.empty(n, np.int32), be.empty(n, np.int32)
     be.launch(K.RUN_STARTS, n, [keys, flag])
     n_cells = be.exclusive_scan(flag, scan)  # sync point
@@ -61,7 +61,7 @@ def _faces(faces: Any, cell_of: Any) -> tuple[Any, int]:
     cells = be.empty(nf, VEC3I)
     keys, order = be.empty(2 * nf, np.int64), be.empty(2 * nf, np.int32)
     be.launch(K.FACE_CELLS, nf, [faces, cell_of, cells, keys, order])
-    meshops.sort_pairs(be, keys, order, nf)
+    be.sort_pairs(keys, order, nf)
     flag, scan = be.empty(nf, np.int32), be.empty(nf, np.int32)
     be.launch(K.RUN_STARTS, nf, [keys, flag])
     kept = be.exclusive_scan(flag, scan)  # sync point
@@ -100,7 +100,7 @@ class Clustering:
     def __init__(self, pos: Any, faces: Any) -> None:
         self.pos, self.faces, self.be = pos, faces, backend_of(pos)
         lo_np, hi_np = meshops.bounds(self.be, pos)
-        self.lo = meshops.vec3f_arg(self.be, lo_np)
+        self.lo = self.be.vector(lo_np, np.float32)
         self.diag = float(np.linalg.norm(hi_np - lo_np)) or 1.0
         self.tried: dict[float, int | None] = {}  # cell size -> faces kept (None: too many cells)
         self._quad: tuple[Any, Any] | None = None

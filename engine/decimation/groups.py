@@ -16,11 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from engine.backend.base import VEC3F, VEC3I, Backend
+from engine.backend.base import VEC3F, VEC3I, VEC10D, Backend
 from engine.backend.select import backend_of, get_backend
 from engine.budget import Budget
 from engine.decimation import kernel_specs as K
-from engine.decimation import meshops
 from engine.decimation.seams import seam_pass, seam_passes_device, seams_fit_beside
 from engine.decimation.tiles import PIECE_TOLERANCE, HostMesh, final_pass, finish_host
 
@@ -255,18 +254,18 @@ def join_on_device(
     vertex given the other side's share); ``pieces`` is emptied as it is joined."""
     be = get_backend(dev)
     pos = be.empty(n_out, VEC3F)
-    quad = meshops.quadrics(be, n_out) if carried else None
+    quad = be.empty(n_out, VEC10D) if carried else None
     faces = be.empty(sum(len(p[1]) for p in pieces), VEC3I)
     ov = of = 0
     for p, f, q in pieces:
         be.copy(pos, p, dst_offset=ov, count=len(p))
         if quad is not None:
-            meshops.copy_quadrics(be, quad, q, ov)
+            be.copy(quad, q, dst_offset=ov)
         be.copy(faces, f, dst_offset=of, count=len(f))
         ov, of = ov + len(p), of + len(f)
     pieces.clear()
     if len(ids) and quad is not None:
-        add = [be.from_host(ids.astype(np.int32)), meshops.quadrics_from_host(be, shares), quad]
+        add = [be.from_host(ids.astype(np.int32)), be.from_host(shares, VEC10D), quad]
         be.launch(K.ADD_QUADRICS, len(ids), add)
     return pos, faces, quad
 
@@ -302,7 +301,7 @@ def finish_groups(
         # goes back up (with its quadrics where the last pass fits too)
         be = _host_device(device)
         carry = len(host.quad) == len(host.pos) and budget.last_pass_fits(len(host.faces))
-        quad = meshops.quadrics_from_host(be, host.quad) if carry else None
+        quad = be.from_host(host.quad, VEC10D) if carry else None
         pieces = [be.from_host(host.pos, VEC3F), be.from_host(host.faces, VEC3I), quad]
         info["uploaded"] = {"faces": len(host.faces), "why": "the spilled groups fit the device seam pass"}
         host = None

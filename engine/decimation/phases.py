@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from engine.backend.base import VEC3F, Backend
+from engine.backend.base import VEC3F, VEC10D, Backend
 from engine.backend.select import backend_of
 from engine.decimation import kernel_specs as K
 from engine.decimation import meshops
@@ -92,7 +92,7 @@ def vertex_quadrics(pos: Any, faces: Any, origin: Any = None) -> tuple[Stars, An
     inc = Stars(be, len(pos)).build(faces, len(faces))
     state = meshops.vertex_classes(be, faces, inc)
     origin = meshops.origin_arg(be, meshops.bbox_centre(be, pos) if origin is None else origin)
-    quad = meshops.quadrics(be, len(pos))
+    quad = be.empty(len(pos), VEC10D)
     be.launch(K.VERTEX_QUADRICS, len(pos), [pos, faces, *inc.inputs, origin, quad])
     return inc, state, origin, quad
 
@@ -133,8 +133,8 @@ def start(
     classes, the quadrics (each vertex's faces' about ``origin``, or carried in as ``quadrics``), the vertices in
     ``locked`` pinned; and the count of each vertex class (a sync point)."""
     be = backend_of(pos)
-    pos = meshops.clone(be, pos)
-    faces = meshops.clone(be, faces)
+    pos = be.clone(pos)
+    faces = be.clone(faces)
     nv = len(pos)
     if quadrics is None:
         inc, state, origin, quad = vertex_quadrics(pos, faces, origin)
@@ -142,7 +142,7 @@ def start(
         inc = Stars(be, nv).build(faces, len(faces))
         state = meshops.vertex_classes(be, faces, inc)
         origin = meshops.origin_arg(be, meshops.bbox_centre(be, pos) if origin is None else origin)
-        quad = meshops.clone(be, quadrics)
+        quad = be.clone(quadrics)
     if locked is not None:
         be.launch(K.LOCK_VERTICES, nv, [locked, state])
     classes = np.bincount(be.to_host(state), minlength=4)  # sync point
@@ -154,7 +154,7 @@ def start(
         state=state,
         quad=quad,
         origin=origin,
-        cos_max=meshops.f64(be, math.cos(math.radians(max_normal_turn_deg))),
+        cos_max=be.scalar(math.cos(math.radians(max_normal_turn_deg)), np.float64),
         alive=len(faces),
         hist=be.zeros(HIST_BINS, np.int32),
         counter=be.zeros(1, np.int32),
@@ -200,7 +200,7 @@ def rank(c: Collapsing, needed: int, candidate_fraction: float) -> Cut | None:
 def guard(c: Collapsing, cut: Cut) -> None:
     """List the edges under the cut and run their guards (an edge refused drops out of the pass)."""
     be = c.be
-    bits = meshops.i64(be, cut.frac_bits)
+    bits = be.scalar(cut.frac_bits, np.int64)
     be.fill(c.n_listed, 0)
     be.launch(K.SELECT_CANDIDATES, 3 * len(c.faces), [c.key, cut.bin_below, bits, c.cand, c.listing, c.n_listed])
     inputs = [*c.listed, c.cand, c.pos, c.faces, *c.inc.inputs, c.state, c.quad, c.origin, c.cos_max]
@@ -214,10 +214,10 @@ def claim(c: Collapsing, cut: Cut, claim_rounds: int) -> int:
     be.fill(c.counter, 0)
     star = [*c.listed, c.cand, c.key, c.faces, *c.inc.inputs, claim]
     rounds = [  # packed once, launched every round (packing the arguments cost more than the launch)
-        meshops.recorded(be, K.CLAIM_STARS, cut.most, star),
-        meshops.recorded(be, K.SETTLE_CLAIMS, cut.most, [*star, c.counter]),
-        meshops.recorded(be, K.TAKE_STARS, cut.most, [*c.listed, c.cand, c.faces, *c.inc.inputs, claim]),
-        meshops.recorded(be, K.RELEASE_CLAIMS, len(c.faces), [claim]),
+        be.prepared(K.CLAIM_STARS, cut.most, star),
+        be.prepared(K.SETTLE_CLAIMS, cut.most, [*star, c.counter]),
+        be.prepared(K.TAKE_STARS, cut.most, [*c.listed, c.cand, c.faces, *c.inc.inputs, claim]),
+        be.prepared(K.RELEASE_CLAIMS, len(c.faces), [claim]),
     ]
     for r in range(claim_rounds):  # (the last round's claims are made afresh next pass: not released)
         for launch in rounds if r < claim_rounds - 1 else rounds[:3]:
@@ -235,7 +235,7 @@ def trim(c: Collapsing, cut: Cut, needed: int, won: int) -> int:
         if salt == 0:
             h_won = _winner_histogram(c, cut.most)
         kbin, frac_bits, _ = _quantile(h_won, needed)
-        be.launch(K.TRIM_WINNERS, cut.most, [*c.listed, c.cand, c.key, kbin, meshops.i64(be, frac_bits), salt])
+        be.launch(K.TRIM_WINNERS, cut.most, [*c.listed, c.cand, c.key, kbin, be.scalar(frac_bits, np.int64), salt])
         h_won = _winner_histogram(c, cut.most)
         won = int(h_won.sum())
         if won == 0:

@@ -26,7 +26,6 @@ def price_edges(
     from engine.backend.base import VEC3F, VEC3I
     from engine.backend.select import get_backend
     from engine.decimation import kernel_specs as K
-    from engine.decimation import meshops
 
     verts, faces = validate_mesh(verts, faces)
     be = get_backend(device)
@@ -36,10 +35,10 @@ def price_edges(
     n = 3 * len(faces)
     key, target = be.empty(n, np.int32), be.empty(n, VEC3F)
     checked, cand, listing = be.empty(n, np.int32), be.empty(n, np.int32), be.empty(n, np.int32)
-    cos_max = meshops.f64(be, math.cos(math.radians(max_normal_turn_deg)))
+    cos_max = be.scalar(math.cos(math.radians(max_normal_turn_deg)), np.float64)
     dirty, n_listed = be.full(len(verts), 1, np.int32), be.zeros(1, np.int32)
     be.launch(K.EDGE_COSTS, n, [pos, f, inc.count, state, quad, origin, dirty, key, target, checked])
-    top, zero = HIST_BINS, meshops.i64(be, 0)  # every priced edge competes, so every one is checked
+    top, zero = HIST_BINS, be.scalar(0, np.int64)  # every priced edge competes, so every one is checked
     be.launch(K.SELECT_CANDIDATES, n, [key, top, zero, cand, listing, n_listed])
     guards = [listing, n_listed, cand, pos, f, *inc.inputs, state, quad, origin, cos_max, top, zero]
     be.launch(K.CHECK_CANDIDATES, n, [*guards, key, target, checked])

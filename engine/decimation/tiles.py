@@ -24,11 +24,10 @@ from typing import Any
 
 import numpy as np
 
-from engine.backend.base import VEC3F, VEC3I
+from engine.backend.base import VEC3F, VEC3I, VEC10D
 from engine.backend.select import backend_of, get_backend
 from engine.budget import Budget, BudgetSpec
 from engine.decimation import kernel_specs as K
-from engine.decimation import meshops
 from engine.decimation.pieces import decimate_piece_device, piece_room
 
 PIECE_TOLERANCE = 0.01  # a group or tile stops this close to its share (the last pass across them is exact)
@@ -101,7 +100,7 @@ def finish_host(
             break
     pos, faces = be.from_host(mesh.pos, VEC3F), be.from_host(mesh.faces, VEC3I)
     last = len(mesh.quad) and len(mesh.faces) > target and budget.fits_decimation(len(mesh.faces))
-    quad = meshops.quadrics_from_host(be, mesh.quad) if last else None
+    quad = be.from_host(mesh.quad, VEC10D) if last else None
     return final_pass(pos, faces, quad, mesh.origin, target, budget, {"tiled": True, "rounds": rounds}, t0)
 
 
@@ -194,7 +193,7 @@ def decimate_tiles(
             be.from_host(lut[tf], VEC3I),
             goal,
             locked=be.from_host(pinned.astype(np.int32)),
-            quadrics=meshops.quadrics_from_host(be, quad[vids]) if carried else None,
+            quadrics=be.from_host(quad[vids], VEC10D) if carried else None,
             origin=mesh.origin,
             **{"stop_tolerance": PIECE_TOLERANCE, **kwargs},
         )

@@ -4,6 +4,7 @@ exclusive scan and stream compaction against numpy, the memory high-water mark; 
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -79,6 +80,38 @@ def test_vector_arrays_round_trip(backend):
     both = backend.empty(7, VEC3F)
     backend.copy(both, v, dst_offset=3, count=4)
     np.testing.assert_array_equal(backend.to_host(both).reshape(-1, 3)[3:], pts)
+
+
+def test_quadric_arrays_clones_sorts_and_scans_without_a_total(backend):
+    """The interface's words for the decimation's device mesh (no ``kind`` branch outside the backends)."""
+    from engine.backend.base import VEC10D
+    from engine.decimation.kernel_specs import ALIVE_FLAGS
+
+    q = np.arange(40, dtype=np.float64).reshape(4, 10) / 7
+    dq = backend.from_host(q, VEC10D)
+    assert len(dq) == 4 and backend.nbytes(dq) == 320
+    both = backend.empty(6, VEC10D)
+    backend.copy(both, dq, dst_offset=2)  # counted in quadrics
+    np.testing.assert_array_equal(backend.to_host(both)[2:], q)
+    np.testing.assert_array_equal(backend.to_host(backend.clone(dq)), q)
+    keys = np.array([5, 1, 5, 0, 1, 9, 5], np.int64)
+    dk, dv = backend.empty(14, np.int64), backend.from_host(np.arange(14, dtype=np.int32))
+    backend.upload(dk, np.concatenate([keys, keys]))
+    backend.sort_pairs(dk, dv, len(keys))
+    np.testing.assert_array_equal(backend.to_host(dv, 7), np.argsort(keys, kind="stable"))
+    counts = np.array([3, 0, 2, 5], np.int32)
+    out = backend.empty(4, np.int32)
+    backend.prefix_sum(backend.from_host(counts), out)
+    np.testing.assert_array_equal(backend.to_host(out), [0, 3, 3, 5])
+    faces = backend.from_host(np.array([[0, 1, 2], [-1, -1, -1]], np.int32), VEC3I)
+    flags = backend.full(2, 7, np.int32)
+    run = backend.prepared(ALIVE_FLAGS, 2, [faces, flags])
+    run()
+    np.testing.assert_array_equal(backend.to_host(flags), [1, 0])
+    assert backend.scalar(0.1, np.float64) == np.float64(0.1)  # not narrowed to float32
+    from engine.decimation.meshops import xyz
+
+    assert xyz(backend.vector((1, 2, 3), np.float64)) == (1, 2, 3)
 
 
 def test_the_memory_high_water_mark_sees_an_allocation(backend):
@@ -157,7 +190,7 @@ def test_kernel_sources_inline_their_includes_once():
         "// include engine.decimation.kernels:linalg.cl",
     ]
     assert text.count("#define FREE") <= 1
-    with pytest.raises(ValueError, match='#include "nowhere.cl"'):
+    with pytest.raises(ValueError, match=re.escape('#include "nowhere.cl"')):
         from engine.backend import opencl_backend
 
         opencl_backend._include_package("engine.decimation.kernels", "nowhere.cl", "test")

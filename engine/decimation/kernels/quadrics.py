@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import warp as wp
 
-quadric = wp.types.vector(length=10, dtype=wp.float64)
+from engine.backend.kernels.vectors import vec10d
+
+quadric = vec10d  # the backend's VEC10D element
 
 
 @wp.func
