@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     from core.settings import get_settings
 
     settings = get_settings()
-    refused = _cuda_refusal(settings.device)
+    refused = _cuda_refusal(args.device or settings.device)
     if refused:
         sys.stderr.write(f"bonemesh worker: {refused}\n")
         return 2

@@ -105,13 +105,18 @@ def test_a_kernel_driver_without_its_library_and_no_driver_at_all(no_cuda) -> No
     assert cuda_problem() == (False, "no NVIDIA GPU driver is loaded on this machine")
 
 
-def test_a_cuda_worker_without_a_usable_gpu_does_not_start(capsys) -> None:
-    """The real probe (a process of its own) on this machine: a ``cuda:N`` worker exits 2 with the reason."""
+def test_a_cuda_worker_without_a_usable_gpu_does_not_start() -> None:
+    """``bonemesh worker --device cuda:0`` for real (its probe a process of its own) on this machine: exit 2, one
+    line with the reason, no worker started."""
+    import subprocess
+
     from engine.backend.warp_device import cuda_available
-    from worker.cli import main
+    from tests.service.procs import bonemesh_argv
 
     if cuda_available():
         pytest.skip("this machine has a CUDA GPU")
-    assert main(["--device", "cuda:0"]) == 2
-    line = capsys.readouterr().err.strip()
-    assert line.startswith("bonemesh worker: cuda:0 is not usable: ") and "\n" not in line
+    done = subprocess.run(
+        [*bonemesh_argv(), "worker", "--device", "cuda:0"], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.startswith("bonemesh worker: cuda:0 is not usable: ") and done.stderr.count("\n") == 1
