@@ -18,6 +18,7 @@ instance role); ``BONEMESH_S3_ENDPOINT_URL`` points at a store other than AWS (p
 from __future__ import annotations
 
 import contextlib
+import datetime as dt
 import os
 import shutil
 import uuid
@@ -195,6 +196,33 @@ class S3Storage(Storage):
     def retire(self, job_id: str, keep: str) -> None:
         stale = [o["Key"] for v, objs in self._versions(job_id).items() if v != keep for o in objs]
         self._delete_keys(stale)
+        self._abort_output_uploads(self._job(job_id) + "/outputs/", keep=keep)
+
+    def sweep_outputs(self, started_before: dt.datetime) -> int:
+        return self._abort_output_uploads(self._key("jobs") + "/", started_before=started_before)
+
+    def _abort_output_uploads(
+        self, prefix: str, keep: str | None = None, started_before: dt.datetime | None = None
+    ) -> int:
+        """Abort the multipart uploads of output files under ``prefix`` (what a publish killed half way leaves: a
+        large ``model.stl`` goes up in parts), but those of version ``keep`` and those begun since
+        ``started_before``; returns how many."""
+        aborted = 0
+        for page in self.client.get_paginator("list_multipart_uploads").paginate(Bucket=self.bucket, Prefix=prefix):
+            for up in page.get("Uploads", []):
+                _, outputs, rest = str(up["Key"]).partition("/outputs/")
+                if not outputs or (keep is not None and rest.partition("/")[0] == keep):
+                    continue
+                initiated = up.get("Initiated")
+                if started_before is not None:
+                    if not isinstance(initiated, dt.datetime):
+                        continue
+                    if (initiated if initiated.tzinfo else initiated.replace(tzinfo=dt.UTC)) >= started_before:
+                        continue
+                with contextlib.suppress(Exception):  # gone meanwhile (completed or aborted elsewhere)
+                    self.client.abort_multipart_upload(Bucket=self.bucket, Key=up["Key"], UploadId=up["UploadId"])
+                    aborted += 1
+        return aborted
 
     def _version(self, job_id: str, version: str | None) -> str | None:
         """``version``, or (for a caller without the job's record) the newest one in the store."""

@@ -16,6 +16,7 @@ scratch copy from S3, removed afterwards) and gives its outputs back through ``p
 from __future__ import annotations
 
 import contextlib
+import datetime as dt
 import errno
 import os
 import re
@@ -211,9 +212,15 @@ class Storage(ABC):
         them the job's outputs."""
 
     def retire(self, job_id: str, keep: str) -> None:
-        """Remove every output version of a job but ``keep`` (after its commit; also what killed attempts left).
-        Local disk keeps one version in place: nothing to do."""
+        """Remove every output version of a job but ``keep`` (after its commit; also what killed attempts left,
+        their unfinished multipart uploads included). Local disk keeps one version in place: nothing to do."""
         return None
+
+    def sweep_outputs(self, started_before: dt.datetime) -> int:
+        """Remove what publishes killed half way left before ``started_before`` (an S3 store's unfinished
+        multipart uploads of outputs, local disk's replaced output folders); returns how many. The API's
+        background sweep calls it."""
+        return 0
 
     @abstractmethod
     def output(self, job_id: str, name: str, version: str | None = None) -> StoredFile | None:
@@ -373,6 +380,15 @@ class LocalStorage(Storage):
 
     def delete_job(self, job_id: str) -> None:
         shutil.rmtree(self._job(job_id), ignore_errors=True)
+
+    def sweep_outputs(self, started_before: dt.datetime) -> int:
+        gone = 0
+        for old in (self.root / "jobs").glob("*/.old-*"):  # a publish killed between its two renames
+            with contextlib.suppress(OSError):
+                if dt.datetime.fromtimestamp(old.stat().st_mtime, dt.UTC) < started_before:
+                    shutil.rmtree(old)
+                    gone += 1
+        return gone
 
     def ping(self) -> None:
         probe = self.root / f".ping-{uuid.uuid4().hex}"

@@ -1,6 +1,7 @@
 """The API process's background threads: the reconciler (re-enqueue jobs whose broker message is gone, or whose
 worker stopped sending heartbeats: the job records are the truth), the webhook sender (:mod:`service.webhooks`)
-and, with S3 storage, the sweep of direct uploads not completed in time (:func:`service.direct.sweep`). All are
+the sweep of what killed publishes left (:func:`sweep_outputs`) and, with S3 storage, the sweep of direct uploads
+not completed in time (:func:`service.direct.sweep`). All are
 plain threads (their work is blocking database and network calls), stopped with the app."""
 
 from __future__ import annotations
@@ -41,6 +42,16 @@ def reconcile(svc: Services) -> dict[str, int]:
     return {"requeued_stale": requeued, "resent": resent}
 
 
+def sweep_outputs(svc: Services) -> int:
+    """What publishes killed half way left, begun more than ``upload_ttl_seconds`` ago (a publish takes seconds:
+    anything that old belongs to no live attempt); the next attempt's ``retire`` removes it sooner."""
+    cutoff = (utcnow() - dt.timedelta(seconds=svc.settings.upload_ttl_seconds)).replace(tzinfo=dt.UTC)
+    gone = svc.storage.sweep_outputs(cutoff)
+    if gone:
+        log.info("swept %d unfinished output upload(s) of killed publishes", gone)
+    return gone
+
+
 class Background:
     """The reconciler and the webhook sender, each in a daemon thread until ``stop``.
 
@@ -59,6 +70,8 @@ class Background:
         if svc.storage.direct is not None:  # as often as the reconciler: one listing of the store's uploads a round
             loop = ("uploads", s.reconcile_seconds, self._uploads)
             self._threads.append(threading.Thread(target=self._loop, args=loop, daemon=True))
+        outputs = ("outputs", s.reconcile_seconds, self._outputs)  # one listing of unfinished output uploads a round
+        self._threads.append(threading.Thread(target=self._loop, args=outputs, daemon=True))
 
     def _reconcile(self) -> None:
         reconcile(self.svc)
@@ -68,6 +81,9 @@ class Background:
 
     def _uploads(self) -> None:
         sweep(self.svc)
+
+    def _outputs(self) -> None:
+        sweep_outputs(self.svc)
 
     def _loop(self, name: str, every: float, step: Callable[[], None]) -> None:
         while not self._stop.wait(every):

@@ -160,6 +160,38 @@ def test_outputs_are_published_as_a_version_readers_name(store: Storage, tmp_pat
         assert missing is None
 
 
+def _killed_publish(store: Storage, job_id: str) -> str:
+    """What a publish killed half way leaves: on S3 a part of a large output's multipart upload, never completed
+    (the object invisible), on local disk the replaced outputs folder between the two renames."""
+    version = "f" * 32
+    if isinstance(store, S3Storage):
+        key = f"{store._job(job_id)}/outputs/{version}/model.stl"
+        up = store.client.create_multipart_upload(Bucket=store.bucket, Key=key)["UploadId"]
+        store.client.upload_part(Bucket=store.bucket, Key=key, UploadId=up, PartNumber=1, Body=b"x" * PART_BYTES)
+    else:
+        old = store.root / "jobs" / job_id / f".old-{version}"
+        old.mkdir(parents=True)
+        (old / "model.stl").write_bytes(b"half")
+    return version
+
+
+def test_what_a_killed_publish_left_goes_with_the_next_attempt_or_the_sweep(store: Storage) -> None:
+    import datetime as dt
+
+    _killed_publish(store, JOB)
+    other = "e" * 32
+    _killed_publish(store, other)
+    version = store.publish(JOB, stage(store, {"model.stl": b"whole"}))  # the next attempt
+    store.retire(JOB, keep=version)
+    s3 = isinstance(store, S3Storage)
+    assert [u["Key"].split("/")[-4] for u in pending_uploads(store)] == ([other] if s3 else [])
+    now = dt.datetime.now(dt.UTC)
+    assert store.sweep_outputs(now - dt.timedelta(hours=1)) == 0  # too young: may belong to a live attempt
+    assert store.sweep_outputs(now + dt.timedelta(seconds=5)) == (1 if s3 else 2)  # local: retire keeps its folder
+    assert pending_uploads(store) == [] and store.read_output(JOB, "model.stl", version) == b"whole"
+    assert s3 or not list((store.root / "jobs").glob("*/.old-*"))
+
+
 def test_deleting_a_job_deletes_its_objects(store: Storage) -> None:
     other = "d" * 32
     for job_id in (JOB, other):
