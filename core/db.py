@@ -6,7 +6,8 @@ message never runs a job twice at once, and writes progress, heartbeat and the r
 
 Each claim also writes a row of ``job_attempts``: which worker (its name and host) ran the attempt, when, and how
 it ended (``running`` until then; ``lost`` when its worker stopped and the job was taken over or re-queued). Direct
-uploads not yet completed (``direct_uploads``, ``service.direct``) wait in a table of their own.
+uploads not yet completed (``direct_uploads``, ``service.direct``) wait in a table of their own, and so do the
+``Idempotency-Key`` values of job and upload creation (``idempotency_keys``, ``service.idempotency``).
 
 Opening the database brings its schema to this release's (``core.schema``: versioned upgrade steps). Sizes and
 counts are 64-bit (``BigInteger``): uploads reach 4 GiB, past PostgreSQL's 32-bit ``INTEGER``.
@@ -38,6 +39,7 @@ from sqlalchemy import (
     update,
 )
 from sqlalchemy.engine import Engine
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship, sessionmaker
 
 from core import schema
@@ -141,6 +143,27 @@ class PendingUpload(Base):
     callback_url: Mapped[str | None] = mapped_column(String(2048), default=None)
     base_url: Mapped[str | None] = mapped_column(String(2048), default=None)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
+    expires_at: Mapped[dt.datetime] = mapped_column(DateTime, index=True)
+
+
+class IdempotencyKey(Base):
+    """An ``Idempotency-Key`` a client sent with a request that creates something (``scope``: ``POST /v1/jobs``,
+    ``POST /v1/uploads``), per key owner: ``pending`` while its first request runs (``token`` names that request,
+    ``touched_at`` its last sign of life), then ``done`` with the request's fingerprint, what it made and the status it
+    answered. Removed at ``expires_at`` (``BONEMESH_IDEMPOTENCY_TTL_SECONDS``) and with the job it names."""
+
+    __tablename__ = "idempotency_keys"
+
+    owner: Mapped[str] = mapped_column(String(64), primary_key=True)
+    scope: Mapped[str] = mapped_column(String(32), primary_key=True)
+    key: Mapped[str] = mapped_column(String(255), primary_key=True)
+    token: Mapped[str] = mapped_column(String(32))
+    state: Mapped[str] = mapped_column(String(16), default="pending")  # pending, then done
+    fingerprint: Mapped[str | None] = mapped_column(String(64), default=None)
+    resource_id: Mapped[str | None] = mapped_column(String(32), default=None, index=True)
+    status_code: Mapped[int | None] = mapped_column(Integer, default=None)
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
+    touched_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
     expires_at: Mapped[dt.datetime] = mapped_column(DateTime, index=True)
 
 
@@ -251,6 +274,7 @@ class Database:
         """Remove a job's record (a running job's worker notices at its next heartbeat). True if it existed."""
         with self.session() as s:
             s.execute(delete(Attempt).where(Attempt.job_id == job_id))
+            s.execute(delete(IdempotencyKey).where(IdempotencyKey.resource_id == job_id))
             return s.execute(delete(Job).where(Job.id == job_id)).rowcount == 1
 
     def lost_jobs(self, queued_before: dt.datetime, stale_before: dt.datetime) -> tuple[list[str], list[str]]:
@@ -392,6 +416,86 @@ class Database:
             if res.rowcount == 1:
                 _end_attempts(s, job_id, state, worker)
             return res.rowcount == 1
+
+    # --- idempotency keys (API side: service.idempotency) --------------------------------------------------------
+    def reserve_key(
+        self, owner: str, scope: str, key: str, token: str, expires_at: dt.datetime, stale_before: dt.datetime
+    ) -> IdempotencyKey | None:
+        """Take ``key`` for the request ``token``: None when taken (a new key, or one past ``expires_at``, or one
+        whose first request stopped touching it before ``stale_before``), else the row that holds it."""
+        where = (IdempotencyKey.owner == owner, IdempotencyKey.scope == scope, IdempotencyKey.key == key)
+        now = utcnow()
+        try:
+            with self.session() as s:
+                s.execute(
+                    delete(IdempotencyKey).where(
+                        *where,
+                        (IdempotencyKey.expires_at <= now)
+                        | ((IdempotencyKey.state == "pending") & (IdempotencyKey.touched_at < stale_before)),
+                    )
+                )
+                row = IdempotencyKey(owner=owner, scope=scope, key=key, token=token, state="pending")
+                row.created_at = row.touched_at = now
+                row.expires_at = expires_at
+                s.add(row)
+            return None
+        except IntegrityError:  # held: by a request still running, or done
+            with self.session() as s:
+                held = s.scalars(select(IdempotencyKey).where(*where)).first()
+            if held is None:  # gone between the two (expired and swept): try once more
+                return self.reserve_key(owner, scope, key, token, expires_at, stale_before)
+            return held
+
+    def touch_key(self, owner: str, scope: str, key: str, token: str) -> bool:
+        """The request ``token`` still runs; False when it no longer holds the key (taken over as stale)."""
+        with self.session() as s:
+            res = s.execute(
+                update(IdempotencyKey)
+                .where(
+                    IdempotencyKey.owner == owner,
+                    IdempotencyKey.scope == scope,
+                    IdempotencyKey.key == key,
+                    IdempotencyKey.token == token,
+                    IdempotencyKey.state == "pending",
+                )
+                .values(touched_at=utcnow())
+            )
+            return res.rowcount == 1
+
+    def finish_key(
+        self, owner: str, scope: str, key: str, token: str, fingerprint: str, resource_id: str, status_code: int
+    ) -> bool:
+        """Record what the request ``token`` made with the key (only while it holds it)."""
+        with self.session() as s:
+            res = s.execute(
+                update(IdempotencyKey)
+                .where(
+                    IdempotencyKey.owner == owner,
+                    IdempotencyKey.scope == scope,
+                    IdempotencyKey.key == key,
+                    IdempotencyKey.token == token,
+                )
+                .values(state="done", fingerprint=fingerprint, resource_id=resource_id, status_code=status_code)
+            )
+            return res.rowcount == 1
+
+    def release_key(self, owner: str, scope: str, key: str, token: str) -> None:
+        """Give the key up (its request failed: the same key may be sent again)."""
+        with self.session() as s:
+            s.execute(
+                delete(IdempotencyKey).where(
+                    IdempotencyKey.owner == owner,
+                    IdempotencyKey.scope == scope,
+                    IdempotencyKey.key == key,
+                    IdempotencyKey.token == token,
+                    IdempotencyKey.state == "pending",
+                )
+            )
+
+    def sweep_keys(self, now: dt.datetime) -> int:
+        """Remove the keys past their expiry; how many."""
+        with self.session() as s:
+            return int(s.execute(delete(IdempotencyKey).where(IdempotencyKey.expires_at <= now)).rowcount or 0)
 
     # --- webhooks (API side) -------------------------------------------------------------------------------------
     def due_webhooks(self, now: dt.datetime, limit: int = 20) -> list[Job]:

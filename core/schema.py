@@ -121,10 +121,15 @@ def _v3_attempts(conn: Connection) -> None:
         )
 
 
+def _v4_idempotency(conn: Connection) -> None:
+    """The table ``idempotency_keys`` is new (made by ``create_all`` before the steps run): nothing to move."""
+
+
 STEPS = (
     Step(1, "job columns added after the first release (engine parameters, webhooks)", _v1_job_columns),
     Step(2, "64-bit sizes and counts (jobs.upload_bytes, jobs.attempts, pacs_jobs.delivery_attempts)", _v2_bigint),
     Step(3, "the worker and host of each attempt (job_attempts), and pending direct uploads", _v3_attempts),
+    Step(4, "Idempotency-Key values of job and upload creation (idempotency_keys)", _v4_idempotency),
 )
 VERSION = STEPS[-1].version  # this release's schema
 

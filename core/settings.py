@@ -61,6 +61,12 @@ class Settings(BaseSettings):
         le=7 * 86400,
         description="direct uploads (S3): how long the part links work; an upload not completed by then is aborted",
     )
+    idempotency_ttl_seconds: int = Field(
+        default=86400,
+        ge=60,
+        le=30 * 86400,
+        description="how long an Idempotency-Key of POST /v1/jobs or /v1/uploads is remembered (then it may be reused)",
+    )
     queue: str = "bonemesh"
     stale_seconds: float = 60.0
     reconcile_seconds: float = 15.0

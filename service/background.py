@@ -1,6 +1,7 @@
 """The API process's background threads: the reconciler (re-enqueue jobs whose broker message is gone, or whose
 worker stopped sending heartbeats: the job records are the truth), the webhook sender (:mod:`service.webhooks`)
-the sweep of what killed publishes left (:func:`sweep_outputs`) and, with S3 storage, the sweep of direct uploads
+the sweep of what killed publishes left (:func:`sweep_outputs`), the sweep of expired ``Idempotency-Key`` values
+(:mod:`service.idempotency`) and, with S3 storage, the sweep of direct uploads
 not completed in time (:func:`service.direct.sweep`). All are
 plain threads (their work is blocking database and network calls), stopped with the app."""
 
@@ -70,6 +71,8 @@ class Background:
         if svc.storage.direct is not None:  # as often as the reconciler: one listing of the store's uploads a round
             loop = ("uploads", s.reconcile_seconds, self._uploads)
             self._threads.append(threading.Thread(target=self._loop, args=loop, daemon=True))
+        keys = ("idempotency keys", s.reconcile_seconds, self._keys)
+        self._threads.append(threading.Thread(target=self._loop, args=keys, daemon=True))
         outputs = ("outputs", s.reconcile_seconds, self._outputs)  # one listing of unfinished output uploads a round
         self._threads.append(threading.Thread(target=self._loop, args=outputs, daemon=True))
 
@@ -81,6 +84,11 @@ class Background:
 
     def _uploads(self) -> None:
         sweep(self.svc)
+
+    def _keys(self) -> None:
+        gone = self.svc.db.sweep_keys(utcnow())
+        if gone:
+            log.info("forgot %d expired Idempotency-Key value(s)", gone)
 
     def _outputs(self) -> None:
         sweep_outputs(self.svc)

@@ -109,6 +109,16 @@ def begin(
     return Begun(record, links)
 
 
+def again(svc: Services, upload_id: str, who: str) -> Begun:
+    """The direct upload ``upload_id`` as begun, with fresh part links (its ``POST /v1/uploads`` sent again with its
+    Idempotency-Key); 404 once it is completed, aborted or expired."""
+    direct = direct_of(svc)
+    row = pending_of(svc.db, upload_id, who)
+    ttl = max(1, int((row.expires_at - utcnow()).total_seconds()))
+    count = max(1, math.ceil(row.upload_bytes / row.part_bytes))
+    return Begun(row, direct.part_links(row.id, row.store_upload_id, count, ttl))
+
+
 def forget(db: Database, upload_id: str) -> None:
     """Remove a pending upload's record."""
     with db.session() as s:

@@ -14,6 +14,7 @@ from core.db import Database, Job
 from core.logsafe import escape_control, safe_logger
 from core.params import JobParams
 from core.storage import Storage, UploadTooLarge, is_storage_full, scrub_paths
+from service.idempotency import Hold, UploadPrint
 from service.problems import Problem
 from service.services import Services
 from service.upload_check import inspect_upload
@@ -24,16 +25,35 @@ log = safe_logger("bonemesh.api")
 FULL = "the data volume is full: the upload was not kept; try again later or ask the operator to free space"
 
 
-async def receive(request: Request, svc: Services, who: str, limit: int, base_url: str) -> Job:
-    """Stream, check and record one upload; nothing of a refused one is kept."""
+async def receive(
+    request: Request,
+    svc: Services,
+    who: str,
+    limit: int,
+    base_url: str,
+    *,
+    hold: Hold | None = None,
+    fingerprint: UploadPrint | None = None,
+) -> Job:
+    """Stream, check and record one upload; nothing of a refused one is kept. With an ``Idempotency-Key``, ``hold``
+    is kept alive by the body's bytes, and ``fingerprint`` takes the upload's."""
     job_id = Database.new_id()
     writer = await svc.in_upload_thread(svc.storage.upload_writer, job_id, limit)
+
+    def write(batch: list[memoryview]) -> None:
+        if fingerprint is not None:
+            fingerprint.update(batch)
+        writer.write_many(batch)
+
     try:
+        body = request.stream() if hold is None else hold.stream(request.stream())
         parsed = await read_multipart(
-            request.headers.get("content-type", ""),
-            request.stream(),
-            lambda batch: svc.in_upload_thread(writer.write_many, batch),
+            request.headers.get("content-type", ""), body, lambda batch: svc.in_upload_thread(write, batch)
         )
+        if fingerprint is not None:
+            fingerprint.seal(parsed.filename, parsed.fields)
+        if hold is not None:
+            hold.working = True
         params, engine = parse_params(parsed.fields.get("params"))
         callback = parsed.fields.get("callback_url", "").strip() or None
         if callback is not None:
@@ -45,6 +65,8 @@ async def receive(request: Request, svc: Services, who: str, limit: int, base_ur
         summary = await svc.in_upload_thread(_inspect, svc.storage, job_id, parsed.filename, params)
         log.info("job %s: upload of %d bytes: %s", job_id, writer.size, summary)
         name = parsed.filename or "upload"
+        if hold is not None:  # the key is still this request's: nobody made the job meanwhile
+            await svc.in_upload_thread(hold.still_held)
         return await svc.in_upload_thread(  # type: ignore[no-any-return]
             svc.accept, job_id, who, params.record(), engine, name, writer.size, callback, base_url
         )
@@ -61,6 +83,36 @@ async def receive(request: Request, svc: Services, who: str, limit: int, base_ur
     except BaseException:  # cancelled: clean up without awaiting
         svc.discard(writer, job_id)
         raise
+
+
+async def fingerprint_of(request: Request, svc: Services, limit: int) -> str:
+    """The fingerprint of an upload sent again with its ``Idempotency-Key`` (read and hashed, never kept).
+
+    Raises:
+        Problem: as :func:`receive` for a malformed body; 413 past ``limit``.
+    """
+    print_ = UploadPrint()
+    seen = 0
+
+    def digest(batch: list[memoryview]) -> None:
+        nonlocal seen
+        seen += sum(len(b) for b in batch)
+        if seen > limit:
+            raise UploadTooLarge(f"the upload is over the limit of {limit:,} bytes")
+        print_.update(batch)
+
+    try:
+        parsed = await read_multipart(
+            request.headers.get("content-type", ""),
+            request.stream(),
+            lambda batch: svc.in_upload_thread(digest, batch),
+        )
+    except UploadTooLarge as exc:
+        raise Problem(413, str(exc)) from None
+    except UploadError as exc:
+        raise Problem(exc.status, exc.detail) from None
+    print_.seal(parsed.filename, parsed.fields)
+    return print_.hexdigest()
 
 
 def _inspect(storage: Storage, job_id: str, filename: str | None, params: JobParams) -> str:

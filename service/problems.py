@@ -14,8 +14,9 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -29,20 +30,69 @@ METHODS = ("DELETE", "GET", "HEAD", "PATCH", "POST", "PUT")
 
 
 class Problem(Exception):
-    """An error answered as application/problem+json; ``detail`` is escaped (it may quote client text)."""
+    """An error answered as application/problem+json; ``detail`` is escaped (it may quote client text). ``code``
+    (one of :data:`CODES`; default: the status's) names the problem type, ``urn:bonemesh:problem:<code>``."""
 
-    def __init__(self, status: int, detail: str, *, title: str | None = None, **extra: Any) -> None:
+    def __init__(
+        self,
+        status: int,
+        detail: str,
+        *,
+        title: str | None = None,
+        code: str | None = None,
+        headers: dict[str, str] | None = None,
+        **extra: Any,
+    ) -> None:
         super().__init__(detail)
         self.status, self.title, self.detail, self.extra = status, title or title_of(status), detail, extra
+        self.code, self.headers = code or code_of(status), headers
+
+
+# every problem type the API answers with: code -> (status, what it means); docs/api.md has the same table
+CODES: dict[str, tuple[int, str]] = {
+    "bad_request": (400, "the request is malformed: a multipart body cut short or a part sent twice, invalid JSON"),
+    "unauthorized": (401, "no API key, or one this service does not know (send it in X-API-Key)"),
+    "link_invalid": (403, "a download link that does not verify: forged, malformed or expired"),
+    "not_found": (404, "no such job, upload, file or path for this API key"),
+    "method_not_allowed": (405, "the path exists, the method does not (Allow lists those that do)"),
+    "conflict": (409, "the resource is not in a state that allows it (a job already finished, an upload completing)"),
+    "idempotency_key_in_use": (
+        409,
+        "a request with this Idempotency-Key is still being carried out; send it again after Retry-After",
+    ),
+    "too_large": (413, "the upload or the request body is larger than the limit"),
+    "unsupported_media_type": (415, "not multipart/form-data or JSON, or an archive bonemesh does not read"),
+    "invalid_request": (422, "a field is invalid (errors[] names each one); or an archive that cannot be a scan"),
+    "idempotency_key_reused": (
+        422,
+        "this Idempotency-Key was used with another request body; use a new key for a new request",
+    ),
+    "internal_error": (500, "the server met an unexpected error (logged; the request was not carried out)"),
+    "queue_unavailable": (503, "the job queue (Redis) is unreachable; nothing changed, send the request again"),
+    "database_unavailable": (503, "the job database is unreachable for the moment; nothing was done (Retry-After)"),
+    "storage_unavailable": (503, "the file store is unreachable for the moment; nothing was done (Retry-After)"),
+    "unavailable": (503, "the service cannot answer for the moment; send the request again later"),
+    "storage_full": (507, "the data volume cannot hold the upload; nothing was kept"),
+}
+_BY_STATUS = {400: "bad_request", 401: "unauthorized", 403: "link_invalid", 404: "not_found"}
+_BY_STATUS |= {405: "method_not_allowed", 409: "conflict", 413: "too_large", 415: "unsupported_media_type"}
+_BY_STATUS |= {422: "invalid_request", 500: "internal_error", 503: "unavailable", 507: "storage_full"}
+
+
+def code_of(status: int) -> str:
+    """The problem code of a status when nothing more precise is known."""
+    return _BY_STATUS.get(status, "bad_request" if status < 500 else "internal_error")
 
 
 class ProblemBody(BaseModel):
-    """An RFC 9457 problem document."""
+    """An RFC 9457 problem document. ``type`` is ``urn:bonemesh:problem:<code>``, one per ``code`` (the table of
+    codes is in docs/api.md); clients tell problems apart by ``code`` (or ``type``), never by ``detail``."""
 
-    type: str = "about:blank"
+    type: str = Field(description="urn:bonemesh:problem:<code>: a stable URI naming the kind of problem")
     title: str
     status: int
     detail: str
+    code: str = Field(description="the problem's code: " + ", ".join(CODES))
     errors: list[dict[str, Any]] | None = None
 
 
@@ -55,7 +105,7 @@ def title_of(status: int) -> str:
 
 
 def problem_type(code: str) -> str:
-    """The stable URI of a problem type (``urn:bonemesh:problem:<code>``, listed in docs/storage.md)."""
+    """The stable URI of a problem type (``urn:bonemesh:problem:<code>``, listed in docs/api.md)."""
     return f"urn:bonemesh:problem:{code}"
 
 
@@ -65,12 +115,13 @@ def problem_response(
     *,
     title: str | None = None,
     headers: dict[str, str] | None = None,
-    type: str = "about:blank",
+    code: str | None = None,
     **extra: Any,
 ) -> JSONResponse:
-    """A problem+json response."""
-    body = {"type": type, "title": title or title_of(status), "status": status}
-    body["detail"] = escape_control(detail)
+    """A problem+json response of type ``urn:bonemesh:problem:<code>`` (``code``: the status's by default)."""
+    code = code or code_of(status)
+    body = {"type": problem_type(code), "title": title or title_of(status), "status": status}
+    body |= {"detail": escape_control(detail), "code": code}
     return JSONResponse({**body, **extra}, status_code=status, media_type=PROBLEM, headers=headers)
 
 
@@ -96,7 +147,9 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(Problem)
     async def _problem(_: Request, exc: Problem) -> JSONResponse:
-        return problem_response(exc.status, exc.detail, title=exc.title, **exc.extra)
+        return problem_response(
+            exc.status, exc.detail, title=exc.title, headers=exc.headers, code=exc.code, **exc.extra
+        )
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
@@ -135,6 +188,11 @@ class LastResort:
         try:
             await self.app(scope, receive, _send)
         except Exception as exc:
+            if isinstance(exc, ClientDisconnect):  # the client went away mid-body: nobody to answer, nothing kept
+                log.info(
+                    "%s %s: the client went away before the whole request came", scope.get("method"), scope.get("path")
+                )
+                return
             outage = outage_of(exc)
             if outage is not None:  # transient: the database or the store is down for now (core.faults)
                 log.warning(
@@ -157,7 +215,6 @@ def outage_response(outage: Outage) -> JSONResponse:
         503,
         f"{what} is unreachable for the moment ({outage.seen}); nothing was done: try again in {RETRY_AFTER_SECONDS} s",
         headers={"Retry-After": str(RETRY_AFTER_SECONDS)},
-        type=problem_type(outage.code),
         code=outage.code,
     )
 
@@ -173,7 +230,8 @@ RETRY_AFTER_HEADER = {
 
 def fix_openapi(schema: dict[str, Any]) -> dict[str, Any]:
     """Declare every error response as problem+json (FastAPI writes application/json), add the last-resort 500 and
-    the outage's 503 (with ``Retry-After``) to every operation, and drop the validation-error schemas FastAPI adds (the 422s are problems too)."""
+    the outage's 503 (with ``Retry-After``) to every operation, and drop the validation-error schemas FastAPI adds
+    (the 422s are problems too)."""
     components = schema.setdefault("components", {}).setdefault("schemas", {})
     components["Problem"] = ProblemBody.model_json_schema()
     for ops in schema.get("paths", {}).values():

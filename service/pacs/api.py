@@ -57,8 +57,8 @@ def redeliver(svc: Any, job: Job) -> None:
         raise Problem(409, f"job {job.id} has no PACS destination to deliver to")
 
 
-async def create_source_job(request: Request, svc: Any, who: str) -> Job:
-    """Validate the JSON body, record the job and send its message (``svc``: the app's Services)."""
+async def read_source(request: Request) -> SourceJobCreate:
+    """The JSON body naming a DICOMweb series, validated (422 naming the field; 413 past :data:`MAX_BODY`)."""
     body = b""
     async for chunk in request.stream():
         body += chunk
@@ -71,6 +71,11 @@ async def create_source_job(request: Request, svc: Any, who: str) -> Job:
         fields = [{"field": ".".join(str(p) for p in e["loc"]), "message": e["msg"]} for e in errs]
         detail = "; ".join(f"{f['field']}: {f['message']}" for f in fields) or "the body is not valid JSON"
         raise Problem(422, detail, errors=fields or None) from None
+    return spec
+
+
+async def create_source_job(svc: Any, who: str, spec: SourceJobCreate) -> Job:
+    """Record the job of a validated body (``read_source``) and send its message (``svc``: the app's Services)."""
     try:
         spec.params.job_spec()
     except ValueError as exc:

@@ -10,8 +10,9 @@ from fastapi import APIRouter
 from fastapi.responses import JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
-from service import direct
+from service import direct, idempotency
 from service.deps import BaseUrlDep, OwnerDep, ServicesDep
+from service.idempotency import KeyHeader
 from service.problems import problems as errors
 from service.routes.jobs import KEYED
 from service.schemas import (
@@ -62,10 +63,23 @@ def upload_options(who: OwnerDep, svc: ServicesDep) -> UploadOptions:
         ),
     },
 )
-async def begin_upload(body: DirectUploadCreate, who: OwnerDep, svc: ServicesDep, base: BaseUrlDep) -> Response:
-    begun = await svc.in_upload_thread(
-        direct.begin, svc, who, body.filename, body.size, body.params, body.callback_url, base
-    )
+async def begin_upload(
+    body: DirectUploadCreate, who: OwnerDep, svc: ServicesDep, base: BaseUrlDep, idempotency_key: KeyHeader = None
+) -> Response:
+    args = (svc, who, body.filename, body.size, body.params, body.callback_url, base)
+    if idempotency_key is None:
+        return _begun(await svc.in_upload_thread(direct.begin, *args))
+    fingerprint = idempotency.canonical({"kind": "direct", **body.model_dump(mode="json")})
+    found = await svc.in_upload_thread(idempotency.reserve, svc, who, idempotency.UPLOADS, idempotency_key)
+    if isinstance(found, idempotency.Hold):
+        begun = await idempotency.held(found, svc.in_upload_thread(direct.begin, *args))
+        await svc.in_upload_thread(found.finish, fingerprint, begun.record.id, 201)
+        return _begun(begun)
+    upload_id = idempotency.replayed(found, fingerprint)
+    return _begun(await svc.in_upload_thread(direct.again, svc, upload_id, who), replayed=True)
+
+
+def _begun(begun: direct.Begun, *, replayed: bool = False) -> Response:
     row, part = begun.record, begun.record.part_bytes
     parts = [
         UploadPart(
@@ -85,7 +99,10 @@ async def begin_upload(body: DirectUploadCreate, who: OwnerDep, svc: ServicesDep
         complete_url=f"/v1/uploads/{row.id}/complete",
         abort_url=f"/v1/uploads/{row.id}",
     )
-    return JSONResponse(out.model_dump(mode="json"), status_code=201, headers={"Location": f"/v1/uploads/{row.id}"})
+    headers = {"Location": f"/v1/uploads/{row.id}"}
+    if replayed:
+        headers[idempotency.REPLAYED] = "true"
+    return JSONResponse(out.model_dump(mode="json"), status_code=201, headers=headers)
 
 
 @router.post(

@@ -14,9 +14,12 @@ from core.db import Job, utcnow
 from core.params import OrientJobParams
 from core.storage import version_of
 from engine.defect.params import DEFECT_REORIENT
+from service import idempotency
 from service.deps import BaseUrlDep, OwnerDep, ServicesDep
-from service.intake import FULL, receive
+from service.idempotency import KeyHeader
+from service.intake import FULL, fingerprint_of, receive
 from service.pacs import api as pacs_api
+from service.pacs.models import SourceJobCreate
 from service.problems import Problem
 from service.problems import problems as errors
 from service.schemas import UPLOAD_BODY, JobList, JobOut, WebhookSecret
@@ -59,23 +62,56 @@ def _job(svc: Services, job_id: str, who: str) -> Job:
     },
     openapi_extra={"requestBody": UPLOAD_BODY},
 )
-async def create_job(request: Request, who: OwnerDep, svc: ServicesDep, base: BaseUrlDep) -> Response:
-    if pacs_api.is_json(request):  # a DICOMweb series instead of a file
-        job = await pacs_api.create_source_job(request, svc, who)
-        body = svc.job_out(job, base).model_dump(mode="json")
-        return JSONResponse(body, status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
+async def create_job(
+    request: Request, who: OwnerDep, svc: ServicesDep, base: BaseUrlDep, idempotency_key: KeyHeader = None
+) -> Response:
     limit = svc.settings.max_upload_bytes
     declared = request.headers.get("content-length")
     size = int(declared) if declared and declared.isdigit() and len(declared) < 20 else None
     if size is not None and size > limit + MULTIPART_SLACK:
         raise Problem(413, f"the upload ({size:,} bytes) is over the limit of {limit:,} bytes")
+    if idempotency_key is None:
+        job, _ = await _create(request, svc, who, base, size)
+        return created(svc, job, base)
+    found = await svc.in_upload_thread(idempotency.reserve, svc, who, idempotency.JOBS, idempotency_key)
+    if isinstance(found, idempotency.Hold):
+        job, fingerprint = await idempotency.held(found, _create(request, svc, who, base, size, found))
+        await svc.in_upload_thread(found.finish, fingerprint, job.id, 202)
+        return created(svc, job, base)
+    if pacs_api.is_json(request):
+        fingerprint = _source_print(await pacs_api.read_source(request))
+    else:
+        fingerprint = await fingerprint_of(request, svc, limit)
+    job = _job(svc, idempotency.replayed(found, fingerprint), who)
+    return created(svc, job, base, found.status_code or 202, replayed=True)
+
+
+def created(svc: Services, job: Job, base: str, status: int = 202, *, replayed: bool = False) -> Response:
+    """The answer to a job's creation: the job, its ``Location`` (and ``Idempotent-Replayed`` when sent again)."""
+    headers = {"Location": f"/v1/jobs/{job.id}"}
+    if replayed:
+        headers[idempotency.REPLAYED] = "true"
+    return JSONResponse(svc.job_out(job, base).model_dump(mode="json"), status_code=status, headers=headers)
+
+
+def _source_print(spec: SourceJobCreate) -> str:
+    return idempotency.canonical({"kind": "dicomweb", **spec.model_dump(mode="json")})
+
+
+async def _create(
+    request: Request, svc: Services, who: str, base: str, size: int | None, hold: idempotency.Hold | None = None
+) -> tuple[Job, str]:
+    """Make the job (a DICOMweb series, or an upload) and its request's fingerprint."""
+    if pacs_api.is_json(request):  # a DICOMweb series instead of a file
+        spec = await pacs_api.read_source(request)
+        return await pacs_api.create_source_job(svc, who, spec), _source_print(spec)
     free = await svc.in_upload_thread(svc.storage.free_bytes)
     if size is not None and free is not None and size > free:
         raise Problem(507, f"{FULL} ({size:,} bytes sent, {free:,} free)")
+    fingerprint = idempotency.UploadPrint()
     async with svc.active_uploads:
-        job = await receive(request, svc, who, limit, base)
-    body = svc.job_out(job, base).model_dump(mode="json")
-    return JSONResponse(body, status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
+        job = await receive(request, svc, who, svc.settings.max_upload_bytes, base, hold=hold, fingerprint=fingerprint)
+    return job, fingerprint.hexdigest()
 
 
 @router.get("/jobs", response_model=JobList, summary="your jobs, newest first", responses=KEYED)
@@ -178,7 +214,9 @@ def orient_job(job_id: str, body: OrientJobParams, who: OwnerDep, svc: ServicesD
         svc.queue.enqueue_orient(job_id, body.model_dump())
     except Exception as exc:
         svc.db.finish_orient(job_id)
-        raise Problem(503, f"the queue is unreachable ({type(exc).__name__}); try again") from None
+        raise Problem(
+            503, f"the queue is unreachable ({type(exc).__name__}); try again", code="queue_unavailable"
+        ) from None
     return svc.job_out(_job(svc, job_id, who), base)
 
 

@@ -33,6 +33,7 @@ def assert_problem(resp: httpx.Response, status: int | tuple[int, ...]) -> dict[
         assert key in body, f"problem document lacks {key!r}: {body}"
     assert body["status"] == resp.status_code, body
     assert isinstance(body["detail"], str) and body["detail"].strip(), body
+    assert body["type"] == f"urn:bonemesh:problem:{body.get('code')}", body  # one stable type per code, never blank
     return body
 
 

@@ -223,3 +223,26 @@ def test_the_page_uploads_straight_to_the_store(s3_stack: S3Stack, tmp_path: Pat
         assert f"{PREFIX}/jobs/{job_id}/upload" in s3_stack.objects(job_id)
     finally:
         driver.quit()
+
+
+def test_an_idempotency_key_begins_one_direct_upload(s3_stack: S3Stack) -> None:
+    data = HEADSQ.path.read_bytes()
+    body = {"filename": "headsq.zip", "size": len(data), "params": HEADSQ.params}
+    key = {"Idempotency-Key": "direct-" + os.urandom(8).hex()}
+    with s3_stack.stack.client() as client:
+        first = client.post("/v1/uploads", json=body, headers=key)
+        assert first.status_code == 201 and "idempotent-replayed" not in first.headers, first.text
+        again = client.post("/v1/uploads", json=body, headers=key)  # the answer was lost: the same upload
+        assert again.status_code == 201 and again.headers["idempotent-replayed"] == "true", again.text
+        up = again.json()
+        assert up["id"] == first.json()["id"] and again.headers["location"] == first.headers["location"]
+        assert len(s3_stack.pending()) == 1  # one multipart upload in the store, not two
+        other = client.post("/v1/uploads", json={**body, "filename": "other.zip"}, headers=key)
+        assert assert_problem(other, 422)["code"] == "idempotency_key_reused"
+        (part,) = up["parts"]  # the replayed links work
+        put_part(part, data)
+        done = client.post(up["complete_url"], json={})
+        assert done.status_code == 202 and done.json()["id"] == up["id"], done.text
+        assert_problem(client.post("/v1/uploads", json=body, headers=key), 404)  # completed: nothing to begin again
+        assert client.delete(f"/v1/jobs/{up['id']}").status_code == 204
+        assert not s3_stack.pending()
