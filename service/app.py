@@ -35,8 +35,16 @@ DESCRIPTION = (
     "in millimetres for printing and light GLB models (metres) for phones and AR."
 )
 # what a browser client may send and read across origins
-CORS_HEADERS = ["X-API-Key", "Content-Type", "If-None-Match"]
-CORS_EXPOSED = ["Location", "ETag", "Content-Disposition", "Content-Length", "Cache-Control"]
+CORS_HEADERS = ["X-API-Key", "Content-Type", "If-None-Match", "Idempotency-Key"]
+CORS_EXPOSED = [
+    "Location",
+    "ETag",
+    "Content-Disposition",
+    "Content-Length",
+    "Cache-Control",
+    "Retry-After",
+    "Idempotent-Replayed",
+]
 
 
 def page_csp(settings: Settings) -> str:

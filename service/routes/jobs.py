@@ -7,13 +7,14 @@ import datetime as dt
 import json
 from typing import Annotated
 
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, Header, Query, Request
 from fastapi.responses import JSONResponse, Response
 
 from core.db import Job, utcnow
 from core.params import OrientJobParams
 from core.storage import version_of
 from engine.defect.params import DEFECT_REORIENT
+from service import headers as hdr
 from service import idempotency
 from service.deps import BaseUrlDep, OwnerDep, ServicesDep
 from service.idempotency import KeyHeader
@@ -126,9 +127,28 @@ def list_jobs(
     return JobList(items=[svc.job_out(j, base) for j in rows], total=total, limit=limit, offset=offset)
 
 
-@router.get("/jobs/{job_id}", response_model=JobOut, summary="a job", responses={**KEYED, **errors(404)})
-def get_job(job_id: str, who: OwnerDep, svc: ServicesDep, base: BaseUrlDep) -> JobOut:
-    return svc.job_out(_job(svc, job_id, who), base)
+@router.get(
+    "/jobs/{job_id}",
+    response_model=JobOut,
+    summary="a job (poll it: If-None-Match with its ETag gives 304 while nothing changed; Retry-After: when to ask)",
+    responses={200: {"headers": hdr.JOB_HEADERS}, 304: hdr.NOT_MODIFIED, **KEYED, **errors(404)},
+)
+def get_job(
+    job_id: str,
+    who: OwnerDep,
+    svc: ServicesDep,
+    base: BaseUrlDep,
+    if_none_match: Annotated[
+        str | None, Header(description="the ETag of the job seen last: 304 (no body) while it is unchanged")
+    ] = None,
+) -> Response:
+    job = _job(svc, job_id, who)
+    body = svc.job_out(job, base).model_dump(mode="json")
+    etag = hdr.job_etag(body, svc.settings.url_ttl_seconds)
+    sent = hdr.job_headers(job, etag)
+    if hdr.etag_matches(if_none_match, etag):
+        return Response(status_code=304, headers=sent)
+    return JSONResponse(body, headers=sent)
 
 
 @router.post(

@@ -1,0 +1,135 @@
+"""The API's contract as clients and generated SDKs meet it: polling a job with ETag / If-None-Match (304) and
+Retry-After, its declared Cache-Control; the API-key security scheme, readable operation ids and declared response
+headers in the OpenAPI document; problem types with stable URIs, one per code, documented; the ``webhooks`` entry of
+the job-finished callback."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from core.db import Database, utcnow
+from core.settings import Settings
+from service.headers import job_etag
+from service.problems import CODES
+from tests.service.conftest import HEADSQ, StackFactory
+
+KEY = {"X-API-Key": "key-a"}
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _app(tmp_path: Path, **settings: Any) -> TestClient:
+    from service.app import create_app
+
+    base = {"data_dir": tmp_path, "api_keys": ["key-a", "key-b"], "secret_key": "s" * 32}
+    base |= {"redis_url": "redis://127.0.0.1:1/0", "reconcile_seconds": 3600}
+    return TestClient(create_app(Settings(**{**base, **settings})))
+
+
+def _submit(client: Any) -> dict[str, Any]:
+    files = {"file": ("headsq.zip", HEADSQ.path.read_bytes(), "application/zip")}
+    resp = client.post("/v1/jobs", headers=KEY, files=files, data={"params": json.dumps(HEADSQ.params)})
+    assert resp.status_code == 202, resp.text
+    return resp.json()  # type: ignore[no-any-return]
+
+
+# -- polling: ETag, 304, Retry-After, Cache-Control -------------------------------------------------------------
+def test_polling_a_job_with_etag_and_retry_after(tmp_path: Path) -> None:
+    with _app(tmp_path) as client:
+        job = _submit(client)
+        url = f"/v1/jobs/{job['id']}"
+        first = client.get(url, headers=KEY)
+        assert first.status_code == 200
+        etag = first.headers["etag"]
+        assert re.fullmatch(r'W/"[0-9a-f]{32}"', etag), etag
+        assert first.headers["cache-control"] == "private, no-cache"
+        assert first.headers["retry-after"] == "5"  # queued
+        same = client.get(url, headers={**KEY, "If-None-Match": etag})
+        assert same.status_code == 304 and same.content == b""
+        assert same.headers["etag"] == etag and same.headers["retry-after"] == "5"
+        assert (
+            client.get(url, headers={**KEY, "If-None-Match": f'"other", {etag.removeprefix("W/")}'}).status_code == 304
+        )
+        assert client.get(url, headers={**KEY, "If-None-Match": '"other"'}).status_code == 200
+        assert client.get(url, headers={"X-API-Key": "key-b", "If-None-Match": etag}).status_code == 404
+
+        db: Database = client.app.state.services.db  # type: ignore[attr-defined]
+        assert db.claim(job["id"], "host:1:w", utcnow())
+        running = client.get(url, headers={**KEY, "If-None-Match": etag})
+        assert running.status_code == 200 and running.json()["state"] == "running"
+        assert running.headers["etag"] != etag and running.headers["retry-after"] == "2"
+        assert db.beat(job["id"], "host:1:w", stage="marching", progress=40.0)
+        moved = client.get(url, headers={**KEY, "If-None-Match": running.headers["etag"]})
+        assert moved.status_code == 200 and moved.json()["progress"] == 40.0  # progress is part of the state
+
+        output = {"name": "model.stl", "kind": "stl", "media_type": "model/stl", "bytes": 10, "triangles": 2}
+        assert db.finish(job["id"], "host:1:w", "succeeded", outputs=[output], progress=100.0)
+        done = client.get(url, headers=KEY)
+        assert done.status_code == 200 and "retry-after" not in done.headers
+        again = client.get(url, headers={**KEY, "If-None-Match": done.headers["etag"]})
+        assert again.status_code == 304 and "retry-after" not in again.headers  # fresh links alone change nothing
+        body = done.json()
+        later = job_etag(body, 3600, now=1e9 + 1800)  # half the links' lifetime on: a new ETag, so new links
+        assert job_etag(body, 3600, now=1e9) != later and job_etag(body, 3600, now=1e9 + 10) == job_etag(
+            body, 3600, 1e9
+        )
+
+
+def test_polling_a_real_server(make_stack: StackFactory) -> None:
+    _, stack = make_stack(workers=0)
+    with stack.client("key-a") as client:
+        files = {"file": ("headsq.zip", HEADSQ.path.read_bytes(), "application/zip")}
+        made = client.post("/v1/jobs", files=files, data={"params": json.dumps(HEADSQ.params)})
+        assert made.status_code == 202, made.text
+        url = made.headers["location"]
+        seen = client.get(url)
+        assert seen.status_code == 200 and seen.headers["retry-after"] == "5"
+        cached = client.get(url, headers={"If-None-Match": seen.headers["etag"]})
+        assert cached.status_code == 304 and cached.headers["cache-control"] == "private, no-cache"
+
+
+def test_cors_exposes_the_polling_and_idempotency_headers(tmp_path: Path) -> None:
+    origin = "https://app.example.org"
+    with _app(tmp_path, cors_origins=[origin]) as client:
+        pre = client.options(
+            "/v1/jobs",
+            headers={"Origin": origin, "Access-Control-Request-Method": "POST",
+                     "Access-Control-Request-Headers": "x-api-key, idempotency-key"},
+        )  # fmt: skip
+        assert pre.status_code == 200 and "idempotency-key" in pre.headers["access-control-allow-headers"].lower()
+        got = client.get("/v1/jobs", headers={**KEY, "Origin": origin})
+        exposed = got.headers["access-control-expose-headers"].lower()
+        assert "retry-after" in exposed and "idempotent-replayed" in exposed and "etag" in exposed
+
+
+# -- problem types ------------------------------------------------------------------------------------------------
+def test_every_problem_code_has_its_type_and_is_documented(tmp_path: Path) -> None:
+    doc = (REPO / "docs" / "api.md").read_text()
+    for code, (status, _) in CODES.items():
+        assert f"| `{code}` | `urn:bonemesh:problem:{code}` | {status} |" in doc, code
+    with _app(tmp_path) as client:
+        answers = {
+            "unauthorized": client.get("/v1/jobs"),
+            "not_found": client.get("/v1/jobs/nope", headers=KEY),
+            "method_not_allowed": client.put("/v1/jobs", headers=KEY),
+            "invalid_request": client.get("/v1/jobs?limit=0", headers=KEY),
+            "link_invalid": client.get("/v1/files/forged"),
+            "unsupported_media_type": client.post("/v1/jobs", headers=KEY, content=b"x"),
+        }
+        for code, resp in answers.items():
+            body = resp.json()
+            assert resp.headers["content-type"] == "application/problem+json", (code, resp.text)
+            assert (body["code"], body["type"]) == (code, f"urn:bonemesh:problem:{code}"), (code, body)
+            assert body["status"] == CODES[code][0] == resp.status_code
+
+
+@pytest.mark.parametrize("status", [400, 401, 404, 409, 413, 415, 422, 500, 503, 507])
+def test_status_defaults_are_codes(status: int) -> None:
+    from service.problems import code_of
+
+    assert CODES[code_of(status)][0] == status
