@@ -19,6 +19,7 @@ from typing import Any
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
+from fastapi.routing import APIRoute
 from fastapi_offline import FastAPIOffline
 from starlette.datastructures import MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -45,6 +46,36 @@ CORS_EXPOSED = [
     "Retry-After",
     "Idempotent-Replayed",
 ]
+
+
+# readable operation ids (generated clients' method names), by route function; others: the name in camelCase
+OPERATION_IDS = {
+    "healthz": "health",
+    "readyz": "ready",
+    "download": "downloadFile",
+    "download_head": "headFile",
+    "label_stl": "getLabelStl",
+    "upload_options": "getUploadOptions",
+    "begin_upload": "createUpload",
+    "webhook_secret": "getWebhookSecret",
+}
+
+
+def operation_id(route: APIRoute) -> str:
+    """The operation id of a route: ``createJob``, ``getJob``, ``listJobs``... (FastAPI's default is
+    ``create_job_v1_jobs_post``)."""
+    if route.name in OPERATION_IDS:
+        return OPERATION_IDS[route.name]
+    first, *rest = route.name.split("_")
+    return first + "".join(word.capitalize() for word in rest)
+
+
+def public_operations(schema: dict[str, Any]) -> dict[str, Any]:
+    """Mark the operations that need no API key (health checks, signed downloads) with ``security: []``."""
+    for ops in schema.get("paths", {}).values():
+        for op in ops.values():
+            op.setdefault("security", [])
+    return schema
 
 
 def page_csp(settings: Settings) -> str:
@@ -103,7 +134,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         background.stop()
 
     app = FastAPIOffline(  # /docs and /redoc with their scripts served from the package: no CDN
-        title="bonemesh", version="1.0", description=DESCRIPTION, lifespan=lifespan, static_url="/docs/static"
+        title="bonemesh",
+        version="1.0",
+        description=DESCRIPTION,
+        lifespan=lifespan,
+        static_url="/docs/static",
+        generate_unique_id_function=operation_id,
     )
     app.state.settings = settings
     app.state.data_dir = settings.data_dir
@@ -134,7 +170,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
             schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
-            app.openapi_schema = add_job_params(problems.fix_openapi(schema))
+            app.openapi_schema = public_operations(add_job_params(problems.fix_openapi(schema)))
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]

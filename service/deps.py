@@ -6,7 +6,8 @@ from __future__ import annotations
 import hmac
 from typing import Annotated
 
-from fastapi import Depends, Header, Request
+from fastapi import Depends, Request, Security
+from fastapi.security import APIKeyHeader
 
 from core.db import owner_of
 from core.settings import Settings
@@ -28,9 +29,17 @@ SettingsDep = Annotated[Settings, Depends(get_settings_of_app)]
 ServicesDep = Annotated[Services, Depends(get_services)]
 
 
-def api_owner(
-    settings: SettingsDep, x_api_key: Annotated[str | None, Header(description="your API key")] = None
-) -> str:
+# the API-key security scheme (components.securitySchemes.ApiKey): Swagger's Authorize button, and generated clients
+# that take the key once; every operation that needs it names it in its ``security``
+API_KEY = APIKeyHeader(
+    name="X-API-Key",
+    scheme_name="ApiKey",
+    description="your API key (BONEMESH_API_KEYS); a job, upload or key is seen only with the key that made it",
+    auto_error=False,  # a missing key is answered by api_owner: 401 as problem+json
+)
+
+
+def api_owner(settings: SettingsDep, x_api_key: Annotated[str | None, Security(API_KEY)] = None) -> str:
     """The stored owner of the caller's key; 401 unless ``X-API-Key`` is one of the configured keys."""
     ok = False
     for key in settings.api_keys:  # every key compared, in constant time

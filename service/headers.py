@@ -50,6 +50,22 @@ REPLAYED = {
     }
 }
 JOB_HEADERS = {**ETAG, **CACHE_CONTROL, **RETRY_AFTER}
+CREATED = {**LOCATION, **REPLAYED}
+IN_USE = {
+    "Retry-After": {
+        "description": "with 409 idempotency_key_in_use: the seconds after which to send the request again",
+        "schema": {"type": "integer", "minimum": 0},
+    }
+}
+DOWNLOAD = {
+    name: {"description": text, "schema": {"type": "string"}}
+    for name, text in (
+        ("ETag", "the file's validator: send it in If-None-Match, 304 while unchanged"),
+        ("Cache-Control", "private, max-age up to the link's expiry"),
+        ("Expires", "the link's expiry (HTTP date)"),
+        ("Content-Disposition", 'attachment; filename="<the output\'s name>"'),
+    )
+}
 NOT_MODIFIED = {"description": "not modified: the ETag in If-None-Match is still the job's", "headers": JOB_HEADERS}
 
 

@@ -11,6 +11,7 @@ from fastapi.responses import JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
 from service import direct, idempotency
+from service import headers as hdr
 from service.deps import BaseUrlDep, OwnerDep, ServicesDep
 from service.idempotency import KeyHeader
 from service.problems import problems as errors
@@ -50,16 +51,19 @@ def upload_options(who: OwnerDep, svc: ServicesDep) -> UploadOptions:
     response_model=DirectUploadOut,
     summary="begin a direct upload: links to PUT the scan's parts straight to the store (S3 storage only)",
     responses={
+        201: {"description": "the upload begun (or the one its Idempotency-Key began)", "headers": hdr.CREATED},
         **KEYED,
         **errors(
             400,
+            404,
             409,
             413,
             422,
             d400="the body is not valid JSON",
-            d409=NO_DIRECT,
+            d404="the Idempotency-Key's upload is completed, aborted or expired",
+            d409=f"{NO_DIRECT}; or a request with this Idempotency-Key is still being carried out",
             d413="the declared size is over the limit",
-            d422="invalid params or callback_url",
+            d422="invalid params or callback_url, or an Idempotency-Key used with another request",
         ),
     },
 )
@@ -111,6 +115,7 @@ def _begun(begun: direct.Begun, *, replayed: bool = False) -> Response:
     response_model=JobOut,
     summary="complete a direct upload: the parts are joined, the archive checked, and the job created and queued",
     responses={
+        202: {"description": "the job, queued", "headers": hdr.LOCATION},
         **KEYED,
         **errors(
             400,

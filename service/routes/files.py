@@ -17,14 +17,15 @@ from core.storage import version_of
 from engine.export.files import FILES
 from service import tokens
 from service.deps import ServicesDep
+from service.headers import DOWNLOAD
 from service.problems import Problem
 from service.problems import problems as errors
 from service.schemas import DOWNLOAD_CONTENT
 
 router = APIRouter(prefix="/v1", tags=["files"])
 RESPONSES = {
-    200: DOWNLOAD_CONTENT,
-    304: {"description": "not modified: the ETag sent in If-None-Match is the file's"},
+    200: {**DOWNLOAD_CONTENT, "headers": DOWNLOAD},
+    304: {"description": "not modified: the ETag sent in If-None-Match is the file's", "headers": DOWNLOAD},
     **errors(403, 404, d403="the link does not verify (forged, malformed or expired)", d404="file gone"),
 }
 

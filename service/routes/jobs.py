@@ -47,6 +47,7 @@ def _job(svc: Services, job_id: str, who: str) -> Job:
     response_model=JobOut,
     summary="upload a scan (multipart) or name a DICOMweb series (JSON), and start a reconstruction",
     responses={
+        202: {"description": "the job, queued (or the one its Idempotency-Key made)", "headers": hdr.CREATED},
         **KEYED,
         **errors(
             400,
@@ -57,9 +58,14 @@ def _job(svc: Services, job_id: str, who: str) -> Job:
             d400="malformed or incomplete multipart body, or a part sent twice",
             d413="the upload is larger than the limit",
             d415="not multipart, or not an archive bonemesh reads",
-            d422="invalid params or callback_url, or an archive that cannot be a scan",
+            d422="invalid params or callback_url, an archive that cannot be a scan, or an Idempotency-Key used with "
+            "another request (idempotency_key_reused)",
             d507="the data volume cannot hold the upload (nothing was kept)",
         ),
+        409: {
+            "description": "a request with this Idempotency-Key is still being carried out (idempotency_key_in_use)",
+            "headers": hdr.IN_USE,
+        },
     },
     openapi_extra={"requestBody": UPLOAD_BODY},
 )

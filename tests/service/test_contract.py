@@ -133,3 +133,75 @@ def test_status_defaults_are_codes(status: int) -> None:
     from service.problems import code_of
 
     assert CODES[code_of(status)][0] == status
+
+
+# -- the OpenAPI document: security scheme, operation ids, declared headers -----------------------------------------
+def _doc() -> dict[str, Any]:
+    from service.openapi import DEFAULT
+
+    return json.loads(DEFAULT.read_text())  # type: ignore[no-any-return]
+
+
+def _ops(doc: dict[str, Any]) -> dict[str, tuple[str, str, dict[str, Any]]]:
+    return {op["operationId"]: (path, method, op) for path, ops in doc["paths"].items() for method, op in ops.items()}
+
+
+def test_the_api_key_is_a_security_scheme() -> None:
+    doc = _doc()
+    assert doc["components"]["securitySchemes"]["ApiKey"] == {
+        "type": "apiKey",
+        "in": "header",
+        "name": "X-API-Key",
+        "description": doc["components"]["securitySchemes"]["ApiKey"]["description"],
+    }
+    for op_id, (path, _, op) in _ops(doc).items():
+        names = {p["name"].lower() for p in op.get("parameters", [])}
+        assert "x-api-key" not in names, op_id  # never a plain header parameter
+        public = path in ("/healthz", "/readyz") or path.startswith("/v1/files/")
+        assert op["security"] == ([] if public else [{"ApiKey": []}]), (op_id, op["security"])
+
+
+def test_operation_ids_are_readable() -> None:
+    ops = _ops(_doc())
+    for op_id in ops:
+        assert re.fullmatch(r"[a-z]+(?:[A-Z][a-z]+)*", op_id), op_id
+    expected = {
+        "createJob": ("/v1/jobs", "post"),
+        "listJobs": ("/v1/jobs", "get"),
+        "getJob": ("/v1/jobs/{job_id}", "get"),
+        "cancelJob": ("/v1/jobs/{job_id}/cancel", "post"),
+        "deleteJob": ("/v1/jobs/{job_id}", "delete"),
+        "createUpload": ("/v1/uploads", "post"),
+        "completeUpload": ("/v1/uploads/{upload_id}/complete", "post"),
+        "downloadFile": ("/v1/files/{token}", "get"),
+        "getWebhookSecret": ("/v1/webhook-secret", "get"),
+    }
+    for op_id, where in expected.items():
+        assert ops[op_id][:2] == where, op_id
+
+
+def test_response_headers_are_declared() -> None:
+    ops = _ops(_doc())
+
+    def headers(op_id: str, status: str) -> set[str]:
+        return set(ops[op_id][2]["responses"][status].get("headers", {}))
+
+    assert headers("createJob", "202") >= {"Location", "Idempotent-Replayed"}
+    assert headers("createJob", "409") >= {"Retry-After"}
+    assert headers("createUpload", "201") >= {"Location", "Idempotent-Replayed"}
+    assert headers("completeUpload", "202") >= {"Location"}
+    assert headers("getJob", "200") >= {"ETag", "Cache-Control", "Retry-After"}
+    assert headers("getJob", "304") >= {"ETag", "Cache-Control", "Retry-After"}
+    assert headers("downloadFile", "200") >= {"ETag", "Cache-Control"}
+    assert headers("listJobs", "503") >= {"Retry-After"}
+    for op_id in ("createJob", "createUpload"):
+        assert "Idempotency-Key" in {p["name"] for p in ops[op_id][2]["parameters"]}
+
+
+def test_swagger_has_the_authorize_button(tmp_path: Path) -> None:
+    with _app(tmp_path) as client:
+        spec = client.get("/openapi.json").json()
+        assert "ApiKey" in spec["components"]["securitySchemes"]
+        assert client.get("/v1/jobs").status_code == 401  # no key: 401 as before
+        assert client.get("/v1/jobs", headers={"X-API-Key": "wrong"}).status_code == 401
+        assert client.get("/v1/jobs", headers=KEY).status_code == 200
