@@ -71,10 +71,17 @@ def operation_id(route: APIRoute) -> str:
 
 
 def public_operations(schema: dict[str, Any]) -> dict[str, Any]:
-    """Mark the operations that need no API key (health checks, signed downloads) with ``security: []``."""
+    """Mark the operations that need no API key (health checks, signed downloads) with ``security: []``; the
+    webhooks' answers are the receiver's (any 2xx, or anything else: retried), not FastAPI's validation error."""
     for ops in schema.get("paths", {}).values():
         for op in ops.values():
             op.setdefault("security", [])
+    for ops in schema.get("webhooks", {}).values():
+        for op in ops.values():
+            op["responses"] = {
+                "2XX": {"description": "any 2xx: delivered, not sent again"},
+                "default": {"description": "any other status, or no answer in time: sent again later, with backoff"},
+            }
     return schema
 
 
@@ -166,10 +173,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     for router in routers:
         app.include_router(router)
+    app.webhooks.include_router(jobs.callbacks)
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
-            schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+            schema = get_openapi(
+                title=app.title,
+                version=app.version,
+                description=app.description,
+                routes=app.routes,
+                webhooks=app.webhooks.routes,
+            )
             app.openapi_schema = public_operations(add_job_params(problems.fix_openapi(schema)))
         return app.openapi_schema
 

@@ -29,6 +29,7 @@ from service.webhooks import key_secret
 
 router = APIRouter(prefix="/v1", tags=["jobs"])
 webhooks_router = APIRouter(prefix="/v1", tags=["webhooks"])
+callbacks = APIRouter(tags=["webhooks"])  # what the service sends: the OpenAPI document's ``webhooks`` (3.1)
 MULTIPART_SLACK = 1 << 20  # multipart headers and boundaries around the file
 MAX_OFFSET = 2**31 - 1
 KEYED = errors(401, d401="missing or unknown API key")
@@ -254,3 +255,29 @@ def orient_job(job_id: str, body: OrientJobParams, who: OwnerDep, svc: ServicesD
 )
 def webhook_secret(who: OwnerDep, svc: ServicesDep) -> WebhookSecret:
     return WebhookSecret(secret=key_secret(svc.key, who))
+
+
+@callbacks.post(
+    "job-finished",
+    operation_id="jobFinished",
+    summary="the service POSTs the job to its callback_url when it ends (succeeded, failed or cancelled)",
+    description="Sent to the `callback_url` given with `POST /v1/jobs` or `POST /v1/uploads`, once the job is "
+    "succeeded, failed or cancelled: the job resource, as `GET /v1/jobs/{id}` answers it, signed as Standard "
+    "Webhooks signs (HMAC-SHA256 with the key's secret, `GET /v1/webhook-secret`: `webhook-signature` is "
+    '`v1,` + base64 of the HMAC of "{webhook-id}.{webhook-timestamp}.{body}"). Any 2xx answer is a delivery; '
+    "anything else (or no answer within BONEMESH_WEBHOOK_TIMEOUT_SECONDS) is retried with exponential backoff for "
+    "BONEMESH_WEBHOOK_RETRY_SECONDS (6 h); redirects are not followed. Every retry carries the same `webhook-id`: "
+    "drop duplicates by it. Each attempt is recorded on the job (`webhook.attempts`).",
+    status_code=200,
+)
+def job_finished(
+    body: JobOut,
+    webhook_id: Annotated[str, Header(alias="webhook-id", description="msg_<job id>_<state>: the same on every retry")],
+    webhook_timestamp: Annotated[
+        str, Header(alias="webhook-timestamp", description="Unix seconds when this attempt was signed")
+    ],
+    webhook_signature: Annotated[
+        str, Header(alias="webhook-signature", description="v1,<base64 HMAC-SHA256>: verify it with your secret")
+    ],
+) -> None:
+    """Never called on this service: it documents the request the service sends to a job's callback_url."""

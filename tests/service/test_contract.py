@@ -205,3 +205,36 @@ def test_swagger_has_the_authorize_button(tmp_path: Path) -> None:
         assert client.get("/v1/jobs").status_code == 401  # no key: 401 as before
         assert client.get("/v1/jobs", headers={"X-API-Key": "wrong"}).status_code == 401
         assert client.get("/v1/jobs", headers=KEY).status_code == 200
+
+
+# -- the webhooks entry -----------------------------------------------------------------------------------------------
+def test_the_job_finished_webhook_is_described_as_sent(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from service import webhooks
+    from service.schemas import JobOut
+
+    doc = _doc()
+    assert doc["openapi"].startswith("3.1")
+    hook = doc["webhooks"]["job-finished"]["post"]
+    assert hook["operationId"] == "jobFinished"
+    assert hook["requestBody"]["content"]["application/json"]["schema"] == {"$ref": "#/components/schemas/JobOut"}
+    declared = {p["name"] for p in hook["parameters"] if p["in"] == "header"}
+    assert declared == {"webhook-id", "webhook-timestamp", "webhook-signature"}
+    assert set(hook["responses"]) == {"2XX", "default"}
+
+    sent: list[tuple[str, bytes, dict[str, str]]] = []
+
+    def post(url: str, body: bytes, headers: dict[str, str], timeout: float) -> int:
+        sent.append((url, body, headers))
+        return 204
+
+    monkeypatch.setattr(webhooks, "post", post)
+    with _app(tmp_path, webhook_allow_private=True) as client:
+        files = {"file": ("headsq.zip", HEADSQ.path.read_bytes(), "application/zip")}
+        data = {"params": json.dumps(HEADSQ.params), "callback_url": "http://127.0.0.1:9/hook"}
+        job = client.post("/v1/jobs", headers=KEY, files=files, data=data).json()
+        assert client.post(f"/v1/jobs/{job['id']}/cancel", headers=KEY).status_code == 200
+        svc = client.app.state.services  # type: ignore[attr-defined]
+        assert webhooks.deliver(svc, svc.db.get(job["id"])) == "delivered"
+    ((url, body, headers),) = sent
+    assert url == "http://127.0.0.1:9/hook" and declared <= set(headers)
+    assert JobOut.model_validate_json(body).state == "cancelled"
