@@ -7,7 +7,10 @@ attempt is recorded on the job (``webhook.attempts``). Redirects are not followe
 
 Callback URLs that resolve to loopback, link-local, private, multicast or reserved addresses are refused (SSRF),
 when the job is created and again before every delivery (the name may resolve elsewhere by then), unless
-``BONEMESH_WEBHOOK_ALLOW_PRIVATE`` is set.
+``BONEMESH_WEBHOOK_ALLOW_PRIVATE`` is set. A delivery connects to an address that check passed, never resolving the
+name again (a DNS answer that changes between the check and the connection, rebinding, cannot lead it to a private
+address), while the request keeps the URL's name: its ``Host`` header, and for https its SNI and the certificate
+check.
 """
 
 from __future__ import annotations
@@ -16,11 +19,11 @@ import base64
 import datetime as dt
 import hashlib
 import hmac
+import http.client
 import ipaddress
 import socket
+import ssl
 import time
-import urllib.error
-import urllib.request
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -56,6 +59,17 @@ def check_callback_url(url: str, allow_private: bool) -> str:
         CallbackRefused: not http(s), no host, credentials in it, does not resolve, or resolves to a loopback,
             link-local, private, multicast or reserved address while ``allow_private`` is off.
     """
+    vetted_addresses(url, allow_private)
+    return url
+
+
+def vetted_addresses(url: str, allow_private: bool) -> list[str]:
+    """The addresses ``url``'s host resolves to, each one checked (:func:`check_callback_url`): a delivery
+    connects to these, never resolving the name again.
+
+    Raises:
+        CallbackRefused: as :func:`check_callback_url`.
+    """
     if len(url) > 2048:
         raise CallbackRefused("callback_url is longer than 2048 characters")
     try:
@@ -71,35 +85,86 @@ def check_callback_url(url: str, allow_private: bool) -> str:
         infos = socket.getaddrinfo(parts.hostname, port, type=socket.SOCK_STREAM)
     except (OSError, UnicodeError) as exc:
         raise CallbackRefused(f"callback_url's host does not resolve ({exc})") from None
+    addresses = list(dict.fromkeys(str(info[4][0]) for info in infos))
     if not allow_private:
-        for info in infos:
-            addr = ipaddress.ip_address(str(info[4][0]).split("%")[0])
+        for address in addresses:
+            addr = ipaddress.ip_address(address.split("%")[0])
             if isinstance(addr, ipaddress.IPv6Address) and addr.ipv4_mapped:
                 addr = addr.ipv4_mapped
             if not addr.is_global or addr.is_multicast:
                 raise CallbackRefused(
                     f"callback_url resolves to {addr}, a loopback, link-local, private or reserved address"
                 )
-    return url
+    if not addresses:
+        raise CallbackRefused("callback_url's host resolves to no address")
+    return addresses
 
 
-class _NoRedirect(urllib.request.HTTPRedirectHandler):
-    def redirect_request(self, *args: Any, **kwargs: Any) -> None:  # a 3xx is an answer, not a hop
-        return None
+def _connect_pinned(addresses: list[str], port: int, timeout: float | None) -> socket.socket:
+    """A TCP connection to the first of ``addresses`` that answers (no name is resolved here)."""
+    error: OSError | None = None
+    for address in addresses:
+        try:
+            return socket.create_connection((address, port), timeout=timeout)
+        except OSError as exc:
+            error = exc
+    raise error or OSError("no address to connect to")
 
 
-_OPENER = urllib.request.build_opener(_NoRedirect)
+class _PinnedHTTP(http.client.HTTPConnection):
+    """HTTP to a vetted address; ``Host`` stays the URL's."""
+
+    def __init__(self, host: str, port: int, addresses: list[str], timeout: float) -> None:
+        super().__init__(host, port, timeout=timeout)
+        self.addresses = addresses
+
+    def connect(self) -> None:
+        self.sock = _connect_pinned(self.addresses, self.port, self.timeout)
 
 
-def post(url: str, body: bytes, headers: dict[str, str], timeout: float) -> int:
-    """POST ``body``; the HTTP status (an HTTP error status is returned, a network failure raises OSError)."""
-    request = urllib.request.Request(url, data=body, headers=headers, method="POST")
+class _PinnedHTTPS(http.client.HTTPSConnection):
+    """HTTPS to a vetted address; ``Host``, SNI and the certificate's name check stay the URL's host."""
+
+    def __init__(
+        self, host: str, port: int, addresses: list[str], timeout: float, context: ssl.SSLContext | None
+    ) -> None:
+        super().__init__(host, port, timeout=timeout, context=context or ssl.create_default_context())
+        self.addresses = addresses
+
+    def connect(self) -> None:
+        sock = _connect_pinned(self.addresses, self.port, self.timeout)
+        self.sock = self._context.wrap_socket(sock, server_hostname=self.host)  # type: ignore[attr-defined]
+
+
+def post(
+    url: str,
+    body: bytes,
+    headers: dict[str, str],
+    timeout: float,
+    addresses: list[str] | None = None,
+    context: ssl.SSLContext | None = None,
+) -> int:
+    """POST ``body`` to ``url``, connecting to one of ``addresses`` (default: the name resolved now); the HTTP
+    status (any status is returned, redirects are not followed; a network failure raises OSError)."""
+    parts = urlsplit(url)
+    host = parts.hostname or ""
+    port = parts.port or (443 if parts.scheme == "https" else 80)
+    pinned = addresses or [str(info[4][0]) for info in socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)]
+    conn: http.client.HTTPConnection
+    if parts.scheme == "https":
+        conn = _PinnedHTTPS(host, port, pinned, timeout, context)
+    else:
+        conn = _PinnedHTTP(host, port, pinned, timeout)
+    target = (parts.path or "/") + (f"?{parts.query}" if parts.query else "")
     try:
-        with _OPENER.open(request, timeout=timeout) as resp:
-            resp.read(1 << 16)
-            return int(resp.status)
-    except urllib.error.HTTPError as exc:
-        return int(exc.code)
+        conn.request("POST", target, body=body, headers=headers)
+        resp = conn.getresponse()
+        resp.read(1 << 16)
+        return int(resp.status)
+    except http.client.HTTPException as exc:  # a malformed answer: a failed attempt, as a network error is
+        raise OSError(f"the receiver's answer is not HTTP ({type(exc).__name__})") from None
+    finally:
+        conn.close()
 
 
 def next_delay(attempt: int, backoff: float) -> float:
@@ -123,8 +188,8 @@ def deliver(services: Any, job: Job) -> str:
     status: int | None = None
     error: str | None = None
     try:
-        check_callback_url(job.callback_url or "", settings.webhook_allow_private)
-        status = post(job.callback_url or "", body, headers, settings.webhook_timeout_seconds)
+        addresses = vetted_addresses(job.callback_url or "", settings.webhook_allow_private)
+        status = post(job.callback_url or "", body, headers, settings.webhook_timeout_seconds, addresses)
         if not 200 <= status < 300:
             error = f"the receiver answered {status}"
     except (OSError, CallbackRefused) as exc:

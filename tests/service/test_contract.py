@@ -223,7 +223,7 @@ def test_the_job_finished_webhook_is_described_as_sent(tmp_path: Path, monkeypat
 
     sent: list[tuple[str, bytes, dict[str, str]]] = []
 
-    def post(url: str, body: bytes, headers: dict[str, str], timeout: float) -> int:
+    def post(url: str, body: bytes, headers: dict[str, str], timeout: float, *pinned: Any) -> int:
         sent.append((url, body, headers))
         return 204
 
