@@ -7,8 +7,9 @@ multipart answer is kept only when the answer's framing shows it whole (a follow
 What the series answer lacks (cut short, as Orthanc does when it cannot transcode an instance to the syntax asked
 for, while still answering 200) is retrieved instance by instance, as is an instance sent in a syntax not decodable
 here. Transient errors (no connection, a time-out, HTTP 429 or 5xx, a body cut short) are retried with exponential
-backoff (``DicomwebServer.attempts`` and ``backoff_seconds``). When an instance the server lists is still missing,
-:class:`SeriesIncomplete` carries the counts; the caller discards the folder.
+backoff and jitter (``DicomwebServer.attempts`` and ``backoff_seconds``: :func:`retry_delay`), never sooner than the
+server's ``Retry-After`` asks (seconds or an HTTP date, honoured up to :data:`MAX_RETRY_AFTER`). When an instance
+the server lists is still missing, :class:`SeriesIncomplete` carries the counts; the caller discards the folder.
 
 The WADO-RS and QIDO-RS requests are made here with the settings' session, not with dicomweb-client's
 ``iter_series``: its multipart decoder yields an unterminated last part as if it were whole, and it refuses more
@@ -17,12 +18,15 @@ than one transfer syntax in an Accept. Error messages name the transaction and t
 
 from __future__ import annotations
 
+import datetime as dt
 import io
+import random
 import time
 import warnings
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
+from email.utils import parsedate_to_datetime
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -37,6 +41,7 @@ REFUSED = frozenset({400, 406, 415})  # the server does not serve this Accept: t
 DENIED = frozenset({401, 403})
 GONE = frozenset({404, 410})
 _DICOM = 'multipart/related; type="application/dicom"'
+MAX_RETRY_AFTER = 120.0  # the longest Retry-After honoured (a server asking more is asked again after this)
 T = TypeVar("T")
 
 
@@ -46,11 +51,43 @@ class DicomwebError(Exception):
     Attributes:
         transient: worth retrying (no connection, a time-out, HTTP 429 or 5xx, a body cut short).
         status: the HTTP status, when the server answered with an error.
+        retry_after: the seconds the server's ``Retry-After`` asked to wait, when it sent one.
     """
 
-    def __init__(self, message: str, *, transient: bool = False, status: int | None = None) -> None:
+    def __init__(
+        self, message: str, *, transient: bool = False, status: int | None = None, retry_after: float | None = None
+    ) -> None:
         super().__init__(message)
-        self.transient, self.status = transient, status
+        self.transient, self.status, self.retry_after = transient, status, retry_after
+
+
+def parse_retry_after(value: str | None, now: dt.datetime | None = None) -> float | None:
+    """The seconds a ``Retry-After`` header asks for (delta-seconds or an HTTP date; RFC 9110), at most
+    :data:`MAX_RETRY_AFTER`; None when absent or unreadable."""
+    if value is None or not value.strip():
+        return None
+    text = value.strip()
+    if text.isdigit():
+        return min(float(text), MAX_RETRY_AFTER)
+    try:
+        when = parsedate_to_datetime(text)
+    except (TypeError, ValueError, IndexError):
+        return None
+    if when.tzinfo is None:
+        when = when.replace(tzinfo=dt.UTC)
+    seconds = (when - (now or dt.datetime.now(dt.UTC))).total_seconds()
+    return min(max(seconds, 0.0), MAX_RETRY_AFTER)
+
+
+def retry_delay(server: DicomwebServer, attempt: int, error: DicomwebError | None = None) -> float:
+    """The wait before try ``attempt + 1``: exponential backoff (``backoff_seconds`` doubling) with equal jitter
+    (between half and all of it, so clients that failed together do not come back together), and never less than
+    the server's ``Retry-After`` (plus a little jitter of its own)."""
+    base = server.backoff_seconds * 2 ** (attempt - 1)
+    delay = base / 2 + random.uniform(0, base / 2)  # jitter, not a secret
+    if error is not None and error.retry_after is not None:
+        delay = max(delay, error.retry_after + random.uniform(0, min(1.0, base / 2)))
+    return float(delay)
 
 
 @dataclass(frozen=True)
@@ -239,7 +276,8 @@ def _get(session: Any, server: DicomwebServer, url: str, accept: str, params: An
     if resp.status_code >= 400:
         resp.close()
         code = resp.status_code
-        raise DicomwebError(f"HTTP {code}", transient=code == 429 or code >= 500, status=code)
+        wait = parse_retry_after(resp.headers.get("Retry-After"))
+        raise DicomwebError(f"HTTP {code}", transient=code == 429 or code >= 500, status=code, retry_after=wait)
     return resp
 
 
@@ -253,7 +291,8 @@ def _retrying(server: DicomwebServer, call: Callable[[], T], what: str) -> T:
             if not exc.transient or attempt >= server.attempts:
                 tries = f" after {attempt} attempts" if attempt > 1 else ""
                 raise DicomwebError(f"{what}: {exc}{tries}", transient=exc.transient, status=exc.status) from None
-        time.sleep(server.backoff_seconds * 2 ** (attempt - 1))
+            last = exc
+        time.sleep(retry_delay(server, attempt, last))
         attempt += 1
 
 
@@ -350,7 +389,8 @@ def _series_pass(session: Any, server: DicomwebServer, base: str, store: _Store,
                     refused.add(name)
                 if not exc.transient or attempt >= server.attempts:
                     break
-            time.sleep(server.backoff_seconds * 2 ** (attempt - 1))
+                last = exc
+            time.sleep(retry_delay(server, attempt, last))
             attempt += 1
     return refused
 
@@ -370,9 +410,10 @@ def _instance_pass(
     for uid in todo:
         url, redo = f"{base}/instances/{uid}", uid in store.files  # redo: kept in a syntax not decodable here
         down = gone = False
+        last: DicomwebError | None = None  # the last error of the round before (its Retry-After is honoured)
         for attempt in range(1 if failed >= GIVE_UP_AFTER else server.attempts):
             if attempt:
-                time.sleep(server.backoff_seconds * 2 ** (attempt - 1))
+                time.sleep(retry_delay(server, attempt, last))
             for name, accept in variants:
                 if redo and name == "any":
                     continue
@@ -382,7 +423,7 @@ def _instance_pass(
                 except DicomwebError as exc:
                     if exc.status in DENIED:
                         raise DicomwebError(f"WADO-RS retrieval of an instance: {exc}", status=exc.status) from None
-                    down, gone = exc.transient and exc.status is None, exc.status in GONE
+                    down, gone, last = exc.transient and exc.status is None, exc.status in GONE, exc
                     if down or gone:
                         break
                     continue
