@@ -72,21 +72,47 @@ class Prepared:
     body: dict[str, Any] | None
 
 
+# a roi crop's source key: the scan was prepared on the whole before the crop (``engine.job.run``, ``prepare_whole``)
+PREPARED_WHOLE = "prepared_whole"
+
+
 def prepare_volume(volume: Volume, params: ReconParams) -> Prepared:
     """The paper's slice preprocessing (when asked), the level (given, a preset, or automatic: ``engine.level``) and
     the bone inside the body outline (``params.body``, HU data: ``engine.volume.bodymask``): what the model and the
-    defect (the pipeline's stage and ``bonemesh defect`` alike) are made from."""
+    defect (the pipeline's stage and ``bonemesh defect`` alike) are made from.
+
+    A region of interest cropped from a scan prepared whole (``prepare_whole``: its ``source`` holds
+    ``PREPARED_WHOLE``) is not preprocessed or outlined again: a box through the head cuts the body outline open,
+    and the skull inside it would lie "outside the body"; its body report is the whole scan's."""
     from engine.volume.preprocess import preprocess_volume
 
-    if params.preprocess is not None:
+    whole = volume.source.get(PREPARED_WHOLE)
+    if params.preprocess is not None and whole is None:
         volume = preprocess_volume(volume, params.preprocess)
     choice = resolve_level(volume, params)
     body = None
-    if params.body is not None:
+    if whole is not None:
+        body = whole.get("body_mask")
+    elif params.body is not None:
         from engine.volume.bodymask import isolate_bone
 
         volume, body = isolate_bone(volume, choice.value, params.body, choice.hu_offset)
     return Prepared(volume, choice, body)
+
+
+def prepare_whole(volume: Volume, params: ReconParams) -> Volume:
+    """The scan preprocessed and outlined whole (``prepare_volume``), for a region of interest to be cropped from
+    next (``engine.labels.pieces.crop_roi``); its ``source`` says so (``PREPARED_WHOLE``: the body report, with
+    ``outlined_on``), and ``prepare_volume`` then leaves the crop as it is. Nothing is done (the same volume) where
+    neither the preprocessing nor the body mask is asked for."""
+    if params.preprocess is None and params.body is None:
+        return volume
+    prepared = prepare_volume(volume, params)
+    body = prepared.body
+    if body is not None and body.get("applied"):
+        body = {**body, "outlined_on": f"the whole scan {list(volume.data.shape)} (z, y, x), before the roi crop"}
+    mark = {"preprocessed": params.preprocess is not None, "body_mask": body}
+    return dataclasses.replace(prepared.volume, source={**prepared.volume.source, PREPARED_WHOLE: mark})
 
 
 def _preprocess(st: State, params: ReconParams, report: Report, progress: Progress) -> None:

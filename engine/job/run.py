@@ -4,12 +4,14 @@ It picks the plan once from the spec and the input's content:
 
 * ``labels``: the input holds a label map (an integer NIfTI, NRRD / .seg.nrrd, a DICOM SEG with or without its CT;
   found by content, ``engine.labels.uploads.find_label_upload``, the same on every path): a model per label;
-* ``pieces``: a scan's N largest bone pieces, each its own part;
+* ``pieces``: a scan's N largest bone pieces, each its own part, meshed from the scan's own values through the
+  model's stages (its surface is the model's there); specks below the island size are not pieces, and are counted;
 * ``scan``: the EMC33 pipeline (``engine.job.pipeline.reconstruct``) and its files
   (``engine.job.outputs.write_outputs``),
   the defect and its template included as a stage of it when ``spec.recon.defect`` asks.
 
-A ``roi`` crops the scan or the label map first. Every file goes through the output registry
+A ``roi`` crops the scan or the label map first (a scan after its body outline is found on the whole:
+``engine.job.plans.prepare_whole``). Every file goes through the output registry
 (``engine.export.files``) into ``outdir``, all or nothing. Progress is reported as ``on_progress(stage, fraction)``
 over the whole job: loading up to ``shares[0]``, meshing up to ``shares[1]``, then the files.
 """
@@ -130,11 +132,24 @@ def _load(job: _Job, source: str | Path | Volume) -> Volume:
             on_progress=_Steps(progress, "loading", end),
         )
     if spec.input.roi is not None:  # cropped before anything runs
-        from engine.labels.pieces import crop_roi
-
-        volume = crop_roi(volume, spec.input.roi, spec.recon.orient)
+        volume = _crop(volume, spec)
     progress("loading", end)
     return volume
+
+
+def _crop(volume: Volume, spec: JobSpec) -> Volume:
+    """The scan cropped to the roi, prepared whole first (``engine.job.plans.prepare_whole``: the slice filters and,
+    on HU data, the bone outside the body dropped) where the box cuts the scan: the body outline of a box through
+    the head would be cut open, its skull "outside the body". The bone inside the box is the whole model's."""
+    from engine.job.plans import prepare_whole
+    from engine.labels.pieces import crop_roi, roi_slices
+
+    roi, orient = spec.input.roi, spec.recon.orient
+    assert roi is not None
+    sl = roi_slices(volume, roi, orient)  # refuses a box outside the scan before the whole is worked on
+    if any(s.stop - s.start < n for s, n in zip(sl, volume.data.shape, strict=True)):
+        volume = prepare_whole(volume, spec.recon)
+    return crop_roi(volume, roi, orient)
 
 
 def _scan(job: _Job, volume: Volume) -> JobResult:
@@ -167,17 +182,22 @@ def _label_map(job: _Job, source: Any, found: Any, label: str) -> JobResult:
 
 
 def _pieces(job: _Job, volume: Volume) -> JobResult:
-    """A scan's largest bone pieces, each its own part."""
+    """A scan's largest bone pieces, each its own part, meshed from the scan's own values (``_piece_models``)."""
+    from engine.job.plans import prepare_volume
     from engine.labels.pieces import bone_pieces
 
     assert job.spec.input.pieces is not None
-    lv = bone_pieces(volume, job.spec.recon, job.spec.input.pieces)
-    paths, report = _label_models(job, lv)
+    prepared = prepare_volume(volume, job.spec.recon)  # as the model sees the scan: bone of the body only
+    lv = bone_pieces(prepared.volume, job.spec.recon, job.spec.input.pieces, level=prepared.choice.value)
+    paths, report = _label_models(job, lv, lambda chosen: _piece_models(job, prepared.volume, chosen))
     return JobResult("pieces", paths, report, volume)
 
 
-def _label_models(job: _Job, lv: Any) -> tuple[dict[str, Path], dict[str, Any]]:
-    """Mesh every label (``engine.labels.parts.label_models``) and write a label job's files."""
+def _label_models(
+    job: _Job, lv: Any, mesh: Callable[[Any], Any] | None = None
+) -> tuple[dict[str, Path], dict[str, Any]]:
+    """Mesh every label (``engine.labels.parts.label_models``, or ``mesh`` for a scan's pieces) and write a label
+    job's files."""
     import json
 
     from engine.export.files import REPORT_JSON
@@ -189,13 +209,148 @@ def _label_models(job: _Job, lv: Any) -> tuple[dict[str, Path], dict[str, Any]]:
     if spec.input.segments:
         lv = select_segments(lv, list(spec.input.segments))
     job.progress("labels", job.shares[0])
-    models = label_models(lv, spec.recon, device=device, orient=spec.recon.orient)
+    if mesh is not None:
+        models = mesh(lv)
+    else:
+        models = label_models(lv, spec.recon, device=device, orient=spec.recon.orient)
     job.progress("writing", job.shares[1])
     extra = {"input": _label_input(lv)}
     paths = write_label_outputs(
         models, job.outdir, spec.recon, device=device, extra=extra, stl_folder=spec.outputs.label_stl_folder
     )
     return paths, json.loads(paths[REPORT_JSON].read_text())
+
+
+def _piece_models(job: _Job, scan: Volume, lv: Any) -> Any:
+    """Each piece of ``lv`` (``engine.labels.pieces.bone_pieces`` on the prepared ``scan``) meshed from the scan's
+    own values, as the model is: the smoothed scan inside the piece's region (``engine.labels.pieces.PieceBox``)
+    through the model's stages (MC33 at the model's level, decimation, islands, smoothing), so that its surface is
+    the model's surface there. A piece that leaves nothing above the island size is a speck, left out and counted.
+    Returns ``engine.labels.parts.LabelModels``."""
+    from engine.errors import EmptySurfaceError
+    from engine.job.pipeline import reconstruct
+    from engine.labels.parts import LabelModels, file_names
+    from engine.labels.pieces import piece_boxes
+    from engine.orient import patient_frame
+
+    recon, be, budget = job.spec.recon, job.runtime.backend, job.runtime.budget
+    level = float(lv.source["level"])
+    boxes = piece_boxes(lv, scan.data >= level)
+    frame = patient_frame(scan, recon.orient)
+    low = min(float(scan.data.min()), level) - 1.0  # outside a piece's region: below the level
+    names = dict(zip((s.value for s in lv.segments), file_names(lv), strict=True))
+    voxels = dict(zip((s.value for s in lv.segments), _piece_voxels(lv), strict=True))
+    parts, rows, dropped = [], [], []
+    for i, pb in enumerate(boxes):
+        seg = lv.segment(pb.value)
+        field = pb.masked(_smoothed(scan.data[pb.box], recon, be), low)
+        piece = Volume(field, scan.spacing_zyx_mm, units=scan.units, source={"format": "piece", "piece": seg.name})
+        params = _piece_params(recon, level, voxels[pb.value] / max(sum(voxels.values()), 1))
+        try:
+            rec = reconstruct(piece, params, device=be, max_device_bytes=budget)
+        except EmptySurfaceError:  # nothing above the island size: a speck after all
+            dropped.append({**seg.to_dict(), "reason": "below the island size once meshed"})
+            continue
+        part, row = _piece_part(rec, pb, seg, names[seg.value], frame, scan, voxels[pb.value])
+        parts.append(part)
+        rows.append(row)
+        job.progress("labels", job.shares[0] + (job.shares[1] - job.shares[0]) * (i + 1) / len(boxes))
+    if not parts:
+        raise EmptySurfaceError("no bone piece gives a surface above the island size")
+    return LabelModels(parts, _pieces_report(lv.source, rows, dropped, frame))
+
+
+def _pieces_report(source: dict[str, Any], rows: list[Any], dropped: list[Any], frame: Any) -> dict[str, Any]:
+    """A pieces job's report: its rows, the pieces left out, and, with fewer pieces than asked for (or picked by
+    ``segments``), why: ``pieces.note``, and a ``fewer_pieces`` warning (shown by the page)."""
+    from engine.labels.pieces import fewer_pieces_note
+
+    source = {**source, "pieces_kept": len(rows), "specks_excluded": source["specks_excluded"] + len(dropped)}
+    source.pop("note", None)
+    wanted = len(source.get("segments_selected") or ()) or source["pieces_asked"]
+    report = {
+        "labels": rows,
+        "labels_without_surface": dropped,
+        "frame": frame.to_dict(),
+        "labels_mesh": {"method": "the model's stages on the smoothed scan inside each piece's region"},
+        "source": source,
+        "pieces": {k: source.get(k) for k in _PIECES_KEYS if k in source},
+    }
+    if len(rows) < wanted:
+        note = fewer_pieces_note(wanted, len(rows), source["specks_excluded"], source["speck_limit_mm3"])
+        source["note"] = report["pieces"]["note"] = note
+        report["warnings"] = [{"code": "fewer_pieces", "message": note}]
+    return report
+
+
+_PIECES_KEYS = ("pieces_asked", "pieces_found", "pieces_kept", "specks_excluded", "speck_limit_mm3")
+
+
+def _piece_voxels(lv: Any) -> list[int]:
+    """Each segment's voxels, in segment order."""
+    import numpy as np
+
+    counts = np.bincount(lv.labels.reshape(-1), minlength=max(s.value for s in lv.segments) + 1)
+    return [int(counts[s.value]) for s in lv.segments]
+
+
+def _smoothed(data: Any, recon: Any, be: Any) -> Any:
+    """A box of the scan smoothed on the job's device as the model's Gaussian smooths it (float32 on the host);
+    as it is where the model is not smoothed."""
+    import numpy as np
+
+    if recon.gaussian is None:
+        return data.astype(np.float32)
+    from engine.volume.gaussian import smooth_volume
+
+    field = smooth_volume(be.from_host(np.ascontiguousarray(data)), recon.gaussian)
+    return be.to_host(field).reshape(data.shape)
+
+
+def _piece_params(recon: Any, level: float, share: float) -> Any:
+    """The model's parameters for a piece's smoothed, masked field: no second Gaussian, preprocessing, body mask
+    or defect; the model's level; islands by size only; a triangle cap shared by the piece's voxels."""
+    from engine.params import MIN_TRIANGLES, DecimateParams, IslandParams, IsoParams
+
+    dec = recon.decimate
+    if dec is not None and dec.max_triangles is not None:
+        dec = DecimateParams(reduction=None, max_triangles=max(MIN_TRIANGLES, round(dec.max_triangles * share)))
+    islands = recon.islands
+    if islands is not None:
+        islands = IslandParams(min_volume_mm3=islands.min_volume_mm3, min_volume_voxels=islands.min_volume_voxels)
+    iso = IsoParams(iso=level, closed=recon.iso.closed)
+    return dataclasses.replace(
+        recon, preprocess=None, gaussian=None, body=None, defect=None, iso=iso, islands=islands, decimate=dec
+    )
+
+
+def _piece_part(
+    rec: Any, pb: Any, seg: Any, name: str, frame: Any, scan: Volume, voxels: int
+) -> tuple[Any, dict[str, Any]]:
+    """A meshed piece placed in the scan's patient frame (its box's corner added), and its report row."""
+    import numpy as np
+
+    from engine.labels.parts import LabelPart
+    from engine.orient import to_patient
+    from engine.types import Mesh
+
+    mesh = rec.mesh
+    corner = np.array([s.start * d for s, d in zip(pb.box, scan.spacing_zyx_mm, strict=True)], np.float32)
+    placed = to_patient(Mesh(mesh.vertices + corner, mesh.faces), frame)
+    stats = rec.report["mesh"]
+    row = {
+        "faces": int(stats["n_faces"]),
+        "vertices": int(stats["n_vertices"]),
+        "volume_mm3": float(stats["volume_mm3"]),
+        "area_mm2": float(stats["area_mm2"]),
+        "watertight": bool(stats["watertight"]),
+        "components": int(stats["components"]),
+        "voxels": voxels,
+        "voxel_volume_mm3": voxels * float(np.prod(scan.spacing_zyx_mm)),
+    }
+    xyz = np.ascontiguousarray(placed.vertices[:, ::-1])
+    part = LabelPart(seg.name, seg.value, seg.color, xyz, placed.faces, row)
+    return part, {**seg.to_dict(), "file": f"labels/{name}.stl", **row}
 
 
 def _label_input(lv: Any) -> dict[str, Any]:

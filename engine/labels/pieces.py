@@ -1,15 +1,17 @@
 """What a label job keeps: a region of interest cropped before anything runs (``crop_roi``), the segments asked for
 (``select_segments``: by number or name), and, from a CT alone, the N largest bone pieces as a label map of
-separately named parts (``bone_pieces``: fragments of a fracture, the two femurs of a pelvis scan), meshed like any
-label map (``engine.labels.parts.label_models``).
-"""
+separately named parts (``bone_pieces``: fragments of a fracture, the two femurs of a pelvis scan; specks below the
+model's island size are not pieces), each with the region of the scan its model is made from (``piece_boxes``: the
+job meshes the smoothed scan inside it through the model's stages, ``engine.job.run``, so that a piece's surface is
+the model's surface, not that of a 0/1 mask)."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
 from collections.abc import Sequence
-from typing import TypeVar
+from dataclasses import dataclass
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -18,7 +20,7 @@ from engine.io.labelmaps import LabelVolume, Segment, palette
 from engine.params import OrientParams, PiecesParams, ReconParams, RoiParams
 from engine.types import Volume
 
-__all__ = ["bone_pieces", "crop_roi", "roi_slices", "select_segments"]
+__all__ = ["PieceBox", "bone_pieces", "crop_roi", "fewer_pieces_note", "piece_boxes", "roi_slices", "select_segments"]
 
 Grid = TypeVar("Grid", Volume, LabelVolume)
 
@@ -126,31 +128,50 @@ def _structure(connectivity: int) -> np.ndarray:
     return out
 
 
-def bone_pieces(volume: Volume, params: ReconParams | None = None, pieces: PiecesParams | None = None) -> LabelVolume:
+def bone_pieces(
+    volume: Volume,
+    params: ReconParams | None = None,
+    pieces: PiecesParams | None = None,
+    *,
+    level: float | None = None,
+) -> LabelVolume:
     """The ``pieces.count`` largest connected pieces of the bone (voxels at or above the pipeline's level, inside
     the body for HU data as the pipeline keeps them) as a label map: value 1 the largest, named ``piece_1``...
 
+    Specks are not pieces: a piece whose voxels' volume is below the model's island size (``params.islands``, the
+    islands stage's rule: ``engine.params.islands_of``; 4 voxels by default) is never kept, and ``source`` says how
+    many were left out (``specks_excluded``) and, when fewer pieces than asked exist, why (``note``).
+
+    Args:
+        level: the level of a scan prepared already (``engine.job.plans.prepare_volume``: preprocessed, the bone
+            outside the body dropped); None: the level is resolved and the body mask applied here.
+
     Raises:
-        EmptySurfaceError: no bone voxel at the level (or none in a piece of ``min_voxels``).
+        EmptySurfaceError: no bone voxel at the level (or none in a piece of ``min_voxels`` and the island size).
     """
     from scipy import ndimage
 
-    from engine.level import resolve_level
-
     params = params or ReconParams()
     pieces = pieces or PiecesParams()
-    choice = resolve_level(volume, params)
-    if params.body is not None:
-        from engine.volume.bodymask import isolate_bone
+    if level is None:
+        from engine.level import resolve_level
 
-        volume, _ = isolate_bone(volume, choice.value, params.body, choice.hu_offset)
-    mask = volume.data >= choice.value
-    comp, n = ndimage.label(mask, structure=_structure(pieces.connectivity))
+        choice = resolve_level(volume, params)
+        level = choice.value
+        if params.body is not None:
+            from engine.volume.bodymask import isolate_bone
+
+            volume, _ = isolate_bone(volume, level, params.body, choice.hu_offset)
+    comp, n = ndimage.label(volume.data >= level, structure=_structure(pieces.connectivity))
     sizes = np.bincount(comp.reshape(-1))[1:] if n else np.zeros(0, np.int64)
-    order = [int(i) + 1 for i in np.argsort(-sizes, kind="stable") if sizes[i] >= pieces.min_voxels][: pieces.count]
+    speck_mm3 = _speck_mm3(params, volume.spacing_zyx_mm)
+    least = max(pieces.min_voxels, math.ceil(speck_mm3 / float(np.prod(volume.spacing_zyx_mm)) - 1e-9))
+    real = [int(i) + 1 for i in np.argsort(-sizes, kind="stable") if sizes[i] >= least]
+    order = real[: pieces.count]
     if not order:
         raise EmptySurfaceError(
-            f"no bone piece of at least {pieces.min_voxels} voxels at level {choice.value:g} {volume.units}"
+            f"no bone piece of at least {least} voxels ({speck_mm3:g} mm3, the island size) at level {level:g} "
+            f"{volume.units}"
         )
     lut = np.zeros(n + 1, dtype=np.uint16 if len(order) > 255 else np.uint8)
     lut[order] = np.arange(1, len(order) + 1)
@@ -159,11 +180,92 @@ def bone_pieces(volume: Volume, params: ReconParams | None = None, pieces: Piece
     source = {
         **volume.source,
         "format": "pieces",
-        "level": choice.value,
+        "level": level,
         "pieces_found": int(n),
+        "pieces_asked": pieces.count,
         "pieces_kept": len(order),
         "piece_voxels": [int(sizes[i - 1]) for i in order],
+        "specks_excluded": int(n) - len(real),
+        "speck_limit_mm3": speck_mm3,
     }
+    if len(order) < pieces.count:
+        source["note"] = fewer_pieces_note(pieces.count, len(order), int(n) - len(real), speck_mm3)
     return LabelVolume(
         labels, volume.spacing_zyx_mm, volume.origin_mm, volume.direction, segments, source, volume.patient_frame
     )
+
+
+def fewer_pieces_note(asked: int, kept: int, specks: int, speck_mm3: float) -> str:
+    """Why a pieces job has fewer pieces than asked for, in one sentence."""
+    if specks == 0:
+        return f"{asked} pieces asked for, {kept} found: the scan has no other bone piece at the level"
+    return (
+        f"{asked} pieces asked for, {kept} found: the other {specks} bone piece(s) are specks below the island size "
+        f"({speck_mm3:g} mm3), which the model drops too"
+    )
+
+
+def _speck_mm3(params: ReconParams, spacing_zyx_mm: tuple[float, float, float]) -> float:
+    """The island size of the model (``IslandParams.min_volume_for``): 0 when it keeps specks."""
+    limit = params.islands.min_volume_for(spacing_zyx_mm) if params.islands is not None else None
+    return float(limit or 0.0)
+
+
+# a piece's smoothed values are its own within this many voxels of it: the 3x3x3 Gaussian reaches 1, and the voxels
+# next to the last one above the level place the surface on their edges
+REACH = 2
+
+
+@dataclass(frozen=True)
+class PieceBox:
+    """Where one piece's model comes from: ``box`` (z, y, x slices of the scan: the piece, ``REACH`` voxels around
+    it and one more for the Gaussian) and ``region`` (bool, the box's shape): the voxels whose smoothed values are
+    the piece's (within ``REACH`` of it, and nearer to it than to any other bone)."""
+
+    value: int
+    box: tuple[slice, slice, slice]
+    region: np.ndarray
+
+    def masked(self, smoothed: np.ndarray, low: float) -> np.ndarray:
+        """The box's smoothed scan inside the region, ``low`` (below the level) outside: its surface at the level
+        is the model's surface around this piece, closed where the region ends."""
+        return np.where(self.region, smoothed, np.float32(low)).astype(np.float32, copy=False)
+
+
+def piece_boxes(lv: LabelVolume, bone: np.ndarray) -> list[PieceBox]:
+    """Each segment of a pieces map (``bone_pieces``) with its box and region (``PieceBox``); ``bone``: the scan's
+    voxels at or above the level (bool, the map's shape), every piece and speck, so that a region stops half way to
+    the next one."""
+    from scipy import ndimage
+
+    cube = np.ones((3, 3, 3), bool)
+    found = ndimage.find_objects(lv.labels)
+    shape = lv.labels.shape
+    out = []
+    for seg in lv.segments:
+        where = found[seg.value - 1] if seg.value - 1 < len(found) else None
+        if where is None:
+            continue
+        box = tuple(
+            slice(max(0, s.start - REACH - 1), min(n, s.stop + REACH + 1)) for s, n in zip(where, shape, strict=True)
+        )
+        own = lv.labels[box] == seg.value
+        region = ndimage.binary_dilation(own, structure=cube, iterations=REACH)
+        other = bone[box] & ~own
+        if other.any() and (ndimage.binary_dilation(other, cube, REACH) & region).any():
+            region &= _nearer(own, other, lv.labels[box], seg.value, lv.spacing_zyx_mm)
+        out.append(PieceBox(seg.value, box, region))  # type: ignore[arg-type]
+    return out
+
+
+def _nearer(own: np.ndarray, other: np.ndarray, labels: np.ndarray, value: int, spacing: Any) -> np.ndarray:
+    """The voxels nearer to ``own`` than to ``other`` bone (mm); half way between two pieces, the larger one's
+    (the lower value: ``bone_pieces`` numbers them largest first), half way to a speck or a piece not kept, ours."""
+    from scipy import ndimage
+
+    near_own = ndimage.distance_transform_edt(~own, sampling=spacing)
+    near_other, where = ndimage.distance_transform_edt(~other, sampling=spacing, return_indices=True)
+    theirs = labels[tuple(where)].astype(np.int64)
+    theirs[theirs == 0] = np.iinfo(np.int64).max
+    out: np.ndarray = (near_own < near_other) | ((near_own == near_other) & (value < theirs))
+    return out

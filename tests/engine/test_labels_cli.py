@@ -60,9 +60,11 @@ def test_pieces_and_roi_of_the_demo(tmp_path: Path) -> None:
     out = tmp_path / "pieces"
     args = ["reconstruct", "--demo", "--pieces", "2", "--roi", "0:60,0:64,0:64", "-o", str(out), "--device", "cpu"]
     assert main([*args, "--quiet"]) == 0
-    rows = json.loads((out / "report.json").read_text())["labels"]
-    assert [r["name"] for r in rows] == ["piece_1", "piece_2"]
-    assert rows[0]["volume_mm3"] > rows[1]["volume_mm3"] and all(r["watertight"] for r in rows)
+    report = json.loads((out / "report.json").read_text())
+    rows = report["labels"]
+    # the crop's second bone piece (15 voxels) meshes below the island size: a speck the model drops too, not a piece
+    assert [r["name"] for r in rows] == ["piece_1"] and all(r["watertight"] for r in rows)
+    assert report["pieces"]["pieces_kept"] == 1 and "2 pieces asked for, 1 found" in report["pieces"]["note"]
     assert json.loads((out / "report.json").read_text())["input"]["shape_zyx"] == [60, 64, 64]
 
 
