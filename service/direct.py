@@ -77,7 +77,9 @@ def begin(
         try:
             check_callback_url(callback, svc.settings.webhook_allow_private)
         except CallbackRefused as exc:
-            raise Problem(422, str(exc), errors=[{"field": "callback_url", "message": str(exc)}]) from None
+            raise Problem(
+                422, str(exc), code="callback_refused", errors=[{"field": "callback_url", "message": str(exc)}]
+            ) from None
     job_id = Database.new_id()
     part = part_bytes_for(size)
     ttl = svc.settings.upload_ttl_seconds
@@ -162,12 +164,18 @@ def _check_parts(row: PendingUpload, stored: list[StoredPart], sent: list[tuple[
     if missing or got != row.upload_bytes or numbers != list(range(1, len(numbers) + 1)):
         shown = ", ".join(map(str, missing[:10])) + (", ..." if len(missing) > 10 else "")
         why = f"parts {shown} not received" if missing else f"{got:,} bytes received, {row.upload_bytes:,} declared"
-        raise Problem(422, f"the upload is not complete: {why}; send the parts again, then complete it")
+        raise Problem(
+            422, f"the upload is not complete: {why}; send the parts again, then complete it", code="upload_incomplete"
+        )
     if sent is not None:
         etags = {p.number: p.etag.strip('"') for p in stored}
         wrong = [n for n, tag in sent if etags.get(n) != tag.strip().removeprefix("W/").strip('"')]
         if wrong or {n for n, _ in sent} != set(numbers):
-            raise Problem(422, "the parts' ETags do not match what the store holds (send every part's ETag, or none)")
+            raise Problem(
+                422,
+                "the parts' ETags do not match what the store holds (send every part's ETag, or none)",
+                code="upload_incomplete",
+            )
 
 
 def complete(svc: Services, upload_id: str, who: str, sent: list[tuple[int, str]] | None) -> Job:

@@ -60,7 +60,9 @@ async def receive(
             try:
                 await svc.in_upload_thread(check_callback_url, callback, svc.settings.webhook_allow_private)
             except CallbackRefused as exc:
-                raise Problem(422, str(exc), errors=[{"field": "callback_url", "message": str(exc)}]) from None
+                raise Problem(
+                    422, str(exc), code="callback_refused", errors=[{"field": "callback_url", "message": str(exc)}]
+                ) from None
         await svc.in_upload_thread(writer.commit)
         summary = await svc.in_upload_thread(_inspect, svc.storage, job_id, parsed.filename, params)
         log.info("job %s: upload of %d bytes: %s", job_id, writer.size, summary)

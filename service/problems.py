@@ -63,6 +63,14 @@ CODES: dict[str, tuple[int, str]] = {
     "too_large": (413, "the upload or the request body is larger than the limit"),
     "unsupported_media_type": (415, "not multipart/form-data or JSON, or an archive bonemesh does not read"),
     "invalid_request": (422, "a field is invalid (errors[] names each one); or an archive that cannot be a scan"),
+    "callback_refused": (
+        422,
+        "callback_url is not one the service will call: not http(s), credentials in it, or a private address",
+    ),
+    "upload_incomplete": (
+        422,
+        "a direct upload's parts are missing, short or not those sent (it stays open: send them, then complete)",
+    ),
     "idempotency_key_reused": (
         422,
         "this Idempotency-Key was used with another request body; use a new key for a new request",

@@ -197,6 +197,7 @@ async function upload() {
   formUpload(fields);
 }
 function uploaded(job) {
+  if (picked) picked.keys = {}; // sent: uploading it again is a new job
   $("start").disabled = false;
   $("upload-bar").value = 100; $("upload-text").textContent = "uploaded";
   follow(job.id); loadJobs();
@@ -233,6 +234,17 @@ function uploading(loaded, total, where) {
   $("upload-bar").value = (100 * loaded) / total;
   $("upload-text").textContent = `uploading ${human(loaded)} of ${human(total)}${where}`;
 }
+// one Idempotency-Key per file and settings until the upload succeeds: pressing upload again after the network
+// dropped the answer gives the job the first press made, not a second one (docs/api.md)
+function idempotencyKey(fields) {
+  const what = JSON.stringify(fields);
+  picked.keys = picked.keys || {};
+  if (!picked.keys[what]) {
+    const bytes = crypto.getRandomValues(new Uint8Array(16));
+    picked.keys[what] = Array.from(bytes, (b) => b.toString(16).padStart(2, "0")).join("");
+  }
+  return picked.keys[what];
+}
 function formUpload(fields) {
   $("upload-progress").dataset.via = "api";
   const form = new FormData();
@@ -241,6 +253,7 @@ function formUpload(fields) {
   const xhr = new XMLHttpRequest();
   xhr.open("POST", "/v1/jobs");
   xhr.setRequestHeader("X-API-Key", key());
+  xhr.setRequestHeader("Idempotency-Key", idempotencyKey(fields));
   xhr.upload.onprogress = (e) => { if (e.lengthComputable) uploading(e.loaded, e.total, ""); };
   xhr.onload = () => {
     let body = null; try { body = JSON.parse(xhr.responseText); } catch (e) { /* not JSON */ }

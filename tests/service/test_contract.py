@@ -121,6 +121,9 @@ def test_every_problem_code_has_its_type_and_is_documented(tmp_path: Path) -> No
             "link_invalid": client.get("/v1/files/forged"),
             "unsupported_media_type": client.post("/v1/jobs", headers=KEY, content=b"x"),
         }
+        files = {"file": ("headsq.zip", HEADSQ.path.read_bytes(), "application/zip")}
+        data = {"params": json.dumps(HEADSQ.params), "callback_url": "http://127.0.0.1:9/hook"}
+        answers["callback_refused"] = client.post("/v1/jobs", headers=KEY, files=files, data=data)
         for code, resp in answers.items():
             body = resp.json()
             assert resp.headers["content-type"] == "application/problem+json", (code, resp.text)
