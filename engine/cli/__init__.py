@@ -203,6 +203,7 @@ def _isosurface(args: argparse.Namespace) -> int:
 def _reconstruct(args: argparse.Namespace) -> int:
     """``reconstruct``: the job's spec and runtime from the flags (resolved here, once), then ``engine.job.run_job``
     (the worker's path too): a scan's model, a model per label of a label map (found by content), or a CT's pieces."""
+    from engine.io.omezarr import is_remote
     from engine.job import resolve_runtime, run_job
 
     spec = job_spec(args)
@@ -218,10 +219,10 @@ def _reconstruct(args: argparse.Namespace) -> int:
         source: str | Path = HEADSQ_ZIP
     elif not args.input:
         raise InputError("no INPUT given (or use --demo)")
-    elif not Path(args.input).exists():
+    elif not is_remote(args.input) and not Path(args.input).exists():
         raise InputError(f"{args.input} does not exist")
     else:
-        source = args.input
+        source = args.input  # a path, or an OME-Zarr's s3:// URL (engine.io.omezarr)
     bar = _Bar(args.quiet)
     with _removed_unless_finished(out):
         try:

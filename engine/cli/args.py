@@ -125,7 +125,11 @@ def voxel_size_warning(spacing: Spacing | None) -> str | None:
 
 def add_input_args(parser: argparse.ArgumentParser, what: str) -> None:
     """INPUT, ``-o``, the voxel size (z, y, x, or named axes) and the device."""
-    parser.add_argument("input", nargs="?", help="slice archive or folder, DICOM series (zip or folder), TIFF or .npy")
+    parser.add_argument(
+        "input", nargs="?",
+        help="slice archive or folder, DICOM series (zip or folder), TIFF or BigTIFF, .npy, or OME-Zarr (a folder, a "
+        "zip of one, or s3://bucket/key; one level: scan.ome.zarr/LEVEL)",
+    )  # fmt: skip
     parser.add_argument("-o", "--output", required=True, help=what)
     size = parser.add_mutually_exclusive_group()
     size.add_argument(
@@ -299,7 +303,9 @@ def load_input(args: argparse.Namespace, on_progress: Callable[[float], None] | 
         return load_volume(HEADSQ_ZIP, spacing_zyx_mm=spacing, on_progress=on_progress, rows=rows), HEADSQ_LEVEL
     if not args.input:
         raise InputError("no INPUT given (or use --demo)")
-    if not Path(args.input).exists():
+    from engine.io.omezarr import is_remote
+
+    if not is_remote(args.input) and not Path(args.input).exists():
         raise InputError(f"{args.input} does not exist")
     try:
         return load_volume(args.input, spacing_zyx_mm=args.spacing, on_progress=on_progress, rows=rows), math.nan

@@ -1,19 +1,23 @@
 """Loaders: slice stacks, volume files and DICOM series -> :class:`engine.types.Volume`.
 
 ``load_volume`` accepts a zip / tar / tar.gz archive or a folder of 2-D slices (PNG, TIFF, JPEG, BMP) or of DICOM
-files, a multi-page TIFF, a ``.npy`` (z, y, x) array, or a single DICOM file. DICOM is recognised by content
-(with or without preamble and file extension); everything else by its file signature.
+files, a multi-page TIFF or BigTIFF (read page by page, ``engine.io.tiff``), a ``.npy`` (z, y, x) array, a single
+DICOM file, or an OME-Zarr image (v0.4 / v0.5: a folder, a zip of one, or ``s3://bucket/key``; read chunk by chunk,
+``engine.io.omezarr``). DICOM is recognised by content (with or without preamble and file extension); Zarr by its
+metadata files; everything else by its file signature.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 from engine.errors import InputError, NotAScanError
 from engine.io.archive import InputLimits, open_members
 from engine.io.dicom import has_dicom_images, load_dicom
+from engine.io.omezarr import ZarrSource, is_remote, load_ome_zarr, zarr_in
 from engine.io.parallel import decode_threads
 from engine.io.png_rows import DeviceRows
 from engine.io.stack import Allocate, StackWarning, check_spacing, load_stack, natural_key
@@ -52,7 +56,11 @@ def inspect_input(path: str | Path, limits: InputLimits | None = None) -> InputS
     from engine.io.stack import image_kind
 
     label = Path(path).name or str(path)
+    if is_remote(path):
+        return InputSummary("ome-zarr (s3)", 0, 0, 0)  # opened when loaded: the store is named if unreachable
     with open_members(path, limits, heads_only=True) as members:
+        if (found := zarr_in(members, Path(path))) is not None:
+            return InputSummary(f"ome-zarr ({found.kind})", len(members.members) + len(members.ignored), 0, 0)
         images = sum(1 for m in members.members if image_kind(m.head))
         dicom = sum(1 for m in members.members if looks_like_dicom(m.head))
         summary = InputSummary(members.kind, len(members.members), images, dicom)
@@ -82,13 +90,17 @@ def load_volume(
     processes: bool | None = None,
     allocate: Allocate | None = None,
     rows: DeviceRows | None = None,
+    level: int | str | None = None,
 ) -> Volume:
     """Load a scan as a (z, y, x) :class:`Volume`.
 
     Args:
-        path: archive (zip, tar, tar.gz/bz2/xz), folder, multi-page TIFF, ``.npy`` or DICOM file.
+        path: archive (zip, tar, tar.gz/bz2/xz), folder, multi-page TIFF, ``.npy`` or DICOM file, or an OME-Zarr
+            image: a folder (``scan.ome.zarr``, or one level's array ``scan.ome.zarr/2``), a zip of one, or
+            ``s3://bucket/key`` (``engine.io.omezarr.s3_store``: the S3 settings from the environment).
         spacing_zyx_mm: voxel size (z, y, x) in mm. Required for image stacks and ``.npy`` unless TIFF tags carry
-            it; for DICOM it may only fill in what the headers lack (a conflicting value is an error).
+            it, and for OME-Zarr without length units (where given, it wins over the metadata); for DICOM it may
+            only fill in what the headers lack (a conflicting value is an error).
         series_uid: the DICOM SeriesInstanceUID to load when the input holds several (default: the largest).
         limits: safety limits on archive members, sizes, compression ratio and voxel count.
         on_progress: called with the fraction (0..1) of the files read, as slices are decoded.
@@ -104,6 +116,7 @@ def load_volume(
             ``engine.staging.pinned_volumes``). DICOM series make their own.
         rows: image stacks only: a GPU's ``engine.io.png_rows.DeviceRows`` (``device_rows``): plain grayscale PNG
             slices are then inflated on the host and unfiltered on that device. The result does not depend on it.
+        level: OME-Zarr only: the resolution level, by index (0, the default: full resolution) or path.
 
     Returns:
         The volume: integer data stay integer (uint8/uint16/int16); DICOM CT is in HU (int16 where exact,
@@ -117,7 +130,15 @@ def load_volume(
     threads = decode_threads(threads)
     limits = limits or InputLimits()
     label = Path(path).name or str(path)
+    zarr = partial(load_ome_zarr, level=level, spacing_zyx_mm=spacing, limits=limits, on_progress=on_progress,
+                   allocate=allocate)  # fmt: skip
+    if is_remote(path):
+        return zarr(ZarrSource("s3", str(path)))
     with open_members(path, limits) as members:
+        if (zarr_src := zarr_in(members, Path(path))) is not None:
+            return zarr(zarr_src)
+        if level is not None:
+            raise InputError(f"level={level!r} was given, but {label} is not an OME-Zarr image")
         if has_dicom_images(members):
             vol = load_dicom(
                 members,

@@ -32,6 +32,7 @@ from engine.io.readers import PlainTar, Where, ZipHandles, read_where
 _CHUNK = 1 << 20
 _SPOOL_IN_MEMORY = 64 << 20  # all of a tar's members held in memory together; the rest go to temporary files
 HEAD_BYTES = 132  # enough to see the DICOM preamble + "DICM" and every image signature
+ZARR_MARKERS = ("zarr.json", ".zattrs", ".zgroup", ".zarray")  # the metadata files of a Zarr v3 / v2 node
 _JUNK = re.compile(r"(^|/)(__MACOSX/|\.[^/]*$|Thumbs\.db$|desktop\.ini$)", re.IGNORECASE)
 
 
@@ -370,6 +371,8 @@ def open_members(
     limits = limits or InputLimits()
     path = Path(path)
     if path.is_dir():
+        if (top := _zarr_top(path, head_bytes)) is not None:
+            return top  # a Zarr hierarchy (engine.io.omezarr) is opened by zarr, not listed chunk by chunk
         return _read_folder(path, limits, head_bytes)
     if not path.is_file():
         raise InputError(f"{path} does not exist (expected a zip/tar archive, a folder, or a volume file)")
@@ -390,6 +393,26 @@ def open_members(
     with path.open("rb") as fh:
         head = fh.read(head_bytes)
     return Members("file", [Member(path.name, size, head, _path=path, where=Where("file", str(path), path.name, size))])
+
+
+def is_zarr_folder(path: Path) -> bool:
+    """Whether the folder is a Zarr node itself (a group or an array: ``zarr.json``, ``.zattrs``, ``.zgroup`` or
+    ``.zarray`` at its top), which ``engine.io.omezarr`` opens with zarr instead of listing it file by file."""
+    return any((path / name).is_file() for name in ZARR_MARKERS)
+
+
+def _zarr_top(path: Path, head_bytes: int) -> Members | None:
+    """A folder that is a Zarr node (:func:`is_zarr_folder`) as kind "ome-zarr" with its metadata file as the one
+    member (the label-map sniffer reads its head); None for any other folder."""
+    if not is_zarr_folder(path):
+        return None
+    meta = next(p for p in (path / n for n in ZARR_MARKERS) if p.is_file())
+    with meta.open("rb") as fh:
+        head = fh.read(head_bytes)
+    size = meta.stat().st_size
+    return Members(
+        "ome-zarr", [Member(meta.name, size, head, _path=meta, where=Where("file", str(meta), meta.name, size))]
+    )
 
 
 def _is_tar(path: Path) -> bool:

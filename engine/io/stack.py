@@ -8,6 +8,7 @@ import math
 import re
 import warnings
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -135,6 +136,12 @@ def _read_slices(
     images.sort(key=lambda m: natural_key(m.name))
     kinds = sorted({image_kind(m.head) or "" for m in images})
     if len(images) == 1:
+        if kinds[0] == "tiff":  # a multi-page TIFF / BigTIFF: page by page into one array (engine.io.tiff)
+            from engine.io.tiff import read_tiff_volume
+
+            make = partial(_allocated, allocate)
+            if paged := read_tiff_volume(images[0], label, limits, make, _tiff_geometry, on_progress, threads):
+                return paged[0], "tiff", paged[1]
         arr, geo = _decode(images[0], limits)
         arr = arr[None] if arr.ndim == 2 else arr
         limits.check_voxels(arr.shape, label)
@@ -230,7 +237,7 @@ def _decode(
                 )
             return arr, {}
         if kind == "tiff":
-            return _decode_tiff(data)
+            return _decode_tiff(data, plane)
         if kind == "png" and (fast := decode_png_fast(data, plane)) is not None:
             return fast, {}
         import imageio.v3 as iio
@@ -256,13 +263,27 @@ def _load_npy(m: Member, limits: InputLimits) -> np.ndarray:
         return np.load(fh, allow_pickle=False)
 
 
-def _decode_tiff(data: bytes) -> tuple[np.ndarray, dict[str, Any]]:
+def _decode_tiff(data: bytes, plane: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+    """A TIFF's pixels and geometry hints; a one-page grayscale slice of ``plane``'s shape and type is decoded
+    straight into ``plane`` (and ``plane`` returned: no temporary slice)."""
     import tifffile
 
     with tifffile.TiffFile(io.BytesIO(data)) as tf:
         page = tf.pages[0]
         colour = page.samplesperpixel > 1
-        arr = tf.asarray()
+        into = (
+            plane is not None
+            and len(tf.pages) == 1
+            and not colour
+            and tuple(page.shape) == plane.shape
+            and np.dtype(page.dtype) == plane.dtype
+        )
+        if into:
+            assert plane is not None
+            page.asarray(out=plane)
+            arr = plane
+        else:
+            arr = tf.asarray()
         if colour and int(page.planarconfig) == 2:  # separate colour planes: (..., samples, y, x)
             arr = np.moveaxis(arr, -3, -1)
         geo = _tiff_geometry(tf, page)
