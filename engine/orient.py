@@ -89,7 +89,8 @@ def patient_frame(volume: Volume, orient: OrientParams | None = None) -> Frame:
     """The grid -> patient map of a volume: from its DICOM geometry, or from ``orient`` for an image stack.
 
     Args:
-        volume: the scan; ``volume.patient_frame`` says whether ``origin_mm``/``direction`` are in LPS.
+        volume: the scan; ``volume.patient_frame`` says whether ``origin_mm``/``direction`` are in LPS (placed by
+            ``source["placed_by"]`` where the reader says how, e.g. a NIfTI label map's sform; else DICOM's headers).
         orient: the stack's orientation (default ``OrientParams()``); ignored for DICOM.
 
     Returns:
@@ -97,7 +98,9 @@ def patient_frame(volume: Volume, orient: OrientParams | None = None) -> Frame:
     """
     if volume.patient_frame:
         matrix = np.asarray(volume.direction, dtype=np.float64)
-        return Frame(matrix, np.asarray(volume.origin_mm, dtype=np.float64), "DICOM ImagePositionPatient/Orientation")
+        # what placed it: a DICOM series' headers, or a label map's own words (its NIfTI sform, NRRD space, SEG)
+        placed = str(volume.source.get("placed_by") or "DICOM ImagePositionPatient/Orientation")
+        return Frame(matrix, np.asarray(volume.origin_mm, dtype=np.float64), placed)
     o = orient or OrientParams()
     superior_first = o.first_slice == "superior"
     signs = np.array([-1.0 if o.flip_lr else 1.0, -1.0 if o.flip_ap else 1.0, -1.0 if superior_first else 1.0])

@@ -348,12 +348,18 @@ def add_label_args(parser: argparse.ArgumentParser) -> None:
         "--labels", action="store_true", help="INPUT is a label map (integer NIfTI/NRRD, DICOM SEG, SEG+CT folder)"
     )
     group.add_argument("--pieces", type=int, metavar="N", help="keep the N largest bone pieces as separate parts")
-    group.add_argument("--roi", metavar="A0:A1,B0:B1,C0:C1", help="crop to this box before anything runs")
+    group.add_argument(
+        "--roi",
+        metavar="LO:HI,LO:HI,LO:HI",
+        help="crop to this box before anything runs: voxel indices in z,y,x order (end exclusive), e.g. "
+        "0:60,0:256,0:128; with --roi-units mm, mm in x,y,z order (patient LPS frame), e.g. 0:120,-50:250,-10:160 "
+        "(a box starting below 0: --roi=-10:...)",
+    )
     group.add_argument(
         "--roi-units",
         choices=("voxels", "mm"),
         default="voxels",
-        help="voxels: z,y,x indices (end exclusive); mm: x,y,z in the patient (LPS) frame",
+        help="the units and order of --roi: voxels (default): z,y,x indices; mm: x,y,z in the patient (LPS) frame",
     )
     group.add_argument("--segments", metavar="S1,S2", help="only these segments (numbers or names, commas between)")
 
@@ -367,7 +373,8 @@ def roi_params(args: argparse.Namespace) -> RoiParams | None:
     try:
         ranges = [tuple(float(v) for v in part.split(":")) for part in args.roi.split(",")]
         if len(ranges) != 3 or any(len(r) != 2 for r in ranges):
-            raise ValueError(f"--roi takes three LO:HI ranges separated by commas, got {args.roi!r}")
+            order = "x,y,z in mm" if args.roi_units == "mm" else "z,y,x voxel indices"
+            raise ValueError(f"--roi takes three LO:HI ranges separated by commas ({order}), got {args.roi!r}")
         box = ((ranges[0][0], ranges[0][1]), (ranges[1][0], ranges[1][1]), (ranges[2][0], ranges[2][1]))
         return RoiParams(box, units=args.roi_units)
     except ValueError as exc:

@@ -224,8 +224,23 @@ def read_nifti_labels(path: str | Path) -> LabelVolume:
     flip = np.diag([-1.0, -1.0, 1.0])  # RAS -> LPS
     spacing, direction, origin = _geometry(flip @ affine[:3, :3], flip @ affine[:3, 3], Path(path).name)
     labels = _zyx(data)
-    source = {"format": "nifti", "file": Path(path).name, "placed_by": "NIfTI affine (RAS, turned into LPS)"}
+    source = {"format": "nifti", "file": Path(path).name, "placed_by": nifti_placement(img.header)}
     return make_label_volume(labels, spacing, origin, direction, (), source)
+
+
+_XFORM = {1: "scanner", 2: "aligned", 3: "Talairach", 4: "MNI 152", 5: "template"}
+
+
+def nifti_placement(header: Any) -> str:
+    """How a NIfTI header places its grid, as nibabel's ``affine`` takes it: the sform where its code is set, else
+    the qform, else the voxel sizes alone (no orientation: RAS axes assumed)."""
+    sform = int(header["sform_code"]) if "sform_code" in header else 0
+    qform = int(header["qform_code"]) if "qform_code" in header else 0
+    if sform > 0:
+        return f"NIfTI sform ({_XFORM.get(sform, f'code {sform}')} space; RAS, turned into LPS)"
+    if qform > 0:
+        return f"NIfTI qform ({_XFORM.get(qform, f'code {qform}')} space; RAS, turned into LPS)"
+    return "NIfTI voxel sizes only (no qform or sform: RAS axes assumed, turned into LPS)"
 
 
 # --- NRRD / seg.nrrd ---------------------------------------------------------------------------------------------

@@ -314,7 +314,7 @@ def test_a_nifti_jobs_report_says_what_placed_it(tmp_path: Path, capsys: pytest.
     code, err = _cli([str(path), "-o", str(tmp_path / "out")], capsys)
     assert code == 0, err
     frame = json.loads((tmp_path / "out" / "report.json").read_text())["frame"]
-    assert frame["placed_by"] == "NIfTI affine (RAS, turned into LPS)"
+    assert frame["placed_by"] == "NIfTI sform (aligned space; RAS, turned into LPS)"  # nibabel sets sform code 2
 
 
 def test_a_zip_member_copy_is_not_kept(tmp_path: Path) -> None:
