@@ -11,6 +11,7 @@ from fastapi import APIRouter, Header, Query, Request
 from fastapi.responses import JSONResponse, Response
 
 from core.db import Job, utcnow
+from core.faults import RETRY_AFTER_SECONDS
 from core.params import OrientJobParams
 from core.storage import version_of
 from engine.defect.params import DEFECT_REORIENT
@@ -242,7 +243,10 @@ def orient_job(job_id: str, body: OrientJobParams, who: OwnerDep, svc: ServicesD
     except Exception as exc:
         svc.db.finish_orient(job_id)
         raise Problem(
-            503, f"the queue is unreachable ({type(exc).__name__}); try again", code="queue_unavailable"
+            503,
+            f"the queue is unreachable ({type(exc).__name__}); try again",
+            code="queue_unavailable",
+            headers={"Retry-After": str(RETRY_AFTER_SECONDS)},
         ) from None
     return svc.job_out(_job(svc, job_id, who), base)
 
