@@ -170,6 +170,19 @@ def db_owner(api_key: str) -> str:
     return owner_of(api_key)
 
 
+def test_the_api_on_both_databases(tmp_path: Path, db_url: str) -> None:
+    with _app(tmp_path, database_url=db_url) as client:
+        key = "db-" + uuid.uuid4().hex
+        first = _upload(client, key, HEADSQ.params, **KEY_A)
+        again = _upload(client, key, HEADSQ.params, **KEY_A)
+        assert first.status_code == again.status_code == 202 and again.json()["id"] == first.json()["id"]
+        assert _upload(client, key, {**HEADSQ.params, "iso": 900}, **KEY_A).json()["code"] == "idempotency_key_reused"
+        assert _upload(client, key, HEADSQ.params, **KEY_B).json()["id"] != first.json()["id"]
+        assert client.get("/v1/jobs", headers=KEY_A).json()["total"] == 1
+        db: Database = client.app.state.services.db  # type: ignore[attr-defined]
+    db.close()
+
+
 # -- the database: SQLite and PostgreSQL ---------------------------------------------------------------------------
 def test_keys_in_the_database(db_url: str) -> None:
     with contextlib.closing(Database(db_url)) as db:
