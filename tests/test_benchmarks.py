@@ -422,3 +422,20 @@ def test_first_load(tmp_path: Path) -> None:
     for run in report["runs"]:  # a new process each: its warm-up, then the loads
         assert run["warm_up"]["device"] == "cpu" and run["warm_up"]["pinned_bytes"] == 0  # nothing page-locked off CUDA
         assert len(run["loads"]) == 2 and all(finite(x["seconds"]) and x["cpu_seconds"] >= 0 for x in run["loads"])
+
+
+def test_big_formats(tmp_path: Path) -> None:
+    from benchmarks.big_formats import FORMATS
+
+    out = tmp_path / "big_formats.json"
+    args = ["--shape", PHANTOM, "--chunks", "4,16,16", "--threads", "2", "--out", str(out)]
+    run_module("big_formats", args, tmp_path)
+    report = load(out)
+    has_keys(report, "benchmark", "host", "shape_zyx", "dtype", "volume_bytes", "formats")
+    assert report["volume_bytes"] == 2 * 16 * 32 * 32 and list(report["formats"]) == list(FORMATS)
+    for name, row in report["formats"].items():
+        assert "error" not in row and row["equal"] is True, (name, row)
+        assert row["peak_rss_bytes"] >= row["baseline_rss_bytes"] > 0 and finite(row["ratio"]), (name, row)
+        assert finite(row["seconds"]), (name, row)
+    assert report["formats"]["ome-zarr-s3"]["source"]["container"] == "s3"
+    assert report["formats"]["ome-zarr-v05"]["source"]["spacing_from"] == "ome-zarr"

@@ -11,9 +11,12 @@ for the settings it reads).
 The full-resolution level (the first listed) is read by default; ``level`` picks another by index or by its
 path. The (z, y, x) voxel size in mm and the origin come from the level's transformations and the space axes'
 units (micrometer, nanometer, ... converted to mm); axes ``t`` and ``c`` of size 1 are dropped. The volume is one
-array allocated once (``allocate``, as for slice stacks), filled a slab of z-chunks (or shards) at a time: zarr
-decodes each chunk straight into the slab's part of that array, so the peak is the volume plus a few chunks
-(data of a type the engine does not mesh, int32 say, are narrowed after a whole read; float64 slab by slab).
+array allocated once (``allocate``, as for slice stacks), filled one row of z-chunks (or shards) at a time: zarr
+fetches and decodes that row's chunks (at most its ``async.concurrency`` at once, 10 by default) and copies each
+into its place in the array (the slab is passed as zarr's ``out``), so the peak is the volume plus a few decoded
+chunks, a constant whatever the volume's size (8 MiB chunks: +55-70 MiB on Zarr v3, +130 MiB on v2, about +200 MiB
+with 128 MiB shards; ``benchmarks/big_formats.py``). Data of a type the engine does not mesh are converted: float64
+slab by slab, int32 and wider after a whole read (narrowed like a .npy).
 """
 
 from __future__ import annotations
@@ -33,7 +36,6 @@ from engine.types import Volume
 
 __all__ = ["ZarrSource", "is_remote", "is_zarr_folder", "load_ome_zarr", "s3_store", "zarr_in"]
 
-_SLAB_BYTES = 64 << 20  # at least this much is asked of zarr at once (its chunks are fetched and decoded together)
 # the space units of OME-NGFF (UDUNITS-2 names) and common abbreviations: mm per unit as (numerator, denominator),
 # so that 120 micrometer is 120 / 1000 mm, the float nearest 0.12, as a caller's 0.12 is
 _UNIT_MM: dict[str, tuple[int, int]] = {
@@ -448,9 +450,7 @@ def _read_slabs(
     from zarr.core.buffer import default_buffer_prototype
 
     z_axis = zyx[0]
-    step = int((getattr(arr, "shards", None) or arr.chunks)[z_axis])
-    plane = int(np.prod(out.shape[1:])) * out.dtype.itemsize
-    step *= max(1, _SLAB_BYTES // max(1, step * plane))
+    step = int((getattr(arr, "shards", None) or arr.chunks)[z_axis])  # one row of chunks (shards) at a time
     order = sorted(range(3), key=lambda k: zyx[k])  # out's axes in the array's order
     nz = out.shape[0]
     proto = default_buffer_prototype()
