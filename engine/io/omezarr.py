@@ -396,6 +396,9 @@ def _geometry(
             )
         units.append(None if unit is None else _UNIT_MM[unit.strip().lower()])
     found = ", ".join(f"{ms.axes[i].name} {scale[i]:g} {ms.axes[i].unit or '(no unit)'}" for i in zyx)
+    scaled = any(isinstance(t, dict) and t.get("type") == "scale" for t in [*ms.transforms[index], *ms.outer])
+    if not scaled:  # v0.3 and before: no scale at all, not a voxel size of 1 unit
+        return None, (0.0, 0.0, 0.0), "no scale"
     if any(u is None for u in units):
         return None, (0.0, 0.0, 0.0), found
     size = tuple(scale[i] * u[0] / u[1] for i, u in zip(zyx, units, strict=True) if u is not None)
@@ -415,8 +418,10 @@ def _spacing(
 
     if call is not None:
         return call, "call"
+    if found is None and text == "no scale":
+        raise NoSpacingError(f"{where}: its metadata give no scale (coordinateTransformations); {SPACING_HINT}")
     if found is None:
-        raise NoSpacingError(f"{where}: its metadata gives the scale ({text}) without a length unit; {SPACING_HINT}")
+        raise NoSpacingError(f"{where}: its metadata give the scale ({text}) without a length unit; {SPACING_HINT}")
     try:
         return check_spacing_zyx_mm(found), "ome-zarr"
     except ValueError as exc:

@@ -126,6 +126,23 @@ def test_units_translation_and_singleton_axes(tmp_path: Path, version: str) -> N
     assert level.spacing_zyx_mm == (0.001, 0.0005, 0.00025)
 
 
+def test_space_axes_in_another_order(tmp_path: Path) -> None:
+    """Axes x, y, z (a writer's choice the specification allows): the volume is still (z, y, x)."""
+    import zarr
+
+    data = _vol((12, 20, 24))
+    group = zarr.open_group(str(tmp_path / "xyz.ome.zarr"), mode="w", zarr_format=3)
+    arr = group.create_array("0", shape=data.shape[::-1], dtype=data.dtype, chunks=(8, 8, 5))
+    arr[...] = data.transpose(2, 1, 0)
+    axes = [{"name": n, "type": "space", "unit": "micrometer"} for n in "xyz"]
+    transforms = [{"type": "scale", "scale": [1.0, 2.0, 3.0]}]
+    multiscale = {"axes": axes, "datasets": [{"path": "0", "coordinateTransformations": transforms}]}
+    group.attrs.put({"ome": {"version": "0.5", "multiscales": [multiscale]}})
+    vol = load_volume(tmp_path / "xyz.ome.zarr")
+    np.testing.assert_array_equal(vol.data, data)
+    assert vol.data.flags.c_contiguous and vol.spacing_zyx_mm == (0.003, 0.002, 0.001)
+
+
 def test_sharded_v3_and_progress(tmp_path: Path) -> None:
     data = _vol((30, 20, 24))
     path = write_ome_zarr(tmp_path / "s.ome.zarr", data, scale=(0.1, 0.1, 0.1), unit="millimeter", chunks=(2, 10, 12),
@@ -188,6 +205,11 @@ def test_the_callers_voxel_size_wins_and_fills_in_missing_units(tmp_path: Path) 
     unitless = write_ome_zarr(tmp_path / "u.ome.zarr", data, scale=(2.0, 0.5, 0.5), unit=None)
     with pytest.raises(NoSpacingError, match=r"scale \(z 2 \(no unit\), y 0.5 \(no unit\).*voxel size in mm"):
         load_volume(unitless)
+    attrs = {"multiscales": [{"version": "0.3", "axes": ["z", "y", "x"], "datasets": [{"path": "0"}]}]}
+    unscaled = write_ome_zarr(tmp_path / "v03.ome.zarr", data, version="0.4", attrs=attrs)
+    with pytest.raises(NoSpacingError, match=r"give no scale \(coordinateTransformations\); give the voxel size"):
+        load_volume(unscaled)
+    np.testing.assert_array_equal(load_volume(unscaled, spacing_zyx_mm=(1, 1, 1)).data, data)
     vol = load_volume(unitless, spacing_zyx_mm=(0.2, 0.05, 0.05))
     assert vol.spacing_zyx_mm == (0.2, 0.05, 0.05) and vol.source["spacing_from"] == "call"
 
