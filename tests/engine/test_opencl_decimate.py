@@ -206,8 +206,10 @@ def test_clustering_and_census_same_as_warp_cpu(opencl) -> None:
     np.testing.assert_array_equal(of, wf)
     np.testing.assert_array_equal(op, wp_)
     assert len(oc) == len(wc) == topology(v, f).components
-    for field in ("volume", "faces", "vertices"):
+    for field in ("faces", "vertices"):
         np.testing.assert_array_equal(getattr(oc, field), getattr(wc, field))
+    # float64 sums of face volumes, added atomically: in another order on a GPU (NVIDIA's OpenCL: 1e-13 apart)
+    np.testing.assert_allclose(oc.volume, wc.volume, rtol=1e-9)
 
 
 def test_viewing_copies_same_as_warp_cpu(opencl) -> None:
