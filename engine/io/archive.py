@@ -332,6 +332,13 @@ def _read_folder(path: Path, limits: InputLimits, head_bytes: int = HEAD_BYTES) 
     count = 0
     for root, dirs, files in os.walk(path, followlinks=False):
         dirs.sort()
+        for zarr_dir in [d for d in dirs if is_zarr_folder(Path(root) / d)]:  # its metadata only, not its chunks
+            dirs.remove(zarr_dir)
+            top = _zarr_top(Path(root) / zarr_dir, head_bytes)
+            assert top is not None
+            meta = top.members[0]
+            meta.name = (Path(root) / zarr_dir).relative_to(path).joinpath(meta.name).as_posix()
+            members.append(meta)
         for fname in sorted(files):
             count += 1
             if count > limits.max_members:

@@ -190,8 +190,12 @@ def test_a_zip_of_the_folder_or_of_its_contents(tmp_path: Path) -> None:
 
 def test_a_folder_holding_the_image_and_a_bioformats2raw_layout(tmp_path: Path) -> None:
     data = _vol((6, 8, 10))
-    write_ome_zarr(tmp_path / "upload" / "scan.ome.zarr", data, scale=(1, 1, 1), unit="mm")
-    np.testing.assert_array_equal(load_volume(tmp_path / "upload").data, data)
+    write_ome_zarr(tmp_path / "upload" / "scan.ome.zarr", data, scale=(1, 1, 1), unit="mm", chunks=(1, 4, 5))
+    (tmp_path / "upload" / "notes.txt").write_text("scanned on Tuesday")
+    # the image's 24 chunk files are not listed one by one: the folder's member limit is not spent on them
+    vol = load_volume(tmp_path / "upload", limits=InputLimits(max_members=5))
+    np.testing.assert_array_equal(vol.data, data)
+    assert vol.source["container"] == "folder"
     import zarr
 
     root = zarr.open_group(str(tmp_path / "b2r.zarr"), mode="w", zarr_format=2)
