@@ -28,10 +28,14 @@ def escape_control(text: str) -> str:
     return _CONTROL.sub(_escape_char, text)
 
 
+_UPLOAD_NAME = re.compile(r"(^|\b(?:in|of|from) )upload\d*\b")  # the store names it upload (upload2: a second)
+
+
 def relabel(message: str, filename: str | None) -> str:
-    """An engine message about the stored upload (named ``upload``) in terms of the client's file name (escaped)."""
+    """An engine message about the stored upload (named ``upload``: at the start, or after "in", "of" or "from")
+    in terms of the client's file name (escaped)."""
     name = escape_control(filename) if filename else "the upload"
-    return message.replace("upload", name, 1) if message.startswith("upload") else message
+    return _UPLOAD_NAME.sub(lambda m: m.group(1) + name, message)
 
 
 def safe_traceback(exc: BaseException) -> str:

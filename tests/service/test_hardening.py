@@ -389,3 +389,18 @@ def test_stack_without_spacing_is_refused_at_upload(kind: str, client: TestClien
     else:
         body = assert_problem(resp, (415, 422))
         assert "spacing" in body["detail"] or "single 2-D image" in body["detail"], body
+
+
+@pytest.mark.parametrize(
+    ("engine_says", "client_reads"),
+    [
+        ("upload holds no label map", "scan<1>.zip holds no label map"),
+        ("expected PNG slices in upload, found none", "expected PNG slices in scan<1>.zip, found none"),
+        ("cannot decode the pixels of upload/a.dcm (RLE)", "cannot decode the pixels of scan<1>.zip/a.dcm (RLE)"),
+        ("the upload was cut, re-uploaded, an uploader", "the upload was cut, re-uploaded, an uploader"),
+    ],
+)
+def test_an_engine_message_names_the_clients_file_wherever_it_names_the_upload(engine_says, client_reads) -> None:
+    from core.logsafe import relabel
+
+    assert relabel(engine_says, "scan<1>.zip") == client_reads
