@@ -240,7 +240,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
 
 
 def _label_summary(report: dict[str, typing.Any]) -> None:
-    """One line per label on stdout."""
+    """One line per label on stdout; the report's warnings (fewer pieces than asked, say) on stderr."""
     rows = report["labels"]
     width = max(len(r["name"]) for r in rows)
     for r in rows:
@@ -248,6 +248,8 @@ def _label_summary(report: dict[str, typing.Any]) -> None:
             f"{r['name']:<{width}}  {r['faces']:>8,} faces  {r['volume_mm3']:>12,.1f} mm3  {r['area_mm2']:>10,.1f} mm2"
             f"  watertight {r['watertight']}  {r['file']}"
         )
+    for warning in report.get("warnings", []):
+        print(f"bonemesh: warning: {warning['message']}", file=sys.stderr)  # noqa: T201
 
 
 def _warn_voxel_size(args: argparse.Namespace) -> None:

@@ -56,7 +56,7 @@ def test_float_nifti_with_labels_is_refused(tmp_path: Path, capsys: pytest.Captu
     assert "not a label map" in capsys.readouterr().err and not out.exists()
 
 
-def test_pieces_and_roi_of_the_demo(tmp_path: Path) -> None:
+def test_pieces_and_roi_of_the_demo(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "pieces"
     args = ["reconstruct", "--demo", "--pieces", "2", "--roi", "0:60,0:64,0:64", "-o", str(out), "--device", "cpu"]
     assert main([*args, "--quiet"]) == 0
@@ -65,6 +65,7 @@ def test_pieces_and_roi_of_the_demo(tmp_path: Path) -> None:
     # the crop's second bone piece (15 voxels) meshes below the island size: a speck the model drops too, not a piece
     assert [r["name"] for r in rows] == ["piece_1"] and all(r["watertight"] for r in rows)
     assert report["pieces"]["pieces_kept"] == 1 and "2 pieces asked for, 1 found" in report["pieces"]["note"]
+    assert f"bonemesh: warning: {report['pieces']['note']}" in capsys.readouterr().err  # said, not only written
     assert json.loads((out / "report.json").read_text())["input"]["shape_zyx"] == [60, 64, 64]
 
 
