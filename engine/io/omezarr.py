@@ -231,6 +231,30 @@ def _multiscale(attrs: dict[str, Any], where: str) -> Multiscale | None:
     )
 
 
+def _probe(store: Any, where: str) -> None:
+    """One request for the node's metadata before zarr asks for several at once (so that a store that cannot be
+    reached, or refuses the keys, is reported once, in one line, and not also by zarr's unawaited requests).
+
+    Raises:
+        InputError: the store cannot be reached or refuses the request (named, with a hint where no keys are set),
+            or holds no Zarr metadata at the key.
+    """
+    import obstore
+    from obstore.exceptions import NotFoundError
+
+    for name in ZARR_MARKERS:
+        try:
+            obstore.head(store.store, name)
+            return
+        except NotFoundError:
+            continue
+        except Exception as exc:
+            keys = os.environ.get("AWS_ACCESS_KEY_ID") or os.environ.get("AWS_WEB_IDENTITY_TOKEN_FILE")
+            hint = "" if keys else "; no S3 keys are set (AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY)"
+            raise InputError(f"{where} cannot be reached or read: {_error_line(exc)}{hint}") from None
+    raise InputError(f"{where} holds no Zarr image: no zarr.json (Zarr v3) or .zgroup/.zattrs (Zarr v2) there")
+
+
 def _open_image(src: ZarrSource) -> tuple[Any, Multiscale, str | None, ZarrSource]:
     """The image group, its multiscale, the level the path named (when it names a level's array) and the source
     the group was opened at.
@@ -242,7 +266,10 @@ def _open_image(src: ZarrSource) -> tuple[Any, Multiscale, str | None, ZarrSourc
 
     where = _where(src)
     try:
-        node = zarr.open(store=_store(src), path=src.inner, mode="r")
+        store = _store(src)
+        if src.kind == "s3":
+            _probe(store, where)
+        node = zarr.open(store=store, path=src.inner, mode="r")
     except InputError:
         raise
     except Exception as exc:
