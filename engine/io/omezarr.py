@@ -246,7 +246,7 @@ def _probe(store: Any, where: str) -> None:
         try:
             obstore.head(store.store, name)
             return
-        except NotFoundError:
+        except (NotFoundError, FileNotFoundError):  # obstore raises the latter for a 404
             continue
         except Exception as exc:
             keys = os.environ.get("AWS_ACCESS_KEY_ID") or os.environ.get("AWS_WEB_IDENTITY_TOKEN_FILE")
