@@ -168,7 +168,7 @@ function partsParams() {
   if (text) {
     const box = text.split(",").map((r) => r.split(":").map((v) => Number(v.trim())));
     if (box.length !== 3 || box.some((r) => r.length !== 2 || r.some((v) => !Number.isFinite(v)) || r[0] >= r[1])) {
-      throw Object.assign(new Error(`Region: give three ranges lo:hi separated by commas (e.g. 0:60, 0:256, 0:256); got "${text}"`), { field: "roi" });
+      throw Object.assign(new Error(`Region: give three ranges lo:hi separated by commas (${ROI_HINTS[$("roi-units").value]}); got "${text}"`), { field: "roi" });
     }
     p.roi = { box, units: $("roi-units").value };
   }
@@ -591,6 +591,13 @@ async function place() {
     follow(job.id);
   } catch (e) { $("orient-state").textContent = e.message; placeChanged(job); }
 }
+// the region's example in the order of its units: voxel indices z, y, x; mm in the patient frame x, y, z
+const ROI_HINTS = {
+  voxels: "e.g. 0:60, 0:256, 0:256 as z, y, x voxel indices",
+  mm: "e.g. -90:0, -120:100, 0:80 as x, y, z mm (LPS)",
+};
+function roiHint() { $("roi").placeholder = ROI_HINTS[$("roi-units").value]; }
+
 const isAndroid = () => /Android/i.test(navigator.userAgent);
 
 // --- the key's recent jobs -----------------------------------------------------------------------------------
@@ -654,6 +661,8 @@ window.addEventListener("DOMContentLoaded", () => {
   const viewer = $("viewer");
   viewer.addEventListener("load", () => { viewer.dataset.loaded = "yes"; placeLabels(); });
   $("place-box").addEventListener("change", () => placeChanged());
+  $("roi-units").addEventListener("change", roiHint);
+  roiHint();
   $("place-apply").onclick = () => { if (current) place(); };
   // Android's Scene Viewer opens model-viewer's src: give it ar.glb (plain glTF; it cannot open Draco's phone.glb)
   $("ar-button").addEventListener("click", () => {

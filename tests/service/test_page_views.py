@@ -167,6 +167,7 @@ def test_no_horizontal_overflow_with_every_section_open(
     stack: ServiceStack, jobs: dict[str, dict[str, Any]], browser: Any, artefacts: Path, width: int, height: int
 ) -> None:
     from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import Select
 
     driver = browser
     _viewport(driver, width, height)
@@ -177,8 +178,11 @@ def test_no_horizontal_overflow_with_every_section_open(
     _js(driver, "document.getElementById('first-slice').value = 'inferior'")
     driver.find_element(By.ID, "flip-lr").click()
     driver.find_element(By.ID, "pieces").send_keys("12")
-    driver.find_element(By.ID, "roi").send_keys("0:60, 0:256, 0:256")
-    _js(driver, "document.getElementById('roi-units').value = 'mm'")
+    roi = driver.find_element(By.ID, "roi")
+    assert "z, y, x voxel" in roi.get_attribute("placeholder")
+    roi.send_keys("0:60, 0:256, 0:256")
+    Select(driver.find_element(By.ID, "roi-units")).select_by_value("mm")  # the example follows the units' order
+    assert "x, y, z mm" in roi.get_attribute("placeholder")
     driver.find_element(By.ID, "spacing").send_keys("1.5, 0.957, 0.957")
     # a finished job: its model, warnings, placement, files, QR code and share link; the list with a long name
     _follow(driver, jobs["head"]["id"])
