@@ -458,9 +458,10 @@ def _spacing(
 
 
 def _target_dtype(dtype: np.dtype[Any]) -> np.dtype[Any] | None:
-    """The dtype the volume is read into slab by slab (None: read whole, then narrowed like a .npy)."""
+    """The dtype the volume is read into slab by slab, in this machine's byte order (None: read whole, then narrowed
+    like a .npy)."""
     if dtype.type in _NATIVE:
-        return dtype
+        return np.dtype(dtype.type)  # a big-endian Zarr v2 array is swapped slab by slab
     if dtype == np.bool_:
         return np.dtype(np.uint8)
     if dtype == np.int8:
@@ -551,7 +552,7 @@ def load_ome_zarr(
     limits.check_voxels(shape, where)
     target = _target_dtype(np.dtype(arr.dtype))
     if target is None:  # int32 & co.: read whole, then narrowed to what the engine meshes
-        data = np.empty(shape, arr.dtype)
+        data = np.empty(shape, np.dtype(arr.dtype).newbyteorder("="))
         _read_slabs(arr, zyx, data, on_progress, where)
         data = _narrow(data)
     else:
