@@ -4,7 +4,8 @@ STOW-RS to a DICOMweb server (one request).
 
 The ``pacs_jobs`` rows are the outbox: the dispatcher picks up succeeded jobs whose delivery is waiting or due for
 a retry, claims each with one conditional update, sends, and records the outcome. A failure is retried with
-exponential backoff (``delivery_backoff_seconds`` doubling up to ``delivery_max_backoff_seconds``) until
+exponential backoff (``delivery_backoff_seconds`` doubling up to ``delivery_max_backoff_seconds``, never sooner than a
+DICOMweb server's ``Retry-After``) until
 ``delivery_max_attempts``; each failure is on the job (``delivery.state``, ``error``, ``next_attempt_at``), and a
 dispatcher that dies mid-send leaves a claim that is taken again later. The instance's UIDs are fixed per job, so
 a repeated send stores the same object again at the PACS, never a second one.
@@ -84,10 +85,13 @@ class Dispatcher:
                 delivered += self._deliver(rec)
         return delivered
 
-    def backoff(self, attempts: int) -> float:
-        """Seconds before the next try after ``attempts`` failed ones."""
+    def backoff(self, attempts: int, retry_after: float | None = None) -> float:
+        """Seconds before the next try after ``attempts`` failed ones: the doubling backoff, and never sooner than
+        a DICOMweb server's ``Retry-After`` asked (a STOW-RS 429 or 503; up to ``delivery_max_backoff_seconds``)."""
+        cap = self.pacs.delivery_max_backoff_seconds
         base = self.pacs.delivery_backoff_seconds
-        return float(min(base * 2 ** max(attempts - 1, 0), self.pacs.delivery_max_backoff_seconds))
+        delay = float(min(base * 2 ** max(attempts - 1, 0), cap))
+        return max(delay, min(float(retry_after), cap)) if retry_after else delay
 
     def _objects(self, job_id: str) -> list[Any] | None:
         """The job's DICOM objects: ``model.dcm``, or each member of a label job's ``labels.dcm.zip``; None when
@@ -117,7 +121,7 @@ class Dispatcher:
         except Exception as exc:
             message = escape_control(str(exc) or type(exc).__name__)
             final = missing or rec.delivery_attempts >= self.pacs.delivery_max_attempts
-            delay = None if final else self.backoff(rec.delivery_attempts)
+            delay = None if final else self.backoff(rec.delivery_attempts, getattr(exc, "retry_after", None))
             next_at = None if delay is None else utcnow() + dt.timedelta(seconds=delay)
             self.records.failed_attempt(job_id, message, next_at)
             log.warning(

@@ -169,6 +169,8 @@ def test_delivery_backs_off_and_gives_up_visibly(tmp_path: Path, db_url: str) ->
         pacs = PacsSettings(delivery_backoff_seconds=10, delivery_max_backoff_seconds=25, delivery_max_attempts=3)
         dispatcher = Dispatcher(pacs, records, storage)
         assert [dispatcher.backoff(n) for n in (1, 2, 3, 4)] == [10, 20, 25, 25]
+        # a DICOMweb server's Retry-After (STOW-RS 429/503) is a floor, within the longest backoff
+        assert [dispatcher.backoff(1, asked) for asked in (None, 3, 17, 90)] == [10, 10, 17, 25]
         now = utcnow()
         assert dispatcher.run_once(now) == 0
         view = records.view(job)["delivery"]
