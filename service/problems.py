@@ -104,8 +104,15 @@ class ProblemBody(BaseModel):
     errors: list[dict[str, Any]] | None = None
 
 
+# RFC 9110's reason phrases where Python's differ by version (3.13 took them up: "Unprocessable Content" was
+# "Unprocessable Entity"), so titles and the OpenAPI document are the same on every Python
+_RFC9110 = {413: "Content Too Large", 414: "URI Too Long", 416: "Range Not Satisfiable", 422: "Unprocessable Content"}
+
+
 def title_of(status: int) -> str:
-    """The reason phrase of an HTTP status."""
+    """The reason phrase of an HTTP status (RFC 9110's)."""
+    if status in _RFC9110:
+        return _RFC9110[status]
     try:
         return HTTPStatus(status).phrase
     except ValueError:
