@@ -1,62 +1,63 @@
-"""Device operations of the defect template on Warp arrays (kernels in ``engine.defect.kernels``): the exact
-Euclidean distance transform and the mask selections."""
+"""Device operations of the defect template on any backend (``engine.backend``; kernels in
+``engine.defect.kernels``, named in ``engine.defect.kernel_specs``): the exact Euclidean distance transform and the mask
+selections. Device volumes are flat arrays of ``n = nz * ny * nx`` elements in (z, y, x) order; the shape travels
+beside them."""
 
 from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
+from engine.backend.base import Backend
+
 BIG_MM = 1.0e30  # "no feature": the distance where a transform found nothing
 
 
-def distance(mask: Any, spacing_zyx: tuple[float, float, float], *, inside: bool = False) -> Any:
-    """Exact Euclidean distance (mm, float32 ``wp.array3d``) from every voxel to the nearest set voxel of ``mask``
-    (uint8 ``wp.array3d``), or with ``inside`` to the nearest clear voxel; ``BIG_MM`` where there is none.
+def distance(
+    be: Backend, mask: Any, shape: tuple[int, ...], spacing_zyx: tuple[float, float, float], *, inside: bool = False
+) -> Any:
+    """Exact Euclidean distance (mm, flat float32 device array) from every voxel to the nearest set voxel of
+    ``mask`` (flat uint8, of ``shape``), or with ``inside`` to the nearest clear voxel; ``BIG_MM`` where there is
+    none (the same bits on every backend).
 
     Felzenszwalb and Huttenlocher's separable transform: one pass per axis, one thread per grid line.
     """
-    import warp as wp
+    from engine.defect.kernel_specs import EDT_PASS, EDT_SQRT, FEATURES
 
-    from engine.defect.kernels.edt import edt_pass_kernel, features_kernel, sqrt_kernel
-
-    dev = mask.device
-    shape = tuple(int(n) for n in mask.shape)
-    n = shape[0] * shape[1] * shape[2]
-    flat = mask.reshape((n,))
-    f = wp.empty(n, dtype=wp.float32, device=dev)
-    g = wp.empty(n, dtype=wp.float32, device=dev)
-    wp.launch(features_kernel, dim=n, inputs=[flat, int(inside), f], device=dev)
-    scratch = n + n // min(shape) + 1  # (length + 1) entries per line, on the axis with the most lines
-    v = wp.empty(scratch, dtype=wp.int32, device=dev)
-    zb = wp.empty(scratch, dtype=wp.float32, device=dev)
+    nz, ny, nx = (int(s) for s in shape)
+    n = nz * ny * nx
+    f = be.empty(n, np.float32)
+    g = be.empty(n, np.float32)
+    be.launch(FEATURES, n, [mask, int(inside), f])
+    scratch = n + n // max(min(nz, ny, nx), 1) + 1  # (length + 1) entries per line, on the axis with the most lines
+    v = be.empty(scratch, np.int32)
+    zb = be.empty(scratch, np.float32)
     for axis in (2, 1, 0):
-        wp.launch(
-            edt_pass_kernel,
-            dim=n // shape[axis],
-            inputs=[f, g, wp.vec3i(*shape), axis, float(spacing_zyx[axis]), v, zb],
-            device=dev,
-        )
+        be.launch(EDT_PASS, n // (nz, ny, nx)[axis], [f, g, nz, ny, nx, axis, float(spacing_zyx[axis]), v, zb])
         f, g = g, f
-    wp.launch(sqrt_kernel, dim=n, inputs=[f, g], device=dev)
-    return g.reshape(shape)
+    be.launch(EDT_SQRT, n, [f, g])
+    return g
 
 
-def select(src: Any, value: int) -> Any:
-    """uint8 mask: src == value."""
-    import warp as wp
+def select(be: Backend, src: Any, value: int) -> Any:
+    """Flat uint8 mask: src == value."""
+    from engine.defect.kernel_specs import SELECT
 
-    from engine.defect.kernels.mirror import select_kernel
-
-    out = wp.empty(src.shape, dtype=wp.uint8, device=src.device)
-    wp.launch(select_kernel, dim=src.shape, inputs=[src, int(value), out], device=src.device)
+    out = be.empty(len(src), np.uint8)
+    be.launch(SELECT, len(src), [src, int(value), out])
     return out
 
 
-def bits(src: Any, which: int) -> Any:
-    """uint8 mask: any of the bits ``which`` set in src."""
-    import warp as wp
+def bits(be: Backend, src: Any, which: int) -> Any:
+    """Flat uint8 mask: any of the bits ``which`` set in src."""
+    from engine.defect.kernel_specs import BITS
 
-    from engine.defect.kernels.mirror import bits_kernel
-
-    out = wp.empty(src.shape, dtype=wp.uint8, device=src.device)
-    wp.launch(bits_kernel, dim=src.shape, inputs=[src, int(which), out], device=src.device)
+    out = be.empty(len(src), np.uint8)
+    be.launch(BITS, len(src), [src, int(which), out])
     return out
+
+
+def upload_mask(be: Backend, mask: Any) -> Any:
+    """A host bool (or uint8) volume as a flat uint8 device array."""
+    return be.from_host(np.ascontiguousarray(mask).view(np.uint8).reshape(-1))

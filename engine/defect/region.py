@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from engine.backend.base import Backend
 from engine.defect.grid import CONNECTIVITY, BoolArray, FloatArray, Grid, bounding_box, reflect
 from engine.defect.params import DefectParams
 from engine.defect.plane import SymmetryPlane, reflection, ring_plane
@@ -179,6 +180,7 @@ class _Source:
     half: Any
     lo: npt.NDArray[np.int64]
     outside: float
+    box: Any = None  # the kernels' ``Box`` of the crop
 
 
 def _rules(
@@ -191,53 +193,59 @@ def _rules(
     grid: Grid,
     level: float,
     mid: float,
-    device: Any,
+    be: Backend,
     on_device: tuple[Any, Any, Any] | None = None,
 ) -> _Rules:
-    """Mirror, shell rule and growth on one box of the scan (the kernels), mirror images sampled from ``source``;
-    results on the host. ``on_device``: the box's scan, skull and distance to the bone when already there."""
-    import warp as wp
-
-    from engine.defect.kernels.mirror import core_kernel, grow_kernel, mirror_kernel
-    from engine.defect.ops import bits, distance, select
+    """Mirror, shell rule and growth on one box of the scan (the kernels, on the backend ``be``), mirror images
+    sampled from ``source``; results on the host. ``on_device``: the box's scan, skull and distance to the bone when
+    already there (flat device arrays)."""
+    from engine.defect.kernel_specs import CORE, GROW, MIRROR_MAP
+    from engine.defect.kernel_specs import MIRROR as MIRROR_KERNEL
+    from engine.defect.ops import bits, distance, select, upload_mask
 
     sp = grid.spacing_zyx
     sp_arr = np.asarray(sp)
     rad = np.ceil(THICKNESS_REACH_MM / sp_arr).astype(np.int64)
-    shape = data.shape
-    with wp.ScopedDevice(device):
-        if on_device is None:
-            d_data: Any = wp.array(data, dtype=wp.float32)
-            d_skull: Any = wp.array(np.ascontiguousarray(skull).view(np.uint8), dtype=wp.uint8)
-            to_bone = distance(wp.array(np.ascontiguousarray(bone).view(np.uint8), dtype=wp.uint8), sp)
-        else:
-            d_data, d_skull, to_bone = on_device
-        mirrored = wp.empty(shape, dtype=wp.float32)
-        code = wp.empty(shape, dtype=wp.uint8)
-        thick = wp.empty(shape, dtype=wp.float32)
-        wp.launch(
-            mirror_kernel,
-            dim=shape,
-            inputs=[d_data, d_skull, wp.vec3i(*lo.tolist()), source.data, source.skull, source.half,
-                    wp.vec3i(*source.lo.tolist()), wp.mat33(*[float(v) for v in mirror[0].ravel()]),
-                    wp.vec3(*[float(v) for v in mirror[1]]), wp.vec3(*sp), float(level), float(mid),
-                    source.outside, wp.vec3i(*rad.tolist()), THICKNESS_REACH_MM],
-            outputs=[mirrored, code, thick],
-        )  # fmt: skip
-        to_mirror = distance(bits(code, MIRROR), sp)
-        core = wp.empty(shape, dtype=wp.uint8)
-        wp.launch(core_kernel, dim=shape, inputs=[code, thick, to_bone, to_mirror], outputs=[core])
-        to_core = distance(select(core, 1), sp)
-        grown = wp.empty(shape, dtype=wp.uint8)
-        wp.launch(
-            grow_kernel,
-            dim=shape,
-            inputs=[d_data, mirrored, code, thick, to_core, wp.vec3(*sp), float(level), float(sp_arr.max())],
-            outputs=[grown],
-        )
-        return _Rules(  # sync point
-            lo, grown.numpy().astype(bool), core.numpy(), code.numpy(), mirrored.numpy(), thick.numpy()
-        )
+    shape = tuple(int(s) for s in data.shape)
+    n = int(np.prod(shape))
+    if on_device is None:
+        d_data: Any = be.from_host(np.ascontiguousarray(data, dtype=np.float32).reshape(-1))
+        d_skull: Any = upload_mask(be, skull)
+        to_bone = distance(be, upload_mask(be, bone), shape, sp)
+    else:
+        d_data, d_skull, to_bone = on_device
+    mirrored = be.empty(n, np.float32)
+    code = be.empty(n, np.uint8)
+    thick = be.empty(n, np.float32)
+    box = _box(be, shape, lo, sp)
+    a, b = (np.asarray(v, dtype=np.float64) for v in mirror)
+    m = be.struct(MIRROR_MAP, **{f"a{i}{j}": float(a[i, j]) for i in range(3) for j in range(3)},
+                  **{f"b{i}": float(b[i]) for i in range(3)})  # fmt: skip
+    be.launch(
+        MIRROR_KERNEL,
+        shape,
+        [d_data, d_skull, box, source.data, source.skull, source.half, source.box, m, float(level), float(mid),
+         source.outside, *(int(r) for r in rad), THICKNESS_REACH_MM, mirrored, code, thick],
+    )  # fmt: skip
+    to_mirror = distance(be, bits(be, code, MIRROR), shape, sp)
+    core = be.empty(n, np.uint8)
+    be.launch(CORE, n, [code, thick, to_bone, to_mirror, core])
+    to_core = distance(be, select(be, core, 1), shape, sp)
+    grown = be.empty(n, np.uint8)
+    be.launch(GROW, shape, [d_data, mirrored, code, thick, to_core, box, float(level), float(sp_arr.max()), grown])
+
+    def host(arr: Any) -> Any:
+        return be.to_host(arr).reshape(shape)
+
+    return _Rules(lo, host(grown).astype(bool), host(core), host(code), host(mirrored), host(thick))  # sync point
+
+
+def _box(be: Backend, shape: tuple[int, ...], lo: Any, sp: tuple[float, float, float]) -> Any:
+    """The kernels' ``Box`` of a crop: its shape, first voxel ``lo`` and the grid's spacing."""
+    from engine.defect.kernel_specs import BOX
+
+    return be.struct(BOX, nz=shape[0], ny=shape[1], nx=shape[2], lz=int(lo[0]), ly=int(lo[1]), lx=int(lo[2]),
+                     sz=float(sp[0]), sy=float(sp[1]), sx=float(sp[2]))  # fmt: skip
 
 
 def find_region(
@@ -250,12 +258,13 @@ def find_region(
     params: DefectParams,
     device: Any,
 ) -> Region:
-    """The defect region (see the module). Raises ``NoDefectError`` or ``MidlineDefectError``."""
-    import warp as wp
+    """The defect region (see the module) on ``device`` (a ``Backend``, a Warp device or a device spec). Raises
+    ``NoDefectError`` or ``MidlineDefectError``."""
+    from engine.backend.select import get_backend
+    from engine.defect.kernel_specs import RIDGE
+    from engine.defect.ops import distance, upload_mask
 
-    from engine.defect.kernels.mirror import ridge_kernel
-    from engine.defect.ops import distance
-
+    be = get_backend(device)
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     sp_arr = np.asarray(grid.spacing_zyx)
@@ -268,22 +277,22 @@ def find_region(
     bone_c = np.ascontiguousarray(bone[box])
     skull_c = np.ascontiguousarray(skull[box])
     smin = float(sp_arr.min())
-    with wp.ScopedDevice(device):
-        d_data: Any = wp.array(data, dtype=wp.float32)
-        d_skull: Any = wp.array(skull_c.view(np.uint8), dtype=wp.uint8)
-        half = distance(d_skull, grid.spacing_zyx, inside=True)
-        to_bone = distance(wp.array(bone_c.view(np.uint8), dtype=wp.uint8), grid.spacing_zyx)
-        ridge = wp.empty(data.shape, dtype=wp.uint8)
-        wp.launch(ridge_kernel, dim=data.shape, inputs=[half, ridge])
-        to_bone_h = to_bone.numpy()  # sync point: the tissue around the bone and the shell's thickness
-        ridge_h = ridge.numpy().astype(bool) & skull_c
-        half_at_ridge = half.numpy()[ridge_h]
+    shape = tuple(int(s) for s in data.shape)
+    d_data: Any = be.from_host(data.reshape(-1))
+    d_skull: Any = upload_mask(be, skull_c)
+    half = distance(be, d_skull, shape, grid.spacing_zyx, inside=True)
+    to_bone = distance(be, upload_mask(be, bone_c), shape, grid.spacing_zyx)
+    ridge = be.empty(len(d_data), np.uint8)
+    be.launch(RIDGE, shape, [half, *shape, ridge])
+    to_bone_h = be.to_host(to_bone).reshape(shape)  # sync point: the tissue around the bone and the shell's thickness
+    ridge_h = be.to_host(ridge).reshape(shape).astype(bool) & skull_c
+    half_at_ridge = be.to_host(half).reshape(shape)[ridge_h]
     band = (to_bone_h > 1.5 * smin) & (to_bone_h <= 1.5 * smin + 2.0)
     tissue = float(np.median(data[band])) if band.any() else float(data.min())
     mid = tissue + 0.5 * (level - tissue) if tissue < level else float(level)
     shell_mm = float(2.0 * np.median(half_at_ridge)) if len(half_at_ridge) else float(sp_arr.max())
-    source = _Source(d_data, d_skull, half, lo, float(data.min()))
-    rules = _rules(data, skull_c, bone_c, lo, source, reflection(n_g, d_g), grid, level, mid, device,
+    source = _Source(d_data, d_skull, half, lo, float(data.min()), _box(be, shape, lo, grid.spacing_zyx))
+    rules = _rules(data, skull_c, bone_c, lo, source, reflection(n_g, d_g), grid, level, mid, be,
                    on_device=(d_data, d_skull, to_bone))  # fmt: skip
     seconds["global_rules"] = time.perf_counter() - t0
 
@@ -307,7 +316,7 @@ def find_region(
         )
         pieces.append(p)
     for p in worth:
-        pieces.append(_mirror_locally(p, region, grid, skull, bone, volume_data, n_g, d_g, source, device))
+        pieces.append(_mirror_locally(p, region, grid, skull, bone, volume_data, n_g, d_g, source, be))
     seconds["local_rules"] = time.perf_counter() - t1
     t2 = time.perf_counter()
     pieces.sort(key=lambda p: -p.volume_mm3)

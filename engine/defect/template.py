@@ -155,7 +155,7 @@ def defect_template(
     Args:
         volume: the scan; level: the bone level in its units; plane: ``find_symmetry_plane``'s.
         params: hints and limits (default ``DefectParams()``).
-        device: "auto", "cpu", "cuda" or "cuda:N" (the voxel rules and MC33 run there).
+        device: "auto", "cpu", "cuda[:N]", "opencl[:N]" or a ``Backend`` (the voxel rules and MC33 run there).
         orient: ``OrientParams`` placing an image stack (default: the stack convention).
         bone, skull: the masks when the caller has them (``engine.defect.grid.bone_and_skull``).
 
@@ -165,11 +165,11 @@ def defect_template(
         EmptySurfaceError: no bone at the level.
     """
     from engine.defect.implant import implant_mesh
-    from engine.device import resolve_device
+    from engine.device import resolve_backend
     from engine.surface import mesh_stats
 
     params = params or DefectParams()
-    dev = resolve_device(device)
+    dev = resolve_backend(device)  # the voxel rules and MC33 run on its backend (Warp or OpenCL)
     grid = Grid.of(volume, orient)
     t0 = time.perf_counter()
     if bone is None or skull is None:

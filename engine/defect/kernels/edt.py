@@ -1,6 +1,6 @@
 """Warp kernels of the exact Euclidean distance transform (Felzenszwalb and Huttenlocher's lower envelope of
 parabolas, one thread per grid line, one pass per axis, anisotropic spacing). Volumes are flat float32 arrays in
-(z, y, x) order; ``BIG`` stands for "no feature on this line"."""
+(z, y, x) order; ``BIG`` stands for "no feature on this line". OpenCL C twins: ``edt.cl`` (the same arithmetic)."""
 
 from __future__ import annotations
 
@@ -10,11 +10,8 @@ BIG = 1.0e30
 
 
 @wp.func
-def _line(line: int, shape: wp.vec3i, axis: int) -> wp.vec3i:
+def _line(line: int, nz: int, ny: int, nx: int, axis: int) -> wp.vec3i:
     """(first flat index, stride, length) of grid line ``line`` along ``axis``."""
-    nz = shape[0]
-    ny = shape[1]
-    nx = shape[2]
     if axis == 2:
         return wp.vec3i(line * nx, 1, nx)
     if axis == 1:
@@ -41,7 +38,9 @@ def features_kernel(mask: wp.array(dtype=wp.uint8), inside: int, f: wp.array(dty
 def edt_pass_kernel(
     f: wp.array(dtype=wp.float32),
     g: wp.array(dtype=wp.float32),
-    shape: wp.vec3i,
+    nz: int,
+    ny: int,
+    nx: int,
     axis: int,
     spacing: float,
     v: wp.array(dtype=wp.int32),
@@ -49,7 +48,7 @@ def edt_pass_kernel(
 ):
     """One axis of the squared distance: g[q] = min_p (x_q - x_p)^2 + f[p] along each line (lower envelope)."""
     line = wp.tid()
-    geo = _line(line, shape, axis)
+    geo = _line(line, nz, ny, nx, axis)
     base = geo[0]
     stride = geo[1]
     n = geo[2]
