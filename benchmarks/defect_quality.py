@@ -62,7 +62,20 @@ SCANS: dict[str, dict[str, Any]] = {
         "cranial_slices": (55, 107),
         "real_defect_slices": (55, 85),
     },
+    "gantry_tilt": {  # DICOM, 18.5 degree gantry tilt and uneven gaps: placed (and resampled) by the reader
+        "path": SHARED / "gantry_tilt_dicom" / "gantry_tilt_dicom.zip",
+        "spacing": None,
+        "level": 300.0,  # HU
+        "orient": None,
+        "cranial_slices": (10, 34),
+    },
 }
+# the reviewer's sweep (issue 42): 8 directions around the head (none on the midline), 3 heights on the braincase,
+# the sizes, on the scan's own pose and turned; the cut's edge and fill cycle over the cases
+SWEEP_AZIMUTHS = (22.5, 67.5, 112.5, 157.5, 202.5, 247.5, 292.5, 337.5)
+SWEEP_HEIGHTS = (0.2, 0.5, 0.8)
+SWEEP_POSES = ((0.0, 0.0), (7.0, -5.0))  # (yaw, roll) degrees
+SWEEP_SLICES = {"headsq": (4, 18), "head_phantom": (12, 27), "cranium": (60, 100), "gantry_tilt": (10, 34)}
 # across the midline: centred on the intact skull's plane, or moved 12 mm to the left of it (direction, diameter,
 # offset from the plane)
 MIDLINE = {
@@ -75,6 +88,8 @@ def _load(name: str) -> Any:
     from engine.io import load_volume
 
     cfg = SCANS[name]
+    if cfg["spacing"] is None:
+        return load_volume(cfg["path"])
     return load_volume(cfg["path"], spacing_zyx_mm=cfg["spacing"])
 
 
@@ -94,7 +109,9 @@ def _angle(a: Any, b: Any) -> float:
     return float(np.degrees(np.arccos(min(1.0, abs(float(np.dot(a, b)))))))
 
 
-def _case(volume: Any, cfg: dict[str, Any], device: str, intact_plane: Any, removed: Any, **row: Any) -> dict[str, Any]:
+def _case(
+    volume: Any, cfg: dict[str, Any], device: str, intact_plane: Any, removed: Any, exclude: Any = None, **row: Any
+) -> dict[str, Any]:
     from engine.defect.synthetic import dice
 
     res, outcome, secs = _run(volume, cfg, device)
@@ -102,6 +119,8 @@ def _case(volume: Any, cfg: dict[str, Any], device: str, intact_plane: Any, remo
     if res is None:
         return row
     mask = res.full_mask()
+    if exclude is not None:  # the scan's own defect, found too, is not this case's
+        mask &= ~exclude
     rim = res.rim()
     row.update(
         template_mm3=round(res.volume_mm3, 1),
@@ -171,6 +190,74 @@ def evaluate(name: str, device: str, sizes: list[float], log: Any = print) -> li
     return rows
 
 
+def sweep(name: str, device: str, sizes: list[float], poses: Any = SWEEP_POSES, log: Any = print) -> list[dict]:
+    """The reviewer's sweep on one scan (issue 42): full-thickness cuts (``engine.defect.synthetic.cut_at``) at 8
+    directions x 3 heights x the sizes on the scan's own pose; on each turned pose (``synthetic.posed``, yaw and
+    roll) the same places at one size each (cycling). Edges (straight, bevelled, ball) and fills (tissue, air)
+    cycle over the cases. On a scan with a real defect (the cranium) the template's pieces on the real defect are
+    left out of the Dice, and cuts that touch it or its mirror image are not one-sided: left out."""
+    from engine.defect.synthetic import EDGES, FILLS, posed
+
+    cfg = SCANS[name]
+    volume = _load(name)
+    rows: list[dict[str, Any]] = []
+    k = 0
+    for yaw, roll in poses:
+        base = volume if not (yaw or roll) else posed(volume, yaw, roll, orient=cfg["orient"])
+        real = None
+        if "real_defect_slices" in cfg:
+            real = _real_defect(base, cfg, device)
+        for az in SWEEP_AZIMUTHS:
+            for h in SWEEP_HEIGHTS:
+                for size in sizes if not (yaw or roll) else [sizes[k % len(sizes)]]:
+                    edge, fill = EDGES[k % len(EDGES)], FILLS[(k // len(EDGES)) % len(FILLS)]
+                    k += 1
+                    row = _sweep_case(base, cfg, device, name, (yaw, roll), az, h, size, edge, fill, real)
+                    rows.append(row)
+                    log(_line(row))
+    return rows
+
+
+def _real_defect(volume: Any, cfg: dict[str, Any], device: str) -> tuple[Any, Any, float] | None:
+    """The scan's own defect: its template's voxels (grown by 3), its mirror image's centre (grid mm) and radius."""
+    from scipy import ndimage as ndi
+
+    from engine.defect.grid import Grid, reflect
+
+    res, _, _ = _run(volume, cfg, device)
+    if res is None:
+        return None
+    mask = res.full_mask()
+    grid = Grid.of(volume, cfg["orient"])
+    xyz = grid.xyz(np.argwhere(mask))
+    c = xyz.mean(axis=0)
+    radius = float(np.max(np.linalg.norm(xyz - c, axis=1)))
+    mirror = reflect(c[None, :], np.asarray(res.plane.normal_grid), res.plane.offset_grid_mm)[0]
+    return ndi.binary_dilation(mask, iterations=3), mirror, radius
+
+
+def _sweep_case(volume: Any, cfg: dict[str, Any], device: str, name: str, pose: tuple[float, float], az: float,
+                h: float, size: float, edge: str, fill: str, real: Any) -> dict[str, Any]:  # fmt: skip
+    from engine.defect.synthetic import cut_at
+
+    side = "left" if 0 < az < 180 else "right"
+    cut = cut_at(volume, cfg["level"], az, h, size, slices=SWEEP_SLICES[name], orient=cfg["orient"], edge=edge,
+                 fill=fill)  # fmt: skip
+    base = {"scan": name, "case": f"az {az:g} h {h:g} {edge} {fill} yaw {pose[0]:g} roll {pose[1]:g}",
+            "azimuth_deg": az, "height": h, "edge": edge, "fill": fill, "yaw_deg": pose[0], "roll_deg": pose[1],
+            "diameter_mm": size, "removed_mm3": round(cut.removed_mm3, 1), "expected": f"template, {side}",
+            "entry_lps_mm": [round(v, 1) for v in cut.entry_lps_mm]}  # fmt: skip
+    if real is not None:
+        from engine.defect.grid import Grid
+
+        grid = Grid.of(volume, cfg["orient"])
+        entry = grid.from_patient(np.asarray(cut.entry_lps_mm))
+        if (cut.removed & real[0]).any() or np.linalg.norm(entry - real[1]) < real[2] + size / 2:
+            base.update(expected="left out: touches the scan's real defect or its mirror image", outcome="not run")
+            return base
+    return _case(cut.volume, cfg, device, None, cut.removed, exclude=None if real is None else real[0], **base)
+
+
 def _line(row: dict[str, Any]) -> str:
     keys = ("scan", "case", "diameter_mm", "removed_mm3", "outcome", "dice", "precision", "recall", "rim_gap_voxels",
             "template_mm3", "side", "slices", "seconds")  # fmt: skip
@@ -230,8 +317,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--scans", default="headsq,head_phantom,cranium")
     ap.add_argument("--sizes", default="20,30,40")
-    ap.add_argument("--out", default="benchmarks/results/defect_quality_cpu.json")
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--sweep", action="store_true", help="the reviewer's sweep (issue 42) instead of the cases")
+    ap.add_argument("--poses", default="0:0,7:-5", help="yaw:roll in degrees, comma-separated (the sweep)")
     args = ap.parse_args(argv)
+    out = args.out or f"benchmarks/results/defect_{'sweep' if args.sweep else 'quality'}_cpu.json"
+    poses = [tuple(float(v) for v in p.split(":")) for p in args.poses.split(",")]
     from engine.device import init_runtime, resolve_device
 
     init_runtime()
@@ -242,7 +333,15 @@ def main(argv: list[str] | None = None) -> int:
         if not Path(SCANS[name]["path"]).exists():
             print(f"{name}: {SCANS[name]['path']} is absent, skipped")
             continue
-        rows += evaluate(name, args.device, sizes)
+        rows += sweep(name, args.device, sizes, poses) if args.sweep else evaluate(name, args.device, sizes)
+        _write(out, dev, sizes, rows)
+    result = _write(out, dev, sizes, rows)
+    print(sweep_markdown(rows) if args.sweep else markdown(rows))
+    print(json.dumps(result["summary"], indent=2))
+    return 0
+
+
+def _write(out: str, dev: Any, sizes: list[float], rows: list[dict[str, Any]]) -> dict[str, Any]:
     result = {
         "benchmark": "defect_quality",
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
@@ -253,11 +352,43 @@ def main(argv: list[str] | None = None) -> int:
         "summary": summary(rows),
         "rows": rows,
     }
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
-    print(markdown(rows))
-    print(json.dumps(result["summary"], indent=2))
-    return 0
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    Path(out).write_text(json.dumps(result, indent=2) + "\n")
+    return result
+
+
+def sweep_markdown(rows: list[dict[str, Any]]) -> str:
+    """The sweep's tables for ``docs/defect.md``: per scan and pose, then every case, then the refusals."""
+    out = ["| scan | pose (yaw, roll) | cases | templates | refused | Dice mean | Dice min | rim gap mean (voxels) | "
+           "rim gap max |", "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for (scan, pose), group in _groups(rows).items():
+        run = [r for r in group if r["outcome"] != "not run"]
+        found = [r for r in run if "dice" in r]
+        d = [r["dice"] for r in found]
+        g = [r["rim_gap_voxels"] for r in found]
+        out.append(f"| {scan} | {pose} | {len(run)} | {len(found)} | {len(run) - len(found)} | "
+                   f"{np.mean(d) if d else float('nan'):.3f} | {min(d) if d else float('nan'):.3f} | "
+                   f"{np.mean(g) if g else float('nan'):.2f} | {max(g) if g else float('nan'):.2f} |")  # fmt: skip
+    out += ["", "| scan | yaw, roll | azimuth | height | mm | edge | fill | outcome | Dice | rim gap (voxels) |",
+            "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for r in rows:
+        outcome = r["outcome"] if r["outcome"] in ("template", "not run") else r["outcome"].split(":")[0]
+        dice = f"{r['dice']:.3f}" if "dice" in r else ""
+        gap = f"{r['rim_gap_voxels']:.2f}" if "rim_gap_voxels" in r else ""
+        out.append(f"| {r['scan']} | {r['yaw_deg']:g}, {r['roll_deg']:g} | {r['azimuth_deg']:g} | {r['height']:g} | "
+                   f"{r['diameter_mm']:g} | {r['edge']} | {r['fill']} | {outcome} | {dice} | {gap} |")  # fmt: skip
+    refused = [r for r in rows if r["outcome"] not in ("template", "not run")]
+    if refused:
+        out += ["", "Refusals and why:", ""]
+        out += [f"* {r['scan']} {r['case']} {r['diameter_mm']:g} mm: {r['outcome']}" for r in refused]
+    return "\n".join(out)
+
+
+def _groups(rows: list[dict[str, Any]]) -> dict[tuple[str, str], list[dict[str, Any]]]:
+    out: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for r in rows:
+        out.setdefault((r["scan"], f"{r['yaw_deg']:g}, {r['roll_deg']:g}"), []).append(r)
+    return out
 
 
 if __name__ == "__main__":

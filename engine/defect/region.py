@@ -45,7 +45,7 @@ from engine.backend.base import Backend
 from engine.defect.grid import CONNECTIVITY, BoolArray, FloatArray, Grid, bounding_box, reflect
 from engine.defect.params import DefectParams
 from engine.defect.plane import SymmetryPlane, reflection, ring_plane
-from engine.defect.rim import Rim, open_toward_plane, rim_of
+from engine.defect.rim import Rim, Span, open_toward_plane, rim_of, spans_shell
 from engine.errors import MidlineDefectError, NoDefectError
 
 THICKNESS_REACH_MM = 5.0  # the shell's middle is looked for this far around a voxel (shells up to 10 mm)
@@ -58,7 +58,11 @@ MIN_CONTACT = 0.5
 # past its edge toward the plane (at least 3 shells)
 MIDLINE_REACH_MM = 15.0
 MIN_OPEN_TOWARD_PLANE = 0.4  # measured: one-sided defects 0.0-0.41 (near the midline), across it 0.45-0.78
-MIN_PLATE_SHARE = 0.5  # a defect is a plug through the shell: at least this share of the healthy shell's thickness
+# a defect is a hole through the shell: the scan lacks the mirrored shell across its whole thickness (its columns
+# along the shell's normal span it, ``engine.defect.rim.spans_shell``) over an opening at least this wide, and over
+# at least this share of its outline (a bevelled rim spans it only over its narrowest opening)
+MIN_SPAN_WIDTH_MM = 8.0
+MIN_SPAN_SHARE = 0.15
 MIN_CORE_VOXELS = 4
 MIN_DEFECT_WIDTH_MM = 15.0  # the smallest defect reported: a plug this wide through the shell
 MIN_DEFECT_SKULL_SHARE = 0.001  # ... and at least this share of the skull's volume
@@ -91,6 +95,7 @@ class Piece:
     local_move_mm: float | None = None
     local_used: bool = False
     rim: Rim | None = None
+    span: Span | None = None
     fit: float | None = None
     shell_mm: float | None = None  # the healthy shell's local thickness over the piece (median)
     kept: bool = False
@@ -120,6 +125,8 @@ class Piece:
             out["mirror_fit_iou"] = round(self.fit, 4)
         if self.rim is not None:
             out["rim"] = self.rim.to_dict()
+        if self.span is not None:
+            out["spans_shell"] = self.span.to_dict()
         return out
 
 
@@ -508,15 +515,19 @@ def _judge(region: Region, grid: Grid, params: DefectParams) -> None:
             p.reason = "crosses the midline" if across else "the hole goes on past it toward the midline"
             crossing.append(p)
             continue
-        if p.rim.thickness_mm < MIN_PLATE_SHARE * shell:
+        p.span = spans_shell(p.index, region.bone, region.mirrored, region.level, grid.spacing_zyx,
+                             1.5 * shell + float(sp.max()))  # fmt: skip
+        if p.span.area_mm2 < math.pi * (MIN_SPAN_WIDTH_MM / 2) ** 2 or p.span.share < MIN_SPAN_SHARE:
             p.reason = (
-                f"a sliver {p.rim.thickness_mm:.1f} mm thick where the healthy shell is {shell:.1f} mm: asymmetry, "
-                "not a hole through the shell"
+                f"not a hole through the shell: the scan lacks the whole mirrored shell over {p.span.area_mm2:.0f} mm2 "
+                f"({p.span.share:.0%} of its outline; elsewhere the scan has bone across the shell): a "
+                "partial-thickness dent or asymmetry"
             )
             continue
         if p.rim.contact < MIN_CONTACT:
             p.reason = f"its rim meets the bone over {p.rim.contact:.0%} only (not a hole's fill)"
             continue
+        _to_rim(p, region, grid, shell, border_of=full, reach=reach)
         p.kept = True
         p.reason = "defect"
     if point is not None:  # the one piece nearest the hint point
@@ -542,6 +553,35 @@ def _judge(region: Region, grid: Grid, params: DefectParams) -> None:
         assert p.index is not None
         mask[tuple(p.index.T)] = True
     region.mask = mask
+
+
+def _to_rim(p: Piece, region: Region, grid: Grid, shell: float, border_of: Any, reach: float) -> None:
+    """The kept piece filled out to the hole's rim: the mirrored bone missing from the scan within
+    ``min(largest voxel side, half the shell)`` mm of it, connected to it. The rules leave out a band along a
+    bevelled or partial-volume rim (bone across the shell within its thickness); the mirror's own bone there fills
+    it. Its rim is measured again."""
+    from scipy import ndimage as ndi
+
+    assert p.index is not None
+    sp = np.asarray(grid.spacing_zyx)
+    reach_mm = min(float(sp.max()), 0.5 * shell)
+    margin = np.ceil(reach_mm / sp).astype(np.int64) + 1
+    lo = np.maximum(p.index.min(axis=0) - margin, 0)
+    hi = np.minimum(p.index.max(axis=0) + margin + 1, region.bone.shape)
+    box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+    piece = np.zeros(tuple(int(b - a) for a, b in zip(lo, hi, strict=True)), dtype=bool)
+    piece[tuple((p.index - lo).T)] = True
+    near = ndi.distance_transform_edt(~piece, sampling=sp) <= reach_mm
+    fill = near & (region.mirrored[box] >= region.level) & ~region.bone[box]
+    labels, _ = ndi.label(fill | piece, structure=CONNECTIVITY)
+    keep = np.isin(labels, np.unique(labels[piece]))
+    p.index = np.argwhere(keep) + lo
+    p.voxels = len(p.index)
+    p.volume_mm3 = p.voxels * grid.voxel_mm3
+    g = p.index + region.lo
+    border = np.any((g == 0) | (g == np.asarray(border_of) - 1), axis=1)
+    rim = rim_of(p.index, region.bone, grid.spacing_zyx, border, reach)
+    p.rim = dataclasses.replace(rim, open_toward_plane=p.rim.open_toward_plane if p.rim else 0.0)
 
 
 def _where(p: Piece) -> str:

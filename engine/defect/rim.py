@@ -202,3 +202,106 @@ def open_toward_plane(
         done[live[hit | ~ok | beyond]] = True
         done[live[k * step > np.abs(side_mm[live]) + reach_mm]] = True
     return float(np.mean(~met))
+
+
+SPAN_MISSING = 0.75  # a column spans the shell when the scan lacks at least this share of the mirrored shell on it
+TENSOR_SIGMA_MM = 2.0  # the shell's local normal: the structure tensor of the mirrored scan, smoothed this much
+
+
+@dataclass(frozen=True)
+class Span:
+    """Whether a piece goes through the whole shell (``spans_shell``): ``area_mm2`` of its outline (seen along its
+    thinnest axis) where its columns along the shell's local normal span the mirrored shell, ``share`` that area
+    over the outline's, ``missing``: the median share of the mirrored shell the scan lacks on the piece's columns."""
+
+    area_mm2: float
+    share: float
+    missing: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"area_mm2": round(self.area_mm2, 2), "share": round(self.share, 4), "missing": round(self.missing, 4)}
+
+
+def _local_normals(field: npt.NDArray[Any], at: npt.NDArray[np.int64], sp: npt.NDArray[np.float64]) -> Any:
+    """Unit normals (z, y, x) of a shell at voxels ``at`` of ``field`` (a box of the mirrored scan): the main axis
+    of the field's gradients' structure tensor, smoothed over ``TENSOR_SIGMA_MM`` (the middle of a shell, where
+    the gradient vanishes, takes its faces' direction)."""
+    from scipy import ndimage as ndi
+
+    grads = np.gradient(field.astype(np.float32), *sp)
+    sigma = TENSOR_SIGMA_MM / sp
+    tensor = np.empty((len(at), 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            t = ndi.gaussian_filter(grads[i] * grads[j], sigma, mode="nearest")[tuple(at.T)]
+            tensor[:, i, j] = tensor[:, j, i] = t
+    _, vecs = np.linalg.eigh(tensor)
+    return vecs[:, :, 2]
+
+
+def spans_shell(
+    index: npt.NDArray[np.int64],
+    bone: npt.NDArray[np.bool_],
+    mirrored: npt.NDArray[Any],
+    level: float,
+    spacing_zyx: tuple[float, float, float],
+    reach_mm: float,
+) -> Span:
+    """Whether a piece (voxels ``index`` of the mirrored skull missing from the scan) is a hole through the shell:
+    from each of its voxels a column runs along the mirrored shell's local normal over the run of mirrored bone
+    (``mirrored`` at or above ``level``, gaps under a voxel bridged) it lies in, up to ``reach_mm`` either way; the
+    column spans the shell when the scan (``bone``) lacks at least ``SPAN_MISSING`` of it. A hole through the shell
+    spans it over its opening however its rim is bevelled; a sliver of asymmetry or a partial-thickness dent has
+    the scan's bone across the rest of the shell on every column."""
+    from scipy import ndimage as ndi
+
+    if len(index) < 4:
+        return Span(0.0, 0.0, 0.0)
+    sp = np.asarray(spacing_zyx, dtype=np.float64)
+    margin = np.ceil((reach_mm + 3.0 * TENSOR_SIGMA_MM) / sp).astype(np.int64) + 1
+    lo = np.maximum(index.min(axis=0) - margin, 0)
+    hi = np.minimum(index.max(axis=0) + margin + 1, bone.shape)
+    box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+    m_box = np.asarray(mirrored[box])
+    mirror = m_box >= level
+    b_box = np.asarray(bone[box])
+    local = index - lo
+    nu = _local_normals(m_box, local, sp)
+    step = 0.5 * float(sp.min())
+    offs = np.arange(-reach_mm, reach_mm + 0.5 * step, step)
+    c = int(np.argmin(np.abs(offs)))
+    pos = np.round(local[:, None, :] + offs[None, :, None] * nu[:, None, :] / sp).astype(np.int64)
+    shape = np.asarray(m_box.shape)
+    ok = np.all((pos >= 0) & (pos < shape), axis=2)
+    pos = np.clip(pos, 0, shape - 1)
+    m = mirror[pos[..., 0], pos[..., 1], pos[..., 2]] & ok
+    b = b_box[pos[..., 0], pos[..., 1], pos[..., 2]] & ok
+    gap = max(1, int(np.ceil(float(sp.max()) / step)))
+    closed = ndi.binary_closing(m, structure=np.ones((1, 2 * gap + 1), dtype=bool), border_value=0) | m
+    closed[:, c] = True
+    run = np.zeros_like(closed)
+    run[:, c:] = np.cumprod(closed[:, c:], axis=1).astype(bool)
+    run[:, : c + 1] |= np.cumprod(closed[:, c::-1], axis=1)[:, ::-1].astype(bool)
+    in_shell = run & m
+    missing = (in_shell & ~b).sum(axis=1) / np.maximum(in_shell.sum(axis=1), 1)
+    spans = missing >= SPAN_MISSING
+    # the outline seen along the piece's thinnest axis, and the part of it whose columns span the shell
+    pts = index * sp
+    centre = pts.mean(axis=0)
+    _, axes = np.linalg.eigh(np.cov((pts - centre).T))
+    e1, e2 = axes[:, 2], axes[:, 1]
+    h1, h2 = float(np.abs(e1) @ sp), float(np.abs(e2) @ sp)
+    u1 = np.round((pts - centre) @ e1 / h1).astype(np.int64)
+    u2 = np.round((pts - centre) @ e2 / h2).astype(np.int64)
+    u1 -= u1.min()
+    u2 -= u2.min()
+    img = np.zeros((int(u1.max()) + 1, int(u2.max()) + 1), dtype=bool)
+    img[u1, u2] = True
+    span_img = np.zeros_like(img)
+    span_img[u1[spans], u2[spans]] = True
+    outline = float(ndi.binary_fill_holes(img).sum())
+    return Span(
+        area_mm2=float(span_img.sum()) * h1 * h2,
+        share=float(span_img.sum()) / max(outline, 1.0),
+        missing=float(np.median(missing)),
+    )
