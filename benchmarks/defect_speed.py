@@ -1,11 +1,15 @@
-"""Defect template speed (issue 31): plane + template of the cranium (its real defect), warm, on one device.
+"""Defect template speed (issue 31): plane + template of the cranium (its real defect), warm, on each device.
 
-    python -m benchmarks.defect_speed --device cpu|cuda:0 [--data PATH] [--repeat 5] --out result.json
+    python -m benchmarks.defect_speed --device cpu|cuda:0|opencl[:N] [--data PATH] [--repeat 5] --out result.json
+    python -m benchmarks.defect_speed --device cuda:0,opencl:0 --out result.json   # NVIDIA: CUDA against OpenCL
 
 PATH is the cranium's PNG zip (../shared/data/cranium_ct/cranium_ct_png16.zip, the default) or a ``.npz`` with its
 ``data`` (108 x 256 x 256, HU + 1024), for a machine without the image codecs. The first run compiles Warp's kernels
 and is not timed; then ``--repeat`` runs of ``engine.defect.run`` (the symmetry plane, then the template, its implant
-surface included), each synchronised, with their stages (``DefectResult.seconds``): the median is reported.
+surface included), each synchronised, with their stages (``DefectResult.seconds``): the median is reported. With
+several devices (issue 40: the defect on every backend), each is measured in turn; ``identical_to_first`` says
+whether its defect (mask, measures) is the first device's, ``ratio_first_over_this`` the first device's median over
+its own (above 1: it is faster). The top-level timing fields are the first device's.
 """
 
 from __future__ import annotations
@@ -35,54 +39,74 @@ def _volume(path: Path) -> Any:
     return load_volume(path, spacing_zyx_mm=SPACING)
 
 
+def _measure(volume: Any, device: str, repeat: int) -> dict[str, Any]:
+    """One device: a first run (kernel compiles and program builds), then ``repeat`` synchronised runs."""
+    from engine.defect import DefectParams, run
+    from engine.device import resolve_backend
+    from engine.params import OrientParams
+
+    be = resolve_backend(device)
+    orient = OrientParams(first_slice="inferior", flip_ap=True)
+    t0 = time.perf_counter()
+    first = run(volume, DefectParams(), LEVEL, be, orient=orient)
+    compile_s = time.perf_counter() - t0
+    runs = []
+    for _ in range(repeat):
+        be.synchronize()
+        t0 = time.perf_counter()
+        res = run(volume, DefectParams(), LEVEL, be, orient=orient)
+        be.synchronize()
+        runs.append({"total": time.perf_counter() - t0, **res.seconds})
+    median = {k: float(np.median([r.get(k, 0.0) for r in runs])) for k in runs[0]}
+    return {
+        "device": be.spec,
+        "device_name": be.label,
+        "backend": be.kind,
+        "first_run_with_compile_s": round(compile_s, 3),
+        "median_seconds": {k: round(v, 4) for k, v in median.items()},
+        "runs": [{k: round(v, 4) for k, v in r.items()} for r in runs],
+        "same_as_first_run": bool(abs(first.volume_mm3 - res.volume_mm3) < 1e-6 * max(1.0, res.volume_mm3)),
+        "_result": res,
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--device", default="cpu", help="a device, or several separated by commas (cuda:0,opencl:0)")
     ap.add_argument("--data", default=str(CRANIUM))
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--out", default="benchmarks/results/defect_speed_cpu.json")
     args = ap.parse_args(argv)
-    import warp as wp
-
-    from engine.defect import DefectParams, run
-    from engine.device import init_runtime, resolve_device
-    from engine.params import OrientParams
+    from engine.device import init_runtime
 
     init_runtime()
-    dev = resolve_device(args.device)
     volume = _volume(Path(args.data))
-    orient = OrientParams(first_slice="inferior", flip_ap=True)
-    t0 = time.perf_counter()
-    first = run(volume, DefectParams(), LEVEL, dev, orient=orient)
-    compile_s = time.perf_counter() - t0
-    runs = []
-    for _ in range(args.repeat):
-        wp.synchronize_device(dev)
-        t0 = time.perf_counter()
-        res = run(volume, DefectParams(), LEVEL, dev, orient=orient)
-        wp.synchronize_device(dev)
-        runs.append({"total": time.perf_counter() - t0, **res.seconds})
-    keys = list(runs[0])
-    median = {k: float(np.median([r.get(k, 0.0) for r in runs])) for k in keys}
-    info = res.to_json()
+    rows = [_measure(volume, d.strip(), args.repeat) for d in args.device.split(",") if d.strip()]
+    ref = rows[0]["_result"]
+    for row in rows:
+        res = row.pop("_result")
+        row["identical_to_first"] = bool(
+            np.array_equal(res.mask, ref.mask) and res.to_json()["defect"] == ref.to_json()["defect"]
+        )
+        row["ratio_first_over_this"] = round(rows[0]["median_seconds"]["total"] / row["median_seconds"]["total"], 3)
+    info = ref.to_json()
     result = {
         "benchmark": "defect_speed",
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "device": str(dev),
-        "device_name": getattr(dev, "name", str(dev)),
+        **{k: rows[0][k] for k in ("device", "device_name", "first_run_with_compile_s", "median_seconds", "runs")},
         "machine": platform.processor() or platform.machine(),
         "scan": "cranium_ct 108x256x256, spacing z,y,x 1.5,0.957,0.957 mm, level 1324 (300 HU + 1024)",
-        "first_run_with_compile_s": round(compile_s, 3),
         "repeat": args.repeat,
-        "median_seconds": {k: round(v, 4) for k, v in median.items()},
-        "runs": [{k: round(v, 4) for k, v in r.items()} for r in runs],
+        "devices": rows,
         "defect": {k: info["defect"][k] for k in ("side", "volume_mm3", "area_mm2", "slices", "rim")},
         "plane": info["plane"],
-        "same_as_first_run": bool(abs(first.volume_mm3 - res.volume_mm3) < 1e-6 * max(1.0, res.volume_mm3)),
+        "same_as_first_run": rows[0]["same_as_first_run"],
     }
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps({k: result[k] for k in ("device_name", "first_run_with_compile_s", "median_seconds", "defect")}))
+    summary = [{k: r[k] for k in ("device_name", "first_run_with_compile_s", "median_seconds", "identical_to_first")}
+               for r in rows]  # fmt: skip
+    print(json.dumps({"devices": summary, "defect": result["defect"]}))
     return 0
 
 
