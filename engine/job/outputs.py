@@ -383,14 +383,16 @@ def _viewing_files(
     ar = phone if apos is ppos else _host_mesh(apos, afaces)
     seconds["viewing_copies"] = time.perf_counter() - t1
     t1 = time.perf_counter()
-    small, seconds["encode_parts"] = _encode_small(phone, ar, parts)
+    small, seconds["encode_parts"] = _encode_small(phone, ar, parts, dev)
     for name, data in small.items():
         (tmp / name).write_bytes(data)
     seconds["encode_small"] = time.perf_counter() - t1
     return small, {VIEWING_ENTRY["phone"]: phone_info, VIEWING_ENTRY["ar"]: ar_info}
 
 
-def _encode_small(phone: Mesh, ar: Mesh, parts: dict[str, list[Any]]) -> tuple[dict[str, bytes], dict[str, float]]:
+def _encode_small(
+    phone: Mesh, ar: Mesh, parts: dict[str, list[Any]], dev: Any = None
+) -> tuple[dict[str, bytes], dict[str, float]]:
     """The small files (``engine.export.viewers.small_files``) and each one's seconds: those whose exporter runs
     Warp kernels (``OutputFile.device``: the preview) on this thread, the others at the same time in threads (their
     codecs are native code and numpy; no Warp call leaves this thread: Warp copies from a second thread while this
@@ -402,7 +404,7 @@ def _encode_small(phone: Mesh, ar: Mesh, parts: dict[str, list[Any]]) -> tuple[d
         t0 = time.perf_counter()
         return encode(), time.perf_counter() - t0
 
-    jobs = small_files(phone, ar, parts)  # the exporters looked up (native libraries loaded) on this thread
+    jobs = small_files(phone, ar, parts, dev)  # the exporters looked up (native libraries loaded) on this thread
     here = {n: e for n, e in jobs.items() if FILES[n].device}
     with ThreadPoolExecutor(max(1, len(jobs) - len(here)), thread_name_prefix="bonemesh-encode") as pool:
         beside = {n: pool.submit(timed, e) for n, e in jobs.items() if n not in here}

@@ -87,13 +87,13 @@ def _glb(parts: list[Any], draco: bool) -> bytes:
     return _first_coloured(data, first)
 
 
-def _preview(parts: list[Any]) -> bytes:
+def _preview(parts: list[Any], device: Any = None) -> bytes:
     from engine.export.preview import to_preview_png
 
     offsets = np.cumsum([0] + [len(p.vertices_zyx_mm) for p in parts[:-1]])
     verts = np.concatenate([np.asarray(p.vertices_zyx_mm, np.float32) for p in parts])
     faces = np.concatenate([np.asarray(p.faces, np.int64) + o for p, o in zip(parts, offsets, strict=True)])
-    return to_preview_png(verts, faces)
+    return to_preview_png(verts, faces, device=device)
 
 
 def _centre_xyz(models: LabelModels) -> np.ndarray:
@@ -131,7 +131,7 @@ def _files(
             accounts[name]["labels"] = info
         seconds[name] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    png = _preview(phone)
+    png = _preview(phone, device)
     (tmp / "preview.png").write_bytes(png)
     accounts["preview.png"] = {"bytes": len(png)}
     seconds["preview.png"] = time.perf_counter() - t0

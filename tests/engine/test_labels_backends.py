@@ -1,6 +1,6 @@
 """Label maps on every backend (issue 40): the per-label meshing is written once over ``engine.backend`` with an
-OpenCL C twin of each Warp kernel, so OpenCL (PoCL here) gives Warp's CPU mesh bit for bit, and a label job on an
-OpenCL device launches no Warp kernel at all."""
+OpenCL C twin of each Warp kernel, so OpenCL (PoCL here) gives Warp's CPU mesh bit for bit, and a label job (or a CT
+job) on an OpenCL device launches no Warp kernel at all."""
 
 from __future__ import annotations
 
@@ -82,3 +82,30 @@ def test_the_label_batch_on_opencl_launches_no_warp_kernel(opencl, monkeypatch) 
     launches = _Launches(monkeypatch)
     out = mesh_labels(_map(np.uint8), [2, 3, 200], (0.8, 0.5, 0.5), PARAMS, device=opencl)
     assert len(out.faces) and launches.warp == [] and launches.opencl > 50
+
+
+def test_a_label_job_on_opencl_launches_no_warp_kernel(opencl, tmp_path, monkeypatch) -> None:
+    """The whole job: the map read, every label meshed, its files written (the preview drawn on the job's device)."""
+    from engine.job import InputSpec, JobSpec, resolve_runtime, run_job
+    from tests.engine.test_labels_outputs import nifti_bytes
+    from tests.engine.test_labels_util import headsq_labels
+
+    (tmp_path / "map.nii").write_bytes(nifti_bytes(headsq_labels()))
+    runtime = resolve_runtime(opencl)
+    launches = _Launches(monkeypatch)
+    spec = JobSpec(recon=PARAMS, input=InputSpec(kind="labels"))
+    result = run_job(tmp_path / "map.nii", tmp_path / "out", spec, runtime)
+    assert result.plan == "labels" and len(result.report["labels"]) >= 2 and (tmp_path / "out" / "preview.png").exists()
+    assert launches.warp == [] and launches.opencl > 0
+
+
+def test_a_scan_job_on_opencl_launches_no_warp_kernel(opencl, tmp_path, monkeypatch) -> None:
+    """A CT job: the pipeline, every file and the preview (the defect's own: tests/engine/test_defect_backends.py)."""
+    from engine.job import JobSpec, resolve_runtime, run_job
+    from tests.engine.test_job import SMALL, _phantom
+
+    runtime = resolve_runtime(opencl)
+    launches = _Launches(monkeypatch)
+    result = run_job(_phantom(), tmp_path / "out", JobSpec(recon=ReconParams.from_dict(SMALL)), runtime)
+    assert result.plan == "scan" and (tmp_path / "out" / "preview.png").exists()
+    assert launches.warp == [] and launches.opencl > 0

@@ -3,7 +3,7 @@
 
 Arithmetic is float64 where the host exporters use float64, so the files match theirs: positions are mapped in
 float64 and stored as float32; the STL facet normal is taken in float32 from the float32 corners, as
-``engine.export.stl`` does. OpenCL C twins (but ``rasterize_nearest``, the preview's, Warp only): ``layout.cl``.
+``engine.export.stl`` does. OpenCL C twins: ``layout.cl`` (``rasterize_nearest``, the preview's: ``preview.cl``).
 """
 
 from __future__ import annotations
