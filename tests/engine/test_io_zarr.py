@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import os
 import zipfile
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -311,22 +310,11 @@ def test_cli_exits_2_with_one_line(tmp_path: Path, case: str, message: str) -> N
 # --- S3: a real SeaweedFS ---------------------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def seaweed() -> Iterator[object]:
-    from tests.service.procs import ProcessError
-    from tests.service.seaweed import SeaweedServer, SeaweedUnavailable
-
+@pytest.fixture
+def seaweed(seaweed_server: object) -> object:
+    """The session's SeaweedFS (tests/conftest.py), for readers that need obstore."""
     pytest.importorskip("obstore")
-    try:
-        server = SeaweedServer()
-    except SeaweedUnavailable as exc:
-        if os.environ.get("CI"):
-            pytest.fail(f"{exc}: CI runs the S3 tests", pytrace=False)
-        pytest.skip(str(exc))
-    except ProcessError as exc:
-        pytest.fail(str(exc), pytrace=False)
-    yield server
-    server.close()
+    return seaweed_server
 
 
 def _s3_env(monkeypatch: pytest.MonkeyPatch, server: object, bucket: str) -> dict[str, str]:

