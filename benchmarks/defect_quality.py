@@ -201,7 +201,7 @@ def sweep(name: str, device: str, sizes: list[float], poses: Any = SWEEP_POSES, 
     cfg = SCANS[name]
     volume = _load(name)
     rows: list[dict[str, Any]] = []
-    k = 0
+    k = 0  # the place's number: edges and fills turn with it (and with the size), so each size meets each edge
     for yaw, roll in poses:
         base = volume if not (yaw or roll) else posed(volume, yaw, roll, orient=cfg["orient"])
         real = None
@@ -209,12 +209,12 @@ def sweep(name: str, device: str, sizes: list[float], poses: Any = SWEEP_POSES, 
             real = _real_defect(base, cfg, device)
         for az in SWEEP_AZIMUTHS:
             for h in SWEEP_HEIGHTS:
-                for size in sizes if not (yaw or roll) else [sizes[k % len(sizes)]]:
-                    edge, fill = EDGES[k % len(EDGES)], FILLS[(k // len(EDGES)) % len(FILLS)]
-                    k += 1
+                for i, size in enumerate(sizes if not (yaw or roll) else [sizes[k % len(sizes)]]):
+                    edge, fill = EDGES[(k + i) % len(EDGES)], FILLS[(k // len(EDGES) + i) % len(FILLS)]
                     row = _sweep_case(base, cfg, device, name, (yaw, roll), az, h, size, edge, fill, real)
                     rows.append(row)
                     log(_line(row))
+                k += 1
     return rows
 
 
@@ -241,8 +241,13 @@ def _sweep_case(volume: Any, cfg: dict[str, Any], device: str, name: str, pose: 
     from engine.defect.synthetic import cut_at
 
     side = "left" if 0 < az < 180 else "right"
-    cut = cut_at(volume, cfg["level"], az, h, size, slices=SWEEP_SLICES[name], orient=cfg["orient"], edge=edge,
-                 fill=fill)  # fmt: skip
+    try:
+        cut = cut_at(volume, cfg["level"], az, h, size, slices=SWEEP_SLICES[name], orient=cfg["orient"], edge=edge,
+                     fill=fill)  # fmt: skip
+    except ValueError as exc:  # no bone there to cut
+        return {"scan": name, "case": f"az {az:g} h {h:g} {edge} {fill} yaw {pose[0]:g} roll {pose[1]:g}",
+                "azimuth_deg": az, "height": h, "edge": edge, "fill": fill, "yaw_deg": pose[0], "roll_deg": pose[1],
+                "diameter_mm": size, "expected": "not run", "outcome": "not run", "why": str(exc)}  # fmt: skip
     base = {"scan": name, "case": f"az {az:g} h {h:g} {edge} {fill} yaw {pose[0]:g} roll {pose[1]:g}",
             "azimuth_deg": az, "height": h, "edge": edge, "fill": fill, "yaw_deg": pose[0], "roll_deg": pose[1],
             "diameter_mm": size, "removed_mm3": round(cut.removed_mm3, 1), "expected": f"template, {side}",

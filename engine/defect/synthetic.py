@@ -205,8 +205,13 @@ def cut_at(
     d = np.array([np.sin(a), -np.cos(a), 0.0])
     tube = 1.5 * float(sp.max())
     k = _outermost(lps, centre, d, tube)
+    if k < 0:  # a thin vault open at the level (thick slices) is not part of the skull's largest piece
+        idx = np.argwhere(bone)
+        xyz = grid.xyz(idx)
+        lps = grid.to_patient(xyz)
+        k = _outermost(lps, centre, d, tube)
     if k < 0:
-        raise ValueError(f"the ray at azimuth {azimuth_deg} and height {height} meets no skull")
+        raise ValueError(f"the ray at azimuth {azimuth_deg} and height {height} meets no bone")
     entry = xyz[k]
     n_p = _outward_normal(lps, centre, d, tube)
     n = grid.from_patient(n_p) - grid.from_patient(np.zeros(3))
