@@ -7,7 +7,7 @@ exporters' table (``EXPORTERS``, re-exported by ``engine.export``), the storage 
 names are served), the worker (``worker.tasks``: each output's kind, media type and triangles; ``worker.pacs``:
 ``model.dcm``) and the API (``service.routes.files``: the download's media type; ``service.schemas`` and
 ``service.services``: each output's ``purpose``, which the page shows). The README's table "Which file for which
-viewer" lists ``DEFAULT_FILES`` (``tests/engine/test_output_files.py`` holds them to each other).
+viewer" lists ``DEFAULT_FILES`` (``tests/engine/export/test_output_files.py`` holds them to each other).
 
 Importing this module loads neither Warp nor numpy nor any exporter: an exporter is named as ``"module:function"``
 and imported when asked for (``exporter_of``, ``EXPORTERS``), so the API and ``core`` read the registry freely.

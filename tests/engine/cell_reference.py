@@ -65,7 +65,7 @@ handle generic values: no corner value, face saddle value or body saddle value e
 The function :func:`analyze_cell` returns all of this, plus a ``margin`` (the smallest relative distance to a
 degeneracy: a corner value, a face decider or a body saddle near a tie, a body saddle near the boundary) that
 callers use to keep away from ties the float32 engine may resolve either way. :func:`mc33_subcase` names the
-Chernyaev/Lewiner Marching Cubes 33 subcase of an analysed cell. ``tests/engine/test_mc33_cells.py`` checks this
+Chernyaev/Lewiner Marching Cubes 33 subcase of an analysed cell. ``tests/engine/isosurface/test_mc33_cells.py`` checks this
 reference against brute force (connected components and Betti numbers of a fine sampling).
 """
 

@@ -17,8 +17,8 @@ import trimesh
 
 from engine.data import HEADSQ_LEVEL, HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
 from engine.export.files import engine_files
-from tests.engine.test_labels_outputs import nifti_bytes, seg_zip
-from tests.engine.test_labels_util import headsq_labels
+from tests.engine.labels.test_labels_outputs import nifti_bytes, seg_zip
+from tests.engine.labels.test_labels_util import headsq_labels
 from tests.service.procs import ServiceStack, submit, wait_for_job
 
 SMALL = {"phone_max_triangles": 3000, "ar_max_triangles": 1200}

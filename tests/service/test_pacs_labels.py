@@ -40,7 +40,7 @@ from tests.service.procs import wait_for_job, wait_until
 pytest.importorskip("pynetdicom", reason="the PACS tests need pynetdicom (pip install 'bonemesh[pacs]')")
 pytest.importorskip("highdicom", reason="the SEG tests make their SEG with highdicom")
 
-NAMES = ("right half", "left half")  # the segments of tests.engine.test_labels_io._seg, numbers 1 and 2
+NAMES = ("right half", "left half")  # the segments of tests.engine.labels.test_labels_io._seg, numbers 1 and 2
 HEAD_PHANTOM = SHARED_DATA / "head_phantom_dicom" / "head_phantom_dicom.zip"
 
 
@@ -63,7 +63,7 @@ def ball_halves() -> np.ndarray:
 def ct_and_seg(**kwargs: Any) -> tuple[list[bytes], bytes, str, str, str]:
     """A generated CT series (``kwargs``: ``generated_series``'s) and a SEG (binary, highdicom) of its ball's halves:
     CT files, SEG file, study, CT series, SEG series."""
-    from tests.engine.test_labels_io import _seg
+    from tests.engine.labels.test_labels_io import _seg
 
     files, study, series_uid = generated_series(**kwargs)
     seg = _seg({f"IM{k}": f for k, f in enumerate(files)}, ball_halves(), "BINARY")
@@ -188,7 +188,7 @@ def test_a_seg_of_a_real_skull_split_at_the_midline_comes_back_per_half(pacs: Pa
     with the volume of its voxels (the halves touch along the midline and stay apart)."""
     from dicomweb_client.api import DICOMwebClient
 
-    from tests.engine.test_labels_io import _seg
+    from tests.engine.labels.test_labels_io import _seg
 
     with zipfile.ZipFile(HEAD_PHANTOM) as zf:
         files = [zf.read(n) for n in zf.namelist() if not n.endswith(("/", "DIRFILE"))]

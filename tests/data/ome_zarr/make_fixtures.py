@@ -1,4 +1,4 @@
-"""Writes the OME-Zarr fixtures of ``tests/engine/test_io_zarr.py`` with ome-zarr-py's ``write_image`` (the OME
+"""Writes the OME-Zarr fixtures of ``tests/engine/io/test_io_zarr.py`` with ome-zarr-py's ``write_image`` (the OME
 community's writer), so that the reader is tested on files another project wrote. ome-zarr-py pulls in s3fs and
 aiobotocore, whose botocore pin clashes with the project's boto3, so it is not a test dependency: run this in a
 virtual environment of its own, from the repository root:

@@ -19,7 +19,7 @@ import trimesh
 from engine.errors import InputError, NotLabelsError
 from engine.export.files import engine_files
 from engine.params import ReconParams
-from tests.engine.test_labels_util import headsq_labels
+from tests.engine.labels.test_labels_util import headsq_labels
 
 BUDGETS = {"export": {"phone_max_triangles": 3000, "ar_max_triangles": 1200}}
 
@@ -145,8 +145,8 @@ def seg_zip(with_ct: bool = True) -> bytes:
     drawn on (the scan on the map's rotated grid)."""
     import pydicom
 
-    from tests.engine.test_labels_io import _ct_files, _seg
-    from tests.engine.test_labels_util import headsq_data
+    from tests.engine.labels.test_labels_io import _ct_files, _seg
+    from tests.engine.labels.test_labels_util import headsq_data
 
     lv = headsq_labels()
     ct = _ct_files(lv, headsq_data(), pydicom.uid.generate_uid())

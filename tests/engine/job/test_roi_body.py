@@ -24,7 +24,7 @@ from engine.params import BodyMaskParams, ReconParams, RoiParams
 from engine.types import Volume
 from engine.volume.bodymask import isolate_bone
 from tests.conftest import shared_file
-from tests.engine.test_bodymask import patient_on_a_couch
+from tests.engine.volume.test_bodymask import patient_on_a_couch
 
 CRANIUM_SPACING = (1.5, 0.9570312, 0.9570312)
 

@@ -25,7 +25,7 @@ from engine.export.files import (
     viewing_files,
 )
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 def _readme_table() -> dict[str, str]:

@@ -87,8 +87,8 @@ def test_the_label_batch_on_opencl_launches_no_warp_kernel(opencl, monkeypatch) 
 def test_a_label_job_on_opencl_launches_no_warp_kernel(opencl, tmp_path, monkeypatch) -> None:
     """The whole job: the map read, every label meshed, its files written (the preview drawn on the job's device)."""
     from engine.job import InputSpec, JobSpec, resolve_runtime, run_job
-    from tests.engine.test_labels_outputs import nifti_bytes
-    from tests.engine.test_labels_util import headsq_labels
+    from tests.engine.labels.test_labels_outputs import nifti_bytes
+    from tests.engine.labels.test_labels_util import headsq_labels
 
     (tmp_path / "map.nii").write_bytes(nifti_bytes(headsq_labels()))
     runtime = resolve_runtime(opencl)
@@ -100,9 +100,9 @@ def test_a_label_job_on_opencl_launches_no_warp_kernel(opencl, tmp_path, monkeyp
 
 
 def test_a_scan_job_on_opencl_launches_no_warp_kernel(opencl, tmp_path, monkeypatch) -> None:
-    """A CT job: the pipeline, every file and the preview (the defect's own: tests/engine/test_defect_backends.py)."""
+    """A CT job: the pipeline, every file and the preview (the defect's own: tests/engine/defect/test_defect_backends.py)."""
     from engine.job import JobSpec, resolve_runtime, run_job
-    from tests.engine.test_job import SMALL, _phantom
+    from tests.engine.job.test_job import SMALL, _phantom
 
     runtime = resolve_runtime(opencl)
     launches = _Launches(monkeypatch)

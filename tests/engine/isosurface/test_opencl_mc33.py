@@ -14,7 +14,7 @@ from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
 from engine.isosurface import IsosurfaceStats, extract_isosurface, marching_cubes_33
 from engine.params import GaussianParams
 from engine.volume.gaussian import smooth_volume
-from tests.engine.test_mc33_cells import _check_cell, _draws
+from tests.engine.isosurface.test_mc33_cells import _check_cell, _draws
 
 HEADSQ_LEVEL = 1150.0
 

@@ -16,7 +16,7 @@ from engine.io.labelmaps import nifti_placement
 from engine.orient import patient_frame
 from engine.types import Volume
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 def _help(option: str) -> str:

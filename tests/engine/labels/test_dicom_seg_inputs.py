@@ -32,7 +32,7 @@ from engine.io import load_volume
 from engine.labels.dicom_seg import DEFLATED_FRAMES, RLE_LOSSLESS, read_dicom_seg, read_seg_folder, seg_pixels
 from engine.labels.uploads import find_label_upload, read_label_upload
 
-DATA = Path(__file__).resolve().parents[1] / "data" / "dicom_seg"
+DATA = Path(__file__).resolve().parents[2] / "data" / "dicom_seg"
 CT2 = Path(pydicom.data.__file__).parent / "test_files" / "dicomdirtests" / "77654033" / "CT2"
 CT2_SERIES = "1.3.6.1.4.1.5962.1.1.0.0.0.1196530851.28319.0.2"
 CONTIGUOUS = ("17136", "17166", "17196")  # CT2's three slices 1.25 mm apart (its first lies 202.5 mm away)

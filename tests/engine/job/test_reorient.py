@@ -18,7 +18,7 @@ from engine.job.pipeline import Reconstruction, reconstruct
 from engine.job.reorient import reorient
 from engine.params import IsoParams, OrientParams, ReconParams
 from engine.types import Mesh
-from tests.engine.test_orient import SPACING, marked_volume
+from tests.engine.cli.test_orient import SPACING, marked_volume
 
 TURNED = OrientParams(first_slice="inferior", flip_ap=True)  # the cranium's fix: a half turn about left-right
 MIRRORED = OrientParams(flip_lr=True)
@@ -84,8 +84,8 @@ def test_a_label_jobs_folder_is_refused_as_one(tmp_path):
     """A label job's files (``labels`` in its report) are placed by its label map: refused saying so, not as a
     missing print model."""
     from engine.job import InputSpec, JobSpec, resolve_runtime, run_job
-    from tests.engine.test_labels_outputs import nifti_bytes
-    from tests.engine.test_labels_util import headsq_labels
+    from tests.engine.labels.test_labels_outputs import nifti_bytes
+    from tests.engine.labels.test_labels_util import headsq_labels
 
     (tmp_path / "map.nii.gz").write_bytes(nifti_bytes(headsq_labels()))
     spec = JobSpec(recon=ReconParams.from_dict({"export": {"phone_max_triangles": 2000, "ar_max_triangles": 800}}))

@@ -158,7 +158,7 @@ def test_warm_up_loads_the_kernel(backend: Any) -> None:
 )
 def test_real_scans_equal_libpng(backend: Any, where: str) -> None:
     """Real CT exports (mostly Paeth rows): the bundled headsq always, the ../shared scans where present."""
-    path = Path(__file__).parents[2] / where if where.startswith("engine/") else shared_file(*where.split("/"))
+    path = Path(__file__).parents[3] / where if where.startswith("engine/") else shared_file(*where.split("/"))
     rows = _Counting(backend, slab_bytes=24 << 20)
     got = _load(path, rows, threads=2)
     np.testing.assert_array_equal(got, _load(path, None, threads=2))

@@ -19,7 +19,7 @@ import pytest
 from engine.io.labelmaps import LabelVolume
 from engine.labels.dicom_seg import read_dicom_seg
 from engine.labels.uploads import find_label_upload, read_label_upload, read_labels
-from tests.engine.test_dicom_seg_inputs import CONTIGUOUS, CT2, DATA, needs_ct2
+from tests.engine.labels.test_dicom_seg_inputs import CONTIGUOUS, CT2, DATA, needs_ct2
 
 OVERLAP = DATA / "seg_image_ct_binary_overlap.dcm"
 

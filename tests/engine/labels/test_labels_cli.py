@@ -15,7 +15,7 @@ import pytest
 import trimesh
 
 from engine.cli import main
-from tests.engine.test_labels_util import headsq_labels
+from tests.engine.labels.test_labels_util import headsq_labels
 
 
 @pytest.fixture(scope="module")

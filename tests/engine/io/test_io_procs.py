@@ -31,7 +31,7 @@ from engine.types import Volume
 from tests.engine.decode_spy import load_counting_pools
 from tests.engine.dicom_factory import break_rle, series
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 POSITIONS = [float(z) for z in range(11)]
 
 

@@ -21,7 +21,7 @@ from engine.job import InputSpec, JobSpec, OutputSpec, resolve_runtime, run_job
 from engine.params import PiecesParams, ReconParams, RoiParams
 from engine.types import Volume
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 SMALL = {"export": {"phone_max_triangles": 2000, "ar_max_triangles": 800}}
 
 
@@ -138,8 +138,8 @@ def _phantom() -> Volume:
 
 
 def test_run_job_picks_the_plan_from_the_spec_and_the_input(tmp_path: Path) -> None:
-    from tests.engine.test_labels_outputs import nifti_bytes
-    from tests.engine.test_labels_util import headsq_labels
+    from tests.engine.labels.test_labels_outputs import nifti_bytes
+    from tests.engine.labels.test_labels_util import headsq_labels
 
     runtime = resolve_runtime("cpu")
     recon = ReconParams.from_dict(SMALL)

@@ -21,11 +21,11 @@ from engine.data.phantom import bone_phantom
 from engine.errors import InputError, NoSpacingError
 from engine.io import InputLimits, inspect_input, load_volume
 from tests.engine.omezarr_factory import upload_folder, write_ome_zarr, zip_folder
-from tests.engine.test_cli import read_stl, run_cli
+from tests.engine.cli.test_cli import read_stl, run_cli
 
 pytest.importorskip("zarr")
 
-FIXTURES = Path(__file__).resolve().parents[1] / "data" / "ome_zarr"
+FIXTURES = Path(__file__).resolve().parents[2] / "data" / "ome_zarr"
 SHAPE = (16, 32, 40)  # make_fixtures.py's
 SPACING = (0.12, 0.1, 0.08)  # its 120, 100, 80 micrometer
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 def run_cli(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
@@ -406,7 +406,7 @@ def test_automatic_level_on_a_hu_plus_1024_stack_is_bone_and_a_skin_level_is_fla
     """Only --voxel-size on CT stored as HU + 1024 gave a skin model (3.3 L on the cranium), said on stderr only."""
     import json
 
-    from tests.engine.test_level import hu_plus_1024_head
+    from tests.engine.isosurface.test_level import hu_plus_1024_head
 
     write_png_stack(tmp_path / "head.zip", hu_plus_1024_head())
     res = run_cli("reconstruct", "head.zip", "-o", "bone", "--voxel-size", "1,1,1", "--device", "cpu", "--quiet",

@@ -21,7 +21,7 @@ from engine.io.labelmaps import LabelVolume, check_overlap, is_label_path
 from engine.labels.dicom_seg import lab_to_srgb, read_dicom_seg, read_seg_folder
 from engine.labels.uploads import read_labels
 from tests.engine.dicom_factory import ct_slice
-from tests.engine.test_labels_util import headsq_data, headsq_labels
+from tests.engine.labels.test_labels_util import headsq_data, headsq_labels
 
 STUDY_DEFAULTS = {
     "PatientSex": "O",
@@ -263,7 +263,7 @@ def test_real_ct_dicom_seg(tmp_path: Path) -> None:
     import zipfile
 
     from tests.conftest import shared_file
-    from tests.engine.test_labels_util import split_map
+    from tests.engine.labels.test_labels_util import split_map
 
     archive = shared_file("head_phantom_dicom", "head_phantom_dicom.zip")
     with zipfile.ZipFile(archive) as zf:

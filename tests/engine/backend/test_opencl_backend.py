@@ -15,7 +15,7 @@ import pytest
 from engine.backend import VEC3F, VEC3I, get_backend
 from engine.device import resolve_backend, resolve_device
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 @pytest.mark.parametrize("n", [1, 7, 4096, 4097, 100_003])

@@ -13,7 +13,7 @@ from engine.cli import main
 from engine.job.outputs import write_outputs
 from engine.job.pipeline import reconstruct
 from engine.params import IsoParams, OrientParams, ReconParams
-from tests.engine.test_orient import marked_volume
+from tests.engine.cli.test_orient import marked_volume
 
 
 @pytest.fixture

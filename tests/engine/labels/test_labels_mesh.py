@@ -15,7 +15,7 @@ from engine.labels import bone_pieces, crop_roi, label_models, mesh_labels, shar
 from engine.params import DecimateParams, IsoParams, PiecesParams, ReconParams, RoiParams
 from engine.types import Volume
 from tests.conftest import shared_file
-from tests.engine.test_labels_util import assert_disjoint, headsq_data, headsq_labels, split_map
+from tests.engine.labels.test_labels_util import assert_disjoint, headsq_data, headsq_labels, split_map
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
