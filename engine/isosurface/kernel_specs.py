@@ -8,7 +8,7 @@ import numpy as np
 
 from engine.backend.base import Kernel, Struct
 
-BLOCK = 8  # cells per block edge: the kernels' BLOCK (both files), checked by tests/engine/isosurface/test_opencl_mc33.py
+BLOCK = 8  # cells per block edge: the kernels' BLOCK (both files), checked by test_opencl_mc33.py
 BLOCK_CELLS = BLOCK * BLOCK * BLOCK
 
 _W = "engine.isosurface.kernels.mc33"

@@ -100,7 +100,7 @@ def test_a_label_job_on_opencl_launches_no_warp_kernel(opencl, tmp_path, monkeyp
 
 
 def test_a_scan_job_on_opencl_launches_no_warp_kernel(opencl, tmp_path, monkeypatch) -> None:
-    """A CT job: the pipeline, every file and the preview (the defect's own: tests/engine/defect/test_defect_backends.py)."""
+    """A CT job: the pipeline, every file and the preview (the defect's own: defect/test_defect_backends.py)."""
     from engine.job import JobSpec, resolve_runtime, run_job
     from tests.engine.job.test_job import SMALL, _phantom
 
