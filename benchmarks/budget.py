@@ -76,8 +76,8 @@ def _run(volume: Volume, device: str, budget: int | None, write: bool, repeat: i
         out["tiled_rounds"] = [{k: v for k, v in r.items() if k != "tiles"} for r in dec.get("rounds", [])]
         out["final_pass_faces_in"] = dec.get("final_pass", {}).get("input_faces")
     if write:
-        from engine.device import resolve_device
         from engine.backend.memory import PeakMemory
+        from engine.device import resolve_device
         from engine.job.outputs import write_outputs
 
         with tempfile.TemporaryDirectory() as tmp:

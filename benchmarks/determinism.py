@@ -57,8 +57,8 @@ def fingerprint(volume: Any, params: Any, device: str, budget: str | None, files
             stl = hashlib.sha256(paths["model.stl"].read_bytes()).hexdigest()
     return {
         "budget": budget,
-        "vertices": int(len(verts)),
-        "faces": int(len(faces)),
+        "vertices": len(verts),
+        "faces": len(faces),
         "mesh_sha256": hashlib.sha256(verts.tobytes() + faces.tobytes()).hexdigest(),
         "model_stl_sha256": stl,
         "reconstruct_seconds": round(seconds, 4),

@@ -42,8 +42,8 @@ def _child(args: argparse.Namespace) -> dict[str, Any]:
     init_runtime(os.environ.get("WARP_CACHE_PATH"))
     from engine.io import load_volume
     from engine.io.png_rows import device_rows
-    from engine.staging import pinned_volumes
     from engine.job.warmup import warm_up
+    from engine.staging import pinned_volumes
 
     t0 = time.perf_counter()
     info = warm_up(args.device, volume_bytes=args.child_reserve)

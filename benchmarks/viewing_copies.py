@@ -108,8 +108,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"Euler {mesh['euler']:,}; reconstruct {seconds:.2f} s", flush=True)
     import warp as wp
 
-    from engine.orient import Frame
     from engine.job.outputs import lay_out
+    from engine.orient import Frame
 
     with wp.ScopedDevice(device):  # the print model as write_outputs lays it out (the viewing copies' frame)
         lay = lay_out(*recon.device_mesh, Frame.from_dict(recon.report.get("frame")))
