@@ -24,9 +24,13 @@ pieces and measures them):
    bone within its thickness. Bone missing on one side has its anti-core at its mirror image, across the plane;
    bone that moved has one right beside it as well. A piece with more anti-core than ``MAX_ANTI_SHARE`` of its core
    beside it (within ``2 t`` + one voxel, its own mirror image's surroundings left out) is moved bone.
-5. **Rim** (``engine.defect.rim``): a defect fills a hole in the bone, so its rim meets the bone; a piece whose rim
-   meets it over less than ``MIN_CONTACT`` is not a hole's fill. A piece whose rim is open on the side of the plane,
-   or that lies across the plane, is a defect across the midline (``MidlineDefectError``).
+5. **Through the shell, and its rim** (``engine.defect.rim``): a defect is a hole through the whole shell: its
+   columns along the mirrored shell's normal span the mirrored shell (``spans_shell``) over an opening at least
+   ``MIN_SPAN_WIDTH_MM`` wide and ``MIN_SPAN_SHARE`` of its outline, however its rim is bevelled (a sliver of
+   asymmetry or a partial-thickness dent has the scan's bone across the rest of the shell). A defect fills a hole in
+   the bone, so its rim meets the bone; a piece whose rim meets it over less than ``MIN_CONTACT`` is not a hole's
+   fill. A kept piece is filled out to the rim with the mirror's bone (``_to_rim``). A piece whose rim is open on
+   the side of the plane, or that lies across the plane, is a defect across the midline (``MidlineDefectError``).
 6. **Size**: a piece smaller than ``min_defect_volume`` is left out; none left is ``NoDefectError``.
 """
 

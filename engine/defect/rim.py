@@ -10,10 +10,11 @@ border are left out (the rim there was not scanned).
 ``contact``: the share of the rim with a gap of at most ``CONTACT_GAP_VOXELS`` (the template meets the bone there);
 ``gap_mm``/``gap_voxels``: the mean gap over the rim (no bone within reach counts as the reach); ``open_share``: the
 share with a gap of more than ``OPEN_GAP_VOXELS`` or no bone within reach. ``thickness_mm``: the piece's volume over
-its outline's area (a plate's thickness: a sliver of asymmetry beside a bone is much thinner than the shell).
+its outline's area (a plate's mean thickness; reported, not judged: a bevelled rim thins it).
 
 ``open_toward_plane`` (its own function): whether the hole goes on past the template toward the symmetry plane,
-where the mirror image lacks the bone too (a defect across the midline).
+where the mirror image lacks the bone too (a defect across the midline). ``spans_shell`` (issue 42): whether the
+piece is a hole through the whole shell, judged on its columns along the mirrored shell's local normal.
 """
 
 from __future__ import annotations
