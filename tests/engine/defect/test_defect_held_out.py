@@ -99,3 +99,20 @@ def test_spans_shell_tells_a_hole_from_a_dent():
     bone = (mirrored >= 50) & ~dent
     span = spans_shell(np.argwhere(dent), bone, mirrored, 50.0, (1.0, 1.0, 1.0), 9.0)
     assert span.share < 0.1
+
+
+def test_the_sweep_measures_every_place():
+    """benchmarks.defect_quality's sweep: 8 directions x 3 heights on headsq, each with Dice and rim gap or why not."""
+    from benchmarks.defect_quality import sweep, sweep_markdown
+
+    rows = sweep("headsq", "cpu", [30.0], poses=((0.0, 0.0),), log=lambda _: None)
+    assert len(rows) == 24 and {r["azimuth_deg"] for r in rows} == {22.5 + 45 * k for k in range(8)}
+    assert {r["edge"] for r in rows} == {"straight", "bevelled", "ball"} and {r["fill"] for r in rows} == {
+        "tissue",
+        "air",
+    }
+    found = [r for r in rows if "dice" in r]
+    assert len(found) >= 18 and all(r["side"] == r["expected"].split(", ")[1] for r in found)
+    assert sum(r["dice"] for r in found) / len(found) >= 0.75
+    assert all(r["outcome"] == "template" or "Error" in r["outcome"] for r in rows)
+    assert "| headsq | 0, 0 | 24 |" in sweep_markdown(rows)
