@@ -483,6 +483,7 @@ def _judge(region: Region, grid: Grid, params: DefectParams) -> None:
         point = grid.from_patient(np.asarray(params.point_lps_mm))
     full = np.asarray(grid.shape)
     crossing: list[Piece] = []
+    _merge_overlapping(region, grid)
     for p in region.pieces:
         if p.reason:
             continue
@@ -557,6 +558,31 @@ def _judge(region: Region, grid: Grid, params: DefectParams) -> None:
         assert p.index is not None
         mask[tuple(p.index.T)] = True
     region.mask = mask
+
+
+def _merge_overlapping(region: Region, grid: Grid) -> None:
+    """Pieces that share voxels are one hole: two candidates of the global pass can meet the same piece when each is
+    mirrored locally. The larger takes the other's voxels (the smaller is left out, saying so), so no hole is
+    counted twice."""
+    taken = np.full(region.data.shape, -1, dtype=np.int32)
+    owners_of: list[Piece] = []
+    live = [p for p in region.pieces if not p.reason and p.index is not None and len(p.index)]
+    for p in sorted(live, key=lambda q: -q.volume_mm3):
+        assert p.index is not None
+        owners = np.unique(taken[tuple(p.index.T)])
+        owners = owners[owners >= 0]
+        if not len(owners):
+            taken[tuple(p.index.T)] = len(owners_of)
+            owners_of.append(p)
+            continue
+        big = owners_of[int(owners[0])]
+        assert big.index is not None
+        big.index = np.unique(np.concatenate([big.index, p.index]), axis=0)
+        big.voxels = len(big.index)
+        big.volume_mm3 = big.voxels * grid.voxel_mm3
+        big.core_mm3 += p.core_mm3
+        taken[tuple(p.index.T)] = int(owners[0])
+        p.reason = "the same hole as a larger candidate (they met when mirrored locally): joined to it"
 
 
 def _to_rim(p: Piece, region: Region, grid: Grid, shell: float, border_of: Any, reach: float) -> None:
