@@ -1,5 +1,5 @@
 """Synthetic one-sided defects cut from an intact skull: how the template is measured (``benchmarks.defect_quality``,
-``tests/engine/test_defect.py``), in the manner of the AutoImplant challenges' synthetic cranial defects.
+``tests/engine/defect/test_defect.py``), in the manner of the AutoImplant challenges' synthetic cranial defects.
 
 A defect is a round trephination: the skull's voxels within ``diameter_mm / 2`` of the line along ``direction``
 (patient frame) through the skull's outermost point in that direction, down to ``depth_mm`` below that point; the
