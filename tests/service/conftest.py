@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import io
 import json
-import os
 import tarfile
 import zipfile
 from collections.abc import Callable, Iterator
@@ -27,7 +26,7 @@ if TYPE_CHECKING:
     from fastapi.testclient import TestClient
 
 from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
-from tests.conftest import SHARED_DATA
+from tests.conftest import SHARED_DATA, real_server
 from tests.service.postgres import PostgresServer, PostgresUnavailable
 from tests.service.procs import (
     API_KEYS,
@@ -228,14 +227,7 @@ def headsq_job(stack: ServiceStack, client_a: httpx.Client) -> dict[str, Any]:
 def postgres_server() -> Iterator[PostgresServer]:
     """A real PostgreSQL for the session (Debian's package, installed when missing); skipped where it cannot be
     installed, except in CI, which must run these tests."""
-    try:
-        server = PostgresServer()
-    except PostgresUnavailable as exc:
-        if os.environ.get("CI"):
-            pytest.fail(f"{exc}: CI runs the database tests on PostgreSQL too", pytrace=False)
-        pytest.skip(str(exc))
-    except ProcessError as exc:
-        pytest.fail(str(exc), pytrace=False)
+    server = real_server(PostgresServer, PostgresUnavailable, "the database tests on PostgreSQL too")
     yield server
     server.close()
 
