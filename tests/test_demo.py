@@ -6,13 +6,14 @@ from __future__ import annotations
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
+
+from tests.service.procs import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -33,12 +34,6 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.mark.skipif(shutil.which("redis-server") is None, reason="needs redis-server (scripts/_setup.sh installs it)")
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="reads child processes from /proc (Linux)")
 def test_kill_term_stops_every_process_and_removes_the_redis_folder(tmp_path: Path) -> None:
@@ -49,7 +44,7 @@ def test_kill_term_stops_every_process_and_removes_the_redis_folder(tmp_path: Pa
     bin_dir = str(Path(sys.executable).parent)
     env["PATH"] = bin_dir + os.pathsep + env.get("PATH", "")
     demo = subprocess.Popen(
-        [sys.executable, "-m", "service.demo", "--port", str(_free_port()), "--data-dir", str(tmp_path / "data")],
+        [sys.executable, "-m", "service.demo", "--port", str(free_port()), "--data-dir", str(tmp_path / "data")],
         cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
     )  # fmt: skip
     try:

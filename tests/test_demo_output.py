@@ -5,21 +5,16 @@ from __future__ import annotations
 
 import os
 import shutil
-import socket
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
+from tests.service.procs import free_port
+
 REPO = Path(__file__).resolve().parents[1]
 CELERY_LINES = ("-------------- ", "[queues]", "[tasks]", "superuser privileges", "celery@", "transport:")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.mark.skipif(shutil.which("redis-server") is None, reason="needs redis-server (scripts/_setup.sh installs it)")
@@ -29,7 +24,7 @@ def test_demo_prints_its_own_lines_only(tmp_path: Path) -> None:
     env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
     data = tmp_path / "data"
     run = subprocess.run(
-        [sys.executable, "-m", "service.demo", "--exit", "--port", str(_free_port()), "--data-dir", str(data)],
+        [sys.executable, "-m", "service.demo", "--exit", "--port", str(free_port()), "--data-dir", str(data)],
         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     text = run.stdout + run.stderr

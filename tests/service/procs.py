@@ -19,6 +19,7 @@ import contextlib
 import importlib.metadata
 import json
 import os
+import random
 import shutil
 import signal
 import socket
@@ -56,9 +57,39 @@ class ProcessError(RuntimeError):
 T = TypeVar("T")
 
 
+_HANDED_OUT: set[int] = set()  # ports given to a caller in this process: never given twice
+
+
+def _ephemeral_range() -> tuple[int, int]:
+    """The kernel's range for outgoing connections' local ports (Linux), else IANA's."""
+    try:
+        low, high = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
+        return int(low), int(high)
+    except (OSError, ValueError):
+        return 49152, 65535
+
+
 def free_port() -> int:
-    """A TCP port free on 127.0.0.1 right now (the caller binds it soon after)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+    """A TCP port free on 127.0.0.1 right now (the caller binds it soon after).
+
+    Drawn below the kernel's ephemeral range: a port the OS hands out for ``bind(0)`` is in that range, where any
+    outgoing connection (a server's own clients, e.g. SeaweedFS's gRPC peers) may take it before the caller binds
+    it. Below the range only another listener can, and a port is never handed out twice in one process.
+    """
+    low, _ = _ephemeral_range()
+    top = max(low - 1, 11000)
+    for _ in range(200):
+        port = random.randint(10000, top)
+        if port in _HANDED_OUT:
+            continue
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        _HANDED_OUT.add(port)
+        return port
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:  # a crowded machine: the OS's choice
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
 

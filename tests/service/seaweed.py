@@ -51,7 +51,7 @@ class SeaweedServer:
         self.proc: Proc | None = None
         self.buckets = 0
         try:
-            self._start()
+            self._start_on_free_ports()
         except BaseException:
             self.close()
             raise
@@ -69,6 +69,19 @@ class SeaweedServer:
     def restart(self) -> None:
         """Start the stopped server again on the same ports and data (buckets and objects as they were)."""
         self._start()
+
+    def _start_on_free_ports(self, tries: int = 3) -> None:
+        """The first start: a port taken between choosing and binding it (another program's) means new ports."""
+        for attempt in range(tries):
+            try:
+                self._start()
+                return
+            except ProcessError as exc:
+                if "address already in use" not in str(exc) or attempt == tries - 1:
+                    raise
+                self.stop()
+                del self.ports, self.grpc
+                self.port = free_port()
 
     def _start(self) -> None:
         config = self.root / "s3.json"
