@@ -178,6 +178,14 @@ def _check_parts(row: PendingUpload, stored: list[StoredPart], sent: list[tuple[
             )
 
 
+def completed(svc: Services, upload_id: str, who: str) -> Job | None:
+    """The job an upload of the caller's was completed into (its id is the upload's), else None: a completion sent
+    again (its answer lost on a flaky network) is answered with that job, and no second one is made."""
+    with svc.db.session() as s:
+        pending = s.get(PendingUpload, upload_id)
+    return svc.db.get(upload_id, who) if pending is None else None
+
+
 def complete(svc: Services, upload_id: str, who: str, sent: list[tuple[int, str]] | None) -> Job:
     """Join the parts, check the archive, record and queue the job (blocking: call from a thread)."""
     direct = direct_of(svc)

@@ -115,7 +115,10 @@ def _begun(begun: direct.Begun, *, replayed: bool = False) -> Response:
     response_model=JobOut,
     summary="complete a direct upload: the parts are joined, the archive checked, and the job created and queued",
     responses={
-        202: {"description": "the job, queued", "headers": hdr.LOCATION},
+        202: {
+            "description": "the job, queued; for an upload completed already, the job it became (Idempotent-Replayed)",
+            "headers": hdr.CREATED,
+        },
         **KEYED,
         **errors(
             400,
@@ -125,7 +128,7 @@ def _begun(begun: direct.Begun, *, replayed: bool = False) -> Response:
             415,
             422,
             d400="the body is not valid JSON",
-            d404="no such upload in progress for this key (completed, aborted or expired)",
+            d404="no such upload in progress for this key (never begun, aborted or expired)",
             d409=f"being completed already; or {NO_DIRECT}",
             d413="the upload is larger than the limit",
             d415="not an archive bonemesh reads",
@@ -137,10 +140,14 @@ async def complete_upload(
     upload_id: str, body: DirectUploadComplete, who: OwnerDep, svc: ServicesDep, base: BaseUrlDep
 ) -> Response:
     sent = None if body.parts is None else [(p.number, p.etag) for p in body.parts]
-    async with svc.active_uploads:  # the archive check reads the scan from the store: as many at once as uploads
-        job = await svc.in_upload_thread(direct.complete, svc, upload_id, who, sent)
+    headers = {}
+    if (job := await run_in_threadpool(direct.completed, svc, upload_id, who)) is not None:
+        headers[idempotency.REPLAYED] = "true"  # completed already: its job, not a second one
+    else:
+        async with svc.active_uploads:  # the archive check reads the scan from the store: as many at once as uploads
+            job = await svc.in_upload_thread(direct.complete, svc, upload_id, who, sent)
     out = svc.job_out(job, base).model_dump(mode="json")
-    return JSONResponse(out, status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
+    return JSONResponse(out, status_code=202, headers={"Location": f"/v1/jobs/{job.id}", **headers})
 
 
 @router.delete(

@@ -99,7 +99,11 @@ def test_a_direct_upload_becomes_a_job_that_runs(s3_stack: S3Stack) -> None:
         job = resp.json()
         assert job["id"] == up["id"] and job["upload_name"] == "headsq.zip" and job["upload_bytes"] == len(data)
         assert resp.headers["location"] == f"/v1/jobs/{job['id']}"
-        assert_problem(client.post(up["complete_url"], json={}), 404)  # completed once only
+        again = client.post(up["complete_url"], json={})  # the answer lost, sent again: the same job, not a second
+        assert again.status_code == 202 and again.json()["id"] == job["id"], again.text
+        assert again.headers["idempotent-replayed"] == "true" and again.headers["location"] == resp.headers["location"]
+        with s3_stack.stack.client("key-b") as other:  # another key's completion still finds nothing
+            assert_problem(other.post(up["complete_url"], json={}), 404)
         job = wait_for_job(client, job["id"], stack=s3_stack.stack, timeout=300)
         assert job["state"] == "succeeded", job
         ((run,),) = [job["runs"]]
