@@ -237,8 +237,10 @@ def write_label_stls(models: LabelModels, folder: str | Path) -> dict[str, Path]
     os.close(fd)
     try:
         with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as zf:
-            for rel, path in paths.items():
-                zf.write(path, rel)
+            for rel, path in paths.items():  # a fixed date and mode: the same parts give the same archive's bytes
+                info = zipfile.ZipInfo(rel, date_time=(1980, 1, 1, 0, 0, 0))
+                info.external_attr = 0o100644 << 16
+                zf.writestr(info, path.read_bytes(), compress_type=zipfile.ZIP_DEFLATED)
         os.replace(tmp, root / "labels.zip")
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

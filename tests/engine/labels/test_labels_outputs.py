@@ -94,6 +94,18 @@ def test_labels_zip_holds_a_watertight_stl_per_label_in_patient_mm(written):
     assert report["mesh"]["watertight"] is True and len(report["frame"]["gltf_centre_lps_mm"]) == 3
 
 
+def test_labels_zip_is_the_same_bytes_when_written_again(written, tmp_path: Path) -> None:
+    """The archive carries no write time or file mode of its own: the same parts give the same bytes (a re-run's
+    labels.zip is byte-identical, so its ETag and checksum are too)."""
+    from engine.labels.parts import write_label_stls
+
+    _, models, _, paths = written
+    again = write_label_stls(models, tmp_path)
+    assert again["labels.zip"].read_bytes() == paths["labels.zip"].read_bytes()
+    with zipfile.ZipFile(again["labels.zip"]) as zf:
+        assert {i.date_time for i in zf.infolist()} == {(1980, 1, 1, 0, 0, 0)}
+
+
 def test_label_uploads_are_found_by_content(tmp_path: Path) -> None:
     from engine.labels.uploads import find_label_upload
 
