@@ -39,6 +39,11 @@ _SCAN = "engine.backend.kernels:scan.cl"
 _SCAN_SUMS = Kernel("backend.scan.sums", "", f"{_SCAN}:chunk_sums")
 _SCAN_TOP = Kernel("backend.scan.top", "", f"{_SCAN}:scan_sums")
 _SCAN_RUNS = Kernel("backend.scan.runs", "", f"{_SCAN}:chunk_scan")
+_RADIX = "engine.backend.kernels:radix.cl"
+_RADIX_RANGE = Kernel("backend.radix.range", "", f"{_RADIX}:chunk_range")
+_RADIX_DIGITS = Kernel("backend.radix.digits", "", f"{_RADIX}:chunk_digits")
+_RADIX_SCATTER = Kernel("backend.radix.scatter", "", f"{_RADIX}:chunk_scatter")
+RADIX_BITS = 4  # a pass sorts by this many bits (radix.cl's RADIX = 2 ** RADIX_BITS)
 _C_TYPES = {
     np.dtype(np.uint8): "uchar",
     np.dtype(np.uint16): "ushort",
@@ -374,14 +379,30 @@ class OpenCLBackend(Backend):
         return sums
 
     def sort_pairs(self, keys: CLArray, values: CLArray, n: int) -> None:
-        """On the host (a sync point; the same stable order as a device radix sort): the interface's one step
-        without an OpenCL kernel yet."""
-        if n == 0:
+        """On the device (``radix.cl``: a stable LSD radix sort, 4 bits a pass over the bits the keys' range spans,
+        between the arrays' two halves); one sync point, for the keys' range."""
+        if n <= 1:
             return
-        k, v = self.to_host(keys, n), self.to_host(values, n)
-        order = np.argsort(k, kind="stable")
-        self.upload(keys, k[order])
-        self.upload(values, v[order])
+        run = -(-n // min(SCAN_CHUNKS, n))
+        chunks = -(-n // run)
+        lo, hi = self.empty(chunks, np.int64), self.empty(chunks, np.int64)
+        self.launch(_RADIX_RANGE, chunks, [keys, np.int64(n), np.int64(run), lo, hi])
+        base = int(self.to_host(lo).min())  # sync point
+        span = int(self.to_host(hi).max()) - base
+        passes = -(-span.bit_length() // RADIX_BITS)
+        counts = self.empty(chunks << RADIX_BITS, np.int32)
+        offsets = self.empty(chunks << RADIX_BITS, np.int32)
+        src, dst = 0, n
+        for p in range(passes):
+            shift = np.int32(p * RADIX_BITS)
+            common = [np.int64(n), np.int64(run), np.int64(base), shift, np.int32(chunks)]
+            self.launch(_RADIX_DIGITS, chunks, [keys, np.int64(src), *common, counts])
+            self.prefix_sum(counts, offsets)
+            self.launch(_RADIX_SCATTER, chunks, [keys, values, np.int64(src), np.int64(dst), *common, offsets])
+            src, dst = dst, src
+        if src:  # an odd number of passes ended in the second halves
+            self.copy(keys, keys, 0, n, n)
+            self.copy(values, values, 0, n, n)
 
     def compact(self, flags: CLArray) -> tuple[CLArray, CLArray, int]:
         n_in = flags.size

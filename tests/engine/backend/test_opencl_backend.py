@@ -114,6 +114,30 @@ def test_quadric_arrays_clones_sorts_and_scans_without_a_total(backend):
     assert xyz(backend.vector((1, 2, 3), np.float64)) == (1, 2, 3)
 
 
+@pytest.mark.parametrize(
+    ("n", "kind"),
+    [(2, "few"), (4097, "few"), (100_003, "cells"), (20_000, "wide"), (5_000, "equal"), (9_999, "negative")],
+)
+def test_sort_pairs_is_numpys_stable_argsort(backend, n, kind):
+    """The device sort (a radix sort on OpenCL) orders by key and keeps equal keys in their order, for keys as the
+    clustering packs them (21 bits a cell axis), few distinct ones, the full int64 range, one value, negatives."""
+    rng = np.random.default_rng(n)
+    keys = {
+        "few": rng.integers(0, 5, n),
+        "cells": (rng.integers(0, 1 << 21, (n, 3)) << np.array([42, 21, 0])).sum(axis=1),
+        "wide": rng.integers(np.iinfo(np.int64).min, np.iinfo(np.int64).max, n, dtype=np.int64),
+        "equal": np.full(n, 123456789),
+        "negative": rng.integers(-(1 << 40), 1 << 20, n),
+    }[kind].astype(np.int64)
+    dk = backend.empty(2 * n, np.int64)
+    backend.upload(dk, np.concatenate([keys, np.zeros(n, np.int64)]))
+    dv = backend.from_host(np.arange(2 * n, dtype=np.int32))
+    backend.sort_pairs(dk, dv, n)
+    order = np.argsort(keys, kind="stable")
+    np.testing.assert_array_equal(backend.to_host(dv, n), order)
+    np.testing.assert_array_equal(backend.to_host(dk, n), keys[order])
+
+
 def test_the_memory_high_water_mark_sees_an_allocation(backend):
     tracker = backend.peak_tracker().start()
     held = backend.zeros(1 << 18, np.float32)  # 1 MiB
