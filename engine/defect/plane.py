@@ -36,6 +36,9 @@ MAX_SURFACE = 150_000  # surface voxels paired with (a random subset beyond this
 MAX_ITERATIONS = 40
 # converged: the last step turned the normal by less than 0.006 degrees and moved it by less than 0.01 mm
 TOL_RAD, TOL_MM = 1e-4, 0.01
+# the refinement starts on every COARSE_STRIDE-th sample point until its steps are under COARSE_TOL times the
+# tolerance, then goes on with all of them (issue 42: the plane's host time)
+COARSE_STRIDE, COARSE_TOL = 4, 10.0
 TRIM = 0.8  # the residual: RMS of this share of the smallest distances
 # a bone is mirror-symmetric when at least this share of its mirrored surface lies within a voxel diagonal of its
 # surface (real skulls: 0.8-0.99; an intact skull with its face and neck, 0.8 at 3.2 mm voxels)
@@ -128,7 +131,25 @@ class _Fit:
         return float(np.median(dist))
 
     def refine(self, n: FloatArray, d: float, exclude: Any = None) -> tuple[FloatArray, float, int]:
+        """Gauss-Newton from (n, d): first on every ``COARSE_STRIDE``-th sample point (the far-off start's
+        iterations cost a quarter), then on all of them to convergence (the same fixed point)."""
         n = n / np.linalg.norm(n)
+        full = self.p
+        if len(full) >= 4 * COARSE_STRIDE * 100:
+            self.p = full[::COARSE_STRIDE]
+            try:
+                keep = self.keep
+                self.keep = keep[::COARSE_STRIDE]
+                coarse = None if exclude is None else (lambda n, d: exclude(n, d)[::COARSE_STRIDE])
+                n, d, it0 = self._iterate(n, d, coarse, COARSE_TOL)
+            finally:
+                self.p, self.keep = full, keep
+        else:
+            it0 = 0
+        n, d, it = self._iterate(n, d, exclude, 1.0)
+        return n, d, it0 + it
+
+    def _iterate(self, n: FloatArray, d: float, exclude: Any, tol: float) -> tuple[FloatArray, float, int]:
         it = 0
         for it in range(1, MAX_ITERATIONS + 1):  # noqa: B007 - the count is reported
             if exclude is not None:
@@ -152,7 +173,7 @@ class _Fit:
             n = n + step[0] * e1 + step[1] * e2
             n /= np.linalg.norm(n)
             d = d + step[2]
-            if abs(step[0]) + abs(step[1]) < TOL_RAD and abs(step[2]) < TOL_MM:
+            if abs(step[0]) + abs(step[1]) < tol * TOL_RAD and abs(step[2]) < tol * TOL_MM:
                 break
         return n, float(d), it
 

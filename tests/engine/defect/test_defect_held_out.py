@@ -116,3 +116,39 @@ def test_the_sweep_measures_every_place():
     assert sum(r["dice"] for r in found) / len(found) >= 0.75
     assert all(r["outcome"] == "template" or "Error" in r["outcome"] for r in rows)
     assert "| headsq | 0, 0 | 24 |" in sweep_markdown(rows)
+
+
+def test_spans_shell_median_column_tells_a_hole_from_a_shifted_face():
+    """A piece that a shifted mirror leaves along one face of the shell (a real head's own asymmetry) spans the shell
+    along its edge at most: on its median column the scan has most of the mirrored shell (``Span.missing`` under
+    ``region.MIN_SPAN_MISSING``); a hole lacks all of it."""
+    import numpy as np
+
+    from engine.defect.region import MIN_SPAN_MISSING
+    from engine.defect.rim import spans_shell
+
+    shape = (40, 40, 20)
+    mirrored = np.zeros(shape, dtype=np.float32)
+    mirrored[:, :, 7:13] = 100.0
+    z, y = np.indices(shape[:2])
+    disc = (z - 20) ** 2 + (y - 20) ** 2 < 8**2
+    bone = mirrored >= 50
+    bone[disc] = False
+    bone[disc, 9:15] = True  # the scan's shell there: 2 voxels outward of the mirror's
+    piece = np.argwhere((mirrored >= 50) & ~bone)
+    assert spans_shell(piece, bone, mirrored, 50.0, (1.0, 1.0, 1.0), 9.0).missing < MIN_SPAN_MISSING
+    hole = np.zeros(shape, dtype=bool)
+    hole[disc, 7:13] = True
+    span = spans_shell(np.argwhere(hole), (mirrored >= 50) & ~hole, mirrored, 50.0, (1.0, 1.0, 1.0), 9.0)
+    assert span.missing >= MIN_SPAN_MISSING
+
+
+def test_a_cut_under_the_resolution_is_refused_saying_why(headsq, device):
+    """headsq's 3.2 mm voxels and 6 mm shell: a 20 mm cut at the orbits' roofs has the scan's bone within the
+    shell's thickness of every voxel; the refusal says so in the scan's measures."""
+    from engine.defect import DefectParams, run
+    from engine.defect.synthetic import cut_at
+
+    cut = cut_at(headsq, HEADSQ_LEVEL, 22.5, 0.2, 20.0, slices=HEADSQ_CRANIUM, orient=HEADSQ_ORIENT)
+    with pytest.raises(NoDefectError, match=r"narrower than about twice that \(\d+ mm"):
+        run(cut.volume, DefectParams(), HEADSQ_LEVEL, device, orient=HEADSQ_ORIENT)
