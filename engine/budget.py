@@ -1,4 +1,4 @@
-"""The device memory budget: one object from the edge (the CLI, the worker) to every stage.
+"""The memory budgets, device and host: one object from the edge (the CLI, the worker) to every stage.
 
 ``Budget.of(max_device_bytes)`` parses the budget once (``"2GiB"``, a byte count, ``None`` for none, or a
 ``Budget`` as it is) and carries what the stages plan with:
@@ -16,6 +16,13 @@
 slabs), and every stage gets the ``Budget`` (``beside(held)`` where part of it is already taken) rather than bytes
 to branch on. The peak actually used is measured by ``engine.backend.memory.PeakMemory``. Importing this module
 never loads Warp.
+
+``host_bytes`` (``Budget.of(device).with_host(host)``; CLI ``--max-host-bytes``, ``BONEMESH_MAX_HOST_BYTES``) bounds
+the host memory of a job: a scan whose voxels take more than ``host_volume_share`` of it is not loaded whole but
+read slab by slab from disk or its store (``engine.io.slabs``) through the streamed plan, its reads at most
+``host_read_share`` of it at a time; on a device whose memory is the host's (Warp's CPU, OpenCL on the CPU) the
+device budget comes out of it (``for_device``: ``host_device_share`` of it unless a smaller one is given).
+docs/host-memory.md.
 """
 
 from __future__ import annotations
@@ -132,6 +139,11 @@ class Budget:
             only (on the CPU device, whose memory the budget is, such work stays an error); True: from any device.
         feed_ring_bytes: the plane feed's ring of exactly this many bytes, on any device (as on a CUDA device);
             None: sized from the slabs, and used on CUDA devices only.
+        host_bytes: the host memory bound of a job (None: none): see the module docstring.
+        host_volume_share: a scan whose voxels take at most this share of ``host_bytes`` is loaded whole.
+        host_device_share: on a host device, the device budget's share of ``host_bytes`` (at most).
+        host_read_share: the scan's planes read from disk (the plane feed's ring, a direct read) take at most this
+            share of ``host_bytes`` at a time.
     """
 
     bytes: int | None = None
@@ -147,10 +159,16 @@ class Budget:
     max_tiles: int = 64
     host_fallback: bool | None = None
     feed_ring_bytes: int | None = None
+    host_bytes: int | None = None
+    host_volume_share: float = 0.5
+    host_device_share: float = 0.5
+    host_read_share: float = 0.125
 
     def __post_init__(self) -> None:
-        if self.bytes is not None and (not isinstance(self.bytes, int) or isinstance(self.bytes, bool)):
-            raise ValueError(f"Expected a budget of whole bytes or None, got {self.bytes!r}")
+        for name in ("bytes", "host_bytes"):
+            n = getattr(self, name)
+            if n is not None and (not isinstance(n, int) or isinstance(n, bool)):
+                raise ValueError(f"Expected a budget of whole bytes or None, got {name}={n!r}")
         for name in ("slab_share", "stream_slab_share", "spill_share"):
             if not 0 < getattr(self, name) < 1:
                 raise ValueError(f"Expected {name} in (0, 1), got {getattr(self, name)}")
@@ -169,6 +187,32 @@ class Budget:
         if isinstance(spec, Budget):
             return spec
         return cls(parse_bytes(spec))
+
+    def with_host(self, spec: str | int | None) -> Budget:
+        """The same budget with a host memory bound (``parse_bytes``: ``"64GiB"``, a byte count, None for none).
+
+        Raises:
+            ValueError: as ``parse_bytes``.
+        """
+        return dataclasses.replace(self, host_bytes=parse_bytes(spec))
+
+    def for_device(self, device: Any) -> Budget:
+        """The budget on ``device`` (a backend, or a Warp device): where its memory is the host's and a host bound
+        is set, the device budget comes out of it (at most ``host_device_share`` of it); else as it is."""
+        if self.host_bytes is None or not _is_host(device):
+            return self
+        share = int(self.host_bytes * self.host_device_share)
+        return self if self.bytes is not None and self.bytes <= share else self.with_bytes(share)
+
+    @property
+    def whole_volume_bytes(self) -> int | None:
+        """The most bytes of voxels loaded whole under the host bound (None: no bound)."""
+        return None if self.host_bytes is None else int(self.host_bytes * self.host_volume_share)
+
+    @property
+    def host_read_bytes(self) -> int | None:
+        """The most bytes of planes read from disk at a time under the host bound (None: no bound)."""
+        return None if self.host_bytes is None else int(self.host_bytes * self.host_read_share)
 
     @property
     def limited(self) -> bool:
@@ -230,6 +274,13 @@ class Budget:
         if host is None:
             raise BudgetError(f"{reason}: give at least {mib(need)}{remedy}", needed=need)
         return host, {"device": str(host), "reason": reason}
+
+
+def _is_host(device: Any) -> bool:
+    """Whether ``device`` (a backend of ``engine.backend``, or a Warp device) computes in the host's memory."""
+    if hasattr(device, "is_host") and not callable(device.is_host):
+        return bool(device.is_host)
+    return not bool(getattr(device, "is_cuda", False))
 
 
 BudgetSpec = Budget | int | str | None

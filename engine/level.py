@@ -94,9 +94,18 @@ class LevelChoice:
         return out
 
 
+def _strided(data: npt.NDArray[Any], step: int) -> npt.NDArray[Any]:
+    """``data[::step, ::step, ::step]``; from a volume read slab by slab (``engine.io.slabs.SlabSource``, out of core)
+    the same samples, read plane by plane."""
+    if isinstance(data, np.ndarray):
+        return data[::step, ::step, ::step]
+    sample: npt.NDArray[Any] = data.strided(step)
+    return sample
+
+
 def _sample(data: npt.NDArray[Any]) -> npt.NDArray[Any]:
     step = max(1, round((data.size / _SAMPLE_VOXELS) ** (1 / 3)))
-    return data[::step, ::step, ::step]
+    return _strided(data, step)
 
 
 def otsu_level(sample: npt.NDArray[Any]) -> float:
@@ -238,7 +247,7 @@ SKIN_SAMPLE_VOXELS = 2_000_000  # the skin check's strided sample: its labelling
 
 def _subsample(data: npt.NDArray[Any], most: int = 8_000_000) -> npt.NDArray[Any]:
     step = max(1, int(np.ceil((data.size / most) ** (1 / 3))))
-    return data[::step, ::step, ::step]
+    return _strided(data, step)
 
 
 def skin_warning(volume: Volume, level: float, offset: float | None) -> dict[str, Any] | None:

@@ -142,13 +142,16 @@ class Placement(TypedDict):
 
 class MemoryInfo(TypedDict):
     """The device memory budget (bytes, None: none) and the peak the run used beyond what was in use before it
-    (``engine.backend.memory.PeakMemory``); ``stream``: the streamed plan's account."""
+    (``engine.backend.memory.PeakMemory``); ``stream``: the streamed plan's account; under a host memory bound,
+    the bound (``host_bound_bytes``) and whether the scan was read slab by slab from disk (``out_of_core``)."""
 
     budget_bytes: int | None
     peak_bytes: int | None
     measured_by: str
     in_use_before_bytes: int
     stream: NotRequired[dict[str, Any]]
+    host_bound_bytes: NotRequired[int]
+    out_of_core: NotRequired[bool]
 
 
 class PrintCheck(TypedDict):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import functools
 import multiprocessing
 import multiprocessing.process
+import os
 from typing import TYPE_CHECKING
 
 from celery import Celery
@@ -67,8 +68,14 @@ def _runtime(
 ) -> Runtime:
     from engine.job import resolve_runtime
 
+    host = os.environ.get("BONEMESH_MAX_HOST_BYTES")  # the host memory bound per job (engine.budget)
     return resolve_runtime(
-        device, max_device_bytes, png_decoder=png_decoder, decode_threads=threads, decode_processes=processes
+        device,
+        max_device_bytes,
+        png_decoder=png_decoder,
+        decode_threads=threads,
+        decode_processes=processes,
+        max_host_bytes=host,
     )
 
 

@@ -34,6 +34,7 @@ from pathlib import Path
 
 from engine.cli.args import (
     add_defect_args,
+    add_host_arg,
     add_input_args,
     add_label_args,
     add_orient_args,
@@ -92,6 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     rec = sub.add_parser("reconstruct", help="the EMC33 pipeline: model.stl, model.glb, phone.glb, ar.glb, report")
     add_input_args(rec, "output folder")
+    add_host_arg(rec)
     add_recon_args(rec)
     add_label_args(rec)  # --labels, --pieces N, --roi, --segments
     add_defect_args(rec, command=False)  # --defect and its hints: the defect as a stage of the job
@@ -208,7 +210,8 @@ def _reconstruct(args: argparse.Namespace) -> int:
 
     spec = job_spec(args)
     try:
-        runtime = resolve_runtime(args.device, args.max_device_bytes)  # a missing device: exit 2 before loading
+        # a missing device: exit 2 before loading
+        runtime = resolve_runtime(args.device, args.max_device_bytes, max_host_bytes=args.max_host_bytes)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     out = output_folder(args.output)

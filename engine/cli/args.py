@@ -156,6 +156,26 @@ def _budget(text: str) -> Budget:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def add_host_arg(parser: argparse.ArgumentParser) -> None:
+    """``--max-host-bytes``: the host memory bound of a job (``engine.budget.Budget.host_bytes``)."""
+    parser.add_argument(
+        "--max-host-bytes", default=None, metavar="SIZE", type=_host_bound,
+        help="host memory bound, e.g. 16GiB: a scan larger than half of it is read from disk slab by slab, never "
+        "whole (TIFF folder, multi-page TIFF/BigTIFF, OME-Zarr, .npy); on the CPU the device budget comes out of it; "
+        "default none (docs/host-memory.md)",
+    )  # fmt: skip
+
+
+def _host_bound(text: str) -> int | None:
+    """``--max-host-bytes``: a byte count (``engine.budget.parse_bytes``)."""
+    from engine.budget import parse_bytes
+
+    try:
+        return parse_bytes(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def add_level_args(parser: argparse.ArgumentParser) -> None:
     """``--iso`` or ``--preset`` (with ``--hu-offset``): the iso level."""
     level = parser.add_mutually_exclusive_group()

@@ -34,7 +34,18 @@ from engine.errors import InputError, NoSpacingError
 from engine.io.archive import ZARR_MARKERS, InputLimits, Members, is_zarr_folder
 from engine.types import Volume
 
-__all__ = ["ZarrSource", "is_remote", "is_zarr_folder", "load_ome_zarr", "s3_store", "zarr_in"]
+__all__ = [
+    "ZarrLevel",
+    "ZarrSource",
+    "is_remote",
+    "is_zarr_folder",
+    "load_ome_zarr",
+    "open_level",
+    "read_planes",
+    "s3_store",
+    "z_step",
+    "zarr_in",
+]
 
 # the space units of OME-NGFF (UDUNITS-2 names) and common abbreviations: mm per unit as (numerator, denominator),
 # so that 120 micrometer is 120 / 1000 mm, the float nearest 0.12, as a caller's 0.12 is
@@ -471,37 +482,102 @@ def _target_dtype(dtype: np.dtype[Any]) -> np.dtype[Any] | None:
     return None
 
 
-def _read_slabs(
-    arr: Any,
-    zyx: tuple[int, int, int],
-    out: np.ndarray,
-    on_progress: Callable[[float], None] | None,
-    where: str,
-) -> None:
-    """Fill ``out`` (z, y, x) from the zarr array, a slab of whole z-chunks (shards) at a time, each chunk decoded
-    by zarr into its place in ``out`` (a slab of another dtype goes through one slab-sized temporary)."""
-    from zarr.core.buffer import default_buffer_prototype
-
-    z_axis = zyx[0]
-    step = int((getattr(arr, "shards", None) or arr.chunks)[z_axis])  # one row of chunks (shards) at a time
-    order = sorted(range(3), key=lambda k: zyx[k])  # out's axes in the array's order
+def _read_slabs(lv: ZarrLevel, out: np.ndarray, on_progress: Callable[[float], None] | None) -> None:
+    """Fill ``out`` (z, y, x) from the level, a slab of whole z-chunks (shards) at a time, each chunk decoded by zarr
+    into its place in ``out`` (a slab of another dtype goes through one slab-sized temporary)."""
+    step = z_step(lv)
     nz = out.shape[0]
-    proto = default_buffer_prototype()
     for z0 in range(0, nz, step):
         z1 = min(nz, z0 + step)
-        selection = tuple(
-            slice(z0, z1) if i == z_axis else slice(None) if i in zyx else 0 for i in range(len(arr.shape))
-        )
-        view = out[z0:z1].transpose(order)
-        try:
-            if arr.dtype == out.dtype:
-                arr.get_basic_selection(selection, out=proto.nd_buffer.from_numpy_array(view))
-            else:
-                view[...] = arr.get_basic_selection(selection)
-        except Exception as exc:
-            raise InputError(f"{where}: slices {z0}-{z1 - 1} cannot be read: {_error_line(exc)}") from None
+        read_planes(lv, z0, z1, out[z0:z1])
         if on_progress is not None:
             on_progress(z1 / nz)
+
+
+@dataclass(frozen=True)
+class ZarrLevel:
+    """One level of an OME-Zarr image, opened but not read (``open_level``): the zarr array, its z, y, x axes, the
+    (z, y, x) shape, the dtype it is read into (None: read whole, then narrowed), the voxel size and origin (x, y, z)
+    in mm, where they came from, and the volume's ``source`` entry."""
+
+    arr: Any
+    zyx: tuple[int, int, int]
+    shape: tuple[int, int, int]
+    target: np.dtype[Any] | None
+    spacing: tuple[float, float, float]
+    origin: tuple[float, float, float]
+    where: str
+    source: dict[str, Any]
+
+
+def open_level(
+    src: ZarrSource,
+    *,
+    level: int | str | None = None,
+    spacing_zyx_mm: tuple[float, float, float] | None = None,
+    limits: InputLimits | None = None,
+) -> ZarrLevel:
+    """Open one level of an OME-Zarr image and read its metadata (``load_ome_zarr`` reads it; ``engine.io.slabs``
+    reads it slab by slab); the arguments and errors are ``load_ome_zarr``'s."""
+    limits = limits or InputLimits()
+    group, ms, named, src = _open_image(src)
+    where = _where(src)
+
+    def shape_of(p: str) -> str:
+        try:
+            return "x".join(str(n) for n in group[p].shape)
+        except Exception:
+            return "missing"
+
+    index = _pick_level(ms, named if level is None else level, where, shape_of)
+    try:
+        arr = group[ms.paths[index]]
+    except Exception as exc:
+        raise InputError(f"{where}: level {ms.paths[index]!r} cannot be opened: {_error_line(exc)}") from None
+    zyx = _space_axes(ms, tuple(arr.shape), where)
+    found, origin, text = _geometry(ms, index, zyx, where)
+    spacing, how = _spacing(spacing_zyx_mm, found, text, where)
+    shape = (int(arr.shape[zyx[0]]), int(arr.shape[zyx[1]]), int(arr.shape[zyx[2]]))
+    limits.check_voxels(shape, where)
+    source = {
+        "format": "ome-zarr",
+        "container": src.kind,
+        "ome_version": ms.version,
+        "zarr_format": int(arr.metadata.zarr_format),
+        "level": ms.paths[index],
+        "levels": len(ms.paths),
+        "dtype": str(arr.dtype),
+        "spacing_from": how,
+    }
+    target = _target_dtype(np.dtype(arr.dtype))
+    return ZarrLevel(arr, zyx, shape, target, spacing, origin, where, source)
+
+
+def read_planes(lv: ZarrLevel, z0: int, z1: int, out: np.ndarray) -> None:
+    """Planes ``z0:z1`` of the level into ``out`` ((z1 - z0, y, x), of ``lv.target``), decoded by zarr in place
+    where the types agree.
+
+    Raises:
+        InputError: the planes cannot be read (named).
+    """
+    from zarr.core.buffer import default_buffer_prototype
+
+    arr, zyx = lv.arr, lv.zyx
+    selection = tuple(slice(z0, z1) if i == zyx[0] else slice(None) if i in zyx else 0 for i in range(len(arr.shape)))
+    view = out.transpose(sorted(range(3), key=lambda k: zyx[k]))  # out's axes in the array's order
+    try:
+        if arr.dtype == out.dtype:
+            arr.get_basic_selection(selection, out=default_buffer_prototype().nd_buffer.from_numpy_array(view))
+        else:
+            view[...] = arr.get_basic_selection(selection)
+    except Exception as exc:
+        raise InputError(f"{lv.where}: slices {z0}-{z1 - 1} cannot be read: {_error_line(exc)}") from None
+
+
+def z_step(lv: ZarrLevel) -> int:
+    """Planes in one row of z-chunks (or shards): what one read decodes at least."""
+    arr = lv.arr
+    return int((getattr(arr, "shards", None) or arr.chunks)[lv.zyx[0]])
 
 
 def load_ome_zarr(
@@ -530,42 +606,12 @@ def load_ome_zarr(
     """
     from engine.io.stack import _allocated, _narrow
 
-    limits = limits or InputLimits()
-    group, ms, named, src = _open_image(src)
-    where = _where(src)
-
-    def shape_of(p: str) -> str:
-        try:
-            return "x".join(str(n) for n in group[p].shape)
-        except Exception:
-            return "missing"
-
-    index = _pick_level(ms, named if level is None else level, where, shape_of)
-    try:
-        arr = group[ms.paths[index]]
-    except Exception as exc:
-        raise InputError(f"{where}: level {ms.paths[index]!r} cannot be opened: {_error_line(exc)}") from None
-    zyx = _space_axes(ms, tuple(arr.shape), where)
-    found, origin, text = _geometry(ms, index, zyx, where)
-    spacing, how = _spacing(spacing_zyx_mm, found, text, where)
-    shape = tuple(int(arr.shape[i]) for i in zyx)
-    limits.check_voxels(shape, where)
-    target = _target_dtype(np.dtype(arr.dtype))
-    if target is None:  # int32 & co.: read whole, then narrowed to what the engine meshes
-        data = np.empty(shape, np.dtype(arr.dtype).newbyteorder("="))
-        _read_slabs(arr, zyx, data, on_progress, where)
+    lv = open_level(src, level=level, spacing_zyx_mm=spacing_zyx_mm, limits=limits)
+    if lv.target is None:  # int32 & co.: read whole, then narrowed to what the engine meshes
+        data = np.empty(lv.shape, np.dtype(lv.arr.dtype).newbyteorder("="))
+        _read_slabs(lv, data, on_progress)
         data = _narrow(data)
     else:
-        data = _allocated(allocate, shape, target)
-        _read_slabs(arr, zyx, data, on_progress, where)
-    source = {
-        "format": "ome-zarr",
-        "container": src.kind,
-        "ome_version": ms.version,
-        "zarr_format": int(arr.metadata.zarr_format),
-        "level": ms.paths[index],
-        "levels": len(ms.paths),
-        "dtype": str(arr.dtype),
-        "spacing_from": how,
-    }
-    return Volume(data=data, spacing_zyx_mm=spacing, origin_mm=origin, units="raw", source=source)
+        data = _allocated(allocate, lv.shape, lv.target)
+        _read_slabs(lv, data, on_progress)
+    return Volume(data=data, spacing_zyx_mm=lv.spacing, origin_mm=lv.origin, units="raw", source=lv.source)

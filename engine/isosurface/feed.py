@@ -2,6 +2,10 @@
 (``engine.isosurface.stream``): through a ring of page-locked host planes that a thread fills ahead
 (``PlaneFeed``), or copied directly (``DirectFeed``). The ring is the process's, held by one job at a time
 (``engine.staging.PinnedBuffer``).
+
+The volume is a host array, or a scan read slab by slab from disk (``engine.io.slabs.SlabSource``, a job under a
+host memory bound): its planes are then decoded straight into the ring, or into the device array on Warp's CPU
+device, or at most ``read_bytes`` at a time into a host array that is copied up and dropped.
 """
 
 from __future__ import annotations
@@ -25,15 +29,33 @@ FEED_CHUNK_BYTES = 32 << 20  # the ring is filled this much at a time,
 READERS = 4  # by this many threads (one copied 5 GB/s on the H100 host: slower than the pageable upload)
 
 
-def upload_planes(volume: np.ndarray, zlo: int, zhi: int, device: Any) -> Any:
-    """Planes ``zlo..zhi`` of a host volume as a new array on ``device`` (a Warp device, or a backend of
-    ``engine.backend``), copied directly (pageable)."""
-    planes = np.ascontiguousarray(volume[zlo : zhi + 1])
+def _planes(volume: Any, z0: int, z1: int) -> np.ndarray:
+    """Planes ``z0..z1 - 1`` of a host array (a view) or of a ``SlabSource`` (read)."""
+    return volume[z0:z1] if isinstance(volume, np.ndarray) else volume.read(z0, z1)
+
+
+def upload_planes(volume: Any, zlo: int, zhi: int, device: Any, read_bytes: int | None = None) -> Any:
+    """Planes ``zlo..zhi`` of a host volume (or a ``SlabSource``) as a new array on ``device`` (a Warp device, or a
+    backend of ``engine.backend``), copied directly (pageable); a source's planes are read at most ``read_bytes`` at
+    a time (at least a plane) where the device is Warp's."""
     if hasattr(device, "from_host"):  # a backend (OpenCL: its queue does the copy)
-        return device.from_host(planes)
+        return device.from_host(np.ascontiguousarray(_planes(volume, zlo, zhi + 1)))
     import warp as wp
 
-    return wp.array(planes, device=device)
+    if isinstance(volume, np.ndarray):
+        return wp.array(np.ascontiguousarray(volume[zlo : zhi + 1]), device=device)
+    ny, nx = volume.shape[1:]
+    out = wp.empty((zhi - zlo + 1, ny, nx), dtype=wp.dtype_from_numpy(volume.dtype), device=device)
+    if not device.is_cuda:  # the device's memory is the host's: decoded in place
+        volume.read_into(zlo, zhi + 1, out.numpy())
+        return out
+    step = max(1, (read_bytes or volume.nbytes) // max(volume.plane_bytes, 1))
+    plane = ny * nx
+    for z in range(zlo, zhi + 1, step):
+        host = volume.read(z, min(z + step, zhi + 1))
+        wp.copy(out, wp.array(host, device="cpu", copy=False), dest_offset=(z - zlo) * plane, count=host.size)
+        wp.synchronize_device(device)  # the host slab is dropped next
+    return out
 
 
 class DirectFeed:
@@ -41,11 +63,11 @@ class DirectFeed:
 
     stats = None
 
-    def __init__(self, volume: np.ndarray, device: Any) -> None:
-        self.volume, self.device = volume, device
+    def __init__(self, volume: Any, device: Any, read_bytes: int | None = None) -> None:
+        self.volume, self.device, self.read_bytes = volume, device, read_bytes
 
     def upload(self, zlo: int, zhi: int) -> Any:
-        return upload_planes(self.volume, zlo, zhi, self.device)
+        return upload_planes(self.volume, zlo, zhi, self.device, self.read_bytes)
 
 
 class PlaneFeed:
@@ -62,7 +84,7 @@ class PlaneFeed:
     directly, the same values.
     """
 
-    def __init__(self, volume: np.ndarray, device: Any, ring: Any, ring_bytes: int) -> None:
+    def __init__(self, volume: Any, device: Any, ring: Any, ring_bytes: int) -> None:
         import warp as wp
 
         self.volume, self.device = volume, device
@@ -105,7 +127,10 @@ class PlaneFeed:
                 for ev in waits.values():  # the slots' last copies to the device have been read
                     wp.synchronize_event(ev)
                 t1 = time.perf_counter()
-                self._read(self.view[s : s + n].reshape(-1), self.volume[z : z + n].reshape(-1))
+                if isinstance(self.volume, np.ndarray):
+                    self._read(self.view[s : s + n].reshape(-1), self.volume[z : z + n].reshape(-1))
+                else:  # a scan read slab by slab: decoded straight into the ring
+                    self.volume.read_into(z, z + n, self.view[s : s + n])
                 self.stats["ring_wait_seconds"] += t1 - t0
                 self.stats["read_seconds"] += time.perf_counter() - t1
                 with self.cond:
@@ -136,7 +161,7 @@ class PlaneFeed:
                 self.cond.notify_all()
         if behind:
             self.stats["direct"] += 1
-            return upload_planes(self.volume, zlo, zhi, self.device)
+            return upload_planes(self.volume, zlo, zhi, self.device, self.cap * self.plane * self.volume.itemsize)
         ny, nx = self.volume.shape[1:]
         out = wp.empty((zhi - zlo + 1, ny, nx), dtype=self.wp_dtype, device=self.device)
         stream = wp.get_stream(self.device) if self.device.is_cuda else None
@@ -179,29 +204,40 @@ _FEED = PinnedBuffer()
 
 @contextmanager
 def plane_feed(
-    volume: np.ndarray, device: Any, slab_bytes: int = 0, *, force: bool = False, ring_bytes: int | None = None
+    volume: Any,
+    device: Any,
+    slab_bytes: int = 0,
+    *,
+    force: bool = False,
+    ring_bytes: int | None = None,
+    host_bytes: int | None = None,
 ) -> Iterator[Any]:
-    """A feed whose ``upload(zlo, zhi)`` gives planes zlo..zhi of ``volume`` as a new array on ``device``. For a CUDA
-    device (with ``force``, any device: for tests) a ``PlaneFeed`` on the process's pinned ring, sized for
-    ``RING_SLABS`` slabs of up to ``slab_bytes`` (at least ``FEED_MIN_BYTES``, at most ``FEED_MAX_BYTES`` and
-    ``BONEMESH_PINNED_MAX``), or ``ring_bytes`` exactly on any device (``Budget.feed_ring_bytes``: for tests), and
-    grown when a larger one is needed; where the ring is held by another job, would hold fewer than two planes or
-    cannot be locked, a ``DirectFeed``."""
-    volume = np.ascontiguousarray(volume)
+    """A feed whose ``upload(zlo, zhi)`` gives planes zlo..zhi of ``volume`` (a host array, or a scan read slab by
+    slab: ``engine.io.slabs.SlabSource``) as a new array on ``device``. For a CUDA device (with ``force``, any
+    device: for tests) a ``PlaneFeed`` on the process's pinned ring, sized for ``RING_SLABS`` slabs of up to
+    ``slab_bytes`` (at least ``FEED_MIN_BYTES``, at most ``FEED_MAX_BYTES`` and ``BONEMESH_PINNED_MAX``), or
+    ``ring_bytes`` exactly on any device (``Budget.feed_ring_bytes``: for tests), and grown when a larger one is
+    needed; where the ring is held by another job, would hold fewer than two planes or cannot be locked, a
+    ``DirectFeed``. ``host_bytes``: the most host memory the ring (or a direct feed's reads of a source) may take
+    (``Budget.host_read_bytes``, under a host memory bound)."""
+    if isinstance(volume, np.ndarray):
+        volume = np.ascontiguousarray(volume)
     if getattr(device, "kind", None) == "opencl":  # the pinned ring is Warp's: an OpenCL queue copies directly
-        yield DirectFeed(volume, device)
+        yield DirectFeed(volume, device, host_bytes)
         return
     import warp as wp
 
     dev = wp.get_device(getattr(device, "device", device))
-    plane_bytes = volume[0].nbytes if volume.size else 0
+    plane_bytes = volume.shape[1] * volume.shape[2] * volume.itemsize if volume.size else 0
     if ring_bytes is None:
         ring_bytes = min(max(FEED_MIN_BYTES, RING_SLABS * slab_bytes), FEED_MAX_BYTES, pinned_max(), volume.nbytes)
+        if host_bytes is not None:
+            ring_bytes = min(ring_bytes, host_bytes)
     else:
         force = True
     usable = (dev.is_cuda or force) and volume.size and 2 * plane_bytes <= ring_bytes
     if not usable or not _FEED.lock.acquire(blocking=False):
-        yield DirectFeed(volume, dev)
+        yield DirectFeed(volume, dev, host_bytes)
         return
     feed = None
     try:

@@ -45,13 +45,14 @@ class StreamResult:
     info: dict[str, Any] = field(default_factory=dict)
 
 
-def plane_bytes(volume: np.ndarray, gaussian: GaussianParams | None) -> int:
+def plane_bytes(volume: Any, gaussian: GaussianParams | None) -> int:
     """Device bytes of one z plane in a slab: the samples, and the Gaussian's two float32 planes where it runs."""
-    return volume.shape[1] * volume.shape[2] * (volume.itemsize + (8 if gaussian is not None else 0))
+    return int(volume.shape[1] * volume.shape[2] * (volume.itemsize + (8 if gaussian is not None else 0)))
 
 
-def slab_getter(volume: np.ndarray, gaussian: GaussianParams | None, upload: Any) -> tuple[Any, int, int]:
-    """``(get_slab, plane_bytes, halo_planes)`` for ``run_slabs``: planes zlo..zhi uploaded by ``upload(lo, hi)``
+def slab_getter(volume: Any, gaussian: GaussianParams | None, upload: Any) -> tuple[Any, int, int]:
+    """``(get_slab, plane_bytes, halo_planes)`` for ``run_slabs`` over ``volume`` (a host array, or a scan read slab
+    by slab: ``engine.io.slabs.SlabSource``): planes zlo..zhi uploaded by ``upload(lo, hi)``
     (``engine.isosurface.feed.plane_feed``) and smoothed, with a plane of halo on each side so the result equals the
     whole volume's Gaussian."""
     from engine.backend.select import backend_of
@@ -82,7 +83,7 @@ def _slabs_within(slabs: Any, share: float) -> Any:
 
 
 def stream_surface(
-    volume: np.ndarray,
+    volume: Any,
     level: float,
     spacing: tuple[float, float, float],
     *,
@@ -94,8 +95,10 @@ def stream_surface(
     dev: Any,
     stats: Any,
 ) -> StreamResult:
-    """Gaussian and MC33 over z slabs within a device memory ``budget`` (limited), decimating groups of slabs
-    (to ``ratio`` of their faces, or by half when the target is a face count) whenever the mesh would not fit.
+    """Gaussian and MC33 over z slabs of ``volume`` (a host array, or a scan read slab by slab from disk:
+    ``engine.io.slabs.SlabSource``, whose planes are read as the slabs need them, within the budget's host bound)
+    within a device memory ``budget`` (limited), decimating groups of slabs (to ``ratio`` of their faces, or by half
+    when the target is a face count) whenever the mesh would not fit.
 
     Raises:
         BudgetError: one slab (one block layer and its halo) or, without decimation, the mesh needs more.
@@ -106,8 +109,10 @@ def stream_surface(
     from engine.isosurface.slabs import SlabPlan, join_parts, run_slabs
 
     share = budget.stream_slab_share if decimate else budget.slab_share  # of the budget, for a slab
-    slab_bytes = (budget.share(share) // plane_bytes(volume, gaussian) + 3) * volume[0].nbytes  # the most uploaded
-    with plane_feed(volume, dev, slab_bytes, ring_bytes=budget.feed_ring_bytes) as feed:
+    plane = volume.shape[1] * volume.shape[2] * volume.itemsize
+    slab_bytes = (budget.share(share) // plane_bytes(volume, gaussian) + 3) * plane  # the most uploaded
+    host = budget.host_read_bytes  # under a host bound: the ring (or a direct read) takes at most this
+    with plane_feed(volume, dev, slab_bytes, ring_bytes=budget.feed_ring_bytes, host_bytes=host) as feed:
         get_slab, per_plane, halo = slab_getter(volume, gaussian, feed.upload)
         # a group is decimated between slabs, when the slab's working set is freed: it may use the whole budget but
         # for what stays on the device meanwhile (the halo planes of the streamed Gaussian, the shared-plane ids)

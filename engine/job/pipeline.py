@@ -14,14 +14,15 @@ from __future__ import annotations
 import os
 import platform
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
 from engine.budget import Budget, BudgetSpec
 from engine.errors import EmptySurfaceError, InputError, StageError
-from engine.job.plans import STAGES, Stage, State, plan_for
+from engine.job.plans import STAGES, Stage, State, out_of_core, plan_for
 from engine.job.progress import StageProgress
 from engine.params import ReconParams
 from engine.report import Report
@@ -110,7 +111,15 @@ def reconstruct(
             fit is decimated in groups of slabs and then in z tiles with pinned borders (``engine.isosurface.stream``,
             ``engine.decimation.tiles``). The volume stages' result is the same as without a budget; the decimation
             keeps the same topology and guards. ``None``: no budget (the ``WHOLE_VOLUME`` plan: the volume goes up
-            at once). The peak used is reported in ``report["memory"]``.
+            at once). The peak used is reported in ``report["memory"]``. A ``Budget`` with a host memory bound
+            (``Budget.host_bytes``): on a device whose memory is the host's the device budget comes out of it
+            (``Budget.for_device``).
+
+    ``volume.data`` may be a scan read slab by slab from disk (``engine.io.slabs.open_slabs``, under a host memory
+    bound): the streamed plan then reads its slabs as the device stages need them (with the backend's default
+    device budget where none is given), and the mesh is the same as from the loaded scan under the same device
+    budget. The steps that need the whole scan in memory (slice preprocessing, the body mask's labelling on HU
+    data, the defect) are refused with the option that avoids them.
 
     Returns:
         The final mesh (vertices (z, y, x) mm in the grid, outward faces, unit vertex normals) and the report; the
@@ -118,7 +127,7 @@ def reconstruct(
 
     Raises:
         InputError: the volume or parameters cannot give a model (EmptySurfaceError: no surface at the level;
-            BudgetError: the memory budget is too small, with the smallest that would work).
+            BudgetError: the memory budget or the host bound is too small, with the smallest that would work).
         StageError: a stage failed otherwise.
     """
     from engine.device import resolve_backend, resolve_device
@@ -126,13 +135,71 @@ def reconstruct(
     params = params or ReconParams()
     dev = resolve_device(device)  # Warp's device: the scope of Warp's stages (Warp's CPU for an OpenCL spec)
     be = resolve_backend(device)  # where the device stages run
-    budget = Budget.of(max_device_bytes)
+    budget = Budget.of(max_device_bytes).for_device(be)
+    if out_of_core(volume):
+        budget = _out_of_core_budget(volume, params, budget, be)
     report = _report_head(volume, params, device, dev, be)
     st = State(volume, budget, backend=be)
-    _run_plan(st, plan_for(budget), params, report, StageProgress(STAGES, on_progress), dev)
+    with _host_bound_errors(budget, be):
+        _run_plan(st, plan_for(budget), params, report, StageProgress(STAGES, on_progress), dev)
+    if budget.host_bytes is not None:
+        report["memory"]["host_bound_bytes"] = budget.host_bytes
+        report["memory"]["out_of_core"] = out_of_core(volume)
     defect = _defect_step(st, params, report, dev)
     report["total_seconds"] = sum(report["stage_seconds"].values())
     return Reconstruction(report=report, device_mesh=(st.pos, st.faces, st.normals), defect=defect)
+
+
+def _out_of_core_budget(volume: Volume, params: ReconParams, budget: Budget, be: Any) -> Budget:
+    """The budget of a scan read slab by slab: a device budget (the backend's default where none is given), and a
+    host bound that holds one read of the scan's planes.
+
+    Raises:
+        InputError: the defect is asked for (it needs the whole scan); BudgetError: the host bound cannot hold one
+            read of planes (the smallest bound that can).
+    """
+    from engine.budget import mib
+    from engine.errors import BudgetError
+    from engine.job.plans import refuse_out_of_core
+
+    if params.defect is not None:
+        refuse_out_of_core(volume, "the defect and its template", "leave --defect out")
+    data = volume.data
+    if budget.host_bytes is not None:
+        plane = data.shape[1] * data.shape[2] * data.itemsize
+        planes = max(int(getattr(data, "granule", 1)), 2)
+        need = int(planes * plane / budget.host_read_share) + 1
+        if budget.host_bytes < need:
+            raise BudgetError(
+                f"the host memory bound of {mib(budget.host_bytes)} cannot hold one read of this scan's planes "
+                f"({planes} of {mib(plane)} at a time, in {budget.host_read_share:g} of the bound): give at least "
+                f"{mib(need)}",
+                needed=need,
+            )
+    if not budget.limited:
+        budget = budget.with_bytes(int(be.default_budget()))
+    return budget
+
+
+@contextmanager
+def _host_bound_errors(budget: Budget, be: Any) -> Iterator[None]:
+    """A device ``BudgetError`` restated for the host bound where the device budget came out of it (a host
+    device): the host bound that would give the device budget needed."""
+    from engine.budget import mib
+    from engine.errors import BudgetError
+
+    try:
+        yield
+    except BudgetError as exc:
+        host = budget.host_bytes
+        if host is None or not getattr(be, "is_host", False) or budget.bytes != int(host * budget.host_device_share):
+            raise
+        needed = int(exc.needed / budget.host_device_share) + 1
+        raise BudgetError(
+            f"{exc}; on this device the device budget is {budget.host_device_share:g} of the host memory bound of "
+            f"{mib(host)}: give a --max-host-bytes of at least {mib(needed)}",
+            needed=needed,
+        ) from None
 
 
 def _report_head(volume: Volume, params: ReconParams, device: Any, dev: Any, be: Any) -> Report:

@@ -3,7 +3,8 @@ ordered tuple of named stages over a small typed state (``State``).
 
 * ``WHOLE_VOLUME`` (no budget): the volume goes up once, the Gaussian and MC33 run on the whole field, the mesh is
   decimated in one piece;
-* ``STREAMED`` (a budget): the volume stays on the host and streams through the Gaussian and MC33 in z slabs
+* ``STREAMED`` (a budget): the volume stays on the host (or on disk, read slab by slab under a host memory bound:
+  ``engine.io.slabs``, ``out_of_core``) and streams through the Gaussian and MC33 in z slabs
   (``engine.isosurface.stream``), a mesh whose decimation does not fit is decimated in groups of slabs and
   finished across their borders (``engine.decimation.groups``), and the finishing stages go to the host where the
   model does not fit (``Budget.place``).
@@ -76,6 +77,27 @@ class Prepared:
 PREPARED_WHOLE = "prepared_whole"
 
 
+def out_of_core(volume: Volume) -> bool:
+    """Whether the scan is read slab by slab from disk (``engine.io.slabs.SlabSource``: a host memory bound) rather
+    than held as an array."""
+    return not isinstance(volume.data, np.ndarray)
+
+
+def refuse_out_of_core(volume: Volume, what: str, way_out: str) -> None:
+    """Raise the plain-words ``InputError`` of a step that needs the whole scan in memory, out of core.
+
+    Raises:
+        InputError: always: ``what`` needs the whole scan, and ``way_out`` avoids it.
+    """
+    from engine.budget import mib
+
+    raise InputError(
+        f"{what} needs the whole scan in memory, and the scan ({mib(volume.data.nbytes)} of voxels) is over the "
+        f"host memory bound's share for a whole scan, so it is read slab by slab: {way_out}, or give a "
+        f"--max-host-bytes of at least {mib(2 * volume.data.nbytes + (1 << 20))}"
+    )
+
+
 def prepare_volume(volume: Volume, params: ReconParams) -> Prepared:
     """The paper's slice preprocessing (when asked), the level (given, a preset, or automatic: ``engine.level``) and
     the bone inside the body outline (``params.body``, HU data: ``engine.volume.bodymask``): what the model and the
@@ -87,15 +109,20 @@ def prepare_volume(volume: Volume, params: ReconParams) -> Prepared:
     from engine.volume.preprocess import preprocess_volume
 
     whole = volume.source.get(PREPARED_WHOLE)
+    sliced = out_of_core(volume)
     if params.preprocess is not None and whole is None:
+        if sliced:
+            refuse_out_of_core(volume, "the slice preprocessing (--threshold & co.)", "leave it out")
         volume = preprocess_volume(volume, params.preprocess)
-    choice = resolve_level(volume, params)
+    choice = resolve_level(volume, params)  # out of core: from strided samples read plane by plane, the same
     body = None
     if whole is not None:
         body = whole.get("body_mask")
     elif params.body is not None:
         from engine.volume.bodymask import isolate_bone
 
+        if sliced and choice.hu_offset is not None and choice.value > params.body.outline_hu + choice.hu_offset:
+            refuse_out_of_core(volume, "the body mask (bone outside the body outline)", "give --keep-outside-body")
         volume, body = isolate_bone(volume, choice.value, params.body, choice.hu_offset)
     return Prepared(volume, choice, body)
 
@@ -134,8 +161,10 @@ def _upload(st: State, params: ReconParams, report: Report, progress: Progress) 
 
 
 def _stage_on_host(st: State, params: ReconParams, report: Report, progress: Progress) -> None:
-    """The volume stays on the host, contiguous, to stream in slabs (the streamed plan: engine.isosurface.stream)."""
-    st.volume = dataclasses.replace(st.volume, data=np.ascontiguousarray(_device_dtype(st.volume.data)))
+    """The volume stays on the host, contiguous, to stream in slabs (the streamed plan: engine.isosurface.stream);
+    out of core, on disk (read slab by slab: its planes are of a type the device reads already)."""
+    if not out_of_core(st.volume):
+        st.volume = dataclasses.replace(st.volume, data=np.ascontiguousarray(_device_dtype(st.volume.data)))
     _choose_level(st, params, report)
 
 

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from engine.errors import InputError
 from engine.job.runtime import Runtime
 from engine.job.spec import JobSpec
@@ -79,9 +81,12 @@ def run_job(
     if inp.segments and inp.pieces is None:
         raise InputError("segments picks among a label map's segments (or a CT's pieces); this upload is a CT scan")
     volume = _load(job, source)
-    if inp.pieces is not None:
-        return _pieces(job, volume)
-    return _scan(job, volume)
+    try:
+        if inp.pieces is not None:
+            return _pieces(job, volume)
+        return _scan(job, volume)
+    finally:
+        _close(source, volume)
 
 
 @dataclass(frozen=True)
@@ -116,7 +121,21 @@ class _Steps:
 def _load(job: _Job, source: str | Path | Volume) -> Volume:
     """The scan, loaded on the runtime's decoders (``engine.io.load_volume``) and cropped to the roi."""
     spec, runtime, progress, end = job.spec, job.runtime, job.progress, job.shares[0]
-    if isinstance(source, Volume):
+    whole = runtime.budget.whole_volume_bytes  # under a host memory bound: a larger scan is read slab by slab
+    sliced = None
+    if whole is not None and not isinstance(source, Volume):
+        from engine.io.slabs import open_slabs
+
+        sliced = open_slabs(source, whole, spacing_zyx_mm=spec.input.spacing_zyx_mm, threads=runtime.decode_threads)
+    if sliced is not None:
+        volume = sliced
+        if spec.input.roi is not None or spec.input.pieces is not None:
+            from engine.job.plans import refuse_out_of_core
+
+            what = "a region of interest (roi)" if spec.input.roi is not None else "a scan's bone pieces (pieces)"
+            _close(source, volume)
+            refuse_out_of_core(volume, what, "leave it out")
+    elif isinstance(source, Volume):
         volume = source
     else:
         from engine.io import codecs, load_volume
@@ -135,6 +154,13 @@ def _load(job: _Job, source: str | Path | Volume) -> Volume:
         volume = _crop(volume, spec)
     progress("loading", end)
     return volume
+
+
+def _close(source: Any, volume: Volume) -> None:
+    """The files of a scan read slab by slab (``engine.io.slabs``) closed, where this job opened them."""
+    close = getattr(volume.data, "close", None)
+    if not isinstance(source, Volume) and not isinstance(volume.data, np.ndarray) and close is not None:
+        close()
 
 
 def _crop(volume: Volume, spec: JobSpec) -> Volume:

@@ -33,7 +33,8 @@ class Runtime:
         warp_device: Warp's device for Warp's own steps (Warp's CPU where the backend is OpenCL).
         requested: the spec asked for ("auto", "cuda:1", ...); ``backend.spec`` is what it resolved to.
         reason: why ``auto`` chose this device (empty for an explicit spec).
-        budget: the device memory budget every stage keeps to (``engine.budget``).
+        budget: the device memory budget every stage keeps to, and the host memory bound (``engine.budget``: on a
+            host device the device budget comes out of the host bound).
         png_decoder: ``auto`` (PNG rows unfiltered on a GPU), ``libpng`` or ``pillow``.
         decode_threads, decode_processes: how slices are decoded (``engine.io.load_volume``; None: its default).
     """
@@ -69,6 +70,8 @@ class Runtime:
         """One line for a log: what runs where, and why."""
         why = f" ({self.reason})" if self.reason else ""
         budget = f", budget {self.budget.bytes:,} bytes" if self.budget.bytes is not None else ""
+        if self.budget.host_bytes is not None:
+            budget += f", host bound {self.budget.host_bytes:,} bytes"
         return f"device {self.requested} -> {self.backend.label}{why}{budget}"
 
 
@@ -79,9 +82,11 @@ def resolve_runtime(
     png_decoder: str = "auto",
     decode_threads: int | None = None,
     decode_processes: bool | None = None,
+    max_host_bytes: str | int | None = None,
 ) -> Runtime:
     """Resolve a device spec (``engine.device``: "auto", "cpu", "cuda[:N]", "opencl[:N]", a Warp device or a
-    ``Backend``) and a budget once.
+    ``Backend``) and a budget once: the device budget ``max_device_bytes`` and the host memory bound
+    ``max_host_bytes`` (``"64GiB"``, bytes, None: none; ``Budget.with_host``, ``Budget.for_device``).
 
     Raises:
         ValueError: a malformed spec, a device (or PyOpenCL, or an OpenCL driver) that is not present, a budget or
@@ -103,11 +108,17 @@ def resolve_runtime(
         warp_device=resolve_device(backend),
         requested=requested,
         reason=reason,
-        budget=Budget.of(max_device_bytes),
+        budget=_budget(max_device_bytes, max_host_bytes).for_device(backend),
         png_decoder=png_decoder,
         decode_threads=decode_threads,
         decode_processes=decode_processes,
     )
+
+
+def _budget(device: BudgetSpec, host: str | int | None) -> Budget:
+    """The device budget with the host bound (a ``Budget`` given keeps its own bound unless ``host`` is given)."""
+    budget = Budget.of(device)
+    return budget if host is None else budget.with_host(host)
 
 
 def _auto_reason(spec: str) -> str:
