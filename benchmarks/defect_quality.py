@@ -346,9 +346,52 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def refusal_reason(outcome: str) -> str:
+    """A refusal's class and reason, without its numbers (the sweep's count of refusals by reason)."""
+    import re
+
+    kind, _, text = outcome.partition(": ")
+    if kind == "MidlineDefectError":
+        return f"{kind}: " + ("crosses the midline" if "crosses the midline" in text else "the hole goes on toward it")
+    if "was left out: " in text:
+        text = text.split("was left out: ", 1)[1]
+    elif "looks intact" in text:
+        text = "the scan looks intact at this level"
+    text = re.split(r" \(|: ", text, maxsplit=1)[0]
+    return f"{kind}: " + re.sub(r"\d+(\.\d+)?%", "N%", text)
+
+
+def overall(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """All scans together: templates, refusals (by reason), Dice and rim gap over the one-sided cases."""
+    one = [r for r in rows if r["expected"].startswith("template,")]
+    found = [r for r in one if "dice" in r]
+    refused = [r for r in one if "Error" in r["outcome"]]
+    d = np.array([r["dice"] for r in found]) if found else np.zeros(0)
+    g = np.array([r["rim_gap_voxels"] for r in found]) if found else np.zeros(0)
+    reasons: dict[str, int] = {}
+    for r in refused:
+        key = f"{r['scan']} {r['diameter_mm']:g} mm: {refusal_reason(r['outcome'])}"
+        reasons[key] = reasons.get(key, 0) + 1
+    return {
+        "cases": len(one),
+        "templates": len(found),
+        "refused": len(refused),
+        "left_out": sum(1 for r in rows if r["outcome"] == "not run"),
+        "dice_mean": round(float(d.mean()), 4) if len(d) else None,
+        "dice_min": round(float(d.min()), 4) if len(d) else None,
+        "dice_below_0.6": int((d < 0.6).sum()),
+        "rim_gap_voxels_mean": round(float(g.mean()), 4) if len(g) else None,
+        "rim_gap_voxels_max": round(float(g.max()), 4) if len(g) else None,
+        "rim_gap_over_1_voxel": int((g > 1.0).sum()),
+        "wrong_side": sum(1 for r in found if not r["expected"].endswith(r.get("side", "?"))),
+        "refused_by_reason": dict(sorted(reasons.items())),
+    }
+
+
 def _write(out: str, dev: Any, sizes: list[float], rows: list[dict[str, Any]]) -> dict[str, Any]:
+    sweep = any("azimuth_deg" in r for r in rows)
     result = {
-        "benchmark": "defect_quality",
+        "benchmark": "defect_sweep" if sweep else "defect_quality",
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "device": str(dev),
         "device_name": getattr(dev, "name", str(dev)),
@@ -357,6 +400,8 @@ def _write(out: str, dev: Any, sizes: list[float], rows: list[dict[str, Any]]) -
         "summary": summary(rows),
         "rows": rows,
     }
+    if sweep:
+        result["overall"] = overall(rows)
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     Path(out).write_text(json.dumps(result, indent=2) + "\n")
     return result

@@ -2,6 +2,7 @@
 
     python -m benchmarks.defect_speed --device cpu|cuda:0|opencl[:N] [--data PATH] [--repeat 5] --out result.json
     python -m benchmarks.defect_speed --device cuda:0,opencl:0 --out result.json   # NVIDIA: CUDA against OpenCL
+    python -m benchmarks.defect_speed --device cpu --before /tmp/before   # against a checkout of the code before
 
 PATH is the cranium's PNG zip (../shared/data/cranium_ct/cranium_ct_png16.zip, the default) or a ``.npz`` with its
 ``data`` (108 x 256 x 256, HU + 1024), for a machine without the image codecs. The first run compiles Warp's kernels
@@ -70,13 +71,34 @@ def _measure(volume: Any, device: str, repeat: int) -> dict[str, Any]:
     }
 
 
+def _before(tree: Path, args: Any) -> dict[str, Any]:
+    """The same measure with the code in ``tree`` (its own ``benchmarks.defect_speed``, a subprocess)."""
+    import subprocess
+    import sys
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "before.json"
+        cmd = [sys.executable, "-m", "benchmarks.defect_speed", "--device", args.device.split(",")[0],
+               "--data", str(Path(args.data).resolve()), "--repeat", str(args.repeat), "--out", str(out)]  # fmt: skip
+        subprocess.run(cmd, cwd=tree, check=True, stdout=subprocess.DEVNULL)
+        result: dict[str, Any] = json.loads(out.read_text())
+    rev = subprocess.run(["git", "rev-parse", "HEAD"], cwd=tree, capture_output=True, text=True)
+    result["commit"] = rev.stdout.strip() or None
+    return result
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cpu", help="a device, or several separated by commas (cuda:0,opencl:0)")
     ap.add_argument("--data", default=str(CRANIUM))
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--out", default="benchmarks/results/defect_speed_cpu.json")
+    ap.add_argument("--before", default=None, metavar="TREE",
+                    help="a checkout of the code before (git worktree add TREE REV): measured in the same run, first, "
+                         "and the ratio before/after reported per stage")  # fmt: skip
     args = ap.parse_args(argv)
+    before = _before(Path(args.before), args) if args.before else None
     from engine.device import init_runtime
 
     init_runtime()
@@ -102,11 +124,21 @@ def main(argv: list[str] | None = None) -> int:
         "plane": info["plane"],
         "same_as_first_run": rows[0]["same_as_first_run"],
     }
+    if before is not None:
+        now = rows[0]["median_seconds"]
+        result["before"] = {
+            "tree": args.before,
+            "commit": before.get("commit"),
+            "median_seconds": before["median_seconds"],
+            "ratio_before_over_after": {k: round(v / now[k], 3) for k, v in before["median_seconds"].items()
+                                        if k in now and now[k] > 0},
+            "defect": before.get("defect"),
+        }  # fmt: skip
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
     summary = [{k: r[k] for k in ("device_name", "first_run_with_compile_s", "median_seconds", "identical_to_first")}
                for r in rows]  # fmt: skip
-    print(json.dumps({"devices": summary, "defect": result["defect"]}))
+    print(json.dumps({"devices": summary, "defect": result["defect"], "before": result.get("before")}))
     return 0
 
 
