@@ -158,7 +158,6 @@ def _out_of_core_budget(volume: Volume, params: ReconParams, budget: Budget, be:
         InputError: the defect is asked for (it needs the whole scan); BudgetError: the host bound cannot hold one
             read of planes (the smallest bound that can).
     """
-    from engine.budget import mib
     from engine.errors import BudgetError
     from engine.job.plans import refuse_out_of_core
 
@@ -168,12 +167,12 @@ def _out_of_core_budget(volume: Volume, params: ReconParams, budget: Budget, be:
     if budget.host_bytes is not None:
         plane = data.shape[1] * data.shape[2] * data.itemsize
         planes = max(int(getattr(data, "granule", 1)), 2)
-        need = int(planes * plane / budget.host_read_share) + 1
+        need = _rounded_up(int(planes * plane / budget.host_read_share))
         if budget.host_bytes < need:
             raise BudgetError(
-                f"the host memory bound of {mib(budget.host_bytes)} cannot hold one read of this scan's planes "
-                f"({planes} of {mib(plane)} at a time, in {budget.host_read_share:g} of the bound): give at least "
-                f"{mib(need)}",
+                f"the host memory bound of {_size(budget.host_bytes)} cannot hold one read of this scan's planes "
+                f"({planes} of {_size(plane)} at a time, in {budget.host_read_share:g} of the bound): give at least "
+                f"{_size(need)}",
                 needed=need,
             )
     if not budget.limited:
@@ -181,11 +180,23 @@ def _out_of_core_budget(volume: Volume, params: ReconParams, budget: Budget, be:
     return budget
 
 
+def _rounded_up(n: int) -> int:
+    """``n`` bytes rounded up to whole MiB (whole KiB under 1 MiB), for a bound that works."""
+    unit = 1 << 20 if n >= 1 << 20 else 1 << 10
+    return -(-n // unit) * unit
+
+
+def _size(n: int) -> str:
+    """A byte count for messages: MiB (``engine.budget.mib``), or KiB under 1 MiB."""
+    from engine.budget import mib
+
+    return mib(n) if n >= 1 << 20 else f"{n / 1024:,.0f} KiB"
+
+
 @contextmanager
 def _host_bound_errors(budget: Budget, be: Any) -> Iterator[None]:
     """A device ``BudgetError`` restated for the host bound where the device budget came out of it (a host
     device): the host bound that would give the device budget needed."""
-    from engine.budget import mib
     from engine.errors import BudgetError
 
     try:
@@ -194,10 +205,10 @@ def _host_bound_errors(budget: Budget, be: Any) -> Iterator[None]:
         host = budget.host_bytes
         if host is None or not getattr(be, "is_host", False) or budget.bytes != int(host * budget.host_device_share):
             raise
-        needed = int(exc.needed / budget.host_device_share) + 1
+        needed = _rounded_up(int(exc.needed / budget.host_device_share))
         raise BudgetError(
             f"{exc}; on this device the device budget is {budget.host_device_share:g} of the host memory bound of "
-            f"{mib(host)}: give a --max-host-bytes of at least {mib(needed)}",
+            f"{_size(host)}: give a --max-host-bytes of at least {_size(needed)}",
             needed=needed,
         ) from None
 

@@ -1,0 +1,248 @@
+"""Peak host memory of a whole job (``run_job``: load, mesh, files) under a host memory bound (issue 46), against the
+bound and against the same job with the scan loaded whole.
+
+    python -m benchmarks.host_memory [--shape 256,256,256] [--stack 12] [--bound 96MiB] [--formats npy,bigtiff,...]
+                                     [--chunks 64,256,256] [--threads N] [--workdir DIR] --out result.json
+
+The bone phantom (uint16, ``engine.data.phantom.bone_phantom``) stacked ``--stack`` times along z, every other copy
+mirrored (12 x 256 x 256 x 256 is 384 MiB, 4x the default bound; a phantom that long has finer bone, whose block
+layers need more device memory than half the bound) is written once per format: ``npy``, ``tiff-folder`` (one TIFF per
+slice), ``bigtiff`` (one file, a page per slice) and ``ome-zarr`` (v0.5, chunks ``--chunks``). Each is then meshed
+twice on Warp's CPU device, each time in a new Python process that first imports the engine and its readers, resolves
+the runtime and warms the device up on a small job (its kernels loaded), then notes its resident size (``baseline``,
+VmRSS) and resets its high-water mark (``/proc/self/clear_refs``), runs the job and notes the peak (VmHWM;
+``ru_maxrss`` where the mark cannot be reset):
+
+* ``bounded``: ``--max-host-bytes`` the bound (the scan is read slab by slab from disk; the device budget on the
+  CPU is half the bound);
+* ``whole``: no host bound, the same device budget (the scan loaded whole, then streamed in the same slabs).
+
+Reported per format and run: the peak, the baseline, ``used_bytes`` (peak - baseline: what the job cost), its ratio
+to the bound, the seconds, the mesh's measures (faces, pieces, Euler characteristic) and the model's SHA-256;
+``same_mesh``: the bounded run's model.stl is byte for byte the whole run's.
+
+Measured here (2 CPUs, 12 x 256 x 256 x 256 uint16, 384 MiB, 96 MiB bound; ``benchmarks/results/host_memory_cpu.json``):
+see docs/host-memory.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import hashlib
+import json
+import os
+import platform
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from benchmarks.report import stop_on_sigterm, write_json
+
+FORMATS = ("npy", "tiff-folder", "bigtiff", "ome-zarr")
+SPACING = (0.05, 0.05, 0.05)  # mm, for the formats that do not carry it (OME-Zarr's metadata say 50 micrometer)
+
+
+def _status(key: str) -> int:
+    """A /proc/self/status size in bytes (VmRSS, VmHWM)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) * 1024
+    raise KeyError(key)
+
+
+def _reset_peak() -> bool:
+    """Reset the resident set's high-water mark (Linux: ``5`` to ``/proc/self/clear_refs``); False where it cannot."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        return False
+    return _status("VmHWM") <= _status("VmRSS") + (1 << 20)
+
+
+def _child(args: argparse.Namespace) -> dict[str, Any]:
+    """In the measured process: import, warm up, note the baseline, run the job, note the peak."""
+    import dataclasses
+
+    import tifffile  # noqa: F401  # the readers, imported before the baseline
+    import zarr  # noqa: F401
+
+    from engine.budget import Budget
+    from engine.job import resolve_runtime, run_job
+    from engine.job.spec import JobSpec
+    from engine.job.warmup import warm_up
+
+    budget = Budget(bytes=args.child_device_bytes, host_volume_share=args.volume_share)
+    if args.child_bound:
+        budget = budget.with_host(args.child_bound)
+    runtime = resolve_runtime("cpu", budget, decode_threads=args.threads)
+    warm_up(runtime)
+    spec = JobSpec()
+    spacing = None if args.child_format == "ome-zarr" else SPACING
+    spec = dataclasses.replace(
+        spec,
+        input=dataclasses.replace(spec.input, spacing_zyx_mm=spacing),
+        recon=dataclasses.replace(spec.recon, body=None),  # the phantom reads as HU + 1024: no body outline out of core
+    )
+    baseline = _status("VmRSS")
+    resettable = _reset_peak()
+    t0 = time.perf_counter()
+    result = run_job(args.child_input, args.child_outdir, spec, runtime)
+    seconds = time.perf_counter() - t0
+    peak = _status("VmHWM") if resettable else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    mesh = result.report["mesh"]
+    stl = Path(args.child_outdir) / "model.stl"
+    return {
+        "peak_rss_bytes": peak,
+        "baseline_rss_bytes": baseline,
+        "peak_from": "VmHWM (reset after warm-up)" if resettable else "ru_maxrss",
+        "seconds": round(seconds, 3),
+        "stage_seconds": {k: round(v, 3) for k, v in result.report["stage_seconds"].items()},
+        "device_budget_bytes": runtime.budget.bytes,
+        "host_bound_bytes": runtime.budget.host_bytes,
+        "out_of_core": bool(result.report["memory"].get("out_of_core", False)),
+        "faces": mesh["n_faces"],
+        "mesh": {k: mesh[k] for k in ("n_faces", "n_vertices", "components", "euler", "watertight") if k in mesh},
+        "model_stl_sha256": hashlib.sha256(stl.read_bytes()).hexdigest(),
+    }
+
+
+def _write(fmt: str, volume: np.ndarray, work: Path, chunks: tuple[int, int, int]) -> Path:
+    """``volume`` written as ``fmt`` under ``work``; the path to read."""
+    import tifffile
+
+    if fmt == "npy":
+        np.save(work / "volume.npy", volume)
+        return work / "volume.npy"
+    if fmt == "tiff-folder":
+        folder = work / "slices"
+        folder.mkdir()
+        for k, plane in enumerate(volume):
+            tifffile.imwrite(folder / f"slice_{k:05d}.tif", plane)
+        return folder
+    if fmt == "bigtiff":
+        tifffile.imwrite(work / "volume.tif", volume, bigtiff=True)
+        return work / "volume.tif"
+    from tests.engine.omezarr_factory import write_ome_zarr
+
+    um = [s * 1000 for s in SPACING]
+    return Path(write_ome_zarr(work / "scan.ome.zarr", volume, version="0.5", scale=um, chunks=chunks))
+
+
+def _measure(fmt: str, path: Path, outdir: Path, bound: int | None, device: int, args: argparse.Namespace) -> Any:
+    argv = [sys.executable, "-m", "benchmarks.host_memory", "--out", str(args.out), "--child-format", fmt]
+    argv += ["--child-input", str(path), "--child-outdir", str(outdir), "--child-device-bytes", str(device)]
+    argv += ["--volume-share", str(args.volume_share)]
+    if bound is not None:
+        argv += ["--child-bound", str(bound)]
+    if args.threads:
+        argv += ["--threads", str(args.threads)]
+    repo = Path(__file__).resolve().parents[1]
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=3600, check=False, cwd=repo)
+    if done.returncode:
+        return {"error": (done.stderr.strip().splitlines() or ["failed"])[-1][:500]}
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def run(args: argparse.Namespace, say: Callable[[str], None]) -> dict[str, Any]:
+    from engine.budget import Budget, parse_bytes
+    from engine.data.phantom import bone_phantom
+
+    shape = tuple(int(v) for v in args.shape.split(","))
+    chunks = [int(c) for c in args.chunks.split(",")]
+    bound = parse_bytes(args.bound)
+    assert bound is not None
+    device = int(bound * Budget().host_device_share)  # the device budget the bound gives on the CPU
+    wanted = [f.strip() for f in args.formats.split(",")] if args.formats else list(FORMATS)
+    unknown = sorted(set(wanted) - set(FORMATS))
+    if unknown:
+        raise SystemExit(f"unknown format(s) {unknown}; choose from {', '.join(FORMATS)}")
+    one = bone_phantom(shape, workers=args.threads)  # type: ignore[arg-type]
+    volume = np.concatenate([one if k % 2 == 0 else one[::-1] for k in range(args.stack)])
+    del one
+    shape = volume.shape
+    chunk_zyx = tuple(min(c, n) for c, n in zip(chunks, shape, strict=True))
+    report: dict[str, Any] = {
+        "benchmark": "host_memory",
+        "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "host": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
+        "device": "cpu",
+        "shape_zyx": list(shape),
+        "dtype": str(volume.dtype),
+        "volume_bytes": int(volume.nbytes),
+        "host_bound_bytes": bound,
+        "volume_over_bound": round(volume.nbytes / bound, 3),
+        "device_budget_bytes": device,
+        "stacked": args.stack,
+        "zarr_chunks": list(chunk_zyx),
+        "threads": args.threads,
+        "formats": {},
+    }
+    work = Path(args.workdir or tempfile.mkdtemp(prefix="bonemesh-host-memory-"))
+    work.mkdir(parents=True, exist_ok=True)
+    try:
+        for fmt in wanted:
+            fmt_work = work / fmt
+            fmt_work.mkdir()
+            path = _write(fmt, volume, fmt_work, chunk_zyx)  # type: ignore[arg-type]
+            row: dict[str, Any] = {}
+            for name, host in (("bounded", bound), ("whole", None)):
+                r = _measure(fmt, path, fmt_work / f"out_{name}", host, device, args)
+                if "error" not in r:
+                    r["used_bytes"] = r["peak_rss_bytes"] - r["baseline_rss_bytes"]
+                    r["used_over_bound"] = round(r["used_bytes"] / bound, 3)
+                    say(
+                        f"[host_memory] {fmt} {name}: used {r['used_bytes'] / 2**20:.0f} MiB "
+                        f"({r['used_over_bound']:.2f}x the bound), {r['seconds']:.1f} s, {r['faces']:,} faces"
+                    )
+                else:
+                    say(f"[host_memory] {fmt} {name}: {r['error']}")
+                row[name] = r
+            ok = all("error" not in row[k] for k in ("bounded", "whole"))
+            row["same_mesh"] = ok and row["bounded"]["model_stl_sha256"] == row["whole"]["model_stl_sha256"]
+            row["within_bound"] = ok and row["bounded"]["used_bytes"] <= bound
+            report["formats"][fmt] = row
+            shutil.rmtree(fmt_work, ignore_errors=True)
+    finally:
+        if not args.workdir:
+            shutil.rmtree(work, ignore_errors=True)
+    return report
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--shape", default="256,256,256", help="the phantom's shape Z,Y,X (uint16)")
+    parser.add_argument("--stack", type=int, default=12, help="copies of the phantom stacked along z")
+    parser.add_argument("--bound", default="96MiB", help="the host memory bound (--max-host-bytes)")
+    parser.add_argument("--formats", default=None, help=f"comma-separated, default all: {','.join(FORMATS)}")
+    parser.add_argument("--chunks", default="64,256,256", help="OME-Zarr chunk shape Z,Y,X")
+    parser.add_argument(
+        "--volume-share", type=float, default=0.5, help="a scan up to this share of the bound is loaded whole (tests)"
+    )
+    parser.add_argument("--threads", type=int, default=None, help="decode threads (default: the CPUs)")
+    parser.add_argument("--workdir", type=Path, default=None, help="where the files go (default: a temporary one)")
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--child-format", help=argparse.SUPPRESS)
+    parser.add_argument("--child-input", help=argparse.SUPPRESS)
+    parser.add_argument("--child-outdir", help=argparse.SUPPRESS)
+    parser.add_argument("--child-bound", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--child-device-bytes", type=int, default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child_format is not None:  # the measured process: its result as JSON on stdout's last line
+        print(json.dumps(_child(args)))
+        return 0
+    stop_on_sigterm()
+    write_json(args.out, run(args, print))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
