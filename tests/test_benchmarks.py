@@ -136,6 +136,23 @@ def test_budget(tmp_path: Path) -> None:
         assert "stream" in volume["runs"]["2MiB"], f"{name}: the 2 MiB budget did not stream"
 
 
+def test_host_memory(tmp_path: Path) -> None:
+    from benchmarks.host_memory import main
+
+    out = tmp_path / "host_memory.json"
+    # a 16 MiB bound whose share for a whole scan (0.1 %) is under the 32^3 phantom: read slab by slab
+    args = ["--shape", "32,32,32", "--stack", "1", "--bound", "16MiB", "--volume-share", "0.001"]
+    assert main([*args, "--formats", "npy,ome-zarr", "--out", str(out)]) == 0
+    report = load(out)
+    has_keys(report, "benchmark", "shape_zyx", "volume_bytes", "host_bound_bytes", "device_budget_bytes", "formats")
+    assert sorted(report["formats"]) == ["npy", "ome-zarr"]
+    for fmt, row in report["formats"].items():
+        assert row["same_mesh"], (fmt, row)
+        assert row["bounded"]["out_of_core"] and not row["whole"]["out_of_core"], fmt
+        for run in (row["bounded"], row["whole"]):
+            assert finite(run["seconds"]) and run["faces"] > 0 and run["used_bytes"] > 0, fmt
+
+
 def test_labels_speed(tmp_path: Path) -> None:
     from benchmarks.labels_speed import main
 

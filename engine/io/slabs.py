@@ -10,7 +10,7 @@ loader would give, and ``read(z0, z1)``, planes ``z0..z1 - 1`` decoded into a ne
 
 What is read slab by slab: a folder, zip or tar of 2-D slices (PNG, TIFF, JPEG, BMP: a file per plane), one
 multi-page TIFF or BigTIFF (page by page through tifffile, where its bytes lie: a file, an uncompressed tar's
-member, a zip member stored without compression), a ``.npy`` file (memory-mapped, each slab copied), an OME-Zarr
+member, a zip member stored without compression), a ``.npy`` file (each slab read from the file), an OME-Zarr
 level (zarr reads the rows of z-chunks a slab spans; the last row read is kept). A DICOM series, a compressed TIFF
 archive member, a TIFF without a page per plane and samples of a type the engine does not mesh as they are (int32,
 colour .npy) are refused when they do not fit the bound: one line that names a way out.
@@ -285,30 +285,47 @@ def _stack(
 
 
 def _npy(m: Any, label: str, whole_bytes: int, spacing: Any, limits: Any, container: str) -> Volume | None:
-    """A (z, y, x) .npy file, memory-mapped: each slab copied out of the map."""
+    """A (z, y, x) .npy file, each slab read from the file straight into its array (not memory-mapped: mapped pages
+    stay in the process's resident set once read)."""
     from engine.io.stack import _resolve_spacing
 
     if m._path is None:
         return None if m.size <= whole_bytes else _refuse_member(label, m.size, "a .npy inside an archive")
-    arr = np.load(m._path, mmap_mode="r", allow_pickle=False)
-    if arr.ndim != 3 or arr.nbytes <= whole_bytes:
+    fmt = np.lib.format
+    with m._path.open("rb") as fh:
+        version = fmt.read_magic(fh)
+        reader = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+        shape_, fortran, dtype_ = reader(fh)
+        offset = fh.tell()
+    dtype_ = np.dtype(dtype_)
+    nbytes = int(np.prod(shape_)) * dtype_.itemsize
+    if len(shape_) != 3 or nbytes <= whole_bytes:
         return None
-    limits.check_voxels(tuple(arr.shape), label)
-    if arr.dtype.type not in _NATIVE and arr.dtype.newbyteorder("=").type not in _NATIVE:
+    limits.check_voxels(tuple(shape_), label)
+    native = dtype_.newbyteorder("=")
+    if native.type not in _NATIVE or fortran:
+        what = f"samples are {dtype_}" if native.type not in _NATIVE else "array is in Fortran order"
         raise InputError(
-            f"{label}: its samples are {arr.dtype}, which are narrowed over the whole scan before meshing; give a "
-            f"--max-host-bytes of at least {mib(_whole_bound(arr.nbytes))} or save it as uint16 or float32"
+            f"{label}: its {what}, which is read whole before meshing; give a --max-host-bytes of at least "
+            f"{mib(_whole_bound(nbytes))} or save it as a C-ordered uint16 or float32 array"
         )
-    dtype = arr.dtype.newbyteorder("=")
-    shape = (int(arr.shape[0]), int(arr.shape[1]), int(arr.shape[2]))
+    shape = (int(shape_[0]), int(shape_[1]), int(shape_[2]))
+    plane = shape[1] * shape[2] * dtype_.itemsize
+    path = m._path
 
     def fill(z0: int, z1: int, out: np.ndarray) -> None:
-        out[...] = arr[z0:z1]
+        with path.open("rb") as fh:
+            fh.seek(offset + z0 * plane)
+            view = out.reshape(-1).view(np.uint8)
+            if fh.readinto(memoryview(view)) != view.size:
+                raise InputError(f"{label}: the file ends before slice {z1 - 1}")
+        if dtype_ != native:  # another byte order: swapped in place
+            out.byteswap(inplace=True)
 
     sp, how = _resolve_spacing(spacing, {}, label)
     source = {"format": "npy", "container": container, "files": 1, "spacing_from": how}
     source |= {"read": "slab by slab (host memory bound)"}
-    data = SlabSource(shape, dtype, fill, label=label)
+    data = SlabSource(shape, native, fill, label=label)
     return Volume(data=_as_data(data), spacing_zyx_mm=sp, units="raw", source=source)
 
 
