@@ -13,8 +13,8 @@ the runtime and warms the device up on a small job (its kernels loaded), then no
 VmRSS) and resets its high-water mark (``/proc/self/clear_refs``), runs the job and notes the peak (VmHWM;
 ``ru_maxrss`` where the mark cannot be reset):
 
-The model is decimated to ``--max-triangles`` (300,000) faces: the finished model is held whole on the host (the
-undecimated one of this phantom, 2.2 M faces, needs 149 MiB to finish on the CPU device).
+The model keeps ``--reduction`` (0.02) of its faces: the decimated groups of slabs and the finished model are held
+on the host (at the default 0.2 this phantom's model, 2.2 M faces, needs 149 MiB to finish on the CPU device alone).
 
 * ``bounded``: ``--max-host-bytes`` the bound (the scan is read slab by slab from disk; the device budget on the
   CPU is half the bound);
@@ -95,9 +95,7 @@ def _child(args: argparse.Namespace) -> dict[str, Any]:
         spec,
         input=dataclasses.replace(spec.input, spacing_zyx_mm=spacing),
         # the phantom reads as HU + 1024: no body outline out of core; the model decimated to a size the bound holds
-        recon=dataclasses.replace(
-            spec.recon, body=None, decimate=DecimateParams(reduction=None, max_triangles=args.max_triangles)
-        ),
+        recon=dataclasses.replace(spec.recon, body=None, decimate=DecimateParams(reduction=args.reduction)),
     )
     baseline = _status("VmRSS")
     resettable = _reset_peak()
@@ -147,7 +145,7 @@ def _write(fmt: str, volume: np.ndarray, work: Path, chunks: tuple[int, int, int
 def _measure(fmt: str, path: Path, outdir: Path, bound: int | None, device: int, args: argparse.Namespace) -> Any:
     argv = [sys.executable, "-m", "benchmarks.host_memory", "--out", str(args.out), "--child-format", fmt]
     argv += ["--child-input", str(path), "--child-outdir", str(outdir), "--child-device-bytes", str(device)]
-    argv += ["--volume-share", str(args.volume_share), "--max-triangles", str(args.max_triangles)]
+    argv += ["--volume-share", str(args.volume_share), "--reduction", str(args.reduction)]
     if bound is not None:
         argv += ["--child-bound", str(bound)]
     if args.threads:
@@ -191,7 +189,7 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> dict[str, Any]:
         "stacked": args.stack,
         "zarr_chunks": list(chunk_zyx),
         "threads": args.threads,
-        "max_triangles": args.max_triangles,
+        "reduction": args.reduction,
         "formats": {},
     }
     work = Path(args.workdir or tempfile.mkdtemp(prefix="bonemesh-host-memory-"))
@@ -236,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
         "--volume-share", type=float, default=0.5, help="a scan up to this share of the bound is loaded whole (tests)"
     )
     parser.add_argument(
-        "--max-triangles", type=int, default=300_000, help="the model decimated to this many faces (--max-triangles)"
+        "--reduction", type=float, default=0.02, help="the share of the faces the model keeps (--reduction)"
     )
     parser.add_argument("--threads", type=int, default=None, help="decode threads (default: the CPUs)")
     parser.add_argument("--workdir", type=Path, default=None, help="where the files go (default: a temporary one)")

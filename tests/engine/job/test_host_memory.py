@@ -87,6 +87,18 @@ def test_a_scan_read_slab_by_slab_gives_the_model_of_the_whole(
     assert report["warnings"] == ref["warnings"]
 
 
+def test_through_the_plane_feeds_ring(
+    scans: dict[str, Path], whole: tuple[bytes, dict[str, Any]], tmp_path: Path
+) -> None:
+    """The ring of planes a GPU's uploads go through (forced here on the CPU): planes decoded straight into it from
+    the files, a slab longer than the ring read behind it; the same model."""
+    ring = 5 * SHAPE[1] * SHAPE[2] * 2
+    budget = dataclasses.replace(BOUNDED, feed_ring_bytes=ring)
+    result = run_job(scans["tiff-folder"], tmp_path, _spec(), resolve_runtime("cpu", budget))
+    assert result.report["memory"]["stream"]["feed"]["requests"] > 0
+    assert (tmp_path / "model.stl").read_bytes() == whole[0]
+
+
 def test_the_level_and_warnings_from_strided_samples_read_plane_by_plane(tmp_path: Path) -> None:
     """Large enough that the level's sample takes every 2nd voxel and the skin check's every 3rd: the samples read
     plane by plane are the whole scan's, and so are the detected HU offset, the level and the warnings."""
