@@ -193,3 +193,14 @@ def test_the_cli_flag_and_its_refusal(scans: dict[str, Path], tmp_path: Path) ->
     assert res.returncode == 0, res.stderr
     report = json.loads((tmp_path / "c" / "report.json").read_text())
     assert report["memory"]["out_of_core"] is False and report["memory"]["budget_bytes"] == 512 << 20
+
+
+def test_on_opencl_the_same_model(scans: dict[str, Path], tmp_path: Path) -> None:
+    from tests.engine.conftest import opencl_missing
+
+    if opencl_missing():
+        pytest.skip(f"OpenCL backend: {opencl_missing()}")
+    whole = run_job(scans["npy"], tmp_path / "a", _spec(), resolve_runtime("opencl", Budget(bytes=DEVICE)))
+    sliced = run_job(scans["bigtiff"], tmp_path / "b", _spec(), resolve_runtime("opencl", BOUNDED))
+    assert sliced.report["memory"]["out_of_core"] and not whole.report["memory"].get("out_of_core")
+    assert (tmp_path / "a" / "model.stl").read_bytes() == (tmp_path / "b" / "model.stl").read_bytes()
