@@ -130,7 +130,7 @@ def check_positions(d: np.ndarray, names: Sequence[str], label: str, thickness_m
     if holes:
         parts = []
         for i in holes[:_NAMED]:
-            missing = max(int(round(ratio[i])) - 1, 1)
+            missing = max(round(ratio[i]) - 1, 1)
             parts.append(
                 f"{missing} slice(s) missing between {names[i]} and {names[i + 1]} (a gap of {gaps[i]:.4g} mm where "
                 f"the series steps {expected[i]:.4g} mm)"
