@@ -88,6 +88,24 @@ class SlabSource:
         if z1 > z0:
             self._fill(z0, z1, out)
 
+    def __getitem__(self, key: tuple[slice, slice, slice]) -> SlabSource:
+        """A box of the scan, ``data[z0:z1, y0:y1, x0:x1]`` (steps of 1 only), as a ``SlabSource`` that reads it:
+        the planes it spans read ``granule`` at a time and cut to the box (a region of interest out of core)."""
+        if not (isinstance(key, tuple) and len(key) == 3 and all(isinstance(k, slice) for k in key)):
+            raise TypeError(f"a scan read slab by slab is cut by a box of three slices, not {key!r}")
+        (z0, z1, zs), (y0, y1, ys), (x0, x1, xs) = (k.indices(n) for k, n in zip(key, self.shape, strict=True))
+        if (zs, ys, xs) != (1, 1, 1):
+            raise TypeError("a scan read slab by slab is cut by a box (steps of 1)")
+        shape = (max(z1 - z0, 0), max(y1 - y0, 0), max(x1 - x0, 0))
+        step = self.granule
+
+        def fill(a: int, b: int, out: np.ndarray) -> None:
+            for z in range(a, b, step):
+                top = min(z + step, b)
+                out[z - a : top - a] = self.read(z0 + z, z0 + top)[:, y0:y1, x0:x1]
+
+        return SlabSource(shape, self.dtype, fill, label=f"{self.label}[box]", granule=step, close=self.close)
+
     def strided(self, step: int) -> np.ndarray:
         """``data[::step, ::step, ::step]``, read one plane at a time."""
         zs = range(0, self.shape[0], step)

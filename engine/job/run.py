@@ -129,12 +129,11 @@ def _load(job: _Job, source: str | Path | Volume) -> Volume:
         sliced = open_slabs(source, whole, spacing_zyx_mm=spec.input.spacing_zyx_mm, threads=runtime.decode_threads)
     if sliced is not None:
         volume = sliced
-        if spec.input.roi is not None or spec.input.pieces is not None:
+        if spec.input.pieces is not None:
             from engine.job.plans import refuse_out_of_core
 
-            what = "a region of interest (roi)" if spec.input.roi is not None else "a scan's bone pieces (pieces)"
             _close(source, volume)
-            refuse_out_of_core(volume, what, "leave it out")
+            refuse_out_of_core(volume, "a scan's bone pieces (pieces)", "leave it out")
     elif isinstance(source, Volume):
         volume = source
     else:
@@ -151,7 +150,15 @@ def _load(job: _Job, source: str | Path | Volume) -> Volume:
             on_progress=_Steps(progress, "loading", end),
         )
     if spec.input.roi is not None:  # cropped before anything runs
-        volume = _crop(volume, spec)
+        try:
+            volume = _crop(volume, spec)
+        except BaseException:
+            _close(source, volume)
+            raise
+        if sliced is not None and whole is not None and volume.data.nbytes <= whole:  # the box fits: read it whole
+            box: Any = volume.data  # engine.io.slabs.SlabSource
+            volume = dataclasses.replace(volume, data=box.read(0, box.shape[0]))
+            box.close()
     progress("loading", end)
     return volume
 

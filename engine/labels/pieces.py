@@ -90,7 +90,10 @@ def crop_roi(grid: Grid, roi: RoiParams, orient: OrientParams | None = None) -> 
             grid, labels=labels, origin_mm=origin, segments=segments, source=source, masks=masks
         )
         return out
-    return dataclasses.replace(grid, data=np.ascontiguousarray(grid.data[sl]), origin_mm=origin, source=source)
+    data = grid.data[sl]  # a scan read slab by slab (engine.io.slabs) gives the box's reader
+    if isinstance(data, np.ndarray):
+        data = np.ascontiguousarray(data)
+    return dataclasses.replace(grid, data=data, origin_mm=origin, source=source)
 
 
 def select_segments(lv: LabelVolume, wanted: Sequence[int | str]) -> LabelVolume:

@@ -136,7 +136,6 @@ def test_the_level_and_warnings_from_strided_samples_read_plane_by_plane(tmp_pat
     [
         ({"body": "default"}, "--keep-outside-body"),
         ({"preprocess": PreprocessParams(threshold=100.0)}, "the slice preprocessing"),
-        ({"roi": RoiParams(((0, 10), (0, 30), (0, 30)))}, "a region of interest (roi)"),
     ],
 )
 def test_steps_that_need_the_whole_scan_are_refused_in_one_line(
@@ -145,9 +144,7 @@ def test_steps_that_need_the_whole_scan_are_refused_in_one_line(
     from engine.params import BodyMaskParams
 
     spec = _spec()
-    if "roi" in change:
-        spec = dataclasses.replace(spec, input=dataclasses.replace(spec.input, roi=change["roi"]))
-    elif "body" in change:
+    if "body" in change:
         spec = _spec(body=BodyMaskParams())
     else:
         spec = _spec(**change)
@@ -156,6 +153,28 @@ def test_steps_that_need_the_whole_scan_are_refused_in_one_line(
     message = str(err.value)
     assert option in message and "needs the whole scan in memory" in message and "--max-host-bytes" in message
     assert "\n" not in message and not (tmp_path / "out" / "model.stl").exists()
+
+
+@pytest.mark.parametrize(
+    ("box", "share", "read_whole"),
+    [(((4, 36), (8, 60), (0, 50)), 0.001, False), (((4, 36), (8, 60), (0, 50)), 0.004, True)],
+)
+def test_a_region_of_interest_of_a_scan_read_slab_by_slab(
+    scans: dict[str, Path], tmp_path: Path, box: Any, share: float, read_whole: bool
+) -> None:
+    """A box of a scan over the bound is cut from the slabs as they are read (only the box's planes, cut to it), and
+    read whole where the box fits the bound's share for a whole scan: the model of the same box of the scan loaded
+    whole, byte for byte, either way."""
+    spec = _spec()
+    spec = dataclasses.replace(spec, input=dataclasses.replace(spec.input, roi=RoiParams(box)))
+    ref = run_job(scans["npy"], tmp_path / "whole", spec, resolve_runtime("cpu", Budget(bytes=DEVICE)))
+    bounded = dataclasses.replace(BOUNDED, host_volume_share=share)  # box 162 KiB, scan 320; share 64 or 262 KiB
+    for fmt in ("npy", "ome-zarr"):
+        result = run_job(scans[fmt], tmp_path / fmt, spec, resolve_runtime("cpu", bounded))
+        assert bool(result.report["memory"].get("out_of_core")) is not read_whole, fmt
+        assert result.report["input"]["shape_zyx"] == [32, 52, 50]
+        assert (tmp_path / fmt / "model.stl").read_bytes() == (tmp_path / "whole" / "model.stl").read_bytes(), fmt
+    assert ref.report["frame"] == result.report["frame"]  # the box's origin moved the same way
 
 
 def test_on_the_cpu_the_device_budget_comes_out_of_the_bound() -> None:
