@@ -9,7 +9,6 @@ the other cases are written with zarr following the specification (``tests/engin
 from __future__ import annotations
 
 import json
-import os
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -20,8 +19,8 @@ import pytest
 from engine.data.phantom import bone_phantom
 from engine.errors import InputError, NoSpacingError
 from engine.io import InputLimits, inspect_input, load_volume
-from tests.engine.omezarr_factory import upload_folder, write_ome_zarr, zip_folder
 from tests.engine.cli.test_cli import read_stl, run_cli
+from tests.engine.omezarr_factory import upload_folder, write_ome_zarr, zip_folder
 
 pytest.importorskip("zarr")
 
@@ -345,22 +344,17 @@ def test_s3_reads_the_image_and_a_level(
         load_volume(url)
 
 
-def test_s3_through_the_cli_is_the_mesh_of_the_folder(tmp_path: Path, seaweed: object) -> None:
+def test_s3_through_the_cli_is_the_mesh_of_the_folder(
+    tmp_path: Path, seaweed: object, monkeypatch: pytest.MonkeyPatch
+) -> None:
     bucket = seaweed.make_bucket()  # type: ignore[attr-defined]
     url = upload_folder(seaweed.client(), FIXTURES / "phantom_v04.ome.zarr", bucket, "p.ome.zarr")  # type: ignore[attr-defined]
     env = {k: v for k, v in seaweed.env(bucket).items() if k != "BONEMESH_STORAGE_URL"}  # type: ignore[attr-defined]
-    saved = {k: os.environ.get(k) for k in env}
-    os.environ.update(env)  # run_cli passes this process's environment on
-    try:
-        res = run_cli("reconstruct", url, "-o", str(tmp_path / "s3"), "--device", "cpu", "--quiet", cwd=tmp_path)
-        local = run_cli("reconstruct", str(FIXTURES / "phantom_v04.ome.zarr"), "-o", str(tmp_path / "local"),
-                        "--device", "cpu", "--quiet", cwd=tmp_path)  # fmt: skip
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+    for k, v in env.items():  # run_cli passes this process's environment on
+        monkeypatch.setenv(k, v)
+    res = run_cli("reconstruct", url, "-o", str(tmp_path / "s3"), "--device", "cpu", "--quiet", cwd=tmp_path)
+    local = run_cli("reconstruct", str(FIXTURES / "phantom_v04.ome.zarr"), "-o", str(tmp_path / "local"),
+                    "--device", "cpu", "--quiet", cwd=tmp_path)  # fmt: skip
     assert res.returncode == 0 and local.returncode == 0, res.stderr + local.stderr
     np.testing.assert_array_equal(
         read_stl(tmp_path / "s3" / "model.stl")[0], read_stl(tmp_path / "local" / "model.stl")[0]

@@ -19,6 +19,7 @@ from __future__ import annotations
 import functools
 from collections import Counter, defaultdict
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pytest
@@ -180,6 +181,23 @@ def test_reference_matches_sampling() -> None:
 # ---------------------------------------------------------------------------------------------------------------
 
 
+class _UnionFind:
+    """Disjoint sets over ``parent`` (a list or a dict, each item its own set at first), with path halving."""
+
+    def __init__(self, parent: Any) -> None:
+        self.parent = parent
+
+    def __call__(self, i: int) -> int:
+        p = self.parent
+        while p[i] != i:
+            p[i] = p[p[i]]
+            i = p[i]
+        return int(i)
+
+    def union(self, a: int, b: int) -> None:
+        self.parent[self(a)] = self(b)
+
+
 def _loop_key(loop: frozenset[tuple[int, int]]) -> tuple[tuple[int, int], ...]:
     return tuple(sorted(loop))
 
@@ -255,29 +273,15 @@ def _check_cell(verts: np.ndarray, faces: np.ndarray, topo: CellTopology) -> lis
                 break
 
     # pieces: connected components, their loops and Euler characteristics
-    parent = list(range(len(xyz)))
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
+    find = _UnionFind(list(range(len(xyz))))
     for a, b in uses:
-        parent[find(a)] = find(b)
+        find.union(a, b)
     comp_faces: dict[int, int] = Counter(find(f[0]) for f in faces.tolist())
     comp_edges: dict[int, int] = Counter(find(a) for a, _ in uses)
     comp_verts: dict[int, int] = Counter(find(v) for v in range(len(xyz)))
-    bparent = {v: v for v in bdeg}
-
-    def bfind(i: int) -> int:
-        while bparent[i] != i:
-            bparent[i] = bparent[bparent[i]]
-            i = bparent[i]
-        return i
-
+    bfind = _UnionFind({v: v for v in bdeg})
     for a, b in boundary:
-        bparent[bfind(a)] = bfind(b)
+        bfind.union(a, b)
     loops_of: dict[int, dict[int, set[tuple[int, int]]]] = defaultdict(lambda: defaultdict(set))
     for v in bdeg:
         loops_of[find(v)][bfind(v)].add(on_edge[v])
