@@ -31,6 +31,7 @@ from engine.errors import IncompleteSeriesError, InputError, MissingReferenceErr
 from engine.io import load_volume
 from engine.labels.dicom_seg import DEFLATED_FRAMES, RLE_LOSSLESS, read_dicom_seg, read_seg_folder, seg_pixels
 from engine.labels.uploads import find_label_upload, read_label_upload
+from tests.engine.labels.test_labels_util import highdicom_seg
 
 DATA = Path(__file__).resolve().parents[2] / "data" / "dicom_seg"
 CT2 = Path(pydicom.data.__file__).parent / "test_files" / "dicomdirtests" / "77654033" / "CT2"
@@ -428,39 +429,14 @@ def test_a_label_map_seg_in_every_encoding(tmp_path: Path) -> None:
     """A LABELMAP SEG (Label Map Segmentation Storage, 8-bit values) written by highdicom on pydicom's CT slices,
     native and RLE (highdicom's encoders) and Deflated Image Frame Compression (here): the same label map, on the
     CT's grid and on its own."""
-    import highdicom as hd
-    from pydicom.sr.codedict import codes
 
     sources = [pydicom.dcmread(CT2 / name) for name in CONTIGUOUS]
     labels = np.zeros((3, 16, 16), np.uint8)
     labels[0, 2:9, 3:12], labels[1, 5:14, 1:7], labels[2, 8:15, 8:15] = 1, 2, 3
-    segments = [
-        hd.seg.SegmentDescription(
-            segment_number=n,
-            segment_label=f"part {n}",
-            segmented_property_category=codes.SCT.Tissue,
-            segmented_property_type=codes.SCT.Bone,
-            algorithm_type="MANUAL",
-        )
-        for n in (1, 2, 3)
-    ]
+    segments = [(n, f"part {n}", None) for n in (1, 2, 3)]
     paths = {}
     for name, uid in (("native", pydicom.uid.ExplicitVRLittleEndian), ("rle", pydicom.uid.RLELossless)):
-        seg = hd.seg.Segmentation(
-            source_images=sources,
-            pixel_array=labels,
-            segmentation_type="LABELMAP",
-            segment_descriptions=segments,
-            series_instance_uid=pydicom.uid.generate_uid(),
-            series_number=9,
-            sop_instance_uid=pydicom.uid.generate_uid(),
-            instance_number=1,
-            manufacturer="bonemesh tests",
-            manufacturer_model_name="labels",
-            software_versions="0",
-            device_serial_number="0",
-            transfer_syntax_uid=uid,
-        )
+        seg = highdicom_seg(sources, labels, segments, kind="LABELMAP", series_number=9, transfer_syntax_uid=uid)
         paths[name] = tmp_path / f"{name}.dcm"
         seg.save_as(paths[name])
     native = seg_pixels(pydicom.dcmread(paths["native"]), "native")

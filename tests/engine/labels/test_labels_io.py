@@ -21,7 +21,7 @@ from engine.io.labelmaps import LabelVolume, check_overlap, is_label_path
 from engine.labels.dicom_seg import lab_to_srgb, read_dicom_seg, read_seg_folder
 from engine.labels.uploads import read_labels
 from tests.engine.dicom_factory import ct_slice
-from tests.engine.labels.test_labels_util import headsq_data, headsq_labels
+from tests.engine.labels.test_labels_util import headsq_data, headsq_labels, highdicom_seg
 
 STUDY_DEFAULTS = {
     "PatientSex": "O",
@@ -148,39 +148,14 @@ def _ct_files(lv: LabelVolume, data: np.ndarray, series_uid: str) -> dict[str, b
 
 
 def _seg(files: dict[str, bytes], labels: np.ndarray, kind: str) -> bytes:
-    import highdicom as hd
-    from pydicom.sr.codedict import codes
 
     sources = [pydicom.dcmread(io.BytesIO(b)) for b in files.values()]
     for ds in sources:  # the study attributes highdicom copies (the synthetic series leaves them out)
         for key, value in STUDY_DEFAULTS.items():
             if key not in ds:
                 setattr(ds, key, value)
-    segments = [
-        hd.seg.SegmentDescription(
-            segment_number=n,
-            segment_label=name,
-            segmented_property_category=codes.SCT.Tissue,
-            segmented_property_type=codes.SCT.Bone,
-            algorithm_type="MANUAL",
-            display_color=hd.color.CIELabColor.from_rgb(*rgb),
-        )
-        for n, name, rgb in ((1, "right half", (230, 40, 40)), (2, "left half", (30, 60, 220)))
-    ]
-    seg = hd.seg.Segmentation(
-        source_images=sources,
-        pixel_array=labels,
-        segmentation_type=kind,
-        segment_descriptions=segments,
-        series_instance_uid=pydicom.uid.generate_uid(),
-        series_number=99,
-        sop_instance_uid=pydicom.uid.generate_uid(),
-        instance_number=1,
-        manufacturer="bonemesh tests",
-        manufacturer_model_name="labels",
-        software_versions="0",
-        device_serial_number="0",
-    )
+    halves = [(1, "right half", (230, 40, 40)), (2, "left half", (30, 60, 220))]
+    seg = highdicom_seg(sources, labels, halves, kind=kind)
     buf = io.BytesIO()
     seg.save_as(buf)
     return buf.getvalue()

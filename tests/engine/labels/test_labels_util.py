@@ -3,6 +3,8 @@ meshes are disjoint."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
@@ -122,3 +124,46 @@ def assert_disjoint(va: np.ndarray, fa: np.ndarray, vb: np.ndarray, fb: np.ndarr
         sample = v[rng.choice(len(v), size=min(len(v), 200), replace=False)]
         assert np.abs(winding(sample, w, f)).max() < 0.5, "a vertex of one mesh lies inside the other"
     return gap
+
+
+def highdicom_seg(
+    sources: list[Any],
+    labels: np.ndarray,
+    segments: list[tuple[int, str, tuple[int, int, int] | None]],
+    *,
+    kind: str = "BINARY",
+    series_number: int = 99,
+    **extra: Any,
+) -> Any:
+    """A DICOM SEG written by highdicom over ``sources`` (pydicom datasets): ``segments`` as (number, name, display
+    colour or None), bone in tissue; ``extra`` goes to ``highdicom.seg.Segmentation`` (``transfer_syntax_uid``)."""
+    import highdicom as hd
+    import pydicom
+    from pydicom.sr.codedict import codes
+
+    descriptions = [
+        hd.seg.SegmentDescription(
+            segment_number=n,
+            segment_label=name,
+            segmented_property_category=codes.SCT.Tissue,
+            segmented_property_type=codes.SCT.Bone,
+            algorithm_type="MANUAL",
+            **({"display_color": hd.color.CIELabColor.from_rgb(*rgb)} if rgb is not None else {}),
+        )
+        for n, name, rgb in segments
+    ]
+    return hd.seg.Segmentation(
+        source_images=sources,
+        pixel_array=labels,
+        segmentation_type=kind,
+        segment_descriptions=descriptions,
+        series_instance_uid=pydicom.uid.generate_uid(),
+        series_number=series_number,
+        sop_instance_uid=pydicom.uid.generate_uid(),
+        instance_number=1,
+        manufacturer="bonemesh tests",
+        manufacturer_model_name="labels",
+        software_versions="0",
+        device_serial_number="0",
+        **extra,
+    )
