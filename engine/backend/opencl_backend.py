@@ -385,10 +385,11 @@ class OpenCLBackend(Backend):
             return
         run = -(-n // min(SCAN_CHUNKS, n))
         chunks = -(-n // run)
-        lo, hi = self.empty(chunks, np.int64), self.empty(chunks, np.int64)
-        self.launch(_RADIX_RANGE, chunks, [keys, np.int64(n), np.int64(run), lo, hi])
-        base = int(self.to_host(lo).min())  # sync point
-        span = int(self.to_host(hi).max()) - base
+        ends = self.empty(2 * chunks, np.int64)  # each run's smallest key, then each run's largest
+        self.launch(_RADIX_RANGE, chunks, [keys, np.int64(n), np.int64(run), ends])
+        lows, highs = self.to_host(ends).reshape(2, chunks)  # sync point: one read
+        base = int(lows.min())
+        span = int(highs.max()) - base
         passes = -(-span.bit_length() // RADIX_BITS)
         counts = self.empty(chunks << RADIX_BITS, np.int32)
         offsets = self.empty(chunks << RADIX_BITS, np.int32)

@@ -10,8 +10,8 @@
 #define RADIX 16
 #define DIGIT(key, base, shift) ((int)((((ulong)(key) - (ulong)(base)) >> (shift)) & (RADIX - 1)))
 
-__kernel void chunk_range(__global const long *keys, const long n, const long len, __global long *lo,
-                          __global long *hi)
+/* ends[i]: run i's smallest key; ends[chunks + i]: its largest (one array, read back once) */
+__kernel void chunk_range(__global const long *keys, const long n, const long len, __global long *ends)
 {
     const long i = get_global_id(0);
     const long a = i * len;
@@ -23,8 +23,8 @@ __kernel void chunk_range(__global const long *keys, const long n, const long le
         mn = min(mn, v);
         mx = max(mx, v);
     }
-    lo[i] = mn;
-    hi[i] = mx;
+    ends[i] = mn;
+    ends[get_global_size(0) + i] = mx;
 }
 
 __kernel void chunk_digits(__global const long *keys, const long src, const long n, const long len, const long base,
