@@ -252,8 +252,7 @@ class Budget:
         the budget is)."""
         import warp as wp
 
-        gpu = device.is_cuda if hasattr(device, "is_cuda") else not getattr(device, "is_host", True)
-        if self.host_fallback or (self.host_fallback is None and gpu):
+        if self.host_fallback or (self.host_fallback is None and not _is_host(device)):
             return wp.get_device("cpu")
         return None
 
