@@ -61,3 +61,38 @@ def bits(be: Backend, src: Any, which: int) -> Any:
 def upload_mask(be: Backend, mask: Any) -> Any:
     """A host bool (or uint8) volume as a flat uint8 device array."""
     return be.from_host(np.ascontiguousarray(mask).view(np.uint8).reshape(-1))
+
+
+def closest_feature(be: Backend, features: Any, shape: tuple[int, ...], spacing_zyx: tuple[float, float, float]) -> Any:
+    """The closest-feature transform: for every voxel, the rank (in ``features``: a flat int32 device array of
+    distinct flat voxel indices) of a feature voxel nearest to it in mm (flat int32 device array of ``shape``; -1
+    only where there is no feature). ``distance``'s exact separable transform, carrying the feature's rank."""
+    from engine.defect.kernel_specs import CFT_PASS, CFT_SEED
+
+    nz, ny, nx = (int(s) for s in shape)
+    n = nz * ny * nx
+    f = be.full(n, BIG_MM, np.float32)
+    g = be.empty(n, np.float32)
+    fr = be.full(n, -1, np.int32)
+    gr = be.empty(n, np.int32)
+    if len(features):
+        be.launch(CFT_SEED, len(features), [features, f, fr])
+    scratch = n + n // max(min(nz, ny, nx), 1) + 1  # as in distance
+    v = be.empty(scratch, np.int32)
+    zb = be.empty(scratch, np.float32)
+    for axis in (2, 1, 0):
+        lines = n // (nz, ny, nx)[axis]
+        be.launch(CFT_PASS, lines, [f, g, fr, gr, nz, ny, nx, axis, float(spacing_zyx[axis]), v, zb])
+        f, g, fr, gr = g, f, gr, fr
+    return fr
+
+
+def nearest_feature(be: Backend, points: Any, count: int, rank: Any, features: Any, box: Any, out: Any) -> None:
+    """``out[i]`` (int32 device array): the rank of the feature nearest to point ``i`` (grid x, y, z mm, three
+    float32 each in ``points``) for the first ``count`` points, looked up in ``closest_feature``'s ``rank`` field
+    of the grid ``box`` (``kernel_specs.BOX``): the nearest of the closest features of the 8 voxels around the point
+    (the grid's border voxels for a point outside it), -1 where there are none."""
+    from engine.defect.kernel_specs import NEAREST
+
+    if count:
+        be.launch(NEAREST, count, [points, rank, features, box, out])

@@ -20,10 +20,12 @@ The normal is turned toward the patient's left (+x of LPS), so a positive signed
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from engine.defect.grid import FloatArray, Grid, bone_and_skull, reflect, surface_voxels
 from engine.errors import NoSymmetryError
@@ -98,18 +100,83 @@ def _tangents(n: FloatArray) -> tuple[FloatArray, FloatArray]:
     return e1, np.cross(n, e1)
 
 
-class _Fit:
-    """Mirror-ICP over a fixed sample of surface points (grid mm, centred on the skull's centroid), point-to-plane:
-    each mirrored point's residual is its offset from its nearest surface voxel along that voxel's normal, so that
-    the voxels' staircase does not hold the plane to the grid's axes."""
+class _TreeNearest:
+    """Nearest surface voxels on the host: a k-d tree's exact queries (scipy)."""
 
-    def __init__(
-        self, surface: FloatArray, normals: FloatArray, sample: FloatArray, voxel_diag: float, max_spacing: float
-    ) -> None:
+    def __init__(self, surface: FloatArray) -> None:
         from scipy.spatial import cKDTree
 
         # exact nearest neighbours either way; the unbalanced tree builds in a third of the time
         self.tree = cKDTree(surface, balanced_tree=False, compact_nodes=False)
+
+    def __call__(self, q: FloatArray) -> npt.NDArray[np.int64]:
+        # 6,000 points: starting threads costs more than it saves
+        return np.asarray(self.tree.query(q, workers=1)[1], dtype=np.int64)
+
+
+class _DeviceNearest:
+    """Nearest surface voxels on a backend (issue 42): the closest-feature transform of the surface voxels over
+    their bounding box, once (``ops.closest_feature``), then per query the nearest of the closest features of the 8
+    voxels around each point (``ops.nearest_feature``): one upload of the points and one read-back of their pairs.
+    The same pairs as the k-d tree's but where a point's nearest voxel is not the closest feature of any of the
+    8 voxels around it (a near tie) or lies outside the box (a point far from the surface)."""
+
+    #: device bytes per voxel of the box: two float32 and two int32 fields, the passes' scratch
+    BYTES_PER_VOXEL = 24
+
+    def __init__(self, be: Any, grid: Grid, surf_idx: npt.NDArray[np.int64], centroid: FloatArray) -> None:
+        from engine.defect.kernel_specs import BOX
+        from engine.defect.ops import closest_feature
+
+        self.be = be
+        lo = surf_idx.min(axis=0)
+        shape = tuple(int(v) for v in surf_idx.max(axis=0) - lo + 1)
+        sp = grid.spacing_zyx
+        flat = np.ravel_multi_index(tuple((surf_idx - lo).T), shape).astype(np.int32)
+        self.features = be.from_host(flat)
+        self.rank = closest_feature(be, self.features, shape, sp)
+        self.box = be.struct(BOX, nz=shape[0], ny=shape[1], nx=shape[2], lz=int(lo[0]), ly=int(lo[1]),
+                             lx=int(lo[2]), sz=float(sp[0]), sy=float(sp[1]), sx=float(sp[2]))  # fmt: skip
+        self.shift = np.asarray(centroid, dtype=np.float64) - grid.xyz(lo)  # centred grid mm -> the box's mm
+        self.capacity = 0
+        self.points: Any = None
+        self.out: Any = None
+
+    @classmethod
+    def fits(cls, be: Any, surf_idx: npt.NDArray[np.int64]) -> bool:
+        """Whether the transform of the surface's box fits the backend's default working set."""
+        box = surf_idx.max(axis=0) - surf_idx.min(axis=0) + 1
+        return int(np.prod(box)) * cls.BYTES_PER_VOXEL <= int(be.default_budget())
+
+    def __call__(self, q: FloatArray) -> npt.NDArray[np.int64]:
+        from engine.defect.ops import nearest_feature
+
+        be, count = self.be, len(q)
+        if count > self.capacity:
+            self.capacity = count
+            self.points = be.empty(3 * count, np.float32)
+            self.out = be.empty(count, np.int32)
+        be.upload(self.points, np.ascontiguousarray(q + self.shift, dtype=np.float32).reshape(-1))
+        nearest_feature(be, self.points, count, self.rank, self.features, self.box, self.out)
+        return be.to_host(self.out, count=count).astype(np.int64)  # sync point
+
+
+class _Fit:
+    """Mirror-ICP over a fixed sample of surface points (grid mm, centred on the skull's centroid), point-to-plane:
+    each mirrored point's residual is its offset from its nearest surface voxel along that voxel's normal, so that
+    the voxels' staircase does not hold the plane to the grid's axes. ``nearest`` pairs points (N, 3) with the rank
+    of their nearest surface voxel (``_TreeNearest`` on the host, ``_DeviceNearest`` on a backend)."""
+
+    def __init__(
+        self,
+        surface: FloatArray,
+        normals: FloatArray,
+        sample: FloatArray,
+        voxel_diag: float,
+        max_spacing: float,
+        nearest: Callable[[FloatArray], npt.NDArray[np.int64]],
+    ) -> None:
+        self.nearest = nearest
         self.surface = surface
         self.normals = normals
         self.p = sample
@@ -121,15 +188,16 @@ class _Fit:
         """Per sample point: the distance of its mirror image to the nearest surface voxel, the offset along that
         voxel's normal, and the normal."""
         q = reflect(self.p, n, d)
-        dist, j = self.tree.query(q, workers=1)  # 6,000 points: starting threads costs more than it saves
+        j = self.nearest(q)
+        off = q - self.surface[j]
         nu = self.normals[j]
-        return dist, np.einsum("ij,ij->i", q - self.surface[j], nu), nu
+        return np.sqrt(np.einsum("ij,ij->i", off, off)), np.einsum("ij,ij->i", off, nu), nu
 
     def score(self, n: FloatArray, d: float) -> float:
         """The median distance of a few mirrored points (a candidate's rank)."""
         q = reflect(self.p[:SCORE_SAMPLES], n, d)
-        dist, _ = self.tree.query(q, workers=1)
-        return float(np.median(dist))
+        off = q - self.surface[self.nearest(q)]
+        return float(np.median(np.sqrt(np.einsum("ij,ij->i", off, off))))
 
     def refine(self, n: FloatArray, d: float, exclude: Any = None) -> tuple[FloatArray, float, int]:
         """Gauss-Newton from (n, d): first on every ``COARSE_STRIDE``-th sample point (the far-off start's
@@ -224,6 +292,7 @@ def find_symmetry_plane(
     orient: Any = None,
     skull: Any = None,
     seed: int = 0,
+    device: Any = None,
 ) -> SymmetryPlane:
     """The bone's mirror plane (see the module's description).
 
@@ -236,6 +305,10 @@ def find_symmetry_plane(
             convention); DICOM places itself.
         skull: the skull mask (bool, the volume's shape) when the caller has it already.
         seed: the surface sample's seed (the result is deterministic for a given seed).
+        device: None (the nearest surface voxels from a k-d tree on the host), or "cpu", "cuda[:N]", "opencl[:N]"
+            or a ``Backend``: the nearest surface voxels looked up in a closest-feature transform there (the same
+            plane to a few thousandths of a degree and of a voxel; the host's tree where the transform would not
+            fit the device's working set).
 
     Returns:
         The plane, its residual and how it was found.
@@ -259,7 +332,14 @@ def find_symmetry_plane(
     pick = rng.choice(len(surface), min(N_SAMPLES, len(surface)), replace=False)
     sample = surface[np.sort(pick)]
     sp = grid.spacing_xyz
-    fit = _Fit(surface, normals, sample, float(np.linalg.norm(sp)), float(sp.max()))
+    nearest: Callable[[FloatArray], npt.NDArray[np.int64]] | None = None
+    if device is not None:
+        from engine.device import resolve_backend
+
+        be = resolve_backend(device)
+        if _DeviceNearest.fits(be, surf_idx):
+            nearest = _DeviceNearest(be, grid, surf_idx, centroid)
+    fit = _Fit(surface, normals, sample, float(np.linalg.norm(sp)), float(sp.max()), nearest or _TreeNearest(surface))
 
     exclude = None
     point = _hint_point(hint)

@@ -1,0 +1,123 @@
+/* OpenCL C twins of plane.py's Warp kernels: the symmetry plane's closest-feature transform (edt.cl's lower
+ * envelope carrying each voxel's feature rank) and its nearest-surface query, the same arithmetic (no fused
+ * multiply-adds: bit for bit). Volumes are flat (z, y, x) arrays; points are grid (x, y, z) mm, three floats each.
+ * One-dimensional launches: id 0 is the feature, the line or the point. */
+#pragma OPENCL FP_CONTRACT OFF
+
+#define BIG 1.0e30f
+
+/* mirror.py's Box: a grid's shape, its first voxel (z, y, x; 0 here), the spacing (z, y, x mm) */
+typedef struct {
+    int nz, ny, nx, lz, ly, lx;
+    float sz, sy, sx;
+} box_t;
+
+/* f = 0 and rank = the feature's rank at each feature voxel (f = BIG and rank = -1 elsewhere, set before) */
+__kernel void seed(__global const int *features, __global float *f, __global int *rank)
+{
+    const int i = (int)get_global_id(0);
+    const int at = features[i];
+    f[at] = 0.0f;
+    rank[at] = i;
+}
+
+/* one axis of the closest-feature transform: edt_pass's lower envelope, each voxel taking the rank fr of the voxel
+ * whose parabola it lies under into gr */
+__kernel void cft_pass(__global const float *f, __global float *g, __global const int *fr, __global int *gr,
+                       const int nz, const int ny, const int nx, const int axis, const float spacing,
+                       __global int *v, __global float *zb)
+{
+    const int line = (int)get_global_id(0);
+    int base, stride, n;
+    if (axis == 2) {
+        base = line * nx; stride = 1; n = nx;
+    } else if (axis == 1) {
+        const int z = line / nx;
+        const int x = line - z * nx;
+        base = z * ny * nx + x; stride = nx; n = ny;
+    } else {
+        base = line; stride = ny * nx; n = nz;
+    }
+    const int so = line * (n + 1);
+    int k = -1;
+    for (int q = 0; q < n; q++) {
+        const float fq = f[base + q * stride];
+        if (fq < BIG * 0.5f) {
+            const float xq = (float)q * spacing;
+            if (k < 0) {
+                k = 0;
+                v[so] = q;
+                zb[so] = -BIG;
+                zb[so + 1] = BIG;
+            } else {
+                int vk = v[so + k];
+                float xv = (float)vk * spacing;
+                float s = ((fq + xq * xq) - (f[base + vk * stride] + xv * xv)) / (2.0f * (xq - xv));
+                while (s <= zb[so + k]) {
+                    k -= 1;
+                    vk = v[so + k];
+                    xv = (float)vk * spacing;
+                    s = ((fq + xq * xq) - (f[base + vk * stride] + xv * xv)) / (2.0f * (xq - xv));
+                }
+                k += 1;
+                v[so + k] = q;
+                zb[so + k] = s;
+                zb[so + k + 1] = BIG;
+            }
+        }
+    }
+    if (k < 0) {
+        for (int q = 0; q < n; q++) {
+            g[base + q * stride] = BIG;
+            gr[base + q * stride] = -1;
+        }
+    } else {
+        int j = 0;
+        for (int q = 0; q < n; q++) {
+            const float xq = (float)q * spacing;
+            while (zb[so + j + 1] < xq) j += 1;
+            const int vj = v[so + j];
+            const float d = xq - (float)vj * spacing;
+            g[base + q * stride] = d * d + f[base + vj * stride];
+            gr[base + q * stride] = fr[base + vj * stride];
+        }
+    }
+}
+
+/* out[i]: the rank of the feature nearest to point i among the closest features of the 8 voxels around it
+ * (clamped into the grid; ties to the lower rank), -1 where none has one */
+__kernel void nearest(__global const float *points, __global const int *rank, __global const int *features,
+                      const box_t box, __global int *out)
+{
+    const int i = (int)get_global_id(0);
+    const float px = points[3 * i];
+    const float py = points[3 * i + 1];
+    const float pz = points[3 * i + 2];
+    const int x0 = (int)floor(px / box.sx);
+    const int y0 = (int)floor(py / box.sy);
+    const int z0 = (int)floor(pz / box.sz);
+    float best = BIG;
+    int pick = -1;
+    for (int c = 0; c < 8; c++) {
+        const int z = clamp(z0 + c / 4, 0, box.nz - 1);
+        const int y = clamp(y0 + (c / 2) % 2, 0, box.ny - 1);
+        const int x = clamp(x0 + c % 2, 0, box.nx - 1);
+        const int r = rank[(z * box.ny + y) * box.nx + x];
+        if (r >= 0) {
+            const int at = features[r];
+            const int fz = at / (box.ny * box.nx);
+            const int rest = at - fz * (box.ny * box.nx);
+            const int fy = rest / box.nx;
+            const int fx = rest - fy * box.nx;
+            const float dx = px - (float)fx * box.sx;
+            const float dy = py - (float)fy * box.sy;
+            const float dz = pz - (float)fz * box.sz;
+            const float d2 = dx * dx + dy * dy + dz * dz;
+            if (d2 < best || (d2 == best && r < pick)) {
+                best = d2;
+                pick = r;
+            }
+        }
+    }
+    out[i] = pick;
+}

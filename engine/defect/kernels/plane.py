@@ -1,0 +1,122 @@
+"""Warp kernels of the symmetry plane's nearest-surface queries (issue 42): a closest-feature transform (the exact
+Euclidean distance transform of ``edt.py`` carrying, beside each voxel's squared distance, the rank of the feature
+it belongs to) and the query that pairs each mirrored point with the nearest feature of the voxels around it.
+Volumes are flat (z, y, x) arrays; features are flat voxel indices, ranked by their place in the feature list;
+points are grid (x, y, z) mm, three floats each. OpenCL C twins: ``plane.cl`` (the same arithmetic)."""
+
+from __future__ import annotations
+
+import warp as wp
+
+from engine.defect.kernels.edt import BIG, _line
+from engine.defect.kernels.mirror import Box
+
+
+@wp.kernel
+def seed_kernel(features: wp.array(dtype=wp.int32), f: wp.array(dtype=wp.float32), rank: wp.array(dtype=wp.int32)):
+    """f = 0 and rank = the feature's rank at each feature voxel (f = BIG and rank = -1 elsewhere, set before)."""
+    i = wp.tid()
+    at = features[i]
+    f[at] = 0.0
+    rank[at] = i
+
+
+@wp.kernel
+def cft_pass_kernel(
+    f: wp.array(dtype=wp.float32),
+    g: wp.array(dtype=wp.float32),
+    fr: wp.array(dtype=wp.int32),
+    gr: wp.array(dtype=wp.int32),
+    nz: int,
+    ny: int,
+    nx: int,
+    axis: int,
+    spacing: float,
+    v: wp.array(dtype=wp.int32),
+    zb: wp.array(dtype=wp.float32),
+):
+    """One axis of the closest-feature transform: ``edt_pass_kernel``'s lower envelope, each voxel taking the rank
+    ``fr`` of the voxel whose parabola it lies under into ``gr``."""
+    line = wp.tid()
+    geo = _line(line, nz, ny, nx, axis)
+    base = geo[0]
+    stride = geo[1]
+    n = geo[2]
+    so = line * (n + 1)
+    k = int(-1)
+    for q in range(n):
+        fq = f[base + q * stride]
+        if fq < BIG * 0.5:
+            xq = float(q) * spacing
+            if k < 0:
+                k = 0
+                v[so] = q
+                zb[so] = -BIG
+                zb[so + 1] = BIG
+            else:
+                vk = int(v[so + k])
+                xv = float(vk) * spacing
+                s = ((fq + xq * xq) - (f[base + vk * stride] + xv * xv)) / (2.0 * (xq - xv))
+                while s <= zb[so + k]:
+                    k -= 1
+                    vk = int(v[so + k])
+                    xv = float(vk) * spacing
+                    s = ((fq + xq * xq) - (f[base + vk * stride] + xv * xv)) / (2.0 * (xq - xv))
+                k += 1
+                v[so + k] = q
+                zb[so + k] = s
+                zb[so + k + 1] = BIG
+    if k < 0:
+        for q in range(n):
+            g[base + q * stride] = BIG
+            gr[base + q * stride] = -1
+    else:
+        j = int(0)
+        for q in range(n):
+            xq = float(q) * spacing
+            while zb[so + j + 1] < xq:
+                j += 1
+            vj = int(v[so + j])
+            d = xq - float(vj) * spacing
+            g[base + q * stride] = d * d + f[base + vj * stride]
+            gr[base + q * stride] = fr[base + vj * stride]
+
+
+@wp.kernel
+def nearest_kernel(
+    points: wp.array(dtype=wp.float32),
+    rank: wp.array(dtype=wp.int32),
+    features: wp.array(dtype=wp.int32),
+    box: Box,
+    out: wp.array(dtype=wp.int32),
+):
+    """out[i]: the rank of the feature nearest to point i among the closest features of the 8 voxels around it
+    (clamped into the grid; ties to the lower rank), -1 where none has one."""
+    i = wp.tid()
+    px = points[3 * i]
+    py = points[3 * i + 1]
+    pz = points[3 * i + 2]
+    x0 = int(wp.floor(px / box.sx))
+    y0 = int(wp.floor(py / box.sy))
+    z0 = int(wp.floor(pz / box.sz))
+    best = float(BIG)
+    pick = int(-1)
+    for c in range(8):
+        z = wp.clamp(z0 + c // 4, 0, box.nz - 1)
+        y = wp.clamp(y0 + (c // 2) % 2, 0, box.ny - 1)
+        x = wp.clamp(x0 + c % 2, 0, box.nx - 1)
+        r = rank[(z * box.ny + y) * box.nx + x]
+        if r >= 0:
+            at = features[r]
+            fz = at // (box.ny * box.nx)
+            rest = at - fz * (box.ny * box.nx)
+            fy = rest // box.nx
+            fx = rest - fy * box.nx
+            dx = px - float(fx) * box.sx
+            dy = py - float(fy) * box.sy
+            dz = pz - float(fz) * box.sz
+            d2 = dx * dx + dy * dy + dz * dz
+            if d2 < best or (d2 == best and r < pick):
+                best = d2
+                pick = r
+    out[i] = pick
