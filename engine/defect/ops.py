@@ -87,12 +87,16 @@ def closest_feature(be: Backend, features: Any, shape: tuple[int, ...], spacing_
     return fr
 
 
-def nearest_feature(be: Backend, points: Any, count: int, rank: Any, features: Any, box: Any, out: Any) -> None:
+def nearest_feature(
+    be: Backend, points: Any, count: int, rank: Any, features: Any, box: Any, out: Any, *, max_scan: int
+) -> None:
     """``out[i]`` (int32 device array): the rank of the feature nearest to point ``i`` (grid x, y, z mm, three
-    float32 each in ``points``) for the first ``count`` points, looked up in ``closest_feature``'s ``rank`` field
-    of the grid ``box`` (``kernel_specs.BOX``): the nearest of the closest features of the 8 voxels around the point
-    (the grid's border voxels for a point outside it), -1 where there are none."""
+    float32 each in ``points``) for the first ``count`` points (ties to the lower rank), from ``closest_feature``'s
+    ``rank`` field of the grid ``box`` (``kernel_specs.BOX``). The closest feature of the voxel nearest to the point
+    bounds the distance; the voxels within that bound are then looked at (exact: a feature is its own closest
+    feature) where they are at most ``max_scan``, else the bound's feature is kept (a point far from every
+    feature)."""
     from engine.defect.kernel_specs import NEAREST
 
     if count:
-        be.launch(NEAREST, count, [points, rank, features, box, out])
+        be.launch(NEAREST, count, [points, rank, features, box, int(max_scan), out])

@@ -41,6 +41,9 @@ TOL_RAD, TOL_MM = 1e-4, 0.01
 # the refinement starts on every COARSE_STRIDE-th sample point until its steps are under COARSE_TOL times the
 # tolerance, then goes on with all of them (issue 42: the plane's host time)
 COARSE_STRIDE, COARSE_TOL = 4, 10.0
+# the device's nearest-surface query looks at every voxel within the bound that the nearest voxel's closest feature
+# gives, where they are at most this many (exact there; a point farther off keeps that feature: an outlier)
+MAX_SCAN = 4_096
 TRIM = 0.8  # the residual: RMS of this share of the smallest distances
 # a bone is mirror-symmetric when at least this share of its mirrored surface lies within a voxel diagonal of its
 # surface (real skulls: 0.8-0.99; an intact skull with its face and neck, 0.8 at 3.2 mm voxels)
@@ -116,10 +119,11 @@ class _TreeNearest:
 
 class _DeviceNearest:
     """Nearest surface voxels on a backend (issue 42): the closest-feature transform of the surface voxels over
-    their bounding box, once (``ops.closest_feature``), then per query the nearest of the closest features of the 8
-    voxels around each point (``ops.nearest_feature``): one upload of the points and one read-back of their pairs.
-    The same pairs as the k-d tree's but where a point's nearest voxel is not the closest feature of any of the
-    8 voxels around it (a near tie) or lies outside the box (a point far from the surface)."""
+    their bounding box, once (``ops.closest_feature``), then per query each point's nearest surface voxel among the
+    voxels within the distance to the closest feature of its nearest voxel (``ops.nearest_feature``): one upload
+    of the points and one read-back of their pairs.
+    The k-d tree's pairs (to float32 rounding and ties) but for points so far from the surface that the voxels
+    within the bound are more than ``MAX_SCAN``."""
 
     #: device bytes per voxel of the box: two float32 and two int32 fields, the passes' scratch
     BYTES_PER_VOXEL = 24
@@ -157,7 +161,7 @@ class _DeviceNearest:
             self.points = be.empty(3 * count, np.float32)
             self.out = be.empty(count, np.int32)
         be.upload(self.points, np.ascontiguousarray(q + self.shift, dtype=np.float32).reshape(-1))
-        nearest_feature(be, self.points, count, self.rank, self.features, self.box, self.out)
+        nearest_feature(be, self.points, count, self.rank, self.features, self.box, self.out, max_scan=MAX_SCAN)
         return be.to_host(self.out, count=count).astype(np.int64)  # sync point
 
 

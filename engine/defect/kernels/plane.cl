@@ -84,18 +84,41 @@ __kernel void cft_pass(__global const float *f, __global float *g, __global cons
     }
 }
 
-/* out[i]: the rank of the feature nearest to point i among the closest features of the 8 voxels around it
- * (clamped into the grid; ties to the lower rank), -1 where none has one */
+/* squared distance (mm^2) from the point (x, y, z mm) to the centre of the voxel at flat index at */
+static float dist2(const int at, const box_t box, const float px, const float py, const float pz)
+{
+    const int fz = at / (box.ny * box.nx);
+    const int rest = at - fz * (box.ny * box.nx);
+    const int fy = rest / box.nx;
+    const int fx = rest - fy * box.nx;
+    const float dx = px - (float)fx * box.sx;
+    const float dy = py - (float)fy * box.sy;
+    const float dz = pz - (float)fz * box.sz;
+    return dx * dx + dy * dy + dz * dz;
+}
+
+/* the voxels (first, last along one axis, clamped into the grid) whose centres may lie within reach mm of p */
+static int2 span(const float p, const float reach, const float s, const int n)
+{
+    const int lo = clamp((int)floor((p - reach) / s), 0, n - 1);
+    const int hi = clamp((int)floor((p + reach) / s) + 1, 0, n - 1);
+    return (int2)(lo, hi);
+}
+
+/* out[i]: the rank of the feature nearest to point i (ties to the lower rank), -1 where there are none. The nearest
+ * of the closest features of the 8 voxels around the point (clamped into the grid) bounds the distance; every voxel
+ * whose centre may lie within that bound is then looked at (a feature is its own closest feature, so the nearest is
+ * among them) where they are at most max_scan; else the bound's feature is the answer. */
 __kernel void nearest(__global const float *points, __global const int *rank, __global const int *features,
-                      const box_t box, __global int *out)
+                      const box_t box, const int max_scan, __global int *out)
 {
     const int i = (int)get_global_id(0);
     const float px = points[3 * i];
     const float py = points[3 * i + 1];
     const float pz = points[3 * i + 2];
-    const int x0 = (int)floor(px / box.sx);
-    const int y0 = (int)floor(py / box.sy);
     const int z0 = (int)floor(pz / box.sz);
+    const int y0 = (int)floor(py / box.sy);
+    const int x0 = (int)floor(px / box.sx);
     float best = BIG;
     int pick = -1;
     for (int c = 0; c < 8; c++) {
@@ -104,18 +127,32 @@ __kernel void nearest(__global const float *points, __global const int *rank, __
         const int x = clamp(x0 + c % 2, 0, box.nx - 1);
         const int r = rank[(z * box.ny + y) * box.nx + x];
         if (r >= 0) {
-            const int at = features[r];
-            const int fz = at / (box.ny * box.nx);
-            const int rest = at - fz * (box.ny * box.nx);
-            const int fy = rest / box.nx;
-            const int fx = rest - fy * box.nx;
-            const float dx = px - (float)fx * box.sx;
-            const float dy = py - (float)fy * box.sy;
-            const float dz = pz - (float)fz * box.sz;
-            const float d2 = dx * dx + dy * dy + dz * dz;
+            const float d2 = dist2(features[r], box, px, py, pz);
             if (d2 < best || (d2 == best && r < pick)) {
                 best = d2;
                 pick = r;
+            }
+        }
+    }
+    if (pick >= 0) {
+        const float reach = sqrt(best);
+        const int2 sz = span(pz, reach, box.sz, box.nz);
+        const int2 sy = span(py, reach, box.sy, box.ny);
+        const int2 sx = span(px, reach, box.sx, box.nx);
+        if ((sz.y - sz.x + 1) * (sy.y - sy.x + 1) * (sx.y - sx.x + 1) <= max_scan) {
+            for (int vz = sz.x; vz <= sz.y; vz++) {
+                for (int vy = sy.x; vy <= sy.y; vy++) {
+                    for (int vx = sx.x; vx <= sx.y; vx++) {
+                        const int r = rank[(vz * box.ny + vy) * box.nx + vx];
+                        if (r >= 0 && r != pick) {
+                            const float d2 = dist2(features[r], box, px, py, pz);
+                            if (d2 < best || (d2 == best && r < pick)) {
+                                best = d2;
+                                pick = r;
+                            }
+                        }
+                    }
+                }
             }
         }
     }

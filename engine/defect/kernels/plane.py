@@ -82,23 +82,48 @@ def cft_pass_kernel(
             gr[base + q * stride] = fr[base + vj * stride]
 
 
+@wp.func
+def _dist2(at: int, box: Box, px: float, py: float, pz: float) -> float:
+    """Squared distance (mm^2) from the point (x, y, z mm) to the centre of the voxel at flat index ``at``."""
+    fz = at // (box.ny * box.nx)
+    rest = at - fz * (box.ny * box.nx)
+    fy = rest // box.nx
+    fx = rest - fy * box.nx
+    dx = px - float(fx) * box.sx
+    dy = py - float(fy) * box.sy
+    dz = pz - float(fz) * box.sz
+    return dx * dx + dy * dy + dz * dz
+
+
+@wp.func
+def _span(p: float, reach: float, s: float, n: int) -> wp.vec2i:
+    """The voxels (first, last along one axis, clamped into the grid) whose centres may lie within ``reach`` mm of
+    coordinate ``p``."""
+    lo = wp.clamp(int(wp.floor((p - reach) / s)), 0, n - 1)
+    hi = wp.clamp(int(wp.floor((p + reach) / s)) + 1, 0, n - 1)
+    return wp.vec2i(lo, hi)
+
+
 @wp.kernel
 def nearest_kernel(
     points: wp.array(dtype=wp.float32),
     rank: wp.array(dtype=wp.int32),
     features: wp.array(dtype=wp.int32),
     box: Box,
+    max_scan: int,
     out: wp.array(dtype=wp.int32),
 ):
-    """out[i]: the rank of the feature nearest to point i among the closest features of the 8 voxels around it
-    (clamped into the grid; ties to the lower rank), -1 where none has one."""
+    """out[i]: the rank of the feature nearest to point i (ties to the lower rank), -1 where there are none. The
+    nearest of the closest features of the 8 voxels around the point (clamped into the grid) bounds the distance;
+    every voxel whose centre may lie within that bound is then looked at (a feature is its own closest feature, so
+    the nearest is among them) where they are at most ``max_scan``; else the bound's feature is the answer."""
     i = wp.tid()
     px = points[3 * i]
     py = points[3 * i + 1]
     pz = points[3 * i + 2]
-    x0 = int(wp.floor(px / box.sx))
-    y0 = int(wp.floor(py / box.sy))
     z0 = int(wp.floor(pz / box.sz))
+    y0 = int(wp.floor(py / box.sy))
+    x0 = int(wp.floor(px / box.sx))
     best = float(BIG)
     pick = int(-1)
     for c in range(8):
@@ -107,16 +132,23 @@ def nearest_kernel(
         x = wp.clamp(x0 + c % 2, 0, box.nx - 1)
         r = rank[(z * box.ny + y) * box.nx + x]
         if r >= 0:
-            at = features[r]
-            fz = at // (box.ny * box.nx)
-            rest = at - fz * (box.ny * box.nx)
-            fy = rest // box.nx
-            fx = rest - fy * box.nx
-            dx = px - float(fx) * box.sx
-            dy = py - float(fy) * box.sy
-            dz = pz - float(fz) * box.sz
-            d2 = dx * dx + dy * dy + dz * dz
+            d2 = _dist2(features[r], box, px, py, pz)
             if d2 < best or (d2 == best and r < pick):
                 best = d2
                 pick = r
+    if pick >= 0:
+        reach = wp.sqrt(best)
+        sz = _span(pz, reach, box.sz, box.nz)
+        sy = _span(py, reach, box.sy, box.ny)
+        sx = _span(px, reach, box.sx, box.nx)
+        if (sz[1] - sz[0] + 1) * (sy[1] - sy[0] + 1) * (sx[1] - sx[0] + 1) <= max_scan:
+            for vz in range(sz[0], sz[1] + 1):
+                for vy in range(sy[0], sy[1] + 1):
+                    for vx in range(sx[0], sx[1] + 1):
+                        r = rank[(vz * box.ny + vy) * box.nx + vx]
+                        if r >= 0 and r != pick:
+                            e2 = _dist2(features[r], box, px, py, pz)
+                            if e2 < best or (e2 == best and r < pick):
+                                best = e2
+                                pick = r
     out[i] = pick
