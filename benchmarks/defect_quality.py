@@ -105,6 +105,16 @@ def _run(volume: Any, cfg: dict[str, Any], device: str) -> tuple[Any, str, float
         return None, f"{type(exc).__name__}: {exc}", time.perf_counter() - t0
 
 
+def _side_of(mask: Any, volume: Any, cfg: dict[str, Any], plane: Any) -> str | None:
+    """The side of the plane (the patient's) the mask's voxels lie on, by their median distance; None when empty."""
+    from engine.defect.grid import Grid
+
+    if not mask.any():
+        return None
+    s = Grid.of(volume, cfg["orient"]).xyz(np.argwhere(mask)) @ np.asarray(plane.normal_grid) - plane.offset_grid_mm
+    return "left" if float(np.median(s)) > 0 else "right"
+
+
 def _angle(a: Any, b: Any) -> float:
     return float(np.degrees(np.arccos(min(1.0, abs(float(np.dot(a, b)))))))
 
@@ -119,8 +129,10 @@ def _case(
     if res is None:
         return row
     mask = res.full_mask()
-    if exclude is not None:  # the scan's own defect, found too, is not this case's
+    side = res.side
+    if exclude is not None:  # the scan's own defect, found too, is not this case's (nor is its side)
         mask &= ~exclude
+        side = _side_of(mask, volume, cfg, res.plane) or side
     rim = res.rim()
     row.update(
         template_mm3=round(res.volume_mm3, 1),
@@ -128,7 +140,7 @@ def _case(
         rim_gap_voxels=round(rim["gap_voxels"], 3),
         rim_gap_mm=round(rim["gap_mm"], 3),
         rim_contact=round(rim["contact_share"], 3),
-        side=res.side,
+        side=side,
         watertight=bool(res.mesh_stats["watertight"]),
         plane_residual_mm=round(res.plane.residual_mm, 3),
         slices=[int(v) for v in np.argwhere(mask)[:, 0][[0, -1]]] if mask.any() else None,
