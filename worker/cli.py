@@ -20,7 +20,11 @@ def main(argv: list[str] | None = None) -> int:
         prog="bonemesh worker", description="Start a Celery worker: one job at a time (run one per GPU)."
     )
     parser.add_argument("--loglevel", default="INFO")
-    parser.add_argument("--device", help="auto, cpu or cuda:N (default BONEMESH_DEVICE, else auto)")
+    parser.add_argument(
+        "--device",
+        help="auto, cpu, cuda:N, opencl[:N], or several GPUs per job: cuda:0,cuda:1 or cuda:all "
+        "(default BONEMESH_DEVICE, else auto)",
+    )
     parser.add_argument("--hostname", help="Celery node name (default bonemesh@<host>-<pid>)")
     parser.add_argument(
         "--max-device-bytes", help="device memory budget per job, e.g. 8GiB (default BONEMESH_MAX_DEVICE_BYTES)"

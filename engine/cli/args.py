@@ -138,7 +138,11 @@ def add_input_args(parser: argparse.ArgumentParser, what: str) -> None:
         "API and the page), or named in any order: z=1.5,y=0.5,x=0.5. Image stacks need it; DICOM carries it",
     )  # fmt: skip
     size.add_argument("--spacing", dest="spacing", type=voxel_size_zyx, metavar="Z,Y,X", help="same as --voxel-size")
-    parser.add_argument("--device", default="auto", help="auto, cpu, cuda[:N] or opencl[:N] (default auto)")
+    parser.add_argument(
+        "--device", default="auto",
+        help="auto, cpu, cuda[:N] or opencl[:N] (default auto); reconstruct: several GPUs for one scan, a list such as "
+        "cuda:0,cuda:1, or cuda:all (the volume is split in z over them: docs/multi-gpu.md)",
+    )  # fmt: skip
     parser.add_argument(
         "--max-device-bytes", type=_budget, default=None, metavar="SIZE",
         help="device memory budget, e.g. 2GiB: every stage keeps to it (the volume streams in slabs; a large mesh "

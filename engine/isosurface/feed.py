@@ -211,6 +211,7 @@ def plane_feed(
     force: bool = False,
     ring_bytes: int | None = None,
     host_bytes: int | None = None,
+    pinned: PinnedBuffer | None = None,
 ) -> Iterator[Any]:
     """A feed whose ``upload(zlo, zhi)`` gives planes zlo..zhi of ``volume`` (a host array, or a scan read slab by
     slab: ``engine.io.slabs.SlabSource``) as a new array on ``device``. For a CUDA device (with ``force``, any
@@ -219,7 +220,8 @@ def plane_feed(
     ``ring_bytes`` exactly on any device (``Budget.feed_ring_bytes``: for tests), and grown when a larger one is
     needed; where the ring is held by another job, would hold fewer than two planes or cannot be locked, a
     ``DirectFeed``. ``host_bytes``: the most host memory the ring (or a direct feed's reads of a source) may take
-    (``Budget.host_read_bytes``, under a host memory bound)."""
+    (``Budget.host_read_bytes``, under a host memory bound). ``pinned``: the ring to use instead of the process's
+    (a job over several devices gives each part its own: ``engine.isosurface.multi``)."""
     if isinstance(volume, np.ndarray):
         volume = np.ascontiguousarray(volume)
     if getattr(device, "kind", None) == "opencl":  # the pinned ring is Warp's: an OpenCL queue copies directly
@@ -236,13 +238,14 @@ def plane_feed(
     else:
         force = True
     usable = (dev.is_cuda or force) and volume.size and 2 * plane_bytes <= ring_bytes
-    if not usable or not _FEED.lock.acquire(blocking=False):
+    buffer = _FEED if pinned is None else pinned
+    if not usable or not buffer.lock.acquire(blocking=False):
         yield DirectFeed(volume, dev, host_bytes)
         return
     feed = None
     try:
         try:
-            ring = _FEED.at_least(ring_bytes, ring_bytes, pinned=dev.is_cuda)
+            ring = buffer.at_least(ring_bytes, ring_bytes, pinned=dev.is_cuda)
         except (RuntimeError, MemoryError):  # the host would not lock that much memory: copy directly
             ring = None
         if ring is None:
@@ -253,4 +256,4 @@ def plane_feed(
     finally:
         if feed is not None:
             feed.close()
-        _FEED.lock.release()
+        buffer.lock.release()

@@ -211,6 +211,10 @@ def run_slabs(
     closed: bool,
     dev: Any,
     st: IsosurfaceStats,
+    *,
+    layers: tuple[int, int] | None = None,
+    plane_prev: Any = None,
+    vstart: int = 0,
 ) -> Iterator[SlabMesh]:
     """Yield each slab's mesh (``SlabMesh``); check NaN and the level's range at the end.
 
@@ -220,6 +224,10 @@ def run_slabs(
     found over the budget (or over ``plan.max_faces``) after its blocks are classified or counted is redone with
     half the layers, so the result never depends on the slabbing. Per slab, the phases of ``_SlabPass``: classify
     the blocks, compact the active ones, count, emit.
+
+    ``layers``: only block layers ``[first, end)`` (a z part of the volume, ``engine.isosurface.multi``), after the
+    vertices of the part below: ``plane_prev``, the ids on the part's bottom plane (a ``SlabMesh.plane_above`` of
+    layer ``first - 1``; None: none), and ``vstart``, the first id of the part's own vertices.
     """
     from engine.backend.select import get_backend
 
@@ -227,12 +235,12 @@ def run_slabs(
     p = _SlabPass(shape, plan, be, st)
     nz, ny, nx = shape
     B = BLOCK
-    plane_prev = be.full((2, ny + 1, nx + 1), -1, np.int32)
-    vstart = 0
-    bz0 = 0
+    if plane_prev is None:
+        plane_prev = be.full((2, ny + 1, nx + 1), -1, np.int32)
+    bz0, bz_end = (0, p.nbz_total) if layers is None else layers
     active_per_layer = faces_per_layer = 0.0  # the last slab's (with any), for sizing the next slab
-    while bz0 < p.nbz_total:
-        bz1 = min(bz0 + p.layers, p.nbz_total)
+    while bz0 < bz_end:
+        bz1 = min(bz0 + p.layers, bz_end)
         n_layers = bz1 - bz0
         cz_first = bz0 * B - 1
         cz_last = min(bz1 * B - 1, nz) - 1  # last cell layer (origin)

@@ -12,6 +12,7 @@ pipeline goes on as without a budget; otherwise the decimated groups are finishe
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -94,11 +95,16 @@ def stream_surface(
     decimate: bool,
     dev: Any,
     stats: Any,
+    zpart: Any = None,
 ) -> StreamResult:
     """Gaussian and MC33 over z slabs of ``volume`` (a host array, or a scan read slab by slab from disk:
     ``engine.io.slabs.SlabSource``, whose planes are read as the slabs need them, within the budget's host bound)
     within a device memory ``budget`` (limited), decimating groups of slabs (to ``ratio`` of their faces, or by half
     when the target is a face count) whenever the mesh would not fit.
+
+    ``zpart``: one z part of a job over several devices (``engine.isosurface.multi.Part``): only its block layers
+    are streamed, after the vertices it shares with the part below, and its slabs always end in decimated groups
+    (pinned where they meet the parts below and above), to be joined with the other parts'.
 
     Raises:
         BudgetError: one slab (one block layer and its halo) or, without decimation, the mesh needs more.
@@ -112,7 +118,8 @@ def stream_surface(
     plane = volume.shape[1] * volume.shape[2] * volume.itemsize
     slab_bytes = (budget.share(share) // plane_bytes(volume, gaussian) + 3) * plane  # the most uploaded
     host = budget.host_read_bytes  # under a host bound: the ring (or a direct read) takes at most this
-    with plane_feed(volume, dev, slab_bytes, ring_bytes=budget.feed_ring_bytes, host_bytes=host) as feed:
+    ring = None if zpart is None else zpart.ring  # a part of a job over several devices: its own pinned ring
+    with plane_feed(volume, dev, slab_bytes, ring_bytes=budget.feed_ring_bytes, host_bytes=host, pinned=ring) as feed:
         get_slab, per_plane, halo = slab_getter(volume, gaussian, feed.upload)
         # a group is decimated between slabs, when the slab's working set is freed: it may use the whole budget but
         # for what stays on the device meanwhile (the halo planes of the streamed Gaussian, the shared-plane ids)
@@ -130,11 +137,13 @@ def stream_surface(
         # the groups stop short of the target (GROUP_SLACK), leaving the last collapses to a pass across borders
         group_ratio = ratio if ratio is not None else 0.5
         group_room = room if budget.group_room_share == 1 else int(room * budget.group_room_share)
-        groups = GroupDecimator(group_ratio, GROUP_SLACK, group_room, spill, origin, volume.shape[0], dev, budget)
+        make = GroupDecimator if zpart is None else zpart.decimator
+        groups = make(group_ratio, GROUP_SLACK, group_room, spill, origin, volume.shape[0], dev, budget)
         out = StreamResult(origin=origin)
         t0 = time.perf_counter()
         is_float = gaussian is not None or volume.dtype == np.float32
-        slabs = run_slabs(get_slab, volume.shape, plan, is_float, level, spacing, closed, dev, stats)
+        run = functools.partial(run_slabs, get_slab, volume.shape, plan, is_float, level, spacing, closed, dev)
+        slabs = run(stats) if zpart is None else zpart.slabs(run, stats)
         for part in _slabs_within(slabs, share):
             out.mc33_faces += part.nt
             out.mc33_vertices += part.nv
@@ -147,7 +156,7 @@ def stream_surface(
                 )
             groups.add(part)
         out.info = {"slabs": stats.slabs, "slab_retries": stats.retries, "group_cap_faces": cap}
-        if not groups.groups:  # it all fitted: the undecimated mesh stays on the device
+        if not groups.groups and zpart is None:  # it all fitted: the undecimated mesh stays on the device
             if groups.pending and stats.level_in_range:
                 out.device = join_parts(groups.pending)
             out.info["groups"] = 0

@@ -101,7 +101,10 @@ def reconstruct(
         params: pipeline parameters (defaults: the paper's best combination).
         device: "auto", "cpu", "cuda" or "cuda:N", "opencl" or "opencl:N" (``engine.backend``: every stage on
             OpenCL), a Warp device, or a ``Backend`` (``engine.job.Runtime.backend``: resolved already;
-            ``engine.device.resolve_device``, ``resolve_backend``).
+            ``engine.device.resolve_device``, ``resolve_backend``); or several devices of one kind, "cuda:0,cuda:1",
+            "cuda:all" or their backends (``engine.job.Runtime.device``): the volume is split in z over them, each
+            part streamed and decimated in groups on its own device with the budget (its default where none is
+            given), then joined and finished on the first (``engine.isosurface.multi``, docs/multi-gpu.md).
         on_progress: called as ``on_progress(stage, fraction_done)`` when a stage starts and ends and inside long
             stages (the decimation's passes); the fraction weights stages by their expected time
             (``engine.job.progress``).
@@ -130,16 +133,21 @@ def reconstruct(
             BudgetError: the memory budget or the host bound is too small, with the smallest that would work).
         StageError: a stage failed otherwise.
     """
-    from engine.device import resolve_backend, resolve_device
+    from engine.device import resolve_backends, resolve_device
 
     params = params or ReconParams()
-    dev = resolve_device(device)  # Warp's device: the scope of Warp's stages (Warp's CPU for an OpenCL spec)
-    be = resolve_backend(device)  # where the device stages run
+    devices = resolve_backends(device)  # one; or a job over several devices (engine.isosurface.multi)
+    be = devices[0]  # where the device stages run (the first device of several: all but the streamed stages)
+    dev = resolve_device(be)  # Warp's device: the scope of Warp's stages (Warp's CPU for an OpenCL spec)
     budget = Budget.of(max_device_bytes).for_device(be)
+    if len(devices) > 1 and not budget.limited and params.decimate is not None:  # several: the volume streams
+        budget = budget.with_bytes(int(min(d.default_budget() for d in devices)))
     if out_of_core(volume):
         budget = _out_of_core_budget(volume, params, budget, be)
     report = _report_head(volume, params, device, dev, be)
-    st = State(volume, budget, backend=be)
+    if len(devices) > 1:
+        report["device"]["devices"] = [d.spec for d in devices]
+    st = State(volume, budget, backend=be, devices=devices if len(devices) > 1 else ())
     with _host_bound_errors(budget, be):
         _run_plan(st, plan_for(budget), params, report, StageProgress(STAGES, on_progress), dev)
     if budget.host_bytes is not None:
@@ -218,7 +226,7 @@ def _report_head(volume: Volume, params: ReconParams, device: Any, dev: Any, be:
     return {
         "parameters": params.to_dict(),
         "device": {
-            "spec": device if isinstance(device, str) else str(getattr(device, "spec", device)),
+            "spec": device if isinstance(device, str) else _spec_of(device),
             "name": str(dev) if be.kind == "warp" else be.label,
             "description": getattr(dev, "name", str(dev)) if be.kind == "warp" else be.label,
             "backend": be.kind,
@@ -234,6 +242,13 @@ def _report_head(volume: Volume, params: ReconParams, device: Any, dev: Any, be:
         "stage_seconds": {},
         "counts": {},
     }
+
+
+def _spec_of(device: Any) -> str:
+    """A resolved device (a backend, a Warp device, or several backends) as its spec for the report."""
+    if isinstance(device, (list, tuple)):
+        return ",".join(_spec_of(d) for d in device)
+    return str(getattr(device, "spec", device))
 
 
 def _run_plan(

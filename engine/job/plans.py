@@ -42,6 +42,8 @@ class State:
     volume: Volume
     budget: Budget = field(default_factory=Budget)  # every stage keeps to it (the streamed plan)
     backend: Any = None  # engine.backend.Backend the device stages run on (Warp's, or OpenCL's)
+    devices: tuple[Any, ...] = ()  # a job over several devices: their backends (``backend`` the first), each with
+    # the budget; the streamed volume stages and the groups' decimation split over them (engine.isosurface.multi)
     field: Any = None
     level: float = 0.0
     pos: Any = None  # the backend's VEC3F array (wp.array(dtype=wp.vec3) on Warp), (z, y, x) mm
@@ -249,6 +251,14 @@ def _stream(st: State, params: ReconParams, stats: Any) -> tuple[Any, Any]:
     from engine.isosurface.stream import stream_surface
 
     dec = params.decimate
+    if len(st.devices) > 1 and dec is not None:  # over several devices: always in groups, joined on the host
+        from engine.isosurface.multi import stream_parts
+
+        st.stream = stream_parts(
+            st.volume.data, st.level, st.volume.spacing_zyx_mm, closed=params.iso.closed, gaussian=params.gaussian,
+            budget=st.budget, ratio=dec.reduction, devices=st.devices, stats=stats,
+        )  # fmt: skip
+        return st.backend.empty(0, VEC3F), st.backend.empty(0, VEC3I)
     st.stream = stream_surface(
         st.volume.data,
         st.level,

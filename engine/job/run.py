@@ -196,7 +196,8 @@ def _scan(job: _Job, volume: Volume) -> JobResult:
         job.progress(stage, load_end + (mesh_end - load_end) * fraction)
 
     device, budget, recon = job.runtime.backend, job.runtime.budget, job.spec.recon
-    result = reconstruct(volume, recon, device=device, on_progress=within, max_device_bytes=budget)
+    on = job.runtime.device  # the backend, or several (the model's volume stages split over them)
+    result = reconstruct(volume, recon, device=on, on_progress=within, max_device_bytes=budget)
     job.progress("writing", mesh_end)
     paths = write_outputs(result, job.outdir, recon, device=device, max_device_bytes=budget)
     return JobResult("scan", paths, dict(result.report), volume)

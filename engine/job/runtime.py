@@ -37,6 +37,8 @@ class Runtime:
             host device the device budget comes out of the host bound).
         png_decoder: ``auto`` (PNG rows unfiltered on a GPU), ``libpng`` or ``pillow``.
         decode_threads, decode_processes: how slices are decoded (``engine.io.load_volume``; None: its default).
+        devices: a job over several devices ("cuda:0,cuda:1", "cuda:all"): their backends, ``backend`` the first
+            (empty for one device): the model's volume stages are split over them (``engine.isosurface.multi``).
     """
 
     backend: Backend
@@ -47,11 +49,17 @@ class Runtime:
     png_decoder: str = "auto"
     decode_threads: int | None = None
     decode_processes: bool | None = None
+    devices: tuple[Backend, ...] = ()
 
     @property
     def spec(self) -> str:
-        """The concrete device spec: "cpu", "cuda:N" or "opencl:N"."""
-        return self.backend.spec
+        """The concrete device spec: "cpu", "cuda:N" or "opencl:N" (of several: "cuda:0,cuda:1")."""
+        return ",".join(be.spec for be in self.devices) if self.devices else self.backend.spec
+
+    @property
+    def device(self) -> Backend | tuple[Backend, ...]:
+        """What ``engine.reconstruct`` takes as its ``device``: the backend, or the backends of several devices."""
+        return self.devices or self.backend
 
     def rows(self) -> DeviceRows | None:
         """PNG slices' rows unfiltered on this device where it is a GPU and ``png_decoder`` is ``auto``
@@ -72,7 +80,8 @@ class Runtime:
         budget = f", budget {self.budget.bytes:,} bytes" if self.budget.bytes is not None else ""
         if self.budget.host_bytes is not None:
             budget += f", host bound {self.budget.host_bytes:,} bytes"
-        return f"device {self.requested} -> {self.backend.label}{why}{budget}"
+        label = " + ".join(be.label for be in self.devices) if self.devices else self.backend.label
+        return f"device {self.requested} -> {label}{why}{budget}"
 
 
 def resolve_runtime(
@@ -85,20 +94,27 @@ def resolve_runtime(
     max_host_bytes: str | int | None = None,
 ) -> Runtime:
     """Resolve a device spec (``engine.device``: "auto", "cpu", "cuda[:N]", "opencl[:N]", a Warp device or a
-    ``Backend``) and a budget once: the device budget ``max_device_bytes`` and the host memory bound
+    ``Backend``; or several devices of one kind: "cuda:0,cuda:1", "cuda:all", ``engine.device.resolve_backends``) and
+    a budget once: the device budget ``max_device_bytes`` and the host memory bound
     ``max_host_bytes`` (``"64GiB"``, bytes, None: none; ``Budget.with_host``, ``Budget.for_device``).
 
     Raises:
         ValueError: a malformed spec, a device (or PyOpenCL, or an OpenCL driver) that is not present, a budget or
-            a decoder that is not one.
+            a decoder that is not one, a list that mixes backends.
     """
     from engine.backend.select import auto_spec, get_backend
-    from engine.device import resolve_device
+    from engine.device import is_device_list, resolve_backends, resolve_device
 
     if png_decoder not in PNG_DECODERS:
         raise ValueError(f"png_decoder must be one of {', '.join(PNG_DECODERS)}, got {png_decoder!r}")
     requested = device if isinstance(device, str) else str(getattr(device, "spec", device))
     reason = ""
+    devices: tuple[Backend, ...] = ()
+    if is_device_list(device):
+        devices = resolve_backends(device)
+        requested = device if isinstance(device, str) else ",".join(be.spec for be in devices)
+        device = devices[0]
+        devices = devices if len(devices) > 1 else ()  # one device ("cuda:all" on a host of one): as it names
     if device == "auto":
         device = auto_spec()
         reason = _auto_reason(device)
@@ -112,6 +128,7 @@ def resolve_runtime(
         png_decoder=png_decoder,
         decode_threads=decode_threads,
         decode_processes=decode_processes,
+        devices=devices,
     )
 
 
