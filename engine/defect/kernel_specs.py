@@ -25,6 +25,8 @@ RIDGE = Kernel("defect.ridge", f"{_MIR}:ridge_kernel", f"{_MIR_CL}:ridge")
 CFT_SEED = Kernel("defect.cft_seed", f"{_PLN}:seed_kernel", f"{_PLN_CL}:seed")
 CFT_PASS = Kernel("defect.cft_pass", f"{_PLN}:cft_pass_kernel", f"{_PLN_CL}:cft_pass")
 NEAREST = Kernel("defect.nearest", f"{_PLN}:nearest_kernel", f"{_PLN_CL}:nearest")
+FLAGS = Kernel("defect.flags", f"{_PLN}:flags_kernel", f"{_PLN_CL}:flags")
+SOBEL = Kernel("defect.sobel", f"{_PLN}:sobel_kernel", f"{_PLN_CL}:sobel")
 
 _I, _F = np.int32, np.float32
 MIRROR_MAP = Struct(

@@ -100,3 +100,28 @@ def nearest_feature(
 
     if count:
         be.launch(NEAREST, count, [points, rank, features, box, int(max_scan), out])
+
+
+def set_voxels(be: Backend, mask: Any, shape: tuple[int, ...], *, surface: bool = False) -> np.ndarray:
+    """Flat indices (int64, ascending: ``np.flatnonzero``'s) of the set voxels of ``mask`` (flat uint8 device array
+    of ``shape``), or with ``surface`` of those with a face neighbour clear or outside the grid (a sync point: the
+    indices come back to the host)."""
+    from engine.defect.kernel_specs import FLAGS
+
+    nz, ny, nx = (int(s) for s in shape)
+    flags = be.empty(nz * ny * nx, np.int32)
+    be.launch(FLAGS, nz * ny * nx, [mask, nz, ny, nx, int(surface), flags])
+    indices, _, count = be.compact(flags)
+    return be.to_host(indices, count=count).astype(np.int64)
+
+
+def sobel(be: Backend, mask: Any, shape: tuple[int, ...], at: Any, count: int) -> np.ndarray:
+    """The 3x3x3 Sobel gradient (integer x, y, z components, (count, 3) int32 on the host; the grid outside clear)
+    of ``mask`` (flat uint8 device array of ``shape``) at the flat voxels ``at`` (int32 device array)."""
+    from engine.defect.kernel_specs import SOBEL
+
+    nz, ny, nx = (int(s) for s in shape)
+    out = be.empty(3 * max(count, 1), np.int32)
+    if count:
+        be.launch(SOBEL, count, [mask, nz, ny, nx, at, out])
+    return be.to_host(out, count=3 * count).reshape(count, 3)

@@ -125,8 +125,9 @@ class _DeviceNearest:
     The k-d tree's pairs (to float32 rounding and ties) but for points so far from the surface that the voxels
     within the bound are more than ``MAX_SCAN``."""
 
-    #: device bytes per voxel of the box: two float32 and two int32 fields, the passes' scratch
-    BYTES_PER_VOXEL = 24
+    #: device bytes per voxel of the grid: the skull, its flags and their compaction; the box's two float32 and
+    #: two int32 fields and the passes' scratch
+    BYTES_PER_VOXEL = 40
 
     def __init__(self, be: Any, grid: Grid, surf_idx: npt.NDArray[np.int64], centroid: FloatArray) -> None:
         from engine.defect.kernel_specs import BOX
@@ -147,10 +148,9 @@ class _DeviceNearest:
         self.out: Any = None
 
     @classmethod
-    def fits(cls, be: Any, surf_idx: npt.NDArray[np.int64]) -> bool:
-        """Whether the transform of the surface's box fits the backend's default working set."""
-        box = surf_idx.max(axis=0) - surf_idx.min(axis=0) + 1
-        return int(np.prod(box)) * cls.BYTES_PER_VOXEL <= int(be.default_budget())
+    def fits(cls, be: Any, shape: tuple[int, ...]) -> bool:
+        """Whether the plane's device work on a grid of ``shape`` fits the backend's default working set."""
+        return int(np.prod(shape)) * cls.BYTES_PER_VOXEL <= int(be.default_budget())
 
     def __call__(self, q: FloatArray) -> npt.NDArray[np.int64]:
         from engine.defect.ops import nearest_feature
@@ -163,6 +163,41 @@ class _DeviceNearest:
         be.upload(self.points, np.ascontiguousarray(q + self.shift, dtype=np.float32).reshape(-1))
         nearest_feature(be, self.points, count, self.rank, self.features, self.box, self.out, max_scan=MAX_SCAN)
         return be.to_host(self.out, count=count).astype(np.int64)  # sync point
+
+
+class _SkullOnDevice:
+    """The skull mask on a backend: its voxels and surface voxels found there (``ops.set_voxels``: the host's
+    ``np.argwhere`` and ``grid.surface_voxels``, the same indices in the same order) and its Sobel gradient at the
+    surface voxels (``ops.sobel``: the host's ``surface_normals``' integer sums)."""
+
+    def __init__(self, be: Any, skull: Any) -> None:
+        from engine.defect.ops import upload_mask
+
+        self.be = be
+        self.shape = tuple(int(v) for v in skull.shape)
+        self.mask = upload_mask(be, skull)
+
+    def _index(self, flat: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+        return np.stack(np.unravel_index(flat, self.shape), axis=1)
+
+    def voxels(self) -> npt.NDArray[np.int64]:
+        """(N, 3) indices (z, y, x) of the skull's voxels."""
+        from engine.defect.ops import set_voxels
+
+        return self._index(set_voxels(self.be, self.mask, self.shape))
+
+    def surface(self) -> npt.NDArray[np.int64]:
+        """(N, 3) indices (z, y, x) of the skull's voxels with a face neighbour outside it."""
+        from engine.defect.ops import set_voxels
+
+        return self._index(set_voxels(self.be, self.mask, self.shape, surface=True))
+
+    def sobel(self, index_zyx: npt.NDArray[np.int64]) -> npt.NDArray[np.int32]:
+        """The integer Sobel gradient (x, y, z) of the skull at voxels (N, 3) (z, y, x)."""
+        from engine.defect.ops import sobel
+
+        flat = np.ravel_multi_index(tuple(np.asarray(index_zyx).T), self.shape).astype(np.int32)
+        return sobel(self.be, self.mask, self.shape, self.be.from_host(flat), len(flat))
 
 
 class _Fit:
@@ -281,7 +316,12 @@ def surface_normals(mask: Any, index_zyx: Any, spacing_xyz: FloatArray) -> Float
                         others.pop(axis)
                         w = weights[others[0]] * weights[others[1]]
                         comps[axis] += w * o * v
-    grad = np.stack(comps, axis=1).astype(np.float64)
+    return _unit_normals(np.stack(comps, axis=1), spacing_xyz)
+
+
+def _unit_normals(sobel_xyz: Any, spacing_xyz: FloatArray) -> FloatArray:
+    """Outward unit normals from the mask's integer Sobel gradient (x, y, z): the gradient in mm, reversed."""
+    grad = np.asarray(sobel_xyz).astype(np.float64)
     grad /= spacing_xyz
     normal = -grad
     norm = np.linalg.norm(normal, axis=1, keepdims=True)
@@ -325,11 +365,22 @@ def find_symmetry_plane(
     grid = Grid.of(volume, orient)
     if skull is None:
         _, skull = bone_and_skull(volume.data, level)
-    surf_idx = surface_voxels(skull)
     rng = np.random.default_rng(seed)
+    be = None
+    if device is not None:
+        from engine.device import resolve_backend
+
+        be = resolve_backend(device)
+        if not _DeviceNearest.fits(be, grid.shape):
+            be = None  # the host's tree
+    on_device = _SkullOnDevice(be, skull) if be is not None else None
+    surf_idx = surface_voxels(skull) if on_device is None else on_device.surface()
     if len(surf_idx) > MAX_SURFACE:
         surf_idx = surf_idx[np.sort(rng.choice(len(surf_idx), MAX_SURFACE, replace=False))]
-    normals = surface_normals(skull, surf_idx, grid.spacing_xyz)
+    if on_device is None:
+        normals = surface_normals(skull, surf_idx, grid.spacing_xyz)
+    else:
+        normals = _unit_normals(on_device.sobel(surf_idx), grid.spacing_xyz)
     surface = grid.xyz(surf_idx)
     centroid = surface.mean(axis=0)
     surface = surface - centroid
@@ -337,12 +388,8 @@ def find_symmetry_plane(
     sample = surface[np.sort(pick)]
     sp = grid.spacing_xyz
     nearest: Callable[[FloatArray], npt.NDArray[np.int64]] | None = None
-    if device is not None:
-        from engine.device import resolve_backend
-
-        be = resolve_backend(device)
-        if _DeviceNearest.fits(be, surf_idx):
-            nearest = _DeviceNearest(be, grid, surf_idx, centroid)
+    if be is not None:
+        nearest = _DeviceNearest(be, grid, surf_idx, centroid)
     fit = _Fit(surface, normals, sample, float(np.linalg.norm(sp)), float(sp.max()), nearest or _TreeNearest(surface))
 
     exclude = None
@@ -357,7 +404,8 @@ def find_symmetry_plane(
             return far if far.sum() >= 100 else np.ones(len(sample), dtype=bool)
 
     # candidates: principal axes of the skull's voxels and the grid axes, through the centroid
-    voxels = grid.xyz(np.argwhere(skull)[:: max(1, int(skull.sum()) // 200_000)]) - centroid
+    at = np.argwhere(skull) if on_device is None else on_device.voxels()
+    voxels = grid.xyz(at[:: max(1, len(at) // 200_000)]) - centroid
     _, axes = np.linalg.eigh(np.cov(voxels.T))
     candidates = [axes[:, k] for k in range(3)] + [np.eye(3)[k] for k in range(3)]
     scored = sorted(((fit.score(c, 0.0), i, c) for i, c in enumerate(candidates)), key=lambda t: (t[0], t[1]))

@@ -158,3 +158,59 @@ __kernel void nearest(__global const float *points, __global const int *rank, __
     }
     out[i] = pick;
 }
+
+/* 1 where voxel (z, y, x) is in the grid and set, else 0 */
+static int is_set(__global const uchar *mask, const int nz, const int ny, const int nx, const int z, const int y,
+                  const int x)
+{
+    if (z < 0 || z >= nz || y < 0 || y >= ny || x < 0 || x >= nx) return 0;
+    return mask[(z * ny + y) * nx + x] != 0 ? 1 : 0;
+}
+
+/* flags = 1 at the set voxels (with surface: only those with a face neighbour clear or outside the grid), else 0 */
+__kernel void flags(__global const uchar *mask, const int nz, const int ny, const int nx, const int surface,
+                    __global int *out)
+{
+    const int i = (int)get_global_id(0);
+    const int z = i / (ny * nx);
+    const int rest = i - z * (ny * nx);
+    const int y = rest / nx;
+    const int x = rest - y * nx;
+    int f = is_set(mask, nz, ny, nx, z, y, x);
+    if (f != 0 && surface != 0) {
+        const int inner = is_set(mask, nz, ny, nx, z - 1, y, x) * is_set(mask, nz, ny, nx, z + 1, y, x)
+                          * is_set(mask, nz, ny, nx, z, y - 1, x) * is_set(mask, nz, ny, nx, z, y + 1, x)
+                          * is_set(mask, nz, ny, nx, z, y, x - 1) * is_set(mask, nz, ny, nx, z, y, x + 1);
+        f = 1 - inner;
+    }
+    out[i] = f;
+}
+
+/* the Sobel smoothing weight of an offset across the derivative's axis: 1, 2, 1 */
+static int weight(const int o) { return o == 0 ? 2 : 1; }
+
+/* the mask's 3x3x3 Sobel gradient (x, y, z; integer, the grid outside clear) at flat voxel at[i] */
+__kernel void sobel(__global const uchar *mask, const int nz, const int ny, const int nx, __global const int *at,
+                    __global int *out)
+{
+    const int i = (int)get_global_id(0);
+    const int a = at[i];
+    const int z = a / (ny * nx);
+    const int rest = a - z * (ny * nx);
+    const int y = rest / nx;
+    const int x = rest - y * nx;
+    int gx = 0, gy = 0, gz = 0;
+    for (int c = 0; c < 27; c++) {
+        const int dz = c / 9 - 1;
+        const int dy = (c / 3) % 3 - 1;
+        const int dx = c % 3 - 1;
+        if (is_set(mask, nz, ny, nx, z + dz, y + dy, x + dx) != 0) {
+            gx += weight(dy) * weight(dz) * dx;
+            gy += weight(dx) * weight(dz) * dy;
+            gz += weight(dx) * weight(dy) * dz;
+        }
+    }
+    out[3 * i] = gx;
+    out[3 * i + 1] = gy;
+    out[3 * i + 2] = gz;
+}

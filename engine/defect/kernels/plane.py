@@ -152,3 +152,79 @@ def nearest_kernel(
                                 best = e2
                                 pick = r
     out[i] = pick
+
+
+@wp.func
+def _set(mask: wp.array(dtype=wp.uint8), nz: int, ny: int, nx: int, z: int, y: int, x: int) -> int:
+    """1 where voxel (z, y, x) is in the grid and set, else 0."""
+    if z < 0 or z >= nz or y < 0 or y >= ny or x < 0 or x >= nx:
+        return 0
+    if mask[(z * ny + y) * nx + x] != wp.uint8(0):
+        return 1
+    return 0
+
+
+@wp.kernel
+def flags_kernel(
+    mask: wp.array(dtype=wp.uint8), nz: int, ny: int, nx: int, surface: int, flags: wp.array(dtype=wp.int32)
+):
+    """flags = 1 at the set voxels (with ``surface``: only those with a face neighbour clear or outside the grid),
+    else 0."""
+    i = wp.tid()
+    z = i // (ny * nx)
+    rest = i - z * (ny * nx)
+    y = rest // nx
+    x = rest - y * nx
+    f = _set(mask, nz, ny, nx, z, y, x)
+    if f != 0 and surface != 0:
+        inner = (
+            _set(mask, nz, ny, nx, z - 1, y, x)
+            * _set(mask, nz, ny, nx, z + 1, y, x)
+            * _set(mask, nz, ny, nx, z, y - 1, x)
+            * _set(mask, nz, ny, nx, z, y + 1, x)
+            * _set(mask, nz, ny, nx, z, y, x - 1)
+            * _set(mask, nz, ny, nx, z, y, x + 1)
+        )
+        f = 1 - inner
+    flags[i] = f
+
+
+@wp.func
+def _weight(o: int) -> int:
+    """The Sobel smoothing weight of an offset across the derivative's axis: 1, 2, 1."""
+    if o == 0:
+        return 2
+    return 1
+
+
+@wp.kernel
+def sobel_kernel(
+    mask: wp.array(dtype=wp.uint8),
+    nz: int,
+    ny: int,
+    nx: int,
+    at: wp.array(dtype=wp.int32),
+    out: wp.array(dtype=wp.int32),
+):
+    """The mask's 3x3x3 Sobel gradient (x, y, z; integer, the grid outside clear) at flat voxel ``at[i]``."""
+    i = wp.tid()
+    a = at[i]
+    z = a // (ny * nx)
+    rest = a - z * (ny * nx)
+    y = rest // nx
+    x = rest - y * nx
+    gx = int(0)
+    gy = int(0)
+    gz = int(0)
+    for c in range(27):
+        dz = c // 9 - 1
+        dy = (c // 3) % 3 - 1
+        dx = c % 3 - 1
+        v = _set(mask, nz, ny, nx, z + dz, y + dy, x + dx)
+        if v != 0:
+            gx += _weight(dy) * _weight(dz) * dx
+            gy += _weight(dx) * _weight(dz) * dy
+            gz += _weight(dx) * _weight(dy) * dz
+    out[3 * i] = gx
+    out[3 * i + 1] = gy
+    out[3 * i + 2] = gz
