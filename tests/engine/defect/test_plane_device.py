@@ -86,6 +86,25 @@ def test_the_nearest_feature_of_a_point_is_the_k_d_trees(backend) -> None:
     assert np.all(near8 >= want - 1e-4) and np.mean(near8 <= want + 1e-4) > 0.5
 
 
+def test_the_skulls_voxels_surface_and_normals_on_the_device_are_the_hosts(backend) -> None:
+    from engine.defect.grid import surface_voxels
+    from engine.defect.ops import set_voxels, sobel, upload_mask
+    from engine.defect.plane import _unit_normals, surface_normals
+
+    rng = np.random.default_rng(2)
+    shape, sp = (7, 9, 8), np.array([0.8, 0.6, 1.5])  # x, y, z mm
+    mask = rng.random(shape) < 0.6
+    mask[:, 0, :] = True  # set voxels on the grid's border
+    d_mask = upload_mask(backend, mask)
+    assert np.array_equal(set_voxels(backend, d_mask, shape), np.flatnonzero(mask))
+    surf = surface_voxels(mask)
+    flat = set_voxels(backend, d_mask, shape, surface=True)
+    assert np.array_equal(np.stack(np.unravel_index(flat, shape), axis=1), surf)
+    at = np.ravel_multi_index(tuple(surf.T), shape).astype(np.int32)
+    grad = sobel(backend, d_mask, shape, backend.from_host(at), len(at))
+    assert np.array_equal(_unit_normals(grad, sp), surface_normals(mask, surf, sp))
+
+
 def _angle_deg(a: Any, b: Any) -> float:
     return float(np.degrees(np.arccos(min(1.0, abs(float(np.dot(a, b)))))))
 
