@@ -38,12 +38,14 @@ __all__ = [
 
 class DeviceInfo(TypedDict):
     """Where the pipeline ran: the caller's spec, the device's name (Warp's ``cuda:0``, or the OpenCL device's
-    ``opencl:N`` label), its description and the backend (``"warp"`` or ``"opencl"``: ``engine.backend``)."""
+    ``opencl:N`` label), its description and the backend (``"warp"`` or ``"opencl"``: ``engine.backend``); a job
+    over several devices lists them (``devices``: the first is ``name``'s, ``engine.isosurface.multi``)."""
 
     spec: str
     name: str
     description: str
     backend: str
+    devices: NotRequired[list[str]]
 
 
 class InputInfo(TypedDict):

@@ -43,17 +43,48 @@ _RINGS: dict[str, PinnedBuffer] = {}  # a pinned plane ring per device beyond th
 _RINGS_LOCK = threading.Lock()
 
 
-def split_layers(n_layers: int, weights: Sequence[float]) -> list[tuple[int, int]]:
-    """Block layers ``[0, n_layers)`` split into contiguous parts ``[first, end)``, one per weight (a device's share
-    of the work), each at least one layer; fewer parts where there are fewer layers than weights."""
-    n = max(min(len(weights), n_layers), 1)
-    w = np.asarray(weights[:n], np.float64)
-    cuts = np.rint(np.cumsum(w) / w.sum() * n_layers).astype(np.int64)
+VOLUME_SHARE = 0.45  # of a streamed job's time, the volume stages' (by voxels); the rest the groups' (by faces)
+SAMPLE_STEP = 4  # the work estimate reads every this many rows and columns of one plane per block layer
+
+
+def split_layers(work: Sequence[float], n: int) -> list[tuple[int, int]]:
+    """Block layers (``work``: each one's expected work) split into ``n`` contiguous parts ``[first, end)`` of
+    about equal work, each at least one layer; fewer parts where there are fewer layers."""
+    n_layers = len(work)
+    n = max(min(n, n_layers), 1)
+    w = np.maximum(np.asarray(work, np.float64), 0.0)
+    total = np.cumsum(w)
+    if total[-1] <= 0:
+        total = np.arange(1, n_layers + 1, dtype=np.float64)
+    goals = total[-1] * np.arange(1, n) / n
+    at = np.searchsorted(total, goals)  # the first layer reaching each goal: the cut after it, or before it if nearer
+    before = np.where(at > 0, total[np.maximum(at - 1, 0)], 0.0)
+    cuts = np.where(total[at] - goals <= goals - before, at + 1, at)
     bounds = [0]
-    for i, c in enumerate(cuts[:-1]):  # each part keeps at least one layer, and leaves one to each part after it
+    for i, c in enumerate(cuts):  # each part keeps at least one layer, and leaves one to each part after it
         bounds.append(int(min(max(c, bounds[-1] + 1), n_layers - (n - 1 - i))))
     bounds.append(n_layers)
     return list(itertools.pairwise(bounds))
+
+
+def layer_work(volume: Any, level: float, n_layers: int) -> np.ndarray:
+    """The expected work of each block layer: ``VOLUME_SHARE`` by its planes, the rest by its surface, estimated
+    from the level's crossings along rows and columns of one plane per layer (every ``SAMPLE_STEP``-th row and
+    column: a 64th of the voxels). Where the volume is read from disk (``engine.io.slabs.SlabSource``), by planes
+    only: the estimate would read an eighth of it."""
+    from engine.isosurface.kernel_specs import BLOCK
+
+    nz = volume.shape[0]
+    planes = np.array([min((b + 1) * BLOCK, nz + 1) - b * BLOCK for b in range(n_layers)], np.float64)
+    if not isinstance(volume, np.ndarray) or n_layers < 2:
+        return planes
+    cross = np.zeros(n_layers)
+    for b in range(n_layers):
+        plane = volume[min(b * BLOCK + BLOCK // 2, nz - 1), ::SAMPLE_STEP, ::SAMPLE_STEP] >= level
+        cross[b] = np.count_nonzero(plane[1:] != plane[:-1]) + np.count_nonzero(plane[:, 1:] != plane[:, :-1])
+    if cross.sum() == 0:
+        return planes
+    return VOLUME_SHARE * planes / planes.sum() + (1 - VOLUME_SHARE) * cross * planes / (cross * planes).sum()
 
 
 class ModeVote:
@@ -193,9 +224,8 @@ def stream_parts(
     Raises:
         BudgetError, ValueError: as ``stream_surface`` (the lowest part's error where several fail).
     """
-    nz = volume.shape[0]
-    n_layers = -(-(nz + 1) // BLOCK)
-    layers = split_layers(n_layers, [1.0] * len(devices))
+    n_layers = -(-(volume.shape[0] + 1) // BLOCK)
+    layers = split_layers(layer_work(volume, level, n_layers), len(devices))
     n = len(layers)
     if budget.host_bytes is not None:  # the parts' reads share the host bound's read share
         budget = dataclasses.replace(budget, host_read_share=budget.host_read_share / n)
@@ -207,6 +237,7 @@ def stream_parts(
     results: list[StreamResult | None] = [None] * n
     errors: list[BaseException | None] = [None] * n
     seconds = [0.0] * n
+    peaks: list[int | None] = [None] * n
 
     def run(indices: list[int], be: Any) -> None:
         import warp as wp
@@ -214,9 +245,13 @@ def stream_parts(
         from engine.device import resolve_device
         from engine.isosurface.stream import stream_surface
 
+        # the job's memory report measures its first device; another GPU's peak is measured here, per part
+        tracker = be.peak_tracker() if be is not devices[0] and not be.is_host else None
         with wp.ScopedDevice(resolve_device(be)):
             for i in indices:
                 t0 = time.perf_counter()
+                if tracker is not None:
+                    tracker.start()
                 try:
                     results[i] = stream_surface(
                         volume, level, spacing, closed=closed, gaussian=gaussian, budget=budget, ratio=ratio,
@@ -227,6 +262,9 @@ def stream_parts(
                 finally:
                     vote.finish(i)
                     seconds[i] = time.perf_counter() - t0
+                    if tracker is not None:
+                        peaks[i] = tracker.peak()
+                        tracker.stop()
 
     by_device: dict[int, tuple[Any, list[int]]] = {}  # a device named twice runs its parts in turn, in one thread
     for i, be in enumerate(devices[:n]):
@@ -255,7 +293,7 @@ def stream_parts(
     _sum_stats(stats, part_stats)
     out.info = {
         "devices": [be.spec for be in devices[:n]],
-        "parts": [_part_info(p, r, be, t) for p, r, be, t in zip(parts, done, devices, seconds, strict=False)],
+        "parts": [_part_info(*args) for args in zip(parts, done, devices, seconds, peaks, strict=False)],
         "streamed_seconds": streamed,
         "join_seconds": time.perf_counter() - t1,
         "slabs": stats.slabs,
@@ -266,10 +304,12 @@ def stream_parts(
     return out
 
 
-def _part_info(part: Part, r: StreamResult, be: Any, seconds: float) -> dict[str, Any]:
-    """A part's line of the report: its device, block layers (the cell layers ``8 * first - 1`` ..), time and
-    groups."""
+def _part_info(part: Part, r: StreamResult, be: Any, seconds: float, peak: int | None) -> dict[str, Any]:
+    """A part's line of the report: its device, block layers (the cell layers ``8 * first - 1`` ..), time, groups
+    and, on a GPU other than the job's first, its peak device memory."""
     info = {"device": be.spec, "layers": list(part.layers), "seconds": seconds, "mc33_faces": r.mc33_faces}
+    if peak is not None:
+        info["peak_bytes"] = peak
     return info | {k: r.info.get(k) for k in ("slabs", "groups", "group_mode", "group_seconds", "feed")}
 
 
