@@ -47,7 +47,7 @@ VOLUME_SHARE = 0.45  # of a streamed job's time, the volume stages' (by voxels);
 SAMPLE_STEP = 4  # the work estimate reads every this many rows and columns of one plane per block layer
 
 
-def split_layers(work: Sequence[float], n: int) -> list[tuple[int, int]]:
+def split_layers(work: Sequence[float] | np.ndarray, n: int) -> list[tuple[int, int]]:
     """Block layers (``work``: each one's expected work) split into ``n`` contiguous parts ``[first, end)`` of
     about equal work, each at least one layer; fewer parts where there are fewer layers."""
     n_layers = len(work)
@@ -84,7 +84,10 @@ def layer_work(volume: Any, level: float, n_layers: int) -> np.ndarray:
         cross[b] = np.count_nonzero(plane[1:] != plane[:-1]) + np.count_nonzero(plane[:, 1:] != plane[:, :-1])
     if cross.sum() == 0:
         return planes
-    return VOLUME_SHARE * planes / planes.sum() + (1 - VOLUME_SHARE) * cross * planes / (cross * planes).sum()
+    work: np.ndarray = (
+        VOLUME_SHARE * planes / planes.sum() + (1 - VOLUME_SHARE) * cross * planes / (cross * planes).sum()
+    )
+    return work
 
 
 class ModeVote:
