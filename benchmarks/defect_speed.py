@@ -10,7 +10,10 @@ and is not timed; then ``--repeat`` runs of ``engine.defect.run`` (the symmetry 
 surface included), each synchronised, with their stages (``DefectResult.seconds``): the median is reported. With
 several devices (issue 40: the defect on every backend), each is measured in turn; ``identical_to_first`` says
 whether its defect (mask, measures) is the first device's, ``ratio_first_over_this`` the first device's median over
-its own (above 1: it is faster). The top-level timing fields are the first device's.
+its own (above 1: it is faster). The top-level timing fields are the first device's. ``plane_on_device``: the
+masks and the symmetry plane with their work on the device (issue 42: ``engine.defect.ops.bone_and_skull`` and
+``find_symmetry_plane(..., device=...)``; ``run`` finds both on the host until it passes its device on), median
+seconds of each and the plane's distance from ``run``'s.
 """
 
 from __future__ import annotations
@@ -59,6 +62,7 @@ def _measure(volume: Any, device: str, repeat: int) -> dict[str, Any]:
         be.synchronize()
         runs.append({"total": time.perf_counter() - t0, **res.seconds})
     median = {k: float(np.median([r.get(k, 0.0) for r in runs])) for k in runs[0]}
+    on_device = _plane_on_device(volume, be, orient, repeat, res.plane)
     return {
         "device": be.spec,
         "device_name": be.label,
@@ -67,7 +71,44 @@ def _measure(volume: Any, device: str, repeat: int) -> dict[str, Any]:
         "median_seconds": {k: round(v, 4) for k, v in median.items()},
         "runs": [{k: round(v, 4) for k, v in r.items()} for r in runs],
         "same_as_first_run": bool(abs(first.volume_mm3 - res.volume_mm3) < 1e-6 * max(1.0, res.volume_mm3)),
+        "plane_on_device": on_device,
         "_result": res,
+    }
+
+
+def _plane_on_device(volume: Any, be: Any, orient: Any, repeat: int, plane: Any) -> dict[str, Any]:
+    """The masks and the symmetry plane with their work on the device (issue 42: ``ops.bone_and_skull(be, ...)``,
+    ``find_symmetry_plane(..., device=be)`` given that skull): a first run (builds), then ``repeat`` synchronised
+    runs; the median seconds of each, whether the masks are the host's, and how far the plane is from ``plane``
+    (``run``'s)."""
+    from engine.defect import DefectParams, find_symmetry_plane
+    from engine.defect.grid import bone_and_skull
+    from engine.defect.ops import bone_and_skull as bone_and_skull_on
+
+    host = bone_and_skull(volume.data, LEVEL)
+    bone, skull = bone_and_skull_on(be, volume.data, LEVEL)
+    find_symmetry_plane(volume, LEVEL, DefectParams(), orient=orient, skull=skull, device=be)
+    masks, planes = [], []
+    for _ in range(repeat):
+        be.synchronize()
+        t0 = time.perf_counter()
+        bone, skull = bone_and_skull_on(be, volume.data, LEVEL)
+        t1 = time.perf_counter()
+        dev = find_symmetry_plane(volume, LEVEL, DefectParams(), orient=orient, skull=skull, device=be)
+        be.synchronize()
+        masks.append(t1 - t0)
+        planes.append(time.perf_counter() - t1)
+    cos = min(1.0, abs(float(np.dot(dev.normal_grid, plane.normal_grid))))
+    return {
+        "masks_median_seconds": round(float(np.median(masks)), 4),
+        "plane_median_seconds": round(float(np.median(planes)), 4),
+        "masks_plus_plane_median_seconds": round(float(np.median(np.add(masks, planes))), 4),
+        "masks_runs": [round(v, 4) for v in masks],
+        "plane_runs": [round(v, 4) for v in planes],
+        "masks_same_as_host": bool(np.array_equal(bone, host[0]) and np.array_equal(skull, host[1])),
+        "iterations": dev.iterations,
+        "angle_to_run_plane_deg": round(float(np.degrees(np.arccos(cos))), 5),
+        "offset_to_run_plane_mm": round(dev.offset_grid_mm - plane.offset_grid_mm, 5),
     }
 
 
@@ -136,8 +177,8 @@ def main(argv: list[str] | None = None) -> int:
         }  # fmt: skip
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
-    summary = [{k: r[k] for k in ("device_name", "first_run_with_compile_s", "median_seconds", "identical_to_first")}
-               for r in rows]  # fmt: skip
+    keys = ("device_name", "first_run_with_compile_s", "median_seconds", "identical_to_first", "plane_on_device")
+    summary = [{k: r[k] for k in keys} for r in rows]
     print(json.dumps({"devices": summary, "defect": result["defect"], "before": result.get("before")}))
     return 0
 

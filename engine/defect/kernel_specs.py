@@ -1,7 +1,8 @@
 """The named kernels of the defect template (``engine.backend.Kernel``), each written twice: the Warp kernels of
-``kernels/edt.py``, ``kernels/mirror.py`` and ``kernels/plane.py``, and the OpenCL C of ``kernels/edt.cl``,
-``kernels/mirror.cl`` and ``kernels/plane.cl``, launched with the same arguments by the one host code
-(``engine.defect.ops``, ``engine.defect.region``, ``engine.defect.plane``); and the argument structs they share."""
+``kernels/edt.py``, ``kernels/mirror.py``, ``kernels/plane.py`` and ``kernels/skull.py``, and the OpenCL C of
+``kernels/edt.cl``, ``kernels/mirror.cl``, ``kernels/plane.cl`` and ``kernels/skull.cl``, launched with the same
+arguments by the one host code (``engine.defect.ops``, ``engine.defect.region``, ``engine.defect.plane``); and the
+argument structs they share."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from engine.backend.base import Kernel, Struct
 _EDT, _EDT_CL = "engine.defect.kernels.edt", "engine.defect.kernels:edt.cl"
 _MIR, _MIR_CL = "engine.defect.kernels.mirror", "engine.defect.kernels:mirror.cl"
 _PLN, _PLN_CL = "engine.defect.kernels.plane", "engine.defect.kernels:plane.cl"
+_SKL, _SKL_CL = "engine.defect.kernels.skull", "engine.defect.kernels:skull.cl"
 
 FEATURES = Kernel("defect.features", f"{_EDT}:features_kernel", f"{_EDT_CL}:features")
 EDT_PASS = Kernel("defect.edt_pass", f"{_EDT}:edt_pass_kernel", f"{_EDT_CL}:edt_pass")
@@ -27,6 +29,12 @@ CFT_PASS = Kernel("defect.cft_pass", f"{_PLN}:cft_pass_kernel", f"{_PLN_CL}:cft_
 NEAREST = Kernel("defect.nearest", f"{_PLN}:nearest_kernel", f"{_PLN_CL}:nearest")
 FLAGS = Kernel("defect.flags", f"{_PLN}:flags_kernel", f"{_PLN_CL}:flags")
 SOBEL = Kernel("defect.sobel", f"{_PLN}:sobel_kernel", f"{_PLN_CL}:sobel")
+PIECE_INIT = Kernel("defect.piece_init", f"{_SKL}:init_kernel", f"{_SKL_CL}:init")
+PIECE_HOOK = Kernel("defect.piece_hook", f"{_SKL}:hook_kernel", f"{_SKL_CL}:hook")
+PIECE_JUMP = Kernel("defect.piece_jump", f"{_SKL}:jump_kernel", f"{_SKL_CL}:jump")
+PIECE_ROOTS = Kernel("defect.piece_roots", f"{_SKL}:roots_kernel", f"{_SKL_CL}:roots")
+PIECE_GATHER = Kernel("defect.piece_gather", f"{_SKL}:gather_kernel", f"{_SKL_CL}:gather")
+PIECE_MASK = Kernel("defect.piece_mask", f"{_SKL}:piece_kernel", f"{_SKL_CL}:piece")
 
 _I, _F = np.int32, np.float32
 MIRROR_MAP = Struct(

@@ -125,3 +125,57 @@ def sobel(be: Backend, mask: Any, shape: tuple[int, ...], at: Any, count: int) -
     if count:
         be.launch(SOBEL, count, [mask, nz, ny, nx, at, out])
     return be.to_host(out, count=3 * count).reshape(count, 3)
+
+
+def largest_piece(be: Backend, bone: Any, shape: tuple[int, ...]) -> tuple[Any, int]:
+    """The largest 26-connected piece of ``bone`` (flat uint8 device array of ``shape``) as a flat uint8 device
+    mask, and the number of pieces; of pieces the same size, the one whose first voxel comes first in the flat
+    order (``scipy.ndimage.label``'s numbering, as ``grid.bone_and_skull`` picks). Min-label hooking with pointer
+    jumping: a sync point per round (a few rounds), one for the pieces' sizes."""
+    from engine.defect.kernel_specs import PIECE_GATHER, PIECE_HOOK, PIECE_INIT, PIECE_JUMP, PIECE_MASK, PIECE_ROOTS
+
+    nz, ny, nx = (int(s) for s in shape)
+    n = nz * ny * nx
+    label = be.empty(n, np.int32)
+    be.launch(PIECE_INIT, n, [bone, label])
+    changed = be.zeros(1, np.int32)
+    while True:
+        be.fill(changed, 0)
+        be.launch(PIECE_HOOK, n, [nz, ny, nx, label, changed])
+        be.launch(PIECE_JUMP, n, [label])
+        if int(be.to_host(changed)[0]) == 0:  # sync point
+            break
+    size = be.zeros(n, np.int32)
+    flags = be.empty(n, np.int32)
+    be.launch(PIECE_ROOTS, n, [label, size, flags])
+    roots, _, count = be.compact(flags)
+    out = be.empty(n, np.uint8)
+    if count == 0:
+        be.fill(out, 0)
+        return out, 0
+    sizes = be.empty(count, np.int32)
+    be.launch(PIECE_GATHER, count, [size, roots, sizes])
+    root = int(be.to_host(roots, count=count)[int(np.argmax(be.to_host(sizes)))])  # the first of the largest
+    be.launch(PIECE_MASK, n, [label, root, out])
+    return out, count
+
+
+def bone_and_skull(be: Backend, data: Any, level: float) -> tuple[Any, Any]:
+    """``engine.defect.grid.bone_and_skull`` with the skull's pieces found on the backend: the bone (every sample at
+    or above the level, on the host) and the skull, its largest 26-connected piece (``largest_piece``), as host
+    bool volumes; the same masks.
+
+    Raises:
+        EmptySurfaceError: nothing is at or above the level.
+    """
+    from engine.errors import EmptySurfaceError
+
+    bone = np.asarray(data >= level)
+    if not bone.any():
+        lo, hi = float(np.min(data)), float(np.max(data))
+        raise EmptySurfaceError(f"no bone at level {level:g}: the scan's values run from {lo:g} to {hi:g}")
+    shape = tuple(int(s) for s in bone.shape)
+    skull, pieces = largest_piece(be, upload_mask(be, bone), shape)
+    if pieces == 1:
+        return bone, bone.copy()
+    return bone, be.to_host(skull).reshape(shape).view(np.bool_)

@@ -347,7 +347,8 @@ def find_symmetry_plane(
             (x, y, z) in the patient frame (mm) in or next to the defect, or ``DefectParams`` (its point).
         orient: ``engine.params.OrientParams`` placing an image stack in the patient frame (default: the stack
             convention); DICOM places itself.
-        skull: the skull mask (bool, the volume's shape) when the caller has it already.
+        skull: the skull mask (bool, the volume's shape) when the caller has it already (else found on the device
+            where there is one: ``ops.bone_and_skull``).
         seed: the surface sample's seed (the result is deterministic for a given seed).
         device: None (the nearest surface voxels from a k-d tree on the host), or "cpu", "cuda[:N]", "opencl[:N]"
             or a ``Backend``: the nearest surface voxels looked up in a closest-feature transform there (the same
@@ -363,8 +364,6 @@ def find_symmetry_plane(
     """
     t0 = time.perf_counter()
     grid = Grid.of(volume, orient)
-    if skull is None:
-        _, skull = bone_and_skull(volume.data, level)
     rng = np.random.default_rng(seed)
     be = None
     if device is not None:
@@ -373,6 +372,13 @@ def find_symmetry_plane(
         be = resolve_backend(device)
         if not _DeviceNearest.fits(be, grid.shape):
             be = None  # the host's tree
+    if skull is None:
+        if be is None:
+            _, skull = bone_and_skull(volume.data, level)
+        else:
+            from engine.defect.ops import bone_and_skull as bone_and_skull_on
+
+            _, skull = bone_and_skull_on(be, volume.data, level)
     on_device = _SkullOnDevice(be, skull) if be is not None else None
     surf_idx = surface_voxels(skull) if on_device is None else on_device.surface()
     if len(surf_idx) > MAX_SURFACE:

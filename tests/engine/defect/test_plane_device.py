@@ -9,6 +9,7 @@ import functools
 from typing import Any
 
 import numpy as np
+import pytest
 
 from engine.data import HEADSQ_LEVEL, HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
 from engine.params import OrientParams
@@ -176,3 +177,42 @@ def test_a_box_over_the_working_set_falls_back_to_the_tree(monkeypatch) -> None:
     host = find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT)
     fallback = find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT, device=cpu)
     assert fallback.normal_grid == host.normal_grid and fallback.offset_grid_mm == host.offset_grid_mm
+
+
+def test_the_largest_piece_on_the_device_is_scipys(backend) -> None:
+    from scipy import ndimage as ndi
+
+    from engine.defect.grid import CONNECTIVITY
+    from engine.defect.ops import largest_piece, upload_mask
+
+    rng = np.random.default_rng(4)
+    shape = (12, 15, 14)
+    bone = ndi.binary_opening(rng.random(shape) < 0.45)  # many pieces, touching by edges and corners
+    labels, n = ndi.label(bone, structure=CONNECTIVITY)
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    mask, pieces = largest_piece(backend, upload_mask(backend, bone), shape)
+    assert pieces == n > 2
+    assert np.array_equal(backend.to_host(mask).reshape(shape).astype(bool), labels == int(sizes.argmax()))
+    # two pieces of four voxels: the one whose first voxel comes first in the flat order, as scipy numbers them
+    twins = np.zeros((4, 5, 6), dtype=bool)
+    twins[3, 4, 0:4] = True  # a row at the end
+    twins[1, 0, 3] = twins[0, 1, 2] = twins[1, 1, 1] = twins[0, 2, 0] = True  # a chain by corners, from (0, 1, 2)
+    mask, pieces = largest_piece(backend, upload_mask(backend, twins), twins.shape)
+    assert pieces == 2
+    want = np.zeros_like(twins)
+    want[1, 0, 3] = want[0, 1, 2] = want[1, 1, 1] = want[0, 2, 0] = True
+    assert np.array_equal(backend.to_host(mask).reshape(twins.shape).astype(bool), want)
+
+
+def test_the_masks_on_the_device_are_the_hosts(backend) -> None:
+    from engine.defect.grid import bone_and_skull
+    from engine.defect.ops import bone_and_skull as bone_and_skull_on
+    from engine.errors import EmptySurfaceError
+
+    data = _headsq_cut().volume.data
+    host = bone_and_skull(data, HEADSQ_LEVEL)
+    dev = bone_and_skull_on(backend, data, HEADSQ_LEVEL)
+    assert dev[1].dtype == np.bool_ and all(np.array_equal(a, b) for a, b in zip(host, dev, strict=True))
+    with pytest.raises(EmptySurfaceError, match="no bone"):
+        bone_and_skull_on(backend, data, float(data.max()) + 1.0)
