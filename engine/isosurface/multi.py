@@ -1,14 +1,16 @@
 """One job's streamed volume stages over several devices of a host (``stream_parts``): the volume's z range split into
 contiguous parts of whole block layers, one or more per device, each streamed through the Gaussian and MC33 and its
 slabs decimated in groups on its own device, in its own thread (``engine.isosurface.stream.stream_surface`` with a
-``Part``); then the parts joined into one mesh on the host and finished across all the borders by the budgeted
-path's finish (``engine.decimation.groups.finish_groups``, on the job's first device).
+``Part``); then the parts joined into one mesh (on the job's first device where the joined groups fit the room
+one device holds its groups in, else on the host, as one device spills them) and finished across all the borders by
+the budgeted path's finish (``engine.decimation.groups.finish_groups``, on the job's first device).
 
 A part is pinned where it meets its neighbours exactly as a group of slabs is pinned where it meets the next: the
 vertices on its top plane are kept by its last group, and those on its bottom plane (the top plane of the part
 below) are computed again by the part itself, from one block layer below it (``Part.slabs``: the same cells, so the
-same positions, bit for bit) and pinned in its first group. At the join they become the part below's vertices
-(matched edge by edge on the shared plane), and each side's share of their quadrics is added, as between groups.
+same positions, bit for bit), numbered first in its output and pinned in its first group. At the join they become
+the part below's vertices (matched edge by edge on the shared plane), and each side's share of their quadrics is
+added, as between groups.
 
 The groups' finish ("last pass" or "seams", ``GroupDecimator.mode``) is one for all the parts: the lowest part with
 a surface chooses it from its first group as one device would (``ModeVote``). The mesh has the same topology as one
@@ -117,12 +119,14 @@ class ModeVote:
 
 class PartDecimator(GroupDecimator):
     """A ``GroupDecimator`` for one part: its groups' finish agreed with the other parts (``ModeVote``), and its
-    quadric shares of the vertices it shares with the part below (their ids are placeholders, ``-1 - row``) kept
-    apart for the join (``Part.foreign``)."""
+    output numbered after the vertices it shares with the part below (``Part.seam``: rows ``0 .. nf``, copies of the
+    part below's, pinned; the part's share of their quadrics is added to them as between groups), so that the join
+    maps rows below ``nf`` to the part below's and moves the rest (``GLOBALIZE_FACES``)."""
 
     def __init__(self, part: Part, *args: Any) -> None:
         super().__init__(*args)
         self.part = part
+        self.seeded = False
 
     def flush(self) -> None:
         if not self.mode and self.pending:
@@ -130,18 +134,28 @@ class PartDecimator(GroupDecimator):
             expected = self.ratio * faces * (self.nz - 1) / max(self.pending[-1].z_top, 1)
             mine = "last pass" if expected * self.per_face <= self.mesh_room else "seams"
             self.mode = self.part.vote.mode(self.part.index, mine)
+        if self.pending:
+            self.seed()
         super().flush()
+
+    def seed(self) -> None:
+        """The shared vertices below as the output's first rows (a piece without faces; zero quadrics where the
+        groups carry theirs), once, when the groups' finish is known."""
+        if self.seeded or self.part.seam is None:
+            return
+        from engine.backend.base import VEC3F, VEC3I, VEC10D
+        from engine.backend.select import get_backend
+
+        self.seeded = True
+        be = get_backend(self.dev)
+        nf = len(self.part.seam)
+        quad = be.zeros(nf, VEC10D) if self.carries_quadrics else None
+        self.pieces.insert(0, (be.from_host(self.part.seam, VEC3F), be.empty(0, VEC3I), quad))
+        self.held += nf * (12 + (80 if quad is not None else 0))
 
     def result(self) -> tuple[HostMesh | None, tuple[Any, Any, Any] | None]:
         self.flush()
-        own, foreign = [], []
-        for ids, shares in self.deferred:
-            below = ids < 0
-            own.append((ids[~below], shares[~below]))
-            foreign.append((ids[below], shares[below]))
-        self.deferred = own
-        if foreign:
-            self.part.foreign = (np.concatenate([f[0] for f in foreign]), np.concatenate([f[1] for f in foreign]))
+        self.seed()
         return super().result()
 
 
@@ -153,9 +167,8 @@ class Part:
         bottom: the vertex ids (this part's MC33 numbering, ``(2, ny + 1, nx + 1)``, -1 where none) on its bottom
             plane, computed again from the block layer below (None for the first part, or where that layer has no
             surface).
+        seam: the positions of those vertices (in the order of their ids): the first rows of the part's output.
         top: the ids on its top plane (of its last slab), None where it has none.
-        foreign: its share of the quadrics of the vertices on its bottom plane (placeholder ids ``-1 - row`` of
-            ``bottom``'s sorted ids, and the shares).
     """
 
     index: int
@@ -165,8 +178,13 @@ class Part:
     ring: PinnedBuffer | None = None
     groups: PartDecimator | None = None
     bottom: np.ndarray | None = None
+    seam: np.ndarray | None = None
     top: np.ndarray | None = None
-    foreign: tuple[np.ndarray, np.ndarray] | None = None
+
+    @property
+    def nf(self) -> int:
+        """Rows of the part's output that are the part below's vertices."""
+        return 0 if self.seam is None else len(self.seam)
 
     def decimator(self, *args: Any) -> PartDecimator:
         """The part's ``GroupDecimator`` (``stream_surface`` makes it with the one device's arguments)."""
@@ -187,10 +205,12 @@ class Part:
                 plane, vstart = below.plane_above, below.nv
                 self.bottom = np.asarray(be.to_host(plane)).reshape(2, -1)
                 ids = np.unique(self.bottom[self.bottom >= 0]).astype(np.int64)
-                assert self.groups is not None
-                pos = np.asarray(be.to_host(below.verts), np.float32).reshape(-1, 3)
-                self.groups.top_ids, self.groups.top_pos = ids, pos[ids]
-                self.groups.top_out = -1 - np.arange(len(ids), dtype=np.int64)
+                if len(ids):
+                    pos = np.asarray(be.to_host(below.verts), np.float32).reshape(-1, 3)
+                    self.seam = np.ascontiguousarray(pos[ids])
+                    g = self.groups
+                    assert g is not None
+                    g.top_ids, g.top_pos, g.top_out, g.n_out = ids, self.seam, np.arange(len(ids)), len(ids)
         last = None
         for slab in run(stats, layers=(first, end), plane_prev=plane, vstart=vstart):
             last = slab.plane_above
@@ -220,9 +240,9 @@ def stream_parts(
     stats: IsosurfaceStats,
 ) -> StreamResult:
     """The streamed volume stages and the groups' decimation of ``volume`` split over ``devices`` (backends of one
-    kind, each with ``budget``; a device named twice takes two parts in turn), joined on the host: a
-    ``StreamResult`` whose ``host`` mesh ``finish_groups`` finishes across ``borders``. ``stats`` gets the parts'
-    sums.
+    kind, each with ``budget``; a device named twice takes two parts in turn), joined: a ``StreamResult`` whose
+    ``pieces`` (on the first device) or ``host`` mesh ``finish_groups`` finishes across ``borders``. ``stats`` gets
+    the parts' sums.
 
     Raises:
         BudgetError, ValueError: as ``stream_surface`` (the lowest part's error where several fail).
@@ -292,13 +312,14 @@ def stream_parts(
     done = [r for r in results if r is not None]
     assert len(done) == n
     t1 = time.perf_counter()
-    out = _join(parts, done, volume.shape)
+    out = _join(parts, done, devices[0], budget)
     _sum_stats(stats, part_stats)
     out.info = {
         "devices": [be.spec for be in devices[:n]],
         "parts": [_part_info(*args) for args in zip(parts, done, devices, seconds, peaks, strict=False)],
         "streamed_seconds": streamed,
         "join_seconds": time.perf_counter() - t1,
+        "joined_on": "device" if out.pieces is not None else "host",
         "slabs": stats.slabs,
         "groups": sum(r.info.get("groups", 0) for r in done),
         "group_mode": next((r.info.get("group_mode") for r in done if r.info.get("group_mode")), None),
@@ -316,75 +337,156 @@ def _part_info(part: Part, r: StreamResult, be: Any, seconds: float, peak: int |
     return info | {k: r.info.get(k) for k in ("slabs", "groups", "group_mode", "group_seconds", "feed")}
 
 
-def _host_mesh(r: StreamResult) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A part's decimated groups on the host: positions, faces (its own numbering, placeholders below 0) and
-    quadrics (``(0, 10)`` where not carried)."""
-    from engine.backend.select import backend_of
-
-    if r.host is not None:
-        return r.host.pos.reshape(-1, 3), r.host.faces.reshape(-1, 3), r.host.quad.reshape(-1, 10)
-    assert r.pieces is not None
-    pos, faces, quad = r.pieces
-    be = backend_of(pos)
-    q = np.asarray(be.to_host(quad)).reshape(-1, 10) if quad is not None and len(quad) else np.zeros((0, 10))
-    pos_h = np.asarray(be.to_host(pos), np.float32).reshape(-1, 3) if len(pos) else np.zeros((0, 3), np.float32)
-    faces_h = np.asarray(be.to_host(faces), np.int32).reshape(-1, 3) if len(faces) else np.zeros((0, 3), np.int32)
-    return pos_h, faces_h, q
-
-
 def _seam_map(below: Part, part: Part, offset_below: int) -> np.ndarray:
-    """The output ids (the joined numbering) of ``part``'s bottom-plane vertices, in the order of its placeholders:
-    the part below's vertices on the same edges of the shared plane.
+    """The joined mesh's ids of ``part``'s first rows (its bottom plane's vertices, ``Part.seam``): the part below's
+    vertices on the same edges of the plane they share (``offset_below``: where the part below's own rows start).
 
     Raises:
         RuntimeError: the two parts do not see the same vertices on the plane they share.
     """
     bottom = part.bottom
-    if bottom is None:
+    if part.nf == 0 or bottom is None:
         return np.zeros(0, np.int64)
     top = below.top if below.top is not None else np.full_like(bottom, -1)
     if not np.array_equal(bottom >= 0, top >= 0):
         raise RuntimeError(f"the parts {below.index} and {part.index} of the volume do not meet on the same vertices")
     g = below.groups
-    assert g is not None and part.groups is not None
-    ids = np.unique(bottom[bottom >= 0])  # the placeholders' order (Part.slabs)
+    assert g is not None
     at = bottom >= 0
-    rows = np.searchsorted(ids, bottom[at])
-    out = np.empty(len(ids), np.int64)
-    out[rows] = g.top_out[np.searchsorted(g.top_ids, top[at])] + offset_below
+    rows = np.searchsorted(np.unique(bottom[at]), bottom[at])  # the order of the seam's rows (Part.slabs)
+    out = np.empty(part.nf, np.int64)
+    out[rows] = g.top_out[np.searchsorted(g.top_ids, top[at])] - below.nf + offset_below
     return out
 
 
-def _join(parts: list[Part], results: list[StreamResult], shape: tuple[int, ...]) -> StreamResult:
-    """The parts' decimated groups as one host mesh: each part's vertices after the parts' below, its faces on the
-    vertices it shares with the part below renumbered to that part's, and its share of their quadrics added."""
-    meshes = [_host_mesh(r) for r in results]
-    carried = all(len(q) == len(p) for p, _, q in meshes) and any(len(p) for p, _, _ in meshes)
-    offsets = np.cumsum([0] + [len(p) for p, _, _ in meshes])
-    faces_out, shares_ids, shares = [], [], []
-    for i, (part, (_, faces, _)) in enumerate(zip(parts, meshes, strict=True)):
-        seam = _seam_map(parts[i - 1], part, int(offsets[i - 1])) if i else np.zeros(0, np.int64)
-        f = faces.astype(np.int64) + offsets[i]
-        below = faces < 0
-        if below.any():
-            f[below] = seam[-1 - faces[below]]
-        faces_out.append(f)
-        if part.foreign is not None and len(part.foreign[0]):
-            shares_ids.append(seam[-1 - part.foreign[0]])
-            shares.append(part.foreign[1])
-    pos = np.concatenate([p for p, _, _ in meshes]) if meshes else np.zeros((0, 3), np.float32)
-    faces_all = np.concatenate(faces_out).astype(np.int32) if faces_out else np.zeros((0, 3), np.int32)
-    quad = np.concatenate([q for _, _, q in meshes]) if carried else np.zeros((0, 10))
-    if carried and shares_ids:
-        np.add.at(quad, np.concatenate(shares_ids), np.concatenate(shares))
-    origin = results[0].origin
-    out = StreamResult(origin=origin)
+def _join(parts: list[Part], results: list[StreamResult], be: Any, budget: Budget) -> StreamResult:
+    """The parts' decimated groups as one mesh: each part's own rows after the parts' below, its faces on its first
+    rows (the part below's vertices) renumbered to the part below's, and its share of their quadrics added. On the
+    job's first device ``be`` where every part's groups are still on their devices and the mesh fits the room one
+    device holds its groups in (the spill share), else on the host (as one device spills its groups)."""
+    out = StreamResult(origin=results[0].origin)
     out.mc33_faces = sum(r.mc33_faces for r in results)
     out.mc33_vertices = sum(r.mc33_vertices for r in results)
     out.borders = sorted(b for r in results for b in r.borders)
-    if len(faces_all):
-        out.host = HostMesh(pos, faces_all, quad, origin)
+    pieces = [r.pieces for r in results if r.pieces is not None]
+    if len(pieces) == len(results):
+        sizes = [(len(p[0]), len(p[1]), p[2] is not None) for p in pieces]
+        held = sum(v * (12 + 80 * q) + f * 12 for v, f, q in sizes)
+        carried = {q for v, _, q in sizes if v}  # (the parts with vertices carry quadrics, or none does)
+        if held <= budget.share(budget.spill_share) and len(carried) <= 1:
+            out.pieces = _join_on_device(parts, results, be)
+            return out
+    out.host = _join_on_host(parts, results, out.origin)
     return out
+
+
+def _offsets(parts: list[Part], n_rows: list[int]) -> list[int]:
+    """Where each part's own rows (after its ``nf`` first) start in the joined mesh."""
+    own = [n - p.nf for p, n in zip(parts, n_rows, strict=True)]
+    return [int(x) for x in np.cumsum([0, *own[:-1]])]
+
+
+def _join_on_host(parts: list[Part], results: list[StreamResult], origin: np.ndarray) -> HostMesh | None:
+    meshes = [_host_mesh(r) for r in results]
+    offsets = _offsets(parts, [len(m[0]) for m in meshes])
+    carried = all(len(q) == len(pos) for pos, _, q in meshes) and any(len(pos) for pos, _, _ in meshes)
+    pos_out, faces_out, quad_out, share_ids, shares = [], [], [], [], []
+    for i, (part, (pos, faces, quad)) in enumerate(zip(parts, meshes, strict=True)):
+        nf = part.nf
+        seam = _seam_map(parts[i - 1], part, offsets[i - 1]) if i and nf else np.zeros(0, np.int64)
+        f = faces.astype(np.int64)
+        below = f < nf
+        f[~below] += offsets[i] - nf
+        f[below] = seam[f[below]]
+        faces_out.append(f)
+        pos_out.append(pos[nf:])
+        if carried:
+            quad_out.append(quad[nf:])
+            share_ids.append(seam)
+            shares.append(quad[:nf])
+    faces_all = np.concatenate(faces_out).astype(np.int32)
+    if not len(faces_all):
+        return None
+    quad_all = np.concatenate(quad_out) if carried else np.zeros((0, 10))
+    if carried:
+        np.add.at(quad_all, np.concatenate(share_ids), np.concatenate(shares))
+    return HostMesh(np.concatenate(pos_out), faces_all, quad_all, origin)
+
+
+def _host_mesh(r: StreamResult) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A part's decimated groups on the host: positions, faces (the part's numbering) and quadrics (``(0, 10)``
+    where not carried)."""
+    from engine.backend.select import backend_of
+
+    if r.host is not None:
+        return r.host.pos.reshape(-1, 3), r.host.faces.reshape(-1, 3), r.host.quad.reshape(-1, 10)
+    if r.pieces is None:  # a part without a surface
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 10))
+    pos, faces, quad = r.pieces
+    be = backend_of(pos)
+
+    def host(arr: Any, cols: int, dtype: Any) -> np.ndarray:
+        return np.asarray(be.to_host(arr), dtype).reshape(-1, cols) if len(arr) else np.zeros((0, cols), dtype)
+
+    q = host(quad, 10, np.float64) if quad is not None else np.zeros((0, 10))
+    return host(pos, 3, np.float32), host(faces, 3, np.int32), q
+
+
+def _join_on_device(parts: list[Part], results: list[StreamResult], be: Any) -> tuple[Any, Any, Any]:
+    """``_join_on_host``'s mesh made on ``be`` from the parts' groups on their devices (copied device to device
+    where the devices allow: Warp's, any CUDA devices; through the host between OpenCL devices)."""
+    from engine.backend.base import VEC3F, VEC3I, VEC10D
+    from engine.backend.select import backend_of
+    from engine.decimation import kernel_specs as K
+
+    pieces: list[tuple[Any, Any, Any]] = []
+    for r in results:
+        assert r.pieces is not None
+        pieces.append(r.pieces)
+    offsets = _offsets(parts, [len(p[0]) for p in pieces])
+    carried = any(p[2] is not None for p in pieces if len(p[0]) > 0)
+    n_rows = int(sum(len(p[0]) - part.nf for p, part in zip(pieces, parts, strict=True)))
+    pos = be.empty(max(n_rows, 1), VEC3F)
+    faces = be.empty(max(int(sum(len(p[1]) for p in pieces)), 1), VEC3I)
+    quad = be.zeros(max(n_rows, 1), VEC10D) if carried else None
+    seams: list[np.ndarray] = []
+    of = 0
+    for i, (part, piece) in enumerate(zip(parts, pieces, strict=True)):
+        p, f, q = piece
+        src = backend_of(p)
+        nf = part.nf
+        seam = _seam_map(parts[i - 1], part, offsets[i - 1]) if i and nf else np.zeros(0, np.int64)
+        seams.append(seam)
+        if len(f):  # the faces renumbered where they are, then copied
+            table = src.from_host(seam.astype(np.int32) if nf else np.zeros(1, np.int32))
+            src.launch(K.GLOBALIZE_FACES, len(f), [f, int(nf), table, int(offsets[i] - nf)])
+            _copy(be, faces, of, src, f, 0, len(f))
+            of += len(f)
+        if len(p) > nf:
+            _copy(be, pos, offsets[i], src, p, nf, len(p) - nf)
+            if quad is not None:
+                _copy(be, quad, offsets[i], src, q, nf, len(p) - nf)
+    if quad is not None:
+        for part, piece, seam in zip(parts, pieces, seams, strict=True):
+            if part.nf:  # each side's share of the vertices the parts share
+                src = backend_of(piece[2])
+                share = np.asarray(src.to_host(piece[2], part.nf)).reshape(-1, 10)
+                add = [be.from_host(seam.astype(np.int32)), be.from_host(share, VEC10D), quad]
+                be.launch(K.ADD_QUADRICS, part.nf, add)
+    for r in results:
+        r.pieces = None
+    n_faces = of
+    return be.view(pos, 0, n_rows), be.view(faces, 0, n_faces), None if quad is None else be.view(quad, 0, n_rows)
+
+
+def _copy(be: Any, dst: Any, dst_offset: int, src_be: Any, src: Any, src_offset: int, count: int) -> None:
+    """``count`` rows of ``src`` (on ``src_be``) from ``src_offset`` into ``dst`` (on ``be``) at ``dst_offset``:
+    device to device where both are Warp's (CUDA devices copy peer to peer), else through the host."""
+    if src_be is be or (src_be.kind == "warp" and be.kind == "warp"):
+        be.copy(dst, src, dst_offset=dst_offset, src_offset=src_offset, count=count)
+        return
+    rows = np.asarray(src_be.to_host(src_be.view(src, src_offset, src_offset + count)))
+    be.upload(dst, rows, dst_offset=dst_offset)
 
 
 def _sum_stats(stats: IsosurfaceStats, parts: list[IsosurfaceStats]) -> None:

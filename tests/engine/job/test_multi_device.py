@@ -148,6 +148,7 @@ def test_parts_join_into_the_one_device_mesh(phantom, device, mode):
         got = reconstruct(phantom, ReconParams(), device=spec, max_device_bytes=budget)
         stream = got.report["memory"]["stream"]
         assert len(stream["parts"]) == n and stream["group_mode"] == mode
+        assert stream["joined_on"] == "device"  # the parts' groups fit beside each other, as one device's do
         assert got.report["counts"]["isosurface"] == one.report["counts"]["isosurface"]
         assert shape_of(got.report) == shape_of(one.report) == (True, True, 1, 2)
         faces, target = got.report["mesh"]["n_faces"], got.report["decimate"]["target_faces"]
@@ -161,6 +162,7 @@ def test_parts_spilled_to_the_host_join_the_same(phantom):
     budget = Budget(12 * MIB, spill_share=1e-4)
     one = reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=budget)
     got = reconstruct(phantom, ReconParams(), device="cpu,cpu", max_device_bytes=budget)
+    assert got.report["memory"]["stream"]["joined_on"] == "host"
     assert shape_of(got.report) == shape_of(one.report)
     assert abs(got.report["mesh"]["n_faces"] - one.report["mesh"]["n_faces"]) <= 0.01 * one.report["mesh"]["n_faces"]
 
