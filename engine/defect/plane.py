@@ -33,6 +33,7 @@ from engine.types import Volume
 
 N_SAMPLES = 6_000  # mirrored surface points per iteration
 SCORE_SAMPLES = 2_000  # mirrored points that rank the candidates
+CANDIDATE_VOXELS = 200_000  # about as many of the skull's voxels give the principal axes (every k-th)
 GOOD_INLIER_FRACTION = 0.8  # a refined candidate this good is not compared with the next
 MAX_SURFACE = 150_000  # surface voxels paired with (a random subset beyond this)
 MAX_ITERATIONS = 40
@@ -180,11 +181,13 @@ class _SkullOnDevice:
     def _index(self, flat: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
         return np.stack(np.unravel_index(flat, self.shape), axis=1)
 
-    def voxels(self) -> npt.NDArray[np.int64]:
-        """(N, 3) indices (z, y, x) of the skull's voxels."""
+    def voxels(self, most: int) -> npt.NDArray[np.int64]:
+        """(N, 3) indices (z, y, x) of every k-th of the skull's voxels, k the smallest that keeps N at about
+        ``most`` or under (``np.argwhere(skull)[::k]``)."""
         from engine.defect.ops import set_voxels
 
-        return self._index(set_voxels(self.be, self.mask, self.shape))
+        flat = set_voxels(self.be, self.mask, self.shape)
+        return self._index(flat[:: max(1, len(flat) // most)])
 
     def surface(self) -> npt.NDArray[np.int64]:
         """(N, 3) indices (z, y, x) of the skull's voxels with a face neighbour outside it."""
@@ -410,8 +413,12 @@ def find_symmetry_plane(
             return far if far.sum() >= 100 else np.ones(len(sample), dtype=bool)
 
     # candidates: principal axes of the skull's voxels and the grid axes, through the centroid
-    at = np.argwhere(skull) if on_device is None else on_device.voxels()
-    voxels = grid.xyz(at[:: max(1, len(at) // 200_000)]) - centroid
+    if on_device is None:
+        at = np.argwhere(skull)
+        at = at[:: max(1, len(at) // CANDIDATE_VOXELS)]
+    else:
+        at = on_device.voxels(CANDIDATE_VOXELS)
+    voxels = grid.xyz(at) - centroid
     _, axes = np.linalg.eigh(np.cov(voxels.T))
     candidates = [axes[:, k] for k in range(3)] + [np.eye(3)[k] for k in range(3)]
     scored = sorted(((fit.score(c, 0.0), i, c) for i, c in enumerate(candidates)), key=lambda t: (t[0], t[1]))
