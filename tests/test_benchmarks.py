@@ -136,6 +136,22 @@ def test_budget(tmp_path: Path) -> None:
         assert "stream" in volume["runs"]["2MiB"], f"{name}: the 2 MiB budget did not stream"
 
 
+def test_multi_gpu(tmp_path: Path) -> None:
+    from benchmarks.multi_gpu import main
+
+    out = tmp_path / "multi_gpu.json"
+    # one device named twice: the split, the parts' pinned borders and the join, the parts in turn (CI has no GPU)
+    args = ["--devices", "cpu,cpu", "--phantom", PHANTOM, "--stack", "2", "--budget", "2MiB", "--repeat", "1"]
+    assert main([*args, "--out", str(out)]) == 0
+    report = load(out)
+    has_keys(report, "benchmark", "devices", "shape_zyx", "budget_bytes_per_device", "runs")
+    assert sorted(report["runs"]) == ["1", "2"]
+    for n, run in report["runs"].items():
+        assert "error" not in run and finite(run["seconds"]) and run["faces"] > 0, (n, run)
+    two = report["runs"]["2"]
+    assert len(two["parts"]) == 2 and finite(two["speedup_vs_one"]) and two["same_mesh"] is True
+
+
 def test_host_memory(tmp_path: Path) -> None:
     from benchmarks.host_memory import main
 
