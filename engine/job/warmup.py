@@ -45,7 +45,7 @@ def warm_up(
     backend, budget = runtime.backend, runtime.budget
     hu = bone_phantom(WARMUP_SHAPE, dtype=np.int16) - np.int16(1024)  # the phantom is in HU + 1024
     volume = Volume(hu, (0.5, 0.5, 0.5), units="HU")
-    recon = reconstruct(volume, ReconParams(), device=backend, max_device_bytes=budget)
+    recon = reconstruct(volume, ReconParams(), device=runtime.device, max_device_bytes=budget)  # every device
     with tempfile.TemporaryDirectory(prefix="bonemesh-warmup-") as out:
         write_outputs(recon, out, device=backend, max_device_bytes=budget)
     rows = runtime.rows() if png_rows else None  # a GPU unfilters PNG slices' rows: its kernel loaded too
