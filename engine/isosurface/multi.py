@@ -361,23 +361,43 @@ def _seam_map(below: Part, part: Part, offset_below: int) -> np.ndarray:
 
 def _join(parts: list[Part], results: list[StreamResult], be: Any, budget: Budget) -> StreamResult:
     """The parts' decimated groups as one mesh: each part's own rows after the parts' below, its faces on its first
-    rows (the part below's vertices) renumbered to the part below's, and its share of their quadrics added. On the
-    job's first device ``be`` where every part's groups are still on their devices and the mesh fits the room one
-    device holds its groups in (the spill share), else on the host (as one device spills its groups)."""
+    rows (the part below's vertices) renumbered to the part below's, and its share of their quadrics added.
+
+    On the job's first device ``be`` where every part's groups are still on their devices and the joined mesh is
+    one the finish would work on there (``_on_device``); else on the host, from where the finish takes it up again
+    where it can (``finish_groups``), as it does one device's groups spilled to the host."""
     out = StreamResult(origin=results[0].origin)
     out.mc33_faces = sum(r.mc33_faces for r in results)
     out.mc33_vertices = sum(r.mc33_vertices for r in results)
     out.borders = sorted(b for r in results for b in r.borders)
     pieces = [r.pieces for r in results if r.pieces is not None]
     if len(pieces) == len(results):
-        sizes = [(len(p[0]), len(p[1]), p[2] is not None) for p in pieces]
-        held = sum(v * (12 + 80 * q) + f * 12 for v, f, q in sizes)
-        carried = {q for v, _, q in sizes if v}  # (the parts with vertices carry quadrics, or none does)
-        if held <= budget.share(budget.spill_share) and len(carried) <= 1:
-            out.pieces = _join_on_device(parts, results, be)
+        carried = {p[2] is not None for p in pieces if len(p[0])}  # the parts carry quadrics, or none does
+        n_verts = sum(len(p[0]) - part.nf for p, part in zip(pieces, parts, strict=True))
+        n_faces = sum(len(p[1]) for p in pieces)
+        carry = carried == {True} and budget.last_pass_fits(n_faces)  # the quadrics only for one last pass
+        first = sum(_nbytes(x) for x in pieces[0] if x is not None) if results[0].pieces is not None else 0
+        if len(carried) <= 1 and _on_device(n_verts, n_faces, carry, bool(out.borders), budget.beside(first)):
+            out.pieces = _join_on_device(parts, results, be, carry)
             return out
     out.host = _join_on_host(parts, results, out.origin)
     return out
+
+
+def _nbytes(arr: Any) -> int:
+    from engine.backend.select import backend_of
+
+    return int(backend_of(arr).nbytes(arr)) if len(arr) else 0
+
+
+def _on_device(n_verts: int, n_faces: int, carry: bool, borders: bool, room: Budget) -> bool:
+    """Whether the joined mesh is made on the first device: it fits ``room`` (beside the first part's groups, which
+    it is copied from) and the finish would work on it there (one last pass, or a seam pass beside it)."""
+    from engine.decimation.seams import seams_fit_beside
+
+    if not room.fits(n_verts * (12 + 80 * carry) + n_faces * 12):
+        return False
+    return room.last_pass_fits(n_faces) or (borders and seams_fit_beside(n_verts, n_faces, room))
 
 
 def _offsets(parts: list[Part], n_rows: list[int]) -> list[int]:
@@ -432,9 +452,10 @@ def _host_mesh(r: StreamResult) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return host(pos, 3, np.float32), host(faces, 3, np.int32), q
 
 
-def _join_on_device(parts: list[Part], results: list[StreamResult], be: Any) -> tuple[Any, Any, Any]:
+def _join_on_device(parts: list[Part], results: list[StreamResult], be: Any, carry: bool) -> tuple[Any, Any, Any]:
     """``_join_on_host``'s mesh made on ``be`` from the parts' groups on their devices (copied device to device
-    where the devices allow: Warp's, any CUDA devices; through the host between OpenCL devices)."""
+    where the devices allow: Warp's, any CUDA devices; through the host between OpenCL devices), with the quadrics
+    where ``carry``."""
     from engine.backend.base import VEC3F, VEC3I, VEC10D
     from engine.backend.select import backend_of
     from engine.decimation import kernel_specs as K
@@ -444,7 +465,7 @@ def _join_on_device(parts: list[Part], results: list[StreamResult], be: Any) -> 
         assert r.pieces is not None
         pieces.append(r.pieces)
     offsets = _offsets(parts, [len(p[0]) for p in pieces])
-    carried = any(p[2] is not None for p in pieces if len(p[0]) > 0)
+    carried = carry and any(p[2] is not None for p in pieces if len(p[0]) > 0)
     n_rows = int(sum(len(p[0]) - part.nf for p, part in zip(pieces, parts, strict=True)))
     pos = be.empty(max(n_rows, 1), VEC3F)
     faces = be.empty(max(int(sum(len(p[1]) for p in pieces)), 1), VEC3I)
