@@ -78,23 +78,23 @@ def _measure(volume: Any, device: str, repeat: int) -> dict[str, Any]:
 
 def _plane_on_device(volume: Any, be: Any, orient: Any, repeat: int, plane: Any) -> dict[str, Any]:
     """The masks and the symmetry plane with their work on the device (issue 42: ``ops.bone_and_skull(be, ...)``,
-    ``find_symmetry_plane(..., device=be)`` given that skull): a first run (builds), then ``repeat`` synchronised
-    runs; the median seconds of each, whether the masks are the host's, and how far the plane is from ``plane``
-    (``run``'s)."""
+    ``find_symmetry_plane(..., device=be, where="device")`` given that skull, on a CPU device too): a first run
+    (builds), then ``repeat`` synchronised runs; the median seconds of each, whether the masks are the host's, and
+    how far the plane is from ``plane`` (``run``'s)."""
     from engine.defect import DefectParams, find_symmetry_plane
     from engine.defect.grid import bone_and_skull
     from engine.defect.ops import bone_and_skull as bone_and_skull_on
 
     host = bone_and_skull(volume.data, LEVEL)
     bone, skull = bone_and_skull_on(be, volume.data, LEVEL)
-    find_symmetry_plane(volume, LEVEL, DefectParams(), orient=orient, skull=skull, device=be)
+    find_symmetry_plane(volume, LEVEL, DefectParams(), orient=orient, skull=skull, device=be, where="device")
     masks, planes = [], []
     for _ in range(repeat):
         be.synchronize()
         t0 = time.perf_counter()
         bone, skull = bone_and_skull_on(be, volume.data, LEVEL)
         t1 = time.perf_counter()
-        dev = find_symmetry_plane(volume, LEVEL, DefectParams(), orient=orient, skull=skull, device=be)
+        dev = find_symmetry_plane(volume, LEVEL, DefectParams(), orient=orient, skull=skull, device=be, where="device")
         be.synchronize()
         masks.append(t1 - t0)
         planes.append(time.perf_counter() - t1)

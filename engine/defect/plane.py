@@ -331,6 +331,40 @@ def _unit_normals(sobel_xyz: Any, spacing_xyz: FloatArray) -> FloatArray:
     return np.where(norm > 0, normal / np.maximum(norm, 1e-12), 0.0)
 
 
+WHERE = ("auto", "device", "host")
+
+
+def _device_for(device: Any, where: str, shape: tuple[int, ...]) -> Any:
+    """The backend the plane's work runs on (``find_symmetry_plane``'s ``device`` and ``where``), or None: the
+    host."""
+    if where not in WHERE:
+        raise ValueError(f"where is one of {', '.join(WHERE)}, got {where!r}")
+    if device is None or where == "host":
+        return None
+    from engine.device import resolve_backend
+
+    be = resolve_backend(device)
+    if where == "auto" and be.is_host:
+        return None
+    return be if _DeviceNearest.fits(be, shape) else None
+
+
+def skull_masks(data: Any, level: float, device: Any = None, where: str = "auto") -> tuple[Any, Any]:
+    """The bone and the skull (``grid.bone_and_skull``: the same masks) with the skull's pieces found where
+    ``find_symmetry_plane`` would work with the same ``device`` and ``where`` (``ops.bone_and_skull`` on a device,
+    scipy on the host).
+
+    Raises:
+        EmptySurfaceError: nothing is at or above the level.
+    """
+    be = _device_for(device, where, tuple(int(s) for s in np.shape(data)))
+    if be is None:
+        return bone_and_skull(data, level)
+    from engine.defect.ops import bone_and_skull as bone_and_skull_on
+
+    return bone_and_skull_on(be, data, level)
+
+
 def find_symmetry_plane(
     volume: Volume,
     level: float,
@@ -340,6 +374,7 @@ def find_symmetry_plane(
     skull: Any = None,
     seed: int = 0,
     device: Any = None,
+    where: str = "auto",
 ) -> SymmetryPlane:
     """The bone's mirror plane (see the module's description).
 
@@ -350,13 +385,14 @@ def find_symmetry_plane(
             (x, y, z) in the patient frame (mm) in or next to the defect, or ``DefectParams`` (its point).
         orient: ``engine.params.OrientParams`` placing an image stack in the patient frame (default: the stack
             convention); DICOM places itself.
-        skull: the skull mask (bool, the volume's shape) when the caller has it already (else found on the device
-            where there is one: ``ops.bone_and_skull``).
+        skull: the skull mask (bool, the volume's shape) when the caller has it already (else ``skull_masks``).
         seed: the surface sample's seed (the result is deterministic for a given seed).
         device: None (the nearest surface voxels from a k-d tree on the host), or "cpu", "cuda[:N]", "opencl[:N]"
-            or a ``Backend``: the nearest surface voxels looked up in a closest-feature transform there (the same
-            plane to a few thousandths of a degree and of a voxel; the host's tree where the transform would not
-            fit the device's working set).
+            or a ``Backend``: the skull's surface found and the nearest surface voxels looked up in a closest-feature
+            transform there (the same plane to a few thousandths of a degree and of a voxel), as ``where`` says.
+        where: "auto" (on the device unless it is the host's CPU, where the tree is faster: Warp's CPU path,
+            PoCL), "device" (there whatever it is) or "host" (the tree). The host's tree too where the device's
+            work would not fit its working set.
 
     Returns:
         The plane, its residual and how it was found.
@@ -368,20 +404,9 @@ def find_symmetry_plane(
     t0 = time.perf_counter()
     grid = Grid.of(volume, orient)
     rng = np.random.default_rng(seed)
-    be = None
-    if device is not None:
-        from engine.device import resolve_backend
-
-        be = resolve_backend(device)
-        if not _DeviceNearest.fits(be, grid.shape):
-            be = None  # the host's tree
+    be = _device_for(device, where, grid.shape)
     if skull is None:
-        if be is None:
-            _, skull = bone_and_skull(volume.data, level)
-        else:
-            from engine.defect.ops import bone_and_skull as bone_and_skull_on
-
-            _, skull = bone_and_skull_on(be, volume.data, level)
+        _, skull = skull_masks(volume.data, level, be, "host" if be is None else "device")
     on_device = _SkullOnDevice(be, skull) if be is not None else None
     surf_idx = surface_voxels(skull) if on_device is None else on_device.surface()
     if len(surf_idx) > MAX_SURFACE:

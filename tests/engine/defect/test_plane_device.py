@@ -115,8 +115,8 @@ def test_the_plane_on_warp_cpu_and_opencl_is_the_same_and_the_trees(opencl) -> N
 
     vol = _headsq_cut().volume
     host = find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT)
-    cpu = find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT, device="cpu")
-    ocl = find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT, device=opencl)
+    cpu = find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT, device="cpu", where="device")
+    ocl = find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT, device=opencl, where="device")
     assert cpu.normal_grid == ocl.normal_grid and cpu.offset_grid_mm == ocl.offset_grid_mm
     assert (cpu.residual_mm, cpu.inlier_fraction, cpu.iterations) == (ocl.residual_mm, ocl.inlier_fraction,
                                                                        ocl.iterations)  # fmt: skip
@@ -136,7 +136,7 @@ def test_the_plane_with_a_point_hint_is_the_same_on_the_device(backend) -> None:
     centre = grid.to_patient(grid.xyz(np.argwhere(cut.removed).mean(axis=0)))  # the cut's middle
     hint = DefectParams(point_lps_mm=tuple(float(v) for v in centre))
     host = find_symmetry_plane(vol, HEADSQ_LEVEL, hint, orient=ORIENT)
-    dev = find_symmetry_plane(vol, HEADSQ_LEVEL, hint, orient=ORIENT, device=backend)
+    dev = find_symmetry_plane(vol, HEADSQ_LEVEL, hint, orient=ORIENT, device=backend, where="device")
     assert _angle_deg(dev.normal_grid, host.normal_grid) < 0.1
     assert abs(dev.offset_grid_mm - host.offset_grid_mm) < 0.1 * min(HEADSQ_SPACING_ZYX_MM)
 
@@ -149,7 +149,7 @@ def test_a_plane_on_opencl_launches_no_warp_kernel(opencl, monkeypatch) -> None:
     from engine.defect import find_symmetry_plane
 
     vol = _headsq_cut().volume
-    find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT, device=opencl)  # the programs built first
+    find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT, device=opencl, where="device")  # the programs built first
     enqueued = []
     real = cl.enqueue_nd_range_kernel
 
@@ -163,7 +163,7 @@ def test_a_plane_on_opencl_launches_no_warp_kernel(opencl, monkeypatch) -> None:
     monkeypatch.setattr(wp, "launch", no_warp)
     monkeypatch.setattr(wp_context, "launch", no_warp)
     monkeypatch.setattr(cl, "enqueue_nd_range_kernel", spy)
-    plane = find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT, device=opencl)
+    plane = find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT, device=opencl, where="device")
     assert plane.inlier_fraction > 0.5 and len(enqueued) > plane.iterations
 
 
@@ -175,7 +175,7 @@ def test_a_box_over_the_working_set_falls_back_to_the_tree(monkeypatch) -> None:
     cpu = get_backend("cpu")
     monkeypatch.setattr(type(cpu), "default_budget", lambda self: 0)
     host = find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT)
-    fallback = find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT, device=cpu)
+    fallback = find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT, device=cpu, where="device")
     assert fallback.normal_grid == host.normal_grid and fallback.offset_grid_mm == host.offset_grid_mm
 
 
@@ -216,3 +216,17 @@ def test_the_masks_on_the_device_are_the_hosts(backend) -> None:
     assert dev[1].dtype == np.bool_ and all(np.array_equal(a, b) for a, b in zip(host, dev, strict=True))
     with pytest.raises(EmptySurfaceError, match="no bone"):
         bone_and_skull_on(backend, data, float(data.max()) + 1.0)
+
+
+def test_auto_keeps_the_hosts_tree_on_the_hosts_cpu(backend) -> None:
+    from engine.defect import find_symmetry_plane
+    from engine.defect.plane import skull_masks
+
+    vol = _headsq_cut().volume
+    host = find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT)
+    auto = find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT, device=backend)
+    assert backend.is_host and auto.normal_grid == host.normal_grid and auto.offset_grid_mm == host.offset_grid_mm
+    masks = skull_masks(vol.data, HEADSQ_LEVEL, backend, "device")
+    assert all(np.array_equal(a, b) for a, b in zip(masks, skull_masks(vol.data, HEADSQ_LEVEL), strict=True))
+    with pytest.raises(ValueError, match="where is one of"):
+        find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT, device=backend, where="gpu")
