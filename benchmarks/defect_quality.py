@@ -202,12 +202,16 @@ def evaluate(name: str, device: str, sizes: list[float], log: Any = print) -> li
     return rows
 
 
-def sweep(name: str, device: str, sizes: list[float], poses: Any = SWEEP_POSES, log: Any = print) -> list[dict]:
+def sweep(
+    name: str, device: str, sizes: list[float], poses: Any = SWEEP_POSES, log: Any = print, on_row: Any = None
+) -> list[dict]:
     """The reviewer's sweep on one scan (issue 42): full-thickness cuts (``engine.defect.synthetic.cut_at``) at 8
     directions x 3 heights x the sizes on the scan's own pose; on each turned pose (``synthetic.posed``, yaw and
     roll) the same places at one size each (cycling). Edges (straight, bevelled, ball) and fills (tissue, air)
     cycle over the cases. On a scan with a real defect (the cranium) the template's pieces on the real defect are
-    left out of the Dice, and cuts that touch it or its mirror image are not one-sided: left out."""
+    left out of the Dice, and cuts that touch it or its mirror image are not one-sided: left out. ``on_row`` is
+    called with each case's row as it is measured (the results written as they come: a long sweep cut short keeps
+    what it measured)."""
     from engine.defect.synthetic import EDGES, FILLS, posed
 
     cfg = SCANS[name]
@@ -226,6 +230,8 @@ def sweep(name: str, device: str, sizes: list[float], poses: Any = SWEEP_POSES, 
                     row = _sweep_case(base, cfg, device, name, (yaw, roll), az, h, size, edge, fill, real)
                     rows.append(row)
                     log(_line(row))
+                    if on_row is not None:
+                        on_row(row)
                 k += 1
     return rows
 
@@ -350,7 +356,16 @@ def main(argv: list[str] | None = None) -> int:
         if not Path(SCANS[name]["path"]).exists():
             print(f"{name}: {SCANS[name]['path']} is absent, skipped")
             continue
-        rows += sweep(name, args.device, sizes, poses) if args.sweep else evaluate(name, args.device, sizes)
+        if args.sweep:
+            done: list[dict[str, Any]] = list(rows)
+
+            def keep(row: dict[str, Any], done: list[dict[str, Any]] = done) -> None:
+                done.append(row)
+                _write(out, dev, sizes, done)
+
+            rows += sweep(name, args.device, sizes, poses, on_row=keep)
+        else:
+            rows += evaluate(name, args.device, sizes)
         _write(out, dev, sizes, rows)
     result = _write(out, dev, sizes, rows)
     print(sweep_markdown(rows) if args.sweep else markdown(rows))

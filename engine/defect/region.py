@@ -58,6 +58,13 @@ MAX_LOCAL_MOVE_MM = 4.0  # the local plane may move a piece's mirror image this 
 MAX_LOCAL_PIECES = 24  # the largest candidates (by volume) that are mirrored locally
 MAX_ANTI_SHARE = 0.5
 MIN_CONTACT = 0.5
+# confidence: the mirror image must match the scan's bone around a piece (``local_fit``, intersection over union)
+# over at least this share. Measured on the sweep (issue 42): templates with Dice 0.17-0.56 had 0.31-0.56 (a turned
+# head of 5 mm slices, low cuts joined to the skull base's asymmetry); those with Dice 0.74 and more, 0.58-0.81
+MIN_FIT = 0.57
+# a rim gap of more than this many voxels is closed across gaps up to RIM_CLOSE_SHELLS shells wide
+CLOSE_GAP_VOXELS = 1.0
+RIM_CLOSE_SHELLS = 0.5
 # a piece that comes within a shell's thickness of the plane is looked at for a hole going on across it, this far
 # past its edge toward the plane (at least 3 shells)
 MIDLINE_REACH_MM = 15.0
@@ -67,10 +74,12 @@ MIN_OPEN_TOWARD_PLANE = 0.4  # measured: one-sided defects 0.0-0.41 (near the mi
 # at least this share of its outline (a bevelled rim spans it only over its narrowest opening)
 MIN_SPAN_WIDTH_MM = 8.0
 MIN_SPAN_SHARE = 0.15
-# ... and on the piece's median column the scan lacks at least half the mirrored shell: a hole's columns lack it
-# all over its opening (the sweep's cuts: 0.88-1.0, bevelled and ball-shaped rims included), a piece of a real
-# head's own asymmetry that spans the shell along one edge only lacks none of it on most columns (0.0)
-MIN_SPAN_MISSING = 0.5
+# ... and on the piece's median column the scan lacks at least three quarters of the mirrored shell (a column's
+# own rule, ``SPAN_MISSING``): a hole's columns lack it all over its opening (the sweep's cuts: 0.88-1.0, bevelled
+# and ball-shaped rims included), a piece of a real head's own asymmetry that spans the shell along one edge only
+# lacks none of it on most columns (0.0), the gantry-tilt head's skull base joined to a low cut 0.6-0.65 (issue 42:
+# until then half was enough, and those pieces were kept beside the hole's)
+MIN_SPAN_MISSING = 0.75
 MIN_CORE_VOXELS = 4
 MIN_DEFECT_WIDTH_MM = 15.0  # the smallest defect reported: a plug this wide through the shell
 MIN_DEFECT_SKULL_SHARE = 0.001  # ... and at least this share of the skull's volume
@@ -106,6 +115,7 @@ class Piece:
     span: Span | None = None
     fit: float | None = None
     shell_mm: float | None = None  # the healthy shell's local thickness over the piece (median)
+    bridged_mm3: float = 0.0  # added across rim gaps (``_close_rim``)
     kept: bool = False
     reason: str = ""
     index: npt.NDArray[np.int64] | None = field(default=None, repr=False)  # voxels (z, y, x) in the region's crop
@@ -135,6 +145,8 @@ class Piece:
             out["rim"] = self.rim.to_dict()
         if self.span is not None:
             out["spans_shell"] = self.span.to_dict()
+        if self.bridged_mm3:
+            out["rim_gap_bridged_mm3"] = round(self.bridged_mm3, 2)
         return out
 
 
@@ -551,7 +563,17 @@ def _judge(region: Region, grid: Grid, params: DefectParams) -> None:
         if p.rim.contact < MIN_CONTACT:
             p.reason = f"its rim meets the bone over {p.rim.contact:.0%} only (not a hole's fill)"
             continue
+        if p.fit < MIN_FIT:
+            p.reason = (
+                f"low confidence: around it the mirror image matches the scan's bone over {p.fit:.0%} only "
+                f"(overlap within {2.0 * region.shell_mm + float(sp.max()):.0f} mm; {MIN_FIT:.0%} or more where "
+                "mirroring fills a hole well): the two sides differ there (asymmetry, or a pose or slice thickness "
+                "the mirror cannot follow), so the template would not fit the hole"
+            )
+            continue
         _to_rim(p, region, grid, shell, border_of=full, reach=reach)
+        if p.rim is not None and p.rim.gap_voxels > CLOSE_GAP_VOXELS:
+            _close_rim(p, region, grid, shell, border_of=full, reach=reach)
         if p.volume_mm3 < region.min_volume_mm3 and p.rim is not None and p.rim.gap_voxels > 1.0:
             # under the skull's smallest defect (a thin vault's plate): kept only when its rim closes on the bone
             p.reason = (
@@ -647,6 +669,53 @@ def _to_rim(p: Piece, region: Region, grid: Grid, shell: float, border_of: Any, 
     border = np.any((g == 0) | (g == np.asarray(border_of) - 1), axis=1)
     rim = rim_of(p.index, region.bone, grid.spacing_zyx, border, reach)
     p.rim = dataclasses.replace(rim, open_toward_plane=p.rim.open_toward_plane if p.rim else 0.0)
+
+
+def _close_width(shell: float, grid: Grid) -> float:
+    """The widest gap between a template and the hole's rim that ``_close_rim`` bridges (mm): half the shell's
+    thickness, at least one voxel's smallest side."""
+    return max(RIM_CLOSE_SHELLS * shell, float(min(grid.spacing_zyx)))
+
+
+def _close_rim(p: Piece, region: Region, grid: Grid, shell: float, border_of: Any, reach: float) -> None:
+    """A rim gap closed: where the mirror's bone stops short of the hole's rim (an oblique rim between thick
+    slices, a mirror a fraction of a voxel off), the template grows across the gap to touch the bone. The template
+    and the scan's bone are closed together (a ball half as wide as ``_close_width``: gaps up to that width fill);
+    what the closing adds outside the bone, within that width of the template and connected to it, joins the
+    template. The rim is measured again; the volume added is ``Piece.bridged_mm3``."""
+    from scipy import ndimage as ndi
+
+    assert p.index is not None
+    if p.rim is None or p.rim.gap_voxels <= 0.0:
+        return
+    sp = np.asarray(grid.spacing_zyx)
+    width = _close_width(shell, grid)
+    r = 0.5 * width
+    margin = np.ceil(2.0 * width / sp).astype(np.int64) + 2
+    lo = np.maximum(p.index.min(axis=0) - margin, 0)
+    hi = np.minimum(p.index.max(axis=0) + margin + 1, region.bone.shape)
+    box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+    piece = np.zeros(tuple(int(b - a) for a, b in zip(lo, hi, strict=True)), dtype=bool)
+    piece[tuple((p.index - lo).T)] = True
+    bone = region.bone[box]
+    both = piece | bone
+    grown = ndi.distance_transform_edt(~both, sampling=sp) <= r + 1e-6
+    closed = ndi.distance_transform_edt(grown, sampling=sp) > r + 1e-6
+    to_piece = ndi.distance_transform_edt(~piece, sampling=sp)
+    add = closed & ~both & (to_piece <= width + 1e-6)
+    if not add.any():
+        return
+    labels, _ = ndi.label(add | piece, structure=CONNECTIVITY)
+    keep = np.isin(labels, np.unique(labels[piece]))
+    before = len(p.index)
+    p.index = np.argwhere(keep) + lo
+    p.voxels = len(p.index)
+    p.volume_mm3 = p.voxels * grid.voxel_mm3
+    p.bridged_mm3 = (p.voxels - before) * grid.voxel_mm3
+    g = p.index + region.lo
+    border = np.any((g == 0) | (g == np.asarray(border_of) - 1), axis=1)
+    rim = rim_of(p.index, region.bone, grid.spacing_zyx, border, reach)
+    p.rim = dataclasses.replace(rim, open_toward_plane=p.rim.open_toward_plane)
 
 
 def _no_core(region: Region, grid: Grid) -> str:

@@ -19,7 +19,7 @@ piece is a hole through the whole shell, judged on its columns along the mirrore
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -213,11 +213,13 @@ TENSOR_SIGMA_MM = 2.0  # the shell's local normal: the structure tensor of the m
 class Span:
     """Whether a piece goes through the whole shell (``spans_shell``): ``area_mm2`` of its outline (seen along its
     thinnest axis) where its columns along the shell's local normal span the mirrored shell, ``share`` that area
-    over the outline's, ``missing``: the median share of the mirrored shell the scan lacks on the piece's columns."""
+    over the outline's, ``missing``: the median share of the mirrored shell the scan lacks on the piece's columns.
+    ``spans``: per voxel of the piece, whether its column spans the shell (not in ``to_dict``)."""
 
     area_mm2: float
     share: float
     missing: float
+    spans: npt.NDArray[np.bool_] | None = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict[str, Any]:
         return {"area_mm2": round(self.area_mm2, 2), "share": round(self.share, 4), "missing": round(self.missing, 4)}
@@ -305,4 +307,5 @@ def spans_shell(
         area_mm2=float(span_img.sum()) * h1 * h2,
         share=float(span_img.sum()) / max(outline, 1.0),
         missing=float(np.median(missing)),
+        spans=spans,
     )
