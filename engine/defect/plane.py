@@ -163,7 +163,8 @@ class _DeviceNearest:
             self.out = be.empty(count, np.int32)
         be.upload(self.points, np.ascontiguousarray(q + self.shift, dtype=np.float32).reshape(-1))
         nearest_feature(be, self.points, count, self.rank, self.features, self.box, self.out, max_scan=MAX_SCAN)
-        return be.to_host(self.out, count=count).astype(np.int64)  # sync point
+        pairs: npt.NDArray[np.int64] = be.to_host(self.out, count=count).astype(np.int64)  # sync point
+        return pairs
 
 
 class _SkullOnDevice:
