@@ -112,6 +112,15 @@ def _plane_on_device(volume: Any, be: Any, orient: Any, repeat: int, plane: Any)
     }
 
 
+def _load_average() -> list[float] | None:
+    import os
+
+    try:
+        return [round(v, 2) for v in os.getloadavg()]
+    except OSError:  # pragma: no cover - not on this platform
+        return None
+
+
 def _before(tree: Path, args: Any) -> dict[str, Any]:
     """The same measure with the code in ``tree`` (its own ``benchmarks.defect_speed``, a subprocess)."""
     import subprocess
@@ -139,6 +148,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="a checkout of the code before (git worktree add TREE REV): measured in the same run, first, "
                          "and the ratio before/after reported per stage")  # fmt: skip
     args = ap.parse_args(argv)
+    load_at_start = _load_average()
     before = _before(Path(args.before), args) if args.before else None
     from engine.device import init_runtime
 
@@ -164,6 +174,9 @@ def main(argv: list[str] | None = None) -> int:
         "defect": {k: info["defect"][k] for k in ("side", "volume_mm3", "area_mm2", "slices", "rim")},
         "plane": info["plane"],
         "same_as_first_run": rows[0]["same_as_first_run"],
+        # the host's load average (1, 5, 15 min) at the start and the end: other work on the machine slows every
+        # stage, the host's most
+        "load_average": {"start": load_at_start, "end": _load_average()},
     }
     if before is not None:
         now = rows[0]["median_seconds"]
