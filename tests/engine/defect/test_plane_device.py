@@ -218,14 +218,17 @@ def test_the_masks_on_the_device_are_the_hosts(backend) -> None:
         bone_and_skull_on(backend, data, float(data.max()) + 1.0)
 
 
-def test_auto_keeps_the_hosts_tree_on_the_hosts_cpu(backend) -> None:
+def test_auto_keeps_the_hosts_tree_on_the_hosts_cpu_only(backend) -> None:
     from engine.defect import find_symmetry_plane
     from engine.defect.plane import skull_masks
 
     vol = _headsq_cut().volume
     host = find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT)
     auto = find_symmetry_plane(vol, HEADSQ_LEVEL, orient=ORIENT, device=backend)
-    assert backend.is_host and auto.normal_grid == host.normal_grid and auto.offset_grid_mm == host.offset_grid_mm
+    if backend.is_host:  # the tree's plane itself
+        assert auto.normal_grid == host.normal_grid and auto.offset_grid_mm == host.offset_grid_mm
+    else:  # a GPU's OpenCL: the device's
+        assert _angle_deg(auto.normal_grid, host.normal_grid) < 0.1
     masks = skull_masks(vol.data, HEADSQ_LEVEL, backend, "device")
     assert all(np.array_equal(a, b) for a, b in zip(masks, skull_masks(vol.data, HEADSQ_LEVEL), strict=True))
     with pytest.raises(ValueError, match="where is one of"):
