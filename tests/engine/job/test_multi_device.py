@@ -186,3 +186,19 @@ def test_one_device_is_todays_path(phantom):
     """A single device never takes the split: the report has no parts, and the mesh is what it was."""
     got = reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=12 * MIB)
     assert "parts" not in got.report["memory"]["stream"] and "devices" not in got.report["device"]
+
+
+@pytest.mark.gpu
+def test_two_gpus_give_the_one_gpu_mesh(phantom):
+    """On a host of two or more GPUs: the parts on their own devices, in their own threads, joined on the first."""
+    import warp as wp
+
+    if wp.get_cuda_device_count() < 2:
+        pytest.skip("needs two CUDA devices")
+    one = reconstruct(phantom, ReconParams(), device="cuda:0", max_device_bytes=12 * MIB)
+    got = reconstruct(phantom, ReconParams(), device="cuda:0,cuda:1", max_device_bytes=12 * MIB)
+    parts = got.report["memory"]["stream"]["parts"]
+    assert [p["device"] for p in parts] == ["cuda:0", "cuda:1"] and parts[1]["peak_bytes"] <= 12 * MIB
+    assert got.report["counts"]["isosurface"] == one.report["counts"]["isosurface"]
+    assert shape_of(got.report) == shape_of(one.report) == (True, True, 1, 2)
+    assert abs(got.report["mesh"]["n_faces"] - one.report["mesh"]["n_faces"]) <= 0.01 * one.report["mesh"]["n_faces"]
