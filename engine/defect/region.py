@@ -58,10 +58,11 @@ MAX_LOCAL_MOVE_MM = 4.0  # the local plane may move a piece's mirror image this 
 MAX_LOCAL_PIECES = 24  # the largest candidates (by volume) that are mirrored locally
 MAX_ANTI_SHARE = 0.5
 MIN_CONTACT = 0.5
-# confidence: the mirror image must match the scan's bone around a piece (``local_fit``, intersection over union)
-# over at least this share. Measured on the sweep (issue 42): templates with Dice 0.17-0.56 had 0.31-0.56 (a turned
-# head of 5 mm slices, low cuts joined to the skull base's asymmetry); those with Dice 0.74 and more, 0.58-0.81
-MIN_FIT = 0.57
+# confidence: how well the mirror image matches the scan's bone around a piece (``local_fit``, intersection over
+# union) times the share of its rim that meets the bone once filled (``Rim.contact``). Measured on the sweep (issue
+# 42): the head phantom's templates with Dice 0.17-0.55 had 0.25-0.34 (a turned head of 5 mm slices: the mirror off
+# by a slice, its bone short of the rim), those with Dice 0.74 and more 0.38-0.56, headsq's and the cranium's 0.40+
+MIN_CONFIDENCE = 0.36
 # a rim gap of more than this many voxels is closed across gaps up to RIM_CLOSE_SHELLS shells wide
 CLOSE_GAP_VOXELS = 1.0
 RIM_CLOSE_SHELLS = 0.5
@@ -563,17 +564,18 @@ def _judge(region: Region, grid: Grid, params: DefectParams) -> None:
         if p.rim.contact < MIN_CONTACT:
             p.reason = f"its rim meets the bone over {p.rim.contact:.0%} only (not a hole's fill)"
             continue
-        if p.fit < MIN_FIT:
-            p.reason = (
-                f"low confidence: around it the mirror image matches the scan's bone over {p.fit:.0%} only "
-                f"(overlap within {2.0 * region.shell_mm + float(sp.max()):.0f} mm; {MIN_FIT:.0%} or more where "
-                "mirroring fills a hole well): the two sides differ there (asymmetry, or a pose or slice thickness "
-                "the mirror cannot follow), so the template would not fit the hole"
-            )
-            continue
         _to_rim(p, region, grid, shell, border_of=full, reach=reach)
         if p.rim is not None and p.rim.gap_voxels > CLOSE_GAP_VOXELS:
             _close_rim(p, region, grid, shell, border_of=full, reach=reach)
+        if p.rim is not None and p.fit * p.rim.contact < MIN_CONFIDENCE:
+            p.reason = (
+                f"low confidence: around it the mirror image matches the scan's bone over {p.fit:.0%} (overlap "
+                f"within {2.0 * region.shell_mm + float(sp.max()):.0f} mm) and the template meets the hole's rim over "
+                f"{p.rim.contact:.0%} (rim gap {p.rim.gap_voxels:.1f} voxels): {p.fit * p.rim.contact:.2f}, under "
+                f"{MIN_CONFIDENCE:g}; the two sides differ there (asymmetry, or a pose or slice thickness the mirror "
+                "cannot follow), so the template would not fit the hole"
+            )
+            continue
         if p.volume_mm3 < region.min_volume_mm3 and p.rim is not None and p.rim.gap_voxels > 1.0:
             # under the skull's smallest defect (a thin vault's plate): kept only when its rim closes on the bone
             p.reason = (

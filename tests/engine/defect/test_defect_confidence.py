@@ -104,9 +104,8 @@ def test_a_template_that_the_mirror_does_not_fit_is_refused_with_the_measure(hea
     cut = cut_at(headsq, HEADSQ_LEVEL, 157.5, 0.8, 40.0, slices=HEADSQ_CRANIUM, orient=HEADSQ_ORIENT, edge="ball",
                  fill="air")  # fmt: skip
     res = run(cut.volume, DefectParams(), HEADSQ_LEVEL, device, orient=HEADSQ_ORIENT)
-    fit = max(p.fit for p in res.kept)
-    assert fit >= region_mod.MIN_FIT
-    monkeypatch.setattr(region_mod, "MIN_FIT", 1.01)
+    assert max(p.fit * p.rim.contact for p in res.kept) >= region_mod.MIN_CONFIDENCE
+    monkeypatch.setattr(region_mod, "MIN_CONFIDENCE", 1.01)
     with pytest.raises(NoDefectError, match=r"low confidence: around it the mirror image matches the scan's bone over"):
         run(cut.volume, DefectParams(), HEADSQ_LEVEL, device, orient=HEADSQ_ORIENT)
 
