@@ -238,12 +238,18 @@ def join_on_host(
     host: list[tuple[np.ndarray, np.ndarray, np.ndarray]], ids: np.ndarray, shares: np.ndarray, origin: np.ndarray
 ) -> HostMesh:
     """The groups spilled to the host as one mesh, each shared vertex given the other side's share of its quadric
-    (``ids``, ``shares``)."""
-    quad = np.concatenate([h[2] for h in host])
+    (``ids``, ``shares``). ``host`` is emptied as it is joined (a group's arrays are let go of once copied), so the
+    join holds the groups once, not twice."""
+    n_v, n_f, n_q = (sum(len(h[i]) for h in host) for i in range(3))
+    pos, faces, quad = np.empty((n_v, 3), np.float32), np.empty((n_f, 3), np.int32), np.empty((n_q, 10))
+    ov = of = oq = 0
+    while host:
+        p, f, q = host.pop(0)
+        pos[ov : ov + len(p)], faces[of : of + len(f)], quad[oq : oq + len(q)] = p, f, q
+        ov, of, oq = ov + len(p), of + len(f), oq + len(q)
+        del p, f, q
     if len(quad):
         quad[ids] += shares  # each side's faces' share of a shared vertex's quadric
-    pos = np.concatenate([h[0] for h in host])
-    faces = np.concatenate([h[1] for h in host])
     return HostMesh(pos, faces, quad, origin)
 
 
@@ -304,6 +310,7 @@ def finish_groups(
         quad = be.from_host(host.quad, VEC10D) if carry else None
         pieces = [be.from_host(host.pos, VEC3F), be.from_host(host.faces, VEC3I), quad]
         info["uploaded"] = {"faces": len(host.faces), "why": "the spilled groups fit the device seam pass"}
+        host.release()  # on the device now: the caller's reference holds nothing
         host = None
     if pieces is not None:
         pos, faces, quad = pieces

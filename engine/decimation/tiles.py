@@ -46,6 +46,11 @@ class HostMesh:
     quad: np.ndarray
     origin: np.ndarray
 
+    def release(self) -> None:
+        """Let go of the arrays: the mesh was consumed (what is kept of it is in its replacement, or on the
+        device), so that no reference to it elsewhere holds a copy."""
+        self.pos, self.faces, self.quad = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 10))
+
 
 def to_host(pos: Any, faces: Any) -> HostMesh:
     """A device mesh on the host, without quadrics yet (the tiles compute them from their faces)."""
@@ -86,7 +91,8 @@ def finish_host(
     mesh: HostMesh, target: int, budget: Budget, dev: Any, **kwargs: Any
 ) -> tuple[Any, Any, dict[str, Any]]:
     """Decimate a host mesh to ``target`` faces within ``budget`` (tiled rounds, then one pass on the device once
-    the mesh fits); the result is on the device ``dev`` (as for ``decimate_within``)."""
+    the mesh fits); the result is on the device ``dev`` (as for ``decimate_within``). ``mesh`` is consumed
+    (``HostMesh.release``)."""
     be = get_backend(dev)
     t0 = time.perf_counter()
     rounds: list[dict[str, Any]] = []
@@ -101,6 +107,7 @@ def finish_host(
     pos, faces = be.from_host(mesh.pos, VEC3F), be.from_host(mesh.faces, VEC3I)
     last = len(mesh.quad) and len(mesh.faces) > target and budget.fits_decimation(len(mesh.faces))
     quad = be.from_host(mesh.quad, VEC10D) if last else None
+    mesh.release()  # on the device now (the caller's reference to it holds nothing)
     return final_pass(pos, faces, quad, mesh.origin, target, budget, {"tiled": True, "rounds": rounds}, t0)
 
 
@@ -155,22 +162,23 @@ def decimate_tiles(
     mesh: HostMesh, tile: np.ndarray, goals: dict[int, int], dev: Any, **kwargs: Any
 ) -> tuple[HostMesh, dict[str, Any]]:
     """Decimate the tiles named in ``goals`` (tile id -> faces to reach) on the device, each with the vertices it
-    shares with another tile pinned and its quadrics carried; the other tiles' faces are kept as they are."""
+    shares with another tile pinned and its quadrics carried; the other tiles' faces are kept as they are.
+
+    ``mesh`` is consumed (``HostMesh.release``): a host bound holds the mesh, what the tiles give back and the
+    joined result, never copies of each (``_Joined``)."""
     from engine.decimation.passes import decimate_carrying
 
     be = get_backend(dev)
     t0 = time.perf_counter()
     n_faces, n_verts = len(mesh.faces), len(mesh.pos)
     tile = tile.astype(np.int16)
-    order = np.argsort(tile, kind="stable")
+    order = np.argsort(tile, kind="stable").astype(np.int32)
     bounds = np.searchsorted(tile[order], np.arange(int(tile.max()) + 2))
+    del tile
     shared = _shared_vertices(mesh.faces, order, bounds, n_verts)
     carried = len(mesh.quad) == n_verts
-    quad = mesh.quad if carried else np.zeros((n_verts, 10))
+    joined = _Joined(mesh, shared, carried)
     times = {"split": time.perf_counter() - t0, "tiles": 0.0, "decimate": 0.0}
-    new_pos, new_quad, new_faces = [mesh.pos], [quad], []
-    n_total = n_verts
-    alive = np.ones(n_verts, bool)
     tiles = []
     for t in range(len(bounds) - 1):
         fidx = order[bounds[t] : bounds[t + 1]]
@@ -179,49 +187,116 @@ def decimate_tiles(
         t1 = time.perf_counter()
         tf = mesh.faces[fidx]
         if t not in goals:  # kept as it is
-            new_faces.append(tf)
+            joined.add_faces(tf)
             continue
         used = np.zeros(n_verts, bool)
         used[tf.ravel()] = True
         vids = np.flatnonzero(used)
+        del used
         lut = np.empty(n_verts, np.int32)
         lut[vids] = np.arange(len(vids), dtype=np.int32)
+        local = lut[tf]
+        del lut, tf
         pinned = shared[vids]
-        goal = goals[t]
         res = decimate_carrying(
             be.from_host(mesh.pos[vids], VEC3F),
-            be.from_host(lut[tf], VEC3I),
-            goal,
+            be.from_host(local, VEC3I),
+            goals[t],
             locked=be.from_host(pinned.astype(np.int32)),
-            quadrics=be.from_host(quad[vids], VEC10D) if carried else None,
+            quadrics=be.from_host(mesh.quad[vids], VEC10D) if carried else None,
             origin=mesh.origin,
             **{"stop_tolerance": PIECE_TOLERANCE, **kwargs},
         )
+        del local
         out_pos, out_faces = be.to_host(res.pos).reshape(-1, 3), be.to_host(res.faces).reshape(-1, 3)  # sync point
         out_quad, kept = be.to_host(res.quad).reshape(-1, 10), be.to_host(res.kept)
         times["decimate"] += res.stats.seconds
-        keep_id = vids[kept]
-        was_pinned = pinned[kept]
-        alive[vids[~pinned]] = False  # the tile's free vertices are replaced by its output
-        out_lut = np.where(was_pinned, keep_id, n_total + np.cumsum(~was_pinned) - 1)
-        if not carried:
-            quad[keep_id[was_pinned]] += out_quad[was_pinned]  # each tile's share of a shared vertex's quadric
-        new_pos.append(out_pos[~was_pinned])
-        new_quad.append(out_quad[~was_pinned])
-        new_faces.append(out_lut[out_faces])
-        n_total += int((~was_pinned).sum())
-        tiles.append({"faces_in": len(tf), "faces_out": len(out_faces), "pinned": int(pinned.sum())})
+        del res
+        joined.add_tile(vids, pinned, kept, out_pos, out_faces, out_quad)
+        tiles.append({"faces_in": len(fidx), "faces_out": len(out_faces), "pinned": int(pinned.sum())})
         times["tiles"] += time.perf_counter() - t1
+    del order, shared
     t1 = time.perf_counter()
-    faces = np.concatenate(new_faces)
-    pos = np.concatenate(new_pos)
-    quad_all = np.concatenate(new_quad)
-    keep = np.concatenate([alive, np.ones(n_total - n_verts, bool)])
-    remap = np.cumsum(keep) - 1
-    out = HostMesh(pos[keep], remap[faces].astype(np.int32), quad_all[keep], mesh.origin)
+    out = joined.result()
     times["join"] = time.perf_counter() - t1
     info = {"tiles": tiles, "faces_in": n_faces, "faces_out": len(out.faces), "seconds": time.perf_counter() - t0}
     return out, info | {"timings": times}
+
+
+class _Joined:
+    """The tiles' outputs joined into the next mesh as they come, consuming the input ``mesh``.
+
+    A tile's free vertices are replaced by its output's (numbered after the input's: ``n_verts + j``); its pinned
+    ones keep their input ids. The faces are written into one array as they come (the input's size, untouched past
+    what is written, so only that is resident) and renumbered in place at the end: the kept input vertices in their
+    order, then the tiles' new ones. Without carried quadrics, only the shared vertices' are summed (each tile's
+    share), the other kept input vertices start from none, as the tiles start from their faces'."""
+
+    def __init__(self, mesh: HostMesh, shared: np.ndarray, carried: bool) -> None:
+        self.mesh, self.carried = mesh, carried
+        self.n_verts = len(mesh.pos)
+        self.alive = np.ones(self.n_verts, bool)
+        self.faces = np.empty((len(mesh.faces), 3), np.int32)
+        self.n_faces = 0
+        self.new_pos: list[np.ndarray] = []
+        self.new_quad: list[np.ndarray] = []
+        self.n_new = 0
+        self.shared_ids = np.zeros(0, np.int64) if carried else np.flatnonzero(shared)
+        self.shared_quad = np.zeros((len(self.shared_ids), 10))
+
+    def add_faces(self, faces: np.ndarray) -> None:
+        self.faces[self.n_faces : self.n_faces + len(faces)] = faces
+        self.n_faces += len(faces)
+
+    def add_tile(
+        self,
+        vids: np.ndarray,
+        pinned: np.ndarray,
+        kept: np.ndarray,
+        out_pos: np.ndarray,
+        out_faces: np.ndarray,
+        out_quad: np.ndarray,
+    ) -> None:
+        keep_id = vids[kept]
+        was_pinned = pinned[kept]
+        self.alive[vids[~pinned]] = False  # the tile's free vertices are replaced by its output
+        fresh = ~was_pinned
+        out_lut = np.where(was_pinned, keep_id, self.n_verts + self.n_new + np.cumsum(fresh) - 1).astype(np.int32)
+        if not self.carried:  # each tile's share of a shared vertex's quadric
+            np.add.at(self.shared_quad, np.searchsorted(self.shared_ids, keep_id[was_pinned]), out_quad[was_pinned])
+        self.new_pos.append(out_pos[fresh])
+        self.new_quad.append(out_quad[fresh])
+        self.n_new += int(fresh.sum())
+        self.add_faces(out_lut[out_faces])
+
+    def result(self) -> HostMesh:
+        mesh = self.mesh
+        n_alive = int(self.alive.sum())
+        n_out = n_alive + self.n_new
+        remap = (np.cumsum(self.alive, dtype=np.int64) - 1).astype(np.int32)
+        faces = self.faces[: self.n_faces]
+        step = 1 << 20
+        for s in range(0, len(faces), step):  # renumbered in place, a block at a time
+            block = faces[s : s + step]
+            old = block < self.n_verts
+            block[old] = remap[block[old]]
+            block[~old] += n_alive - self.n_verts
+        mesh.faces = np.zeros((0, 3), np.int32)  # the input let go of as the result takes its place
+        pos = np.empty((n_out, 3), np.float32)
+        np.compress(self.alive, mesh.pos, axis=0, out=pos[:n_alive])
+        mesh.pos = np.zeros((0, 3), np.float32)
+        quad = np.zeros((n_out, 10))
+        if self.carried:
+            np.compress(self.alive, mesh.quad, axis=0, out=quad[:n_alive])
+        else:  # shared vertices are pinned in every tile: all kept
+            quad[remap[self.shared_ids]] = self.shared_quad
+        mesh.quad = np.zeros((0, 10))
+        o = n_alive
+        for p, q in zip(self.new_pos, self.new_quad, strict=True):
+            pos[o : o + len(p)], quad[o : o + len(p)] = p, q
+            o += len(p)
+        self.new_pos, self.new_quad = [], []
+        return HostMesh(pos, faces, quad, mesh.origin)
 
 
 def _another_round(n_faces: int, target: int, budget: Budget, rounds: list[Any]) -> bool:
