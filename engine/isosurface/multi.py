@@ -211,6 +211,7 @@ class Part:
                     g = self.groups
                     assert g is not None
                     g.top_ids, g.top_pos, g.top_out, g.n_out = ids, self.seam, np.arange(len(ids)), len(ids)
+                del below  # its mesh: only the plane's ids stay on the device
         last = None
         for slab in run(stats, layers=(first, end), plane_prev=plane, vstart=vstart):
             last = slab.plane_above
