@@ -220,6 +220,28 @@ class Part:
             self.top = np.asarray(backend_of(last).to_host(last)).reshape(2, -1)
 
 
+class _OneReader:
+    """A scan read slab by slab (``engine.io.slabs.SlabSource``) shared by the parts' threads: one read at a time (a
+    source is read from one thread elsewhere: a TIFF's file handle, a Zarr's row of chunks kept for the next read),
+    everything else as the source's."""
+
+    def __init__(self, source: Any) -> None:
+        self.source = source
+        self.lock = threading.Lock()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.source, name)
+
+    def read(self, z0: int, z1: int) -> np.ndarray:
+        with self.lock:
+            planes: np.ndarray = self.source.read(z0, z1)
+            return planes
+
+    def read_into(self, z0: int, z1: int, out: np.ndarray) -> None:
+        with self.lock:
+            self.source.read_into(z0, z1, out)
+
+
 def _ring(be: Any, first: bool) -> PinnedBuffer | None:
     """The pinned plane ring of a part on ``be``: the process's own on the job's first device, else one per device."""
     if first:
@@ -250,6 +272,8 @@ def stream_parts(
     """
     n_layers = -(-(volume.shape[0] + 1) // BLOCK)
     layers = split_layers(layer_work(volume, level, n_layers), len(devices))
+    if not isinstance(volume, np.ndarray):  # a scan read slab by slab: the parts take turns to read it
+        volume = _OneReader(volume)
     n = len(layers)
     if budget.host_bytes is not None:  # the parts' reads share the host bound's read share
         budget = dataclasses.replace(budget, host_read_share=budget.host_read_share / n)

@@ -198,6 +198,37 @@ def test_a_tangle_of_many_pieces_and_handles_joins_the_same():
     assert abs(got.report["mesh"]["n_faces"] - one.report["mesh"]["n_faces"]) <= 0.01 * one.report["mesh"]["n_faces"]
 
 
+@pytest.mark.parametrize("fmt", ["bigtiff", "ome-zarr"])
+def test_a_scan_read_slab_by_slab_over_two_parts(tmp_path, fmt):
+    """The job path (``run_job``, ``Runtime.device``) under a host memory bound: the scan is read slab by slab by
+    both parts, in turns, through the plane feed's ring; the model is one device's, as from the loaded scan."""
+    import tifffile
+
+    from engine.job import JobSpec, resolve_runtime, run_job
+    from tests.engine.omezarr_factory import write_ome_zarr
+
+    vol = bone_phantom((40, 64, 64), workers=1)
+    path = tmp_path / ("scan.tif" if fmt == "bigtiff" else "scan.ome.zarr")
+    if fmt == "bigtiff":
+        tifffile.imwrite(path, vol, bigtiff=True)
+    else:
+        write_ome_zarr(path, vol, scale=[500.0] * 3, chunks=(8, 32, 32))
+    spec = JobSpec()
+    spec = dataclasses.replace(
+        spec,
+        input=dataclasses.replace(spec.input, spacing_zyx_mm=(0.5, 0.5, 0.5)),
+        recon=dataclasses.replace(spec.recon, body=None),
+    )
+    bound = Budget(bytes=16 * MIB, host_bytes=64 * MIB, host_volume_share=0.001, feed_ring_bytes=5 * 64 * 64 * 2)
+    one = run_job(path, tmp_path / "one", spec, resolve_runtime("cpu", bound)).report
+    got = run_job(path, tmp_path / "two", spec, resolve_runtime("cpu,cpu", bound)).report
+    assert got["memory"]["out_of_core"] is True and got["device"]["devices"] == ["cpu", "cpu"]
+    assert all(p["feed"]["requests"] > 0 for p in got["memory"]["stream"]["parts"])
+    assert got["counts"]["isosurface"] == one["counts"]["isosurface"]
+    assert shape_of(got) == shape_of(one) and got["mesh"]["watertight"]
+    assert abs(got["mesh"]["n_faces"] - one["mesh"]["n_faces"]) <= 0.01 * one["mesh"]["n_faces"]
+
+
 def test_one_device_is_todays_path(phantom):
     """A single device never takes the split: the report has no parts, and the mesh is what it was."""
     got = reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=12 * MIB)
