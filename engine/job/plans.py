@@ -251,7 +251,7 @@ def _stream(st: State, params: ReconParams, stats: Any) -> tuple[Any, Any]:
     from engine.isosurface.stream import stream_surface
 
     dec = params.decimate
-    if len(st.devices) > 1 and dec is not None:  # over several devices: always in groups, joined on the host
+    if len(st.devices) > 1 and dec is not None:  # over several devices: always in groups, then joined
         from engine.isosurface.multi import stream_parts
 
         st.stream = stream_parts(
