@@ -1,9 +1,9 @@
 """One job's streamed volume stages over several devices of a host (``stream_parts``): the volume's z range split into
 contiguous parts of whole block layers, one or more per device, each streamed through the Gaussian and MC33 and its
 slabs decimated in groups on its own device, in its own thread (``engine.isosurface.stream.stream_surface`` with a
-``Part``); then the parts joined into one mesh (on the job's first device where the joined groups fit the room
-one device holds its groups in, else on the host, as one device spills them) and finished across all the borders by
-the budgeted path's finish (``engine.decimation.groups.finish_groups``, on the job's first device).
+``Part``); then the parts joined into one mesh (on the job's first device where the finish would work on it there,
+else on the host, from where the finish takes it up as it does one device's spilled groups) and finished across all
+the borders by the budgeted path's finish (``engine.decimation.groups.finish_groups``, on the job's first device).
 
 A part is pinned where it meets its neighbours exactly as a group of slabs is pinned where it meets the next: the
 vertices on its top plane are kept by its last group, and those on its bottom plane (the top plane of the part
