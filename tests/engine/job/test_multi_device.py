@@ -157,11 +157,12 @@ def test_parts_join_into_the_one_device_mesh(phantom, device, mode):
         assert got.report["mesh"]["volume_mm3"] == pytest.approx(one.report["mesh"]["volume_mm3"], rel=1e-3)
 
 
-def test_parts_spilled_to_the_host_join_the_same(phantom):
+@pytest.mark.both_backends
+def test_parts_spilled_to_the_host_join_the_same(phantom, device):
     """Each part's groups go to the host as they are decimated (the spill): the join reads them there."""
     budget = Budget(12 * MIB, spill_share=1e-4)
-    one = reconstruct(phantom, ReconParams(), device="cpu", max_device_bytes=budget)
-    got = reconstruct(phantom, ReconParams(), device="cpu,cpu", max_device_bytes=budget)
+    one = reconstruct(phantom, ReconParams(), device=device, max_device_bytes=budget)
+    got = reconstruct(phantom, ReconParams(), device=twice(device), max_device_bytes=budget)
     assert got.report["memory"]["stream"]["joined_on"] == "host"
     assert shape_of(got.report) == shape_of(one.report)
     assert abs(got.report["mesh"]["n_faces"] - one.report["mesh"]["n_faces"]) <= 0.01 * one.report["mesh"]["n_faces"]
