@@ -6,8 +6,9 @@
    axes; each is scored by the median distance from the mirrored surface to the surface, and the two best are
    refined.
 3. Refinement: mirror-ICP constrained to reflections (3 parameters: the normal's two angles and the offset).
-   Every iteration mirrors a fixed sample of surface points, pairs each with the nearest surface voxel (k-d tree)
-   and takes a Gauss-Newton step on the point-to-point distances with Cauchy weights (the scale follows the
+   Every iteration mirrors a fixed sample of surface points, pairs each with the nearest surface voxel (a k-d
+   tree on the host, or on a device a closest-feature transform of the surface: issue 42, ``find_symmetry_plane``'s
+   ``device``) and takes a Gauss-Newton step on the point-to-point distances with Cauchy weights (the scale follows the
    median distance), so that the bone missing from one side (the defect) and the unpaired parts of the face and
    neck barely pull on the plane. A point hint leaves out the bone around the point and around its mirror image.
 4. The residual: the root mean square of the 80 % smallest distances (mm), with the median and the share of
