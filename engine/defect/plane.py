@@ -151,8 +151,10 @@ class _DeviceNearest:
 
     @classmethod
     def fits(cls, be: Any, shape: tuple[int, ...]) -> bool:
-        """Whether the plane's device work on a grid of ``shape`` fits the backend's default working set."""
-        return int(np.prod(shape)) * cls.BYTES_PER_VOXEL <= int(be.default_budget())
+        """Whether the plane's device work on a grid of ``shape`` fits the backend's default working set (and its
+        flat indices an int32)."""
+        n = int(np.prod(shape))
+        return n < 2**31 and n * cls.BYTES_PER_VOXEL <= int(be.default_budget())
 
     def __call__(self, q: FloatArray) -> npt.NDArray[np.int64]:
         from engine.defect.ops import nearest_feature
