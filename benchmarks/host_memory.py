@@ -2,7 +2,8 @@
 bound and against the same job with the scan loaded whole.
 
     python -m benchmarks.host_memory [--shape 256,256,256] [--stack 12] [--bound 96MiB] [--formats npy,bigtiff,...]
-                                     [--chunks 64,256,256] [--threads N] [--workdir DIR] --out result.json
+                                     [--chunks 64,256,256] [--threads N] [--workdir DIR]
+                                     [--device cuda:0 --device-bytes 4GiB] --out result.json
 
 The bone phantom (uint16, ``engine.data.phantom.bone_phantom``) stacked ``--stack`` times along z, every other copy
 mirrored (12 x 256 x 256 x 256 is 384 MiB, 4x the default bound; a phantom that long has finer bone, whose block
@@ -90,7 +91,7 @@ def _child(args: argparse.Namespace) -> dict[str, Any]:
     budget = Budget(bytes=args.child_device_bytes, host_volume_share=args.volume_share)
     if args.child_bound:
         budget = budget.with_host(args.child_bound)
-    runtime = resolve_runtime("cpu", budget, decode_threads=args.threads)
+    runtime = resolve_runtime(args.device, budget, decode_threads=args.threads)
     warm_up(runtime)
     spec = JobSpec()
     spacing = None if args.child_format == "ome-zarr" else SPACING
@@ -163,7 +164,7 @@ def _write(fmt: str, volume: np.ndarray, work: Path, chunks: tuple[int, int, int
 def _measure(fmt: str, path: Path, outdir: Path, bound: int | None, device: int, args: argparse.Namespace) -> Any:
     argv = [sys.executable, "-m", "benchmarks.host_memory", "--out", str(args.out), "--child-format", fmt]
     argv += ["--child-input", str(path), "--child-outdir", str(outdir), "--child-device-bytes", str(device)]
-    argv += ["--volume-share", str(args.volume_share), "--reduction", str(args.reduction)]
+    argv += ["--volume-share", str(args.volume_share), "--reduction", str(args.reduction), "--device", args.device]
     if bound is not None:
         argv += ["--child-bound", str(bound)]
     if args.threads:
@@ -183,7 +184,10 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> dict[str, Any]:
     chunks = [int(c) for c in args.chunks.split(",")]
     bound = parse_bytes(args.bound)
     assert bound is not None
-    device = int(bound * Budget().host_device_share)  # the device budget the bound gives on the CPU
+    on_cpu = args.device == "cpu"
+    # the device budget: on the CPU the bound's share of it; on a GPU its own (the bound holds the host's side)
+    device = int(bound * Budget().host_device_share) if on_cpu else parse_bytes(args.device_bytes)
+    assert device is not None
     wanted = [f.strip() for f in args.formats.split(",")] if args.formats else list(FORMATS)
     unknown = sorted(set(wanted) - set(FORMATS))
     if unknown:
@@ -197,7 +201,7 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> dict[str, Any]:
         "benchmark": "host_memory",
         "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "host": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
-        "device": "cpu",
+        "device": args.device,
         "shape_zyx": list(shape),
         "dtype": str(volume.dtype),
         "volume_bytes": int(volume.nbytes),
@@ -255,6 +259,10 @@ def main(argv: list[str] | None = None) -> int:
         "--reduction", type=float, default=0.05, help="the share of the faces the model keeps (--reduction)"
     )
     parser.add_argument("--threads", type=int, default=None, help="decode threads (default: the CPUs)")
+    parser.add_argument("--device", default="cpu", help="the job's device (cpu, cuda:0, opencl:0)")
+    parser.add_argument(
+        "--device-bytes", default="4GiB", help="the device budget on a GPU (on the CPU: the bound's share)"
+    )
     parser.add_argument("--workdir", type=Path, default=None, help="where the files go (default: a temporary one)")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--child-format", help=argparse.SUPPRESS)

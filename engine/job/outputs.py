@@ -337,16 +337,21 @@ def write_outputs(
                 export = params.export
                 budgets = {"print": None, "phone": export.phone_max_triangles, "ar": export.ar_max_triangles}
                 parts = _template_parts(recon, lay.centre_xyz, budgets, dev)
+                # under a host memory bound the files are made one at a time, each let go of before the next (their
+                # buffers grow with the model); otherwise the print files are written beside the viewing copies
+                one_at_a_time = budget.host_bytes is not None
                 with ThreadPoolExecutor(1, thread_name_prefix="bonemesh-write") as pool:
                     writing = pool.submit(_write_print_files, tmp, stl, lay, parts.pop("print", []))
+                    if one_at_a_time:
+                        writing.result()
                     held = 0 if on_host else budget.costs.held * len(lay.faces)
                     room = budget.beside(held)  # beside the model, where it is on the device
                     views = target if not on_host else dev  # as the model: where it was laid out, or the job's
-                    small, infos = _viewing_files(lay, stats, params, room, tmp, seconds, views, parts)
+                    small, infos = _viewing_files(lay, stats, params, room, tmp, seconds, views, parts, one_at_a_time)
                     t1 = time.perf_counter()
                     sizes = writing.result()
                     seconds["wait_print_files"] = time.perf_counter() - t1
-        sizes.update({name: len(data) for name, data in small.items()})
+        sizes.update(small)
         sizes.update(_defect_files(recon, tmp))
         report["exports"] = infos
         report["exports"].update({name: {**report["exports"].get(name, {}), "bytes": n} for name, n in sizes.items()})
@@ -368,10 +373,11 @@ def _viewing_files(
     seconds: dict[str, float | dict[str, float]],
     dev: Any,
     parts: dict[str, list[Any]],
-) -> tuple[dict[str, bytes], dict[str, ExportInfo]]:
+    one_at_a_time: bool = False,
+) -> tuple[dict[str, int], dict[str, ExportInfo]]:
     """The phone and AR copies (decimated on ``dev`` within ``room`` bytes) and the small files made from them,
-    written into ``tmp``: ``({name: bytes}, {"phone.glb": how the copy was made, "ar.glb": ...})``; their seconds go
-    into ``seconds``."""
+    written into ``tmp`` (encoded ``one_at_a_time`` under a host memory bound): ``({name: size}, {"phone.glb": how
+    the copy was made, "ar.glb": ...})``; their seconds go into ``seconds``."""
     t1 = time.perf_counter()
     closed = bool(stats.get("watertight")) and bool(stats.get("manifold"))
     budgets = [params.export.phone_max_triangles, params.export.ar_max_triangles]
@@ -383,32 +389,38 @@ def _viewing_files(
     ar = phone if apos is ppos else _host_mesh(apos, afaces)
     seconds["viewing_copies"] = time.perf_counter() - t1
     t1 = time.perf_counter()
-    small, seconds["encode_parts"] = _encode_small(phone, ar, parts, dev)
-    for name, data in small.items():
-        (tmp / name).write_bytes(data)
+    sizes, seconds["encode_parts"] = _encode_small(phone, ar, parts, dev, tmp, one_at_a_time)
     seconds["encode_small"] = time.perf_counter() - t1
-    return small, {VIEWING_ENTRY["phone"]: phone_info, VIEWING_ENTRY["ar"]: ar_info}
+    return sizes, {VIEWING_ENTRY["phone"]: phone_info, VIEWING_ENTRY["ar"]: ar_info}
 
 
 def _encode_small(
-    phone: Mesh, ar: Mesh, parts: dict[str, list[Any]], dev: Any = None
-) -> tuple[dict[str, bytes], dict[str, float]]:
-    """The small files (``engine.export.viewers.small_files``) and each one's seconds: those whose exporter runs
-    Warp kernels (``OutputFile.device``: the preview) on this thread, the others at the same time in threads (their
-    codecs are native code and numpy; no Warp call leaves this thread: Warp copies from a second thread while this
-    one launched kernels hung ``write_outputs`` on the H100 host, c683f09)."""
+    phone: Mesh, ar: Mesh, parts: dict[str, list[Any]], dev: Any, tmp: Path, one_at_a_time: bool = False
+) -> tuple[dict[str, int], dict[str, float]]:
+    """The small files (``engine.export.viewers.small_files``) written into ``tmp``: each one's size and seconds.
+    Those whose exporter runs Warp kernels (``OutputFile.device``: the preview) run on this thread, the others at
+    the same time in threads (their codecs are native code and numpy; no Warp call leaves this thread: Warp copies
+    from a second thread while this one launched kernels hung ``write_outputs`` on the H100 host, c683f09), or one
+    thread ``one_at_a_time``. Each file is written as soon as it is encoded, and its bytes let go of."""
     from engine.export.files import FILES
     from engine.export.viewers import small_files
 
-    def timed(encode: Any) -> tuple[bytes, float]:
+    def made(name: str, encode: Any) -> tuple[int, float]:
         t0 = time.perf_counter()
-        return encode(), time.perf_counter() - t0
+        data = encode()
+        (tmp / name).write_bytes(data)
+        return len(data), time.perf_counter() - t0
 
     jobs = small_files(phone, ar, parts, dev)  # the exporters looked up (native libraries loaded) on this thread
     here = {n: e for n, e in jobs.items() if FILES[n].device}
-    with ThreadPoolExecutor(max(1, len(jobs) - len(here)), thread_name_prefix="bonemesh-encode") as pool:
-        beside = {n: pool.submit(timed, e) for n, e in jobs.items() if n not in here}
-        done = {n: timed(e) for n, e in here.items()}
+    threads = 1 if one_at_a_time else max(1, len(jobs) - len(here))
+    with ThreadPoolExecutor(threads, thread_name_prefix="bonemesh-encode") as pool:
+        if one_at_a_time:  # the device's exporters first, then the others in the one thread, one by one
+            done = {n: made(n, e) for n, e in here.items()}
+            beside = {n: pool.submit(made, n, e) for n, e in jobs.items() if n not in here}
+        else:
+            beside = {n: pool.submit(made, n, e) for n, e in jobs.items() if n not in here}
+            done = {n: made(n, e) for n, e in here.items()}
         done.update({n: f.result() for n, f in beside.items()})
     return {n: done[n][0] for n in jobs}, {n: done[n][1] for n in jobs}
 

@@ -67,7 +67,13 @@ def run_job(
             with a message naming ``label``; nothing is written.
         StageError: a stage failed otherwise.
     """
-    job = _Job(Path(outdir), spec, runtime, on_progress or _quiet, shares)
+    progress = on_progress or _quiet
+    if runtime.budget.host_bytes is not None:  # freed arrays leave the resident set (engine.heap)
+        from engine import heap
+
+        heap.bound_heap()
+        progress = _giving_back(progress)
+    job = _Job(Path(outdir), spec, runtime, progress, shares)
     inp = spec.input
     found = None
     if not isinstance(source, Volume) and inp.kind != "scan" and inp.pieces is None:
@@ -102,6 +108,21 @@ class _Job:
 
 def _quiet(stage: str, fraction: float) -> None:
     """No progress wanted."""
+
+
+def _giving_back(progress: OnProgress) -> OnProgress:
+    """``progress``, and at each new stage the heap's free memory given back (``engine.heap.give_back``)."""
+    from engine.heap import give_back
+
+    last = [""]
+
+    def report(stage: str, fraction: float) -> None:
+        if stage != last[0]:
+            last[0] = stage
+            give_back()
+        progress(stage, fraction)
+
+    return report
 
 
 class _Steps:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -129,17 +130,19 @@ def test_thumbnail_ties_go_to_the_lower_triangle() -> None:
     assert again[16, 16, :3].astype(int).sum() == seen[0]
 
 
+@pytest.mark.parametrize("one_at_a_time", [False, True], ids=["beside", "one at a time"])
 def test_small_files_encode_beside_each_other_with_warp_on_the_calling_thread(
-    monkeypatch: pytest.MonkeyPatch, ball_on_rod: trimesh.Trimesh
+    monkeypatch: pytest.MonkeyPatch, ball_on_rod: trimesh.Trimesh, tmp_path: Path, one_at_a_time: bool
 ) -> None:
-    """``engine.job.outputs`` encodes the viewer files at once; an exporter that runs Warp kernels (the preview) stays
-    on the calling thread (Warp copies from a second thread hung the H100 host once), the others run in threads;
-    every file comes out as its exporter alone makes it."""
+    """``engine.job.outputs`` encodes the viewer files at once (under a host memory bound: one at a time, in one
+    thread); an exporter that runs Warp kernels (the preview) stays on the calling thread (Warp copies from a second
+    thread hung the H100 host once), the others run in threads; every file is written as its exporter alone makes
+    it."""
     import threading
 
-    from engine.job import outputs
     from engine.export import viewers
     from engine.export.files import FILES, viewing_files
+    from engine.job import outputs
     from engine.types import Mesh
 
     vertices, faces = _engine_mesh(ball_on_rod)
@@ -156,14 +159,17 @@ def test_small_files_encode_beside_each_other_with_warp_on_the_calling_thread(
 
     real = viewers.small_files
     monkeypatch.setattr(viewers, "small_files", lambda *a: {n: recorded(n, e) for n, e in real(*a).items()})
-    files, seconds = outputs._encode_small(mesh, mesh, {})
-    assert list(files) == list(seconds) == [f.name for f in viewing_files()]
+    sizes, seconds = outputs._encode_small(mesh, mesh, {}, None, tmp_path, one_at_a_time)
+    assert list(sizes) == list(seconds) == [f.name for f in viewing_files()]
     here = threading.current_thread().name
-    for name in files:
+    for name in sizes:
         on_here = threads[name] == here
         assert on_here == FILES[name].device, (name, threads[name])
-        assert files[name] == plain[name](), name
+        data = (tmp_path / name).read_bytes()
+        assert sizes[name] == len(data) and data == plain[name](), name
     assert FILES["preview.png"].device
+    beside = {t for n, t in threads.items() if not FILES[n].device}
+    assert len(beside) == 1 if one_at_a_time else len(beside) > 1, beside
 
 
 def test_a_fresh_process_encodes_the_small_files_in_threads_without_hanging() -> None:
@@ -179,7 +185,8 @@ def test_a_fresh_process_encodes_the_small_files_in_threads_without_hanging() ->
         "from engine.types import Mesh\n"
         "m = trimesh.creation.icosphere(3, radius=20.0)\n"
         "mesh = Mesh(m.vertices[:, ::-1].astype(np.float32), m.faces.astype(np.int32), None)\n"
-        "files, _ = _encode_small(mesh, mesh, {})\n"
+        "import tempfile, pathlib\n"
+        "files, _ = _encode_small(mesh, mesh, {}, None, pathlib.Path(tempfile.mkdtemp()))\n"
         "print(sorted(files))\n"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180, check=True)
