@@ -88,6 +88,12 @@ class GroupDecimator:
         of their current faces)."""
         return self.mode == "last pass"
 
+    def first_group_mode(self, mc33_faces: int, z_top: int) -> str:
+        """The groups' finish, chosen from the first group (its ``mc33_faces`` up to plane ``z_top``): "last pass"
+        where the decimated groups, extrapolated to the whole volume, fit for one last pass, else "seams"."""
+        expected = self.ratio * mc33_faces * (self.nz - 1) / max(z_top, 1)
+        return "last pass" if expected * self.per_face <= self.mesh_room else "seams"
+
     def add(self, part: Any) -> None:
         if self.pending and self.pending_faces + part.nt > self.cap:
             self.flush()
@@ -106,9 +112,8 @@ class GroupDecimator:
         parts, self.pending, n_faces = self.pending, [], self.pending_faces
         self.pending_faces = 0
         self.mc33_faces += n_faces
-        if not self.mode:  # will the decimated groups fit for one last pass? (extrapolated from the first group)
-            expected = self.ratio * self.mc33_faces * (self.nz - 1) / max(parts[-1].z_top, 1)
-            self.mode = "last pass" if expected * self.per_face <= self.mesh_room else "seams"
+        if not self.mode:
+            self.mode = self.first_group_mode(self.mc33_faces, parts[-1].z_top)
         group = gather_group(parts, n_faces, self.top_ids, self.top_pos, self.dev)
         del parts  # the slabs' meshes: freed before the decimation
         t1 = self._lap("prepare", t0)

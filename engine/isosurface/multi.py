@@ -130,9 +130,7 @@ class PartDecimator(GroupDecimator):
 
     def flush(self) -> None:
         if not self.mode and self.pending:
-            faces = self.mc33_faces + self.pending_faces
-            expected = self.ratio * faces * (self.nz - 1) / max(self.pending[-1].z_top, 1)
-            mine = "last pass" if expected * self.per_face <= self.mesh_room else "seams"
+            mine = self.first_group_mode(self.mc33_faces + self.pending_faces, self.pending[-1].z_top)
             self.mode = self.part.vote.mode(self.part.index, mine)
         if self.pending:
             self.seed()
