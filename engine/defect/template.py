@@ -16,7 +16,7 @@ import numpy.typing as npt
 
 from engine.defect.grid import Grid, bone_and_skull
 from engine.defect.params import DefectParams
-from engine.defect.plane import SymmetryPlane, find_symmetry_plane
+from engine.defect.plane import SymmetryPlane, find_symmetry_plane, skull_masks
 from engine.defect.region import Piece, Region, find_region
 from engine.export.files import DEFECT_JSON, IMPLANT_STL
 from engine.types import Mesh, Volume
@@ -220,7 +220,7 @@ def run(
         volume: the scan.
         params: hints and limits (default ``DefectParams()``).
         level: the bone level in the volume's units (``engine.level.resolve_level``'s value); required.
-        device: where the voxel rules and MC33 run.
+        device: where the voxel rules and MC33 run, and (on a GPU) the skull's masks and the plane's queries.
         orient: ``OrientParams`` placing an image stack in the patient frame.
 
     Raises:
@@ -230,9 +230,9 @@ def run(
         raise ValueError("run needs the bone level (engine.level.resolve_level)")
     params = params or DefectParams()
     t0 = time.perf_counter()
-    bone, skull = bone_and_skull(volume.data, level)
+    bone, skull = skull_masks(volume.data, level, device)  # on the device where it is not the host's CPU
     masks = time.perf_counter() - t0
-    plane = find_symmetry_plane(volume, level, params, orient=orient, skull=skull)
+    plane = find_symmetry_plane(volume, level, params, orient=orient, skull=skull, device=device)
     result = defect_template(volume, level, plane, params=params, device=device, orient=orient, bone=bone, skull=skull)
     result.seconds = {
         "masks": masks,
