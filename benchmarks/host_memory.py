@@ -55,6 +55,7 @@ import numpy as np
 from benchmarks.report import stop_on_sigterm, write_json
 
 FORMATS = ("npy", "tiff-folder", "bigtiff", "ome-zarr")
+READERS = {"tiff-folder": ("tifffile",), "bigtiff": ("tifffile",), "ome-zarr": ("zarr",)}
 SPACING = (0.05, 0.05, 0.05)  # mm, for the formats that do not carry it (OME-Zarr's metadata say 50 micrometer)
 
 
@@ -78,9 +79,10 @@ def _reset_peak() -> bool:
 def _child(args: argparse.Namespace) -> dict[str, Any]:
     """In the measured process: import, warm up, note the baseline, run the job, note the peak."""
     import dataclasses
+    import importlib
 
-    import tifffile  # noqa: F401  # the readers, imported before the baseline
-    import zarr  # noqa: F401
+    for reader in READERS.get(args.child_format, ()):  # the format's reader, imported before the baseline
+        importlib.import_module(reader)
 
     from engine.budget import Budget
     from engine.job import resolve_runtime, run_job
