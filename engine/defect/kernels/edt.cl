@@ -6,6 +6,8 @@
 
 #define BIG 1.0e30f
 
+#include "envelope.cl"
+
 /* f = 0 at the features (mask set, or mask clear with inside), BIG elsewhere */
 __kernel void features(__global const uchar *mask, const int inside, __global float *f)
 {
@@ -21,43 +23,9 @@ __kernel void edt_pass(__global const float *f, __global float *g, const int nz,
 {
     const int line = (int)get_global_id(0);
     int base, stride, n;
-    if (axis == 2) {
-        base = line * nx; stride = 1; n = nx;
-    } else if (axis == 1) {
-        const int z = line / nx;
-        const int x = line - z * nx;
-        base = z * ny * nx + x; stride = nx; n = ny;
-    } else {
-        base = line; stride = ny * nx; n = nz;
-    }
+    grid_line(line, nz, ny, nx, axis, &base, &stride, &n);
     const int so = line * (n + 1);
-    int k = -1;
-    for (int q = 0; q < n; q++) {
-        const float fq = f[base + q * stride];
-        if (fq < BIG * 0.5f) {
-            const float xq = (float)q * spacing;
-            if (k < 0) {
-                k = 0;
-                v[so] = q;
-                zb[so] = -BIG;
-                zb[so + 1] = BIG;
-            } else {
-                int vk = v[so + k];
-                float xv = (float)vk * spacing;
-                float s = ((fq + xq * xq) - (f[base + vk * stride] + xv * xv)) / (2.0f * (xq - xv));
-                while (s <= zb[so + k]) {
-                    k -= 1;
-                    vk = v[so + k];
-                    xv = (float)vk * spacing;
-                    s = ((fq + xq * xq) - (f[base + vk * stride] + xv * xv)) / (2.0f * (xq - xv));
-                }
-                k += 1;
-                v[so + k] = q;
-                zb[so + k] = s;
-                zb[so + k + 1] = BIG;
-            }
-        }
-    }
+    const int k = lower_envelope(f, base, stride, n, spacing, v, zb, so);
     if (k < 0) {
         for (int q = 0; q < n; q++) g[base + q * stride] = BIG;
     } else {

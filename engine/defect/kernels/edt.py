@@ -21,6 +21,46 @@ def _line(line: int, nz: int, ny: int, nx: int, axis: int) -> wp.vec3i:
     return wp.vec3i(line, ny * nx, nz)
 
 
+@wp.func
+def lower_envelope(
+    f: wp.array(dtype=wp.float32),
+    base: int,
+    stride: int,
+    n: int,
+    spacing: float,
+    v: wp.array(dtype=wp.int32),
+    zb: wp.array(dtype=wp.float32),
+    so: int,
+) -> int:
+    """The lower envelope of one grid line's parabolas (x - x_p)^2 + f[p] (``base``, ``stride``, ``n``: ``_line``):
+    the positions of its parabolas in ``v`` and their breakpoints in ``zb``, from ``so``; the index of its last
+    parabola, -1 where the line has no feature."""
+    k = int(-1)
+    for q in range(n):
+        fq = f[base + q * stride]
+        if fq < BIG * 0.5:
+            xq = float(q) * spacing
+            if k < 0:
+                k = 0
+                v[so] = q
+                zb[so] = -BIG
+                zb[so + 1] = BIG
+            else:
+                vk = int(v[so + k])
+                xv = float(vk) * spacing
+                s = ((fq + xq * xq) - (f[base + vk * stride] + xv * xv)) / (2.0 * (xq - xv))
+                while s <= zb[so + k]:
+                    k -= 1
+                    vk = int(v[so + k])
+                    xv = float(vk) * spacing
+                    s = ((fq + xq * xq) - (f[base + vk * stride] + xv * xv)) / (2.0 * (xq - xv))
+                k += 1
+                v[so + k] = q
+                zb[so + k] = s
+                zb[so + k + 1] = BIG
+    return k
+
+
 @wp.kernel
 def features_kernel(mask: wp.array(dtype=wp.uint8), inside: int, f: wp.array(dtype=wp.float32)):
     """f = 0 at the features (mask set, or mask clear with ``inside``), BIG elsewhere."""
@@ -53,29 +93,7 @@ def edt_pass_kernel(
     stride = geo[1]
     n = geo[2]
     so = line * (n + 1)
-    k = int(-1)
-    for q in range(n):
-        fq = f[base + q * stride]
-        if fq < BIG * 0.5:
-            xq = float(q) * spacing
-            if k < 0:
-                k = 0
-                v[so] = q
-                zb[so] = -BIG
-                zb[so + 1] = BIG
-            else:
-                vk = int(v[so + k])
-                xv = float(vk) * spacing
-                s = ((fq + xq * xq) - (f[base + vk * stride] + xv * xv)) / (2.0 * (xq - xv))
-                while s <= zb[so + k]:
-                    k -= 1
-                    vk = int(v[so + k])
-                    xv = float(vk) * spacing
-                    s = ((fq + xq * xq) - (f[base + vk * stride] + xv * xv)) / (2.0 * (xq - xv))
-                k += 1
-                v[so + k] = q
-                zb[so + k] = s
-                zb[so + k + 1] = BIG
+    k = lower_envelope(f, base, stride, n, spacing, v, zb, so)
     if k < 0:
         for q in range(n):
             g[base + q * stride] = BIG

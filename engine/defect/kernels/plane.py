@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from engine.defect.kernels.edt import BIG, _line
+from engine.defect.kernels.edt import BIG, _line, lower_envelope
 from engine.defect.kernels.mirror import Box
 
 
@@ -43,29 +43,7 @@ def cft_pass_kernel(
     stride = geo[1]
     n = geo[2]
     so = line * (n + 1)
-    k = int(-1)
-    for q in range(n):
-        fq = f[base + q * stride]
-        if fq < BIG * 0.5:
-            xq = float(q) * spacing
-            if k < 0:
-                k = 0
-                v[so] = q
-                zb[so] = -BIG
-                zb[so + 1] = BIG
-            else:
-                vk = int(v[so + k])
-                xv = float(vk) * spacing
-                s = ((fq + xq * xq) - (f[base + vk * stride] + xv * xv)) / (2.0 * (xq - xv))
-                while s <= zb[so + k]:
-                    k -= 1
-                    vk = int(v[so + k])
-                    xv = float(vk) * spacing
-                    s = ((fq + xq * xq) - (f[base + vk * stride] + xv * xv)) / (2.0 * (xq - xv))
-                k += 1
-                v[so + k] = q
-                zb[so + k] = s
-                zb[so + k + 1] = BIG
+    k = lower_envelope(f, base, stride, n, spacing, v, zb, so)
     if k < 0:
         for q in range(n):
             g[base + q * stride] = BIG
