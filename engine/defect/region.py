@@ -29,9 +29,13 @@ pieces and measures them):
    ``MIN_SPAN_WIDTH_MM`` wide and ``MIN_SPAN_SHARE`` of its outline, however its rim is bevelled (a sliver of
    asymmetry or a partial-thickness dent has the scan's bone across the rest of the shell). A defect fills a hole in
    the bone, so its rim meets the bone; a piece whose rim meets it over less than ``MIN_CONTACT`` is not a hole's
-   fill. A kept piece is filled out to the rim with the mirror's bone (``_to_rim``). A piece whose rim is open on
-   the side of the plane, or that lies across the plane, is a defect across the midline (``MidlineDefectError``).
-6. **Size**: a piece smaller than ``min_defect_volume`` is left out; none left is ``NoDefectError``.
+   fill. A kept piece is filled out to the rim with the mirror's bone (``_to_rim``), and a rim gap still over a voxel
+   is bridged across to the bone (``_close_rim``). A piece whose rim is open on the side of the plane, or that lies
+   across the plane, is a defect across the midline (``MidlineDefectError``).
+6. **Confidence**: the mirror image's overlap with the bone around the piece (``local_fit``) times the share of its
+   filled rim that meets the bone must reach ``MIN_CONFIDENCE``; below it the template would not fit the hole (the
+   sides differ there, or the pose and slices defeat the mirror) and the piece is refused with both measures.
+7. **Size**: a piece smaller than ``min_defect_volume`` is left out; none left is ``NoDefectError``.
 """
 
 from __future__ import annotations
