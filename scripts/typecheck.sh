@@ -9,7 +9,7 @@ cd "$(dirname "$0")/.."
 "${VENV:-.venv}/bin/python" -m mypy --strict --follow-imports=silent --ignore-missing-imports \
     --untyped-calls-exclude=warp --untyped-calls-exclude=skimage \
     engine/__init__.py engine/_lazy.py engine/errors.py engine/types.py engine/params.py engine/budget.py \
-    engine/device.py engine/backend/memory.py engine/level.py engine/orient.py engine/job/progress.py engine/staging.py engine/heap.py \
+    engine/device.py engine/backend/memory.py engine/level.py engine/orient.py engine/job/progress.py engine/staging.py engine/heap.py engine/isosurface/multi.py \
     engine/job/plans.py engine/job/pipeline.py engine/job/outputs.py engine/report.py engine/job/warmup.py engine/cli/__init__.py \
     engine/export/__init__.py engine/export/files.py engine/export/viewers.py \
     engine/volume/__init__.py engine/isosurface/__init__.py engine/decimation/__init__.py \
