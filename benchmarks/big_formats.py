@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.report import stop_on_sigterm, write_json
+from benchmarks.report import proc_status, stop_on_sigterm, write_json
 
 FORMATS = (
     "npy",
@@ -56,14 +56,6 @@ FORMATS = (
     "ome-zarr-s3",
 )
 SPACING = (0.05, 0.05, 0.05)  # mm, for the formats that do not carry it (OME-Zarr's metadata say 50 micrometer)
-
-
-def _status(key: str) -> int:
-    """A /proc/self/status size in bytes (VmRSS, VmHWM)."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith(key + ":"):
-            return int(line.split()[1]) * 1024
-    raise KeyError(key)
 
 
 def _child(args: argparse.Namespace) -> dict[str, Any]:
@@ -80,12 +72,12 @@ def _child(args: argparse.Namespace) -> dict[str, Any]:
         pass
     from engine.io import load_volume
 
-    baseline = _status("VmRSS")
+    baseline = proc_status("VmRSS")
     zarr_input = args.child_format.startswith("ome-zarr")
     t0 = time.perf_counter()
     volume = load_volume(args.child_input, spacing_zyx_mm=None if zarr_input else SPACING, threads=args.threads)
     seconds = time.perf_counter() - t0
-    peak = _status("VmHWM")
+    peak = proc_status("VmHWM")
     ref = np.load(args.child_reference, mmap_mode="r")
     equal = volume.data.shape == ref.shape and all(
         np.array_equal(volume.data[z : z + 16], ref[z : z + 16]) for z in range(0, ref.shape[0], 16)
@@ -114,7 +106,7 @@ def _write_tiffs(fmt: str, volume: np.ndarray, work: Path) -> Path:
     return path
 
 
-def _write(fmt: str, volume: np.ndarray, work: Path, chunks: tuple[int, int, int], s3: Any) -> Path | str:
+def write_format(fmt: str, volume: np.ndarray, work: Path, chunks: tuple[int, int, int], s3: Any) -> Path | str:
     """``volume`` written as ``fmt`` under ``work``; the path (or URL) to load."""
     from tests.engine.omezarr_factory import upload_folder, write_ome_zarr, zip_folder
 
@@ -217,7 +209,7 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> dict[str, Any]:
                 continue
             fmt_work = work / fmt
             fmt_work.mkdir()
-            path = _write(fmt, volume, fmt_work, chunks, s3)
+            path = write_format(fmt, volume, fmt_work, chunks, s3)
             row = _row(fmt, _measure(fmt, path, reference, args, env), _stored_bytes(path), volume_bytes)
             report["formats"][fmt] = row
             shutil.rmtree(fmt_work, ignore_errors=True)

@@ -52,19 +52,12 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.report import stop_on_sigterm, write_json
+from benchmarks.big_formats import SPACING, write_format
+from benchmarks.report import proc_status, stop_on_sigterm, write_json
 
 FORMATS = ("npy", "tiff-folder", "bigtiff", "ome-zarr")
 READERS = {"tiff-folder": ("tifffile",), "bigtiff": ("tifffile",), "ome-zarr": ("zarr",)}
-SPACING = (0.05, 0.05, 0.05)  # mm, for the formats that do not carry it (OME-Zarr's metadata say 50 micrometer)
-
-
-def _status(key: str) -> int:
-    """A /proc/self/status size in bytes (VmRSS, VmHWM)."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith(key + ":"):
-            return int(line.split()[1]) * 1024
-    raise KeyError(key)
+WRITTEN_AS = {"npy": "npy", "tiff-folder": "tiff-folder", "bigtiff": "bigtiff", "ome-zarr": "ome-zarr-v05"}
 
 
 def _reset_peak() -> bool:
@@ -73,7 +66,7 @@ def _reset_peak() -> bool:
         Path("/proc/self/clear_refs").write_text("5")
     except OSError:
         return False
-    return _status("VmHWM") <= _status("VmRSS") + (1 << 20)
+    return proc_status("VmHWM") <= proc_status("VmRSS") + (1 << 20)
 
 
 def _child(args: argparse.Namespace) -> dict[str, Any]:
@@ -103,13 +96,13 @@ def _child(args: argparse.Namespace) -> dict[str, Any]:
         # the phantom reads as HU + 1024: no body outline out of core; the model decimated to a size the bound holds
         recon=dataclasses.replace(spec.recon, body=None, decimate=DecimateParams(reduction=args.reduction)),
     )
-    baseline = _status("VmRSS")
+    baseline = proc_status("VmRSS")
     resettable = _reset_peak()
     stage, peaks, done = ["loading"], {}, threading.Event()
 
     def sample() -> None:  # the resident set over the baseline, per stage of the job (every 50 ms)
         while not done.is_set():
-            used = _status("VmRSS") - baseline
+            used = proc_status("VmRSS") - baseline
             peaks[stage[0]] = max(peaks.get(stage[0], 0), used)
             time.sleep(0.05)
 
@@ -122,7 +115,7 @@ def _child(args: argparse.Namespace) -> dict[str, Any]:
     seconds = time.perf_counter() - t0
     done.set()
     sampler.join()
-    peak = _status("VmHWM") if resettable else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    peak = proc_status("VmHWM") if resettable else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     mesh = result.report["mesh"]
     stl = Path(args.child_outdir) / "model.stl"
     return {
@@ -142,25 +135,8 @@ def _child(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _write(fmt: str, volume: np.ndarray, work: Path, chunks: tuple[int, int, int]) -> Path:
-    """``volume`` written as ``fmt`` under ``work``; the path to read."""
-    import tifffile
-
-    if fmt == "npy":
-        np.save(work / "volume.npy", volume)
-        return work / "volume.npy"
-    if fmt == "tiff-folder":
-        folder = work / "slices"
-        folder.mkdir()
-        for k, plane in enumerate(volume):
-            tifffile.imwrite(folder / f"slice_{k:05d}.tif", plane)
-        return folder
-    if fmt == "bigtiff":
-        tifffile.imwrite(work / "volume.tif", volume, bigtiff=True)
-        return work / "volume.tif"
-    from tests.engine.omezarr_factory import write_ome_zarr
-
-    um = [s * 1000 for s in SPACING]
-    return Path(write_ome_zarr(work / "scan.ome.zarr", volume, version="0.5", scale=um, chunks=chunks))
+    """``volume`` written as ``fmt`` under ``work`` (``benchmarks.big_formats``' writers); the path to read."""
+    return Path(write_format(WRITTEN_AS[fmt], volume, work, chunks, None))
 
 
 def _measure(fmt: str, path: Path, outdir: Path, bound: int | None, device: int, args: argparse.Namespace) -> Any:

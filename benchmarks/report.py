@@ -1,4 +1,4 @@
-"""Writing a benchmark's JSON result."""
+"""Writing a benchmark's JSON result, and the process's memory as Linux reports it."""
 
 from __future__ import annotations
 
@@ -28,3 +28,11 @@ def stop_on_sigterm() -> None:
         raise SystemExit(128 + signum)
 
     signal.signal(signal.SIGTERM, _exit)
+
+
+def proc_status(key: str) -> int:
+    """A size in bytes from ``/proc/self/status`` (``VmRSS``: resident now, ``VmHWM``: its high-water mark)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) * 1024
+    raise KeyError(key)
