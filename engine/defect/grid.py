@@ -91,6 +91,21 @@ def reflect(points: FloatArray, normal: FloatArray, offset: float) -> FloatArray
     return points - 2.0 * s[..., None] * normal
 
 
+def bone_at(data: npt.NDArray[Any], level: float) -> BoolArray:
+    """Every sample at or above the level.
+
+    Raises:
+        EmptySurfaceError: nothing is at or above the level.
+    """
+    from engine.errors import EmptySurfaceError
+
+    bone = np.asarray(data >= level)
+    if not bone.any():
+        lo, hi = float(np.min(data)), float(np.max(data))
+        raise EmptySurfaceError(f"no bone at level {level:g}: the scan's values run from {lo:g} to {hi:g}")
+    return bone
+
+
 def bone_and_skull(data: npt.NDArray[Any], level: float) -> tuple[BoolArray, BoolArray]:
     """The bone (every sample at or above the level) and the skull: its largest 26-connected piece, which leaves out
     a couch, a head holder and loose specks.
@@ -100,12 +115,7 @@ def bone_and_skull(data: npt.NDArray[Any], level: float) -> tuple[BoolArray, Boo
     """
     from scipy import ndimage as ndi
 
-    from engine.errors import EmptySurfaceError
-
-    bone = np.asarray(data >= level)
-    if not bone.any():
-        lo, hi = float(np.min(data)), float(np.max(data))
-        raise EmptySurfaceError(f"no bone at level {level:g}: the scan's values run from {lo:g} to {hi:g}")
+    bone = bone_at(data, level)
     labels, n = ndi.label(bone, structure=CONNECTIVITY)
     if n == 1:
         return bone, bone.copy()

@@ -168,12 +168,9 @@ def bone_and_skull(be: Backend, data: Any, level: float) -> tuple[Any, Any]:
     Raises:
         EmptySurfaceError: nothing is at or above the level.
     """
-    from engine.errors import EmptySurfaceError
+    from engine.defect.grid import bone_at
 
-    bone = np.asarray(data >= level)
-    if not bone.any():
-        lo, hi = float(np.min(data)), float(np.max(data))
-        raise EmptySurfaceError(f"no bone at level {level:g}: the scan's values run from {lo:g} to {hi:g}")
+    bone = bone_at(data, level)
     shape = tuple(int(s) for s in bone.shape)
     skull, pieces = largest_piece(be, upload_mask(be, bone), shape)
     if pieces == 1:
