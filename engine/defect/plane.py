@@ -526,7 +526,9 @@ def ring_plane(
         edge = np.flatnonzero((raw > 0.0) & (raw < 1.5))
         n_edge = min(len(edge), int(0.75 * RING_SAMPLES))
         pick = rng.choice(edge, n_edge, replace=False) if n_edge else np.zeros(0, dtype=np.int64)
-        rest = np.setdiff1d(np.arange(len(idx)), pick)
+        unpicked = np.ones(len(idx), dtype=bool)
+        unpicked[pick] = False
+        rest = np.flatnonzero(unpicked)  # the ring's other samples, ascending (a set difference without sorting)
         pick = np.concatenate([pick, rng.choice(rest, RING_SAMPLES - n_edge, replace=False)])
         idx = idx[np.sort(pick)]
     sp = np.asarray(grid.spacing_zyx)

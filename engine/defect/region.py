@@ -351,8 +351,7 @@ def find_region(
         else:
             p.reason = f"not looked at: {MAX_LOCAL_PIECES} larger candidates were"
         pieces.append(p)
-    for p in worth:
-        pieces.append(_mirror_locally(p, region, grid, skull, bone, volume_data, n_g, d_g, source, be))
+    pieces.extend(_mirror_all(worth, region, grid, skull, bone, volume_data, n_g, d_g, source, be))
     seconds["local_rules"] = time.perf_counter() - t1
     t2 = time.perf_counter()
     pieces.sort(key=lambda p: -p.volume_mm3)
@@ -366,15 +365,14 @@ def _pieces_of(rules: _Rules, grid: Grid, region: Region, normal: Any, offset: f
     """The 26-connected pieces of a rules pass that hold a core, with their voxels (in the region's crop)."""
     from scipy import ndimage as ndi
 
-    labels, _ = ndi.label(rules.grown, structure=CONNECTIVITY)
-    is_core = rules.core == 1
-    with_core = np.unique(labels[is_core & (labels > 0)])
+    labels, nl = ndi.label(rules.grown, structure=CONNECTIVITY)
+    cores = np.bincount(labels[rules.core == 1], minlength=nl + 1)
+    cores[0] = 0
+    with_core = np.flatnonzero(cores)  # the labels holding a core, ascending
     if not len(with_core):
         return []
     vox = grid.voxel_mm3
-    nl = int(labels.max()) + 1
-    cores = np.bincount(labels[is_core], minlength=nl)
-    in_piece = np.isin(labels, with_core)
+    in_piece = (cores > 0)[labels]  # a look-up per voxel, not a search
     idx = np.argwhere(in_piece)
     lab = labels[in_piece]
     order = np.argsort(lab, kind="stable")
@@ -400,8 +398,15 @@ def _place(p: Piece, grid: Grid, region: Region, normal: Any, offset: float) -> 
     p.centroid_lps_mm = tuple(float(v) for v in grid.to_patient(xyz.mean(axis=0)))  # type: ignore[assignment]
 
 
-def _mirror_locally(
-    p: Piece,
+def _threads(count: int) -> int:
+    """Threads for ``count`` pieces' host work (scipy's filters, labels and distance transforms release the GIL)."""
+    from engine.io.parallel import decode_threads
+
+    return max(1, min(count, decode_threads()))
+
+
+def _mirror_all(
+    worth: list[Piece],
     region: Region,
     grid: Grid,
     skull: BoolArray,
@@ -411,16 +416,48 @@ def _mirror_locally(
     d_g: float,
     source: _Source,
     device: Any,
-) -> Piece:
-    """The piece again, mirrored across the plane of the bone around it (see the module), measured: the rules
-    rerun on a box around it, the mirror images sampled from the whole crop (``source``, on the device)."""
-    from scipy.spatial import cKDTree
+) -> list[Piece]:
+    """``worth`` mirrored locally (``_mirror_locally``), in their order: the local planes and the measures on the
+    host's threads, piece by piece side by side; the rules on the device one piece after the other; the local
+    mirror images written into ``region.mirrored`` in the pieces' order (a later piece's where two overlap), as
+    the serial loop did."""
+    from engine.io.parallel import ordered_map
 
+    threads = _threads(len(worth))
+    planes = list(ordered_map(lambda p: _local_plane(p, region, grid, volume_data, n_g, d_g), worth, threads))
+    ruled = [_local_rules(p, lp, region, grid, skull, bone, source, device)
+             for p, lp in zip(worth, planes, strict=True)]  # fmt: skip
+    done = list(ordered_map(lambda a: _measure_local(*a, region, grid, bone), zip(worth, planes, ruled, strict=True),
+                            threads))  # fmt: skip
+    out = []
+    for local, patch in done:
+        if patch is not None:
+            dst, values = patch
+            region.mirrored[dst] = values
+        out.append(local)
+    return out
+
+
+@dataclass
+class _LocalPlane:
+    """A piece's own mirror plane (``ring_plane``; the global one where the local would move it too far)."""
+
+    normal: FloatArray
+    offset: float
+    residual: float
+    turn_deg: float
+    moved_mm: float
+    used: bool
+
+
+def _local_plane(
+    p: Piece, region: Region, grid: Grid, volume_data: npt.NDArray[Any], n_g: FloatArray, d_g: float
+) -> _LocalPlane:
+    """The plane of the bone around a piece (see the module)."""
     assert p.index is not None
     sp_arr = np.asarray(grid.spacing_zyx)
     g_idx = p.index + region.lo
-    xyz = grid.xyz(g_idx)
-    centre = xyz.mean(axis=0)
+    centre = grid.xyz(g_idx).mean(axis=0)
     n_l, d_l, res = ring_plane(volume_data, grid, n_g, d_g, _ring(g_idx, grid, RING_MM), region.tissue, region.level)
     # how far the local mirror moves the piece's mirror image: a local plane corrects a millimetre's misfit; one
     # that moves it by more has matched something else (the hole itself, when it crosses the midline)
@@ -428,23 +465,56 @@ def _mirror_locally(
     local_ok = moved <= max(MAX_LOCAL_MOVE_MM, 2.0 * float(sp_arr.max()))
     if not local_ok:
         n_l, d_l, res = np.asarray(n_g), float(d_g), float("nan")
+    turn = float(np.degrees(np.arccos(min(1.0, abs(float(n_l @ n_g))))))
+    return _LocalPlane(n_l, d_l, res, turn, moved, local_ok)
+
+
+def _local_box(p: Piece, region: Region, grid: Grid) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """The box [lo, hi) (whole grid) the rules rerun on around a piece, within the region's crop."""
+    assert p.index is not None
+    sp_arr = np.asarray(grid.spacing_zyx)
+    g_idx = p.index + region.lo
     rad = np.ceil(THICKNESS_REACH_MM / sp_arr).astype(np.int64)
     margin = rad + np.ceil((2 * region.shell_mm + 2 * float(sp_arr.max())) / sp_arr).astype(np.int64) + 2
     r_hi = region.lo + np.asarray(region.data.shape)
-    lo = np.maximum(g_idx.min(axis=0) - margin, region.lo)
-    hi = np.minimum(g_idx.max(axis=0) + 1 + margin, r_hi)
+    return np.maximum(g_idx.min(axis=0) - margin, region.lo), np.minimum(g_idx.max(axis=0) + 1 + margin, r_hi)
+
+
+def _local_rules(
+    p: Piece, lp: _LocalPlane, region: Region, grid: Grid, skull: BoolArray, bone: BoolArray, source: _Source, be: Any
+) -> _Rules:
+    """The rules rerun on the box around a piece, mirrored across its own plane (on the device)."""
+    lo, hi = _local_box(p, region, grid)
     box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
     inner = tuple(slice(int(a - r), int(b - r)) for a, b, r in zip(lo, hi, region.lo, strict=True))
     data = np.ascontiguousarray(region.data[inner])
-    rules = _rules(data, np.ascontiguousarray(skull[box]), np.ascontiguousarray(bone[box]), lo, source,
-                   reflection(n_l, d_l), grid, region.level, region.mid, device)  # fmt: skip
+    return _rules(data, np.ascontiguousarray(skull[box]), np.ascontiguousarray(bone[box]), lo, source,
+                  reflection(lp.normal, lp.offset), grid, region.level, region.mid, be)  # fmt: skip
+
+
+def _measure_local(
+    p: Piece, lp: _LocalPlane, rules: _Rules, region: Region, grid: Grid, bone: BoolArray
+) -> tuple[Piece, tuple[Any, Any] | None]:
+    """The piece again, from the rules rerun across its own plane, measured; and its local mirror image (where in
+    ``region.mirrored`` and the values) that replaces the global one around it (the implant's field). Reads
+    ``region``, writes nothing of it (the caller writes the mirror images, in order)."""
+    from scipy.spatial import cKDTree
+
+    assert p.index is not None
+    sp_arr = np.asarray(grid.spacing_zyx)
+    g_idx = p.index + region.lo
+    n_l, d_l = lp.normal, lp.offset
+    lo, hi = _local_box(p, region, grid)
+    box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+    inner = tuple(slice(int(a - r), int(b - r)) for a, b, r in zip(lo, hi, region.lo, strict=True))
+    data = region.data[inner]
     local = Piece(label=p.label, voxels=0, volume_mm3=0.0, core_mm3=0.0)
     local.local_normal = tuple(float(v) for v in n_l)  # type: ignore[assignment]
     local.local_offset_mm = d_l
-    local.local_residual_mm = None if not np.isfinite(res) else res
-    local.local_turn_deg = float(np.degrees(np.arccos(min(1.0, abs(float(n_l @ n_g))))))
-    local.local_move_mm = moved
-    local.local_used = local_ok
+    local.local_residual_mm = None if not np.isfinite(lp.residual) else lp.residual
+    local.local_turn_deg = lp.turn_deg
+    local.local_move_mm = lp.moved_mm
+    local.local_used = lp.used
     # the local pieces that overlap the global piece
     region_probe = Region(lo, rules.grown, data, rules.mirrored, bone[box], region.level, region.tissue, region.mid,
                           region.shell_mm, region.skull_mm3, region.min_volume_mm3)  # fmt: skip
@@ -456,7 +526,7 @@ def _mirror_locally(
     local.side_mm, local.centroid_lps_mm = p.side_mm, p.centroid_lps_mm
     if not mine:
         local.reason = "asymmetry: gone when mirrored across the plane of the bone around it"
-        return local
+        return local, None
     idx = np.concatenate([q.index for q in mine if q.index is not None]) + lo  # whole grid
     local.voxels = len(idx)
     local.volume_mm3 = len(idx) * grid.voxel_mm3
@@ -480,8 +550,7 @@ def _mirror_locally(
     a, b = np.maximum(lo, region.lo), np.minimum(hi, r_hi)
     dst = tuple(slice(int(u - r), int(v - r)) for u, v, r in zip(a, b, region.lo, strict=True))
     src = tuple(slice(int(u - w), int(v - w)) for u, v, w in zip(a, b, lo, strict=True))
-    region.mirrored[dst] = rules.mirrored[src]
-    return local
+    return local, (dst, rules.mirrored[src])
 
 
 def _ring(index: npt.NDArray[np.int64], grid: Grid, width_mm: float) -> npt.NDArray[np.int64]:
@@ -501,94 +570,18 @@ def _ring(index: npt.NDArray[np.int64], grid: Grid, width_mm: float) -> npt.NDAr
 
 
 def _judge(region: Region, grid: Grid, params: DefectParams) -> None:
-    """Keep the pieces that are defects; raise when the one that would be kept crosses the midline."""
-    sp = np.asarray(grid.spacing_zyx)
+    """Keep the pieces that are defects; raise when the one that would be kept crosses the midline. Each piece is
+    judged on its own (``_judge_one``), side by side on the host's threads."""
+    from engine.io.parallel import ordered_map
+
     point = None
     if params.point_lps_mm is not None:
         point = grid.from_patient(np.asarray(params.point_lps_mm))
-    full = np.asarray(grid.shape)
-    crossing: list[Piece] = []
     _merge_overlapping(region, grid)
-    for p in region.pieces:
-        if p.reason:
-            continue
-        if p.anti_mm3 > MAX_ANTI_SHARE * p.core_mm3:
-            p.reason = "moved bone: the scan has bone beside it that the mirror lacks (asymmetry, not a hole)"
-            continue
-        v_min = _min_volume(p, region, params)
-        if p.volume_mm3 < v_min:
-            p.reason = (
-                f"smaller than the smallest defect ({v_min:.0f} mm3: a {MIN_DEFECT_WIDTH_MM:g} mm wide plug through "
-                f"the shell there, {p.shell_mm or region.shell_mm:.1f} mm thick)"
-            )
-            continue
-        if params.side is not None and (p.side_mm[1] > 0) != (params.side == "left"):
-            p.reason = f"not on the {params.side} side (the hint)"
-            continue
-        assert p.index is not None and p.local_normal is not None and p.local_offset_mm is not None
-        xyz = grid.xyz(p.index + region.lo)
-        if point is not None and float(np.min(np.linalg.norm(xyz - point, axis=1))) > params.point_radius_mm:
-            p.reason = f"farther than {params.point_radius_mm:g} mm from the hint point"
-            continue
-        g = p.index + region.lo
-        border = np.any((g == 0) | (g == full - 1), axis=1)
-        side = xyz @ np.asarray(p.local_normal) - p.local_offset_mm
-        reach = max(region.shell_mm, 3.0 * float(sp.max()))
-        shell = p.shell_mm if p.shell_mm else region.shell_mm
-        p.rim = rim_of(p.index, region.bone, grid.spacing_zyx, border, reach)
-        p.fit = local_fit(p.index, region.bone, region.mirrored >= region.level, grid.spacing_zyx,
-                          2.0 * region.shell_mm + float(sp.max()))  # fmt: skip
-        across = p.side_mm[0] < -float(sp.max()) and p.side_mm[2] > float(sp.max())
-        n_zyx = np.asarray(p.local_normal)[::-1]
-        toward = 0.0
-        if min(abs(p.side_mm[0]), abs(p.side_mm[2])) <= max(region.shell_mm, float(sp.max())):
-            toward = open_toward_plane(p.index, region.bone, region.mirrored, grid.spacing_zyx, side, n_zyx,
-                                       max(MIDLINE_REACH_MM, 3.0 * shell))  # fmt: skip
-        p.rim = dataclasses.replace(p.rim, open_toward_plane=toward)
-        if across or toward >= MIN_OPEN_TOWARD_PLANE:
-            p.reason = "crosses the midline" if across else "the hole goes on past it toward the midline"
-            crossing.append(p)
-            continue
-        p.span = spans_shell(p.index, region.bone, region.mirrored, region.level, grid.spacing_zyx,
-                             1.5 * shell + float(sp.max()))  # fmt: skip
-        if p.span.missing < MIN_SPAN_MISSING:
-            p.reason = (
-                f"not a hole through the shell: on its median column the scan lacks {p.span.missing:.0%} of the "
-                f"mirrored shell (a hole lacks it all; elsewhere the scan has bone across the shell): a "
-                "partial-thickness dent or asymmetry"
-            )
-            continue
-        if p.span.area_mm2 < math.pi * (MIN_SPAN_WIDTH_MM / 2) ** 2 or p.span.share < MIN_SPAN_SHARE:
-            p.reason = (
-                f"not a hole through the shell: the scan lacks the whole mirrored shell over {p.span.area_mm2:.0f} mm2 "
-                f"({p.span.share:.0%} of its outline; elsewhere the scan has bone across the shell): a "
-                "partial-thickness dent or asymmetry"
-            )
-            continue
-        if p.rim.contact < MIN_CONTACT:
-            p.reason = f"its rim meets the bone over {p.rim.contact:.0%} only (not a hole's fill)"
-            continue
-        _to_rim(p, region, grid, shell, border_of=full, reach=reach)
-        if p.rim is not None and p.rim.gap_voxels > CLOSE_GAP_VOXELS:
-            _close_rim(p, region, grid, shell, border_of=full, reach=reach)
-        if p.rim is not None and p.fit * p.rim.contact < MIN_CONFIDENCE:
-            p.reason = (
-                f"low confidence: around it the mirror image matches the scan's bone over {p.fit:.0%} (overlap "
-                f"within {2.0 * region.shell_mm + float(sp.max()):.0f} mm) and the template meets the hole's rim over "
-                f"{p.rim.contact:.0%} (rim gap {p.rim.gap_voxels:.1f} voxels): {p.fit * p.rim.contact:.2f}, under "
-                f"{MIN_CONFIDENCE:g}; the two sides differ there (asymmetry, or a pose or slice thickness the mirror "
-                "cannot follow), so the template would not fit the hole"
-            )
-            continue
-        if p.volume_mm3 < region.min_volume_mm3 and p.rim is not None and p.rim.gap_voxels > 1.0:
-            # under the skull's smallest defect (a thin vault's plate): kept only when its rim closes on the bone
-            p.reason = (
-                f"smaller than the smallest defect ({region.min_volume_mm3:.0f} mm3) and its rim does not close on "
-                f"the bone (gap {p.rim.gap_voxels:.1f} voxels)"
-            )
-            continue
-        p.kept = True
-        p.reason = "defect"
+    live = [p for p in region.pieces if not p.reason]
+    mirror_bone = region.mirrored >= region.level
+    across = ordered_map(lambda p: _judge_one(p, region, mirror_bone, grid, params, point), live, _threads(len(live)))
+    crossing = [p for p, c in zip(live, across, strict=True) if c]
     if point is not None:  # the one piece nearest the hint point
         kept = [p for p in region.pieces if p.kept]
         if len(kept) > 1:
@@ -612,6 +605,91 @@ def _judge(region: Region, grid: Grid, params: DefectParams) -> None:
         assert p.index is not None
         mask[tuple(p.index.T)] = True
     region.mask = mask
+
+
+def _judge_one(p: Piece, region: Region, mirror_bone: BoolArray, grid: Grid, params: DefectParams, point: Any) -> bool:
+    """One piece judged (its ``reason``, ``kept``, rim and measures set; its voxels filled out to the rim when
+    kept): whether it is a hole that crosses the midline. ``mirror_bone``: ``region.mirrored`` at or above the
+    level. Reads ``region``, writes only ``p``."""
+    sp = np.asarray(grid.spacing_zyx)
+    full = np.asarray(grid.shape)
+    if p.anti_mm3 > MAX_ANTI_SHARE * p.core_mm3:
+        p.reason = "moved bone: the scan has bone beside it that the mirror lacks (asymmetry, not a hole)"
+        return False
+    v_min = _min_volume(p, region, params)
+    if p.volume_mm3 < v_min:
+        p.reason = (
+            f"smaller than the smallest defect ({v_min:.0f} mm3: a {MIN_DEFECT_WIDTH_MM:g} mm wide plug through "
+            f"the shell there, {p.shell_mm or region.shell_mm:.1f} mm thick)"
+        )
+        return False
+    if params.side is not None and (p.side_mm[1] > 0) != (params.side == "left"):
+        p.reason = f"not on the {params.side} side (the hint)"
+        return False
+    assert p.index is not None and p.local_normal is not None and p.local_offset_mm is not None
+    xyz = grid.xyz(p.index + region.lo)
+    if point is not None and float(np.min(np.linalg.norm(xyz - point, axis=1))) > params.point_radius_mm:
+        p.reason = f"farther than {params.point_radius_mm:g} mm from the hint point"
+        return False
+    g = p.index + region.lo
+    border = np.any((g == 0) | (g == full - 1), axis=1)
+    side = xyz @ np.asarray(p.local_normal) - p.local_offset_mm
+    reach = max(region.shell_mm, 3.0 * float(sp.max()))
+    shell = p.shell_mm if p.shell_mm else region.shell_mm
+    p.rim = rim_of(p.index, region.bone, grid.spacing_zyx, border, reach)
+    p.fit = local_fit(p.index, region.bone, mirror_bone, grid.spacing_zyx,
+                      2.0 * region.shell_mm + float(sp.max()))  # fmt: skip
+    across = p.side_mm[0] < -float(sp.max()) and p.side_mm[2] > float(sp.max())
+    n_zyx = np.asarray(p.local_normal)[::-1]
+    toward = 0.0
+    if min(abs(p.side_mm[0]), abs(p.side_mm[2])) <= max(region.shell_mm, float(sp.max())):
+        toward = open_toward_plane(p.index, region.bone, region.mirrored, grid.spacing_zyx, side, n_zyx,
+                                   max(MIDLINE_REACH_MM, 3.0 * shell))  # fmt: skip
+    p.rim = dataclasses.replace(p.rim, open_toward_plane=toward)
+    if across or toward >= MIN_OPEN_TOWARD_PLANE:
+        p.reason = "crosses the midline" if across else "the hole goes on past it toward the midline"
+        return True
+    p.span = spans_shell(p.index, region.bone, region.mirrored, region.level, grid.spacing_zyx,
+                         1.5 * shell + float(sp.max()))  # fmt: skip
+    if p.span.missing < MIN_SPAN_MISSING:
+        p.reason = (
+            f"not a hole through the shell: on its median column the scan lacks {p.span.missing:.0%} of the "
+            f"mirrored shell (a hole lacks it all; elsewhere the scan has bone across the shell): a "
+            "partial-thickness dent or asymmetry"
+        )
+        return False
+    if p.span.area_mm2 < math.pi * (MIN_SPAN_WIDTH_MM / 2) ** 2 or p.span.share < MIN_SPAN_SHARE:
+        p.reason = (
+            f"not a hole through the shell: the scan lacks the whole mirrored shell over {p.span.area_mm2:.0f} mm2 "
+            f"({p.span.share:.0%} of its outline; elsewhere the scan has bone across the shell): a "
+            "partial-thickness dent or asymmetry"
+        )
+        return False
+    if p.rim.contact < MIN_CONTACT:
+        p.reason = f"its rim meets the bone over {p.rim.contact:.0%} only (not a hole's fill)"
+        return False
+    _to_rim(p, region, grid, shell, border_of=full, reach=reach)
+    if p.rim is not None and p.rim.gap_voxels > CLOSE_GAP_VOXELS:
+        _close_rim(p, region, grid, shell, border_of=full, reach=reach)
+    if p.rim is not None and p.fit * p.rim.contact < MIN_CONFIDENCE:
+        p.reason = (
+            f"low confidence: around it the mirror image matches the scan's bone over {p.fit:.0%} (overlap "
+            f"within {2.0 * region.shell_mm + float(sp.max()):.0f} mm) and the template meets the hole's rim over "
+            f"{p.rim.contact:.0%} (rim gap {p.rim.gap_voxels:.1f} voxels): {p.fit * p.rim.contact:.2f}, under "
+            f"{MIN_CONFIDENCE:g}; the two sides differ there (asymmetry, or a pose or slice thickness the mirror "
+            "cannot follow), so the template would not fit the hole"
+        )
+        return False
+    if p.volume_mm3 < region.min_volume_mm3 and p.rim is not None and p.rim.gap_voxels > 1.0:
+        # under the skull's smallest defect (a thin vault's plate): kept only when its rim closes on the bone
+        p.reason = (
+            f"smaller than the smallest defect ({region.min_volume_mm3:.0f} mm3) and its rim does not close on "
+            f"the bone (gap {p.rim.gap_voxels:.1f} voxels)"
+        )
+        return False
+    p.kept = True
+    p.reason = "defect"
+    return False
 
 
 def _min_volume(p: Piece, region: Region, params: DefectParams) -> float:

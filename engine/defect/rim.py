@@ -206,6 +206,7 @@ def open_toward_plane(
 
 
 SPAN_MISSING = 0.75  # a column spans the shell when the scan lacks at least this share of the mirrored shell on it
+TRUNCATE = 4.0  # the structure tensor's Gaussian reaches this many sigmas (scipy's default)
 TENSOR_SIGMA_MM = 2.0  # the shell's local normal: the structure tensor of the mirrored scan, smoothed this much
 
 
@@ -231,12 +232,19 @@ def _local_normals(field: npt.NDArray[Any], at: npt.NDArray[np.int64], sp: npt.N
     the gradient vanishes, takes its faces' direction)."""
     from scipy import ndimage as ndi
 
-    grads = np.gradient(field.astype(np.float32), *sp)
     sigma = TENSOR_SIGMA_MM / sp
+    # only the box the smoothing reaches from ``at`` matters (the filters' radius, and a voxel more for the
+    # gradient's central differences): the same values as over the whole field, on less of it
+    reach = np.array([int(TRUNCATE * s + 0.5) for s in sigma]) + 1
+    lo = np.maximum(at.min(axis=0) - reach, 0)
+    hi = np.minimum(at.max(axis=0) + reach + 1, field.shape)
+    field = field[tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))]
+    at = at - lo
+    grads = np.gradient(field.astype(np.float32), *sp)
     tensor = np.empty((len(at), 3, 3))
     for i in range(3):
         for j in range(i, 3):
-            t = ndi.gaussian_filter(grads[i] * grads[j], sigma, mode="nearest")[tuple(at.T)]
+            t = ndi.gaussian_filter(grads[i] * grads[j], sigma, mode="nearest", truncate=TRUNCATE)[tuple(at.T)]
             tensor[:, i, j] = tensor[:, j, i] = t
     _, vecs = np.linalg.eigh(tensor)
     return vecs[:, :, 2]
