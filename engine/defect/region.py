@@ -365,15 +365,20 @@ def _pieces_of(rules: _Rules, grid: Grid, region: Region, normal: Any, offset: f
     """The 26-connected pieces of a rules pass that hold a core, with their voxels (in the region's crop)."""
     from scipy import ndimage as ndi
 
-    labels, nl = ndi.label(rules.grown, structure=CONNECTIVITY)
-    cores = np.bincount(labels[rules.core == 1], minlength=nl + 1)
+    if not rules.grown.any():
+        return []
+    # labelled within the grown voxels' box (the same pieces, numbered in the same raster order, on less)
+    b_lo, b_hi = bounding_box(rules.grown)
+    box = tuple(slice(int(a), int(b)) for a, b in zip(b_lo, b_hi, strict=True))
+    labels, nl = ndi.label(rules.grown[box], structure=CONNECTIVITY)
+    cores = np.bincount(labels[rules.core[box] == 1], minlength=nl + 1)
     cores[0] = 0
     with_core = np.flatnonzero(cores)  # the labels holding a core, ascending
     if not len(with_core):
         return []
     vox = grid.voxel_mm3
     in_piece = (cores > 0)[labels]  # a look-up per voxel, not a search
-    idx = np.argwhere(in_piece)
+    idx = np.argwhere(in_piece) + b_lo
     lab = labels[in_piece]
     order = np.argsort(lab, kind="stable")
     starts = np.searchsorted(lab[order], with_core)
@@ -424,11 +429,15 @@ def _mirror_all(
     from engine.io.parallel import ordered_map
 
     threads = _threads(len(worth))
+    t0 = time.perf_counter()
     planes = list(ordered_map(lambda p: _local_plane(p, region, grid, volume_data, n_g, d_g), worth, threads))
+    t1 = time.perf_counter()
     ruled = [_local_rules(p, lp, region, grid, skull, bone, source, device)
              for p, lp in zip(worth, planes, strict=True)]  # fmt: skip
+    t2 = time.perf_counter()
     done = list(ordered_map(lambda a: _measure_local(*a, region, grid, bone), zip(worth, planes, ruled, strict=True),
                             threads))  # fmt: skip
+    region.seconds.update(local_planes=t1 - t0, local_device=t2 - t1, local_measures=time.perf_counter() - t2)
     out = []
     for local, patch in done:
         if patch is not None:
