@@ -1,7 +1,8 @@
 """Service benchmark: upload-to-links latency of the web service, per stage, with real processes.
 
     python -m benchmarks.service --device cpu|cuda:0 [--data ../shared/data] [--phantom Z,Y,X] [--repeat N]
-                                 [--baseline] [--redis-server PATH] [--timeout S] [--workdir DIR] --out result.json
+                                 [--baseline] [--predecode on|off] [--predecode-anchor] [--redis-server PATH]
+                                 [--timeout S] [--workdir DIR] --out result.json
 
 It starts a redis-server on a free loopback port, ``bonemesh serve`` and one ``bonemesh worker`` (device
 ``--device``) with a fresh data folder (the helpers of ``tests/service/procs.py``), then for each input POSTs the
@@ -25,6 +26,15 @@ every PNG through Pillow (``BONEMESH_PNG_DECODER=pillow``), with its own warm-up
 pipeline on the GPU, the one-pass writers) is today's in both, so the difference is the ingest change alone; the
 older pipeline and writers are not runnable in this build (their numbers are in the committed JSON of earlier
 runs: ``benchmarks/results/service_cuda.json``).
+
+Issue 46 item 4: a zip of PNG slices is decoded while it is uploaded (``BONEMESH_DECODE_DURING_UPLOAD``,
+``engine.io.predecode``), so the worker's loading phase reads the decoded volume instead. ``--predecode on|off``
+sets it for the main runs; ``--predecode-anchor`` adds, in the same run, each input ``--repeat`` times with it
+switched the other way (the API and the worker restarted with the setting, warmed up again): the anchor of the
+comparison (``results.<input>.predecode_anchor``, and ``predecode_effect``: the median upload, loading phase and
+upload-to-links seconds both ways). Each run also records the worker's own seconds per step (its ``job <id>
+timings`` log line: ``load`` is the loading phase on the worker's clock, not the client's 0.1 s polling) and
+whether the report says the slices were ``decoded_during_upload``.
 """
 
 from __future__ import annotations
@@ -46,8 +56,10 @@ import httpx
 
 from benchmarks.phantom_zip import PHANTOM_SPACING_MM, write_phantom_zip
 from benchmarks.report import stop_on_sigterm, write_json
+from benchmarks.throughput import _worker_timings
 from tests.service.procs import RedisServer, ServiceStack
 
+PREDECODE = "BONEMESH_DECODE_DURING_UPLOAD"
 BASELINE_ENV = {"BONEMESH_DECODE_THREADS": "1", "BONEMESH_PNG_DECODER": "pillow"}
 BASELINE = "the ingest path before issue 11: one decoding thread, every PNG through Pillow"
 CRANIUM = (
@@ -128,6 +140,7 @@ def run_job(
         "pipeline_stage_seconds": report["stage_seconds"],
         "pipeline_seconds": report["total_seconds"],
         "input": report["input"],
+        "decoded_during_upload": bool(report["input"].get("source", {}).get("decoded_during_upload")),
         "counts": report["counts"],
         "mesh_faces": report["mesh"]["n_faces"],
         "outputs": {n: {"bytes": o["bytes"], "triangles": o["triangles"]} for n, o in outputs.items()},
@@ -145,6 +158,7 @@ def _summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "upload_to_links_seconds": median["upload_to_links_seconds"],
         "upload_to_links_seconds_all": [r["upload_to_links_seconds"] for r in runs if "error" not in r],
         "median_run": median,
+        "runs_all": ok,
         "failed_runs": [r for r in runs if "error" in r],
         "median_upload_to_links_spread": statistics.pstdev(r["upload_to_links_seconds"] for r in ok),
     }
@@ -159,6 +173,9 @@ def _run_inputs(
         for i in range(repeat):
             print(f"[service] {tag}{name} run {i + 1}/{repeat} ({path.stat().st_size:,} bytes)", flush=True)
             run = run_job(stack.base_url, "key-a", path, params, timeout, f"{tag}{name}#{i + 1}")
+            if "job_id" in run:
+                time.sleep(0.2)  # the worker writes its timing line as the attempt ends
+                run["worker_seconds"] = _worker_timings(stack.workers).get(run["job_id"], (0, {}))[1]
             runs.append(run)
             if "error" in run:
                 print(f"  FAILED: {run['error']}", flush=True)
@@ -167,7 +184,8 @@ def _run_inputs(
             print(
                 f"  upload {run['upload_seconds']:.2f} s, queue {run['queue_seconds']:.2f} s, job"
                 f" {run['job_seconds']:.2f} s, upload-to-links {run['upload_to_links_seconds']:.2f} s"
-                f" (loading/writing {run['phase_seconds']}; pipeline: {stages})",
+                f" (loading/writing {run['phase_seconds']}, worker load {run['worker_seconds'].get('load')}, "
+                f"decoded during the upload: {run['decoded_during_upload']}; pipeline: {stages})",
                 flush=True,
             )
         yield name, _summary(runs)
@@ -183,6 +201,37 @@ def _warm_up(stack: ServiceStack, tag: str) -> dict[str, Any]:
     return warm
 
 
+def _restart(stack: ServiceStack, env: dict[str, str]) -> None:
+    """The API and the worker stopped and started again with ``env`` (same data, queue and Redis)."""
+    for proc in [*stack.workers, *stack.servers]:
+        proc.stop(grace=10)
+    stack.workers.clear()
+    stack.servers.clear()
+    stack.base_url = ""
+    stack.start_server(extra_env=env)
+    stack.start_worker(extra_env=env)
+
+
+def _effect(on: dict[str, Any], off: dict[str, Any]) -> dict[str, Any]:
+    """The medians of upload, loading phase and upload-to-links seconds with and without decoding during the
+    upload."""
+    picks = {
+        "upload_seconds": lambda r: r.get("upload_seconds"),
+        "loading_seconds_client": lambda r: r.get("phase_seconds", {}).get("loading"),
+        "loading_seconds_worker": lambda r: r.get("worker_seconds", {}).get("load"),
+        "upload_to_links_seconds": lambda r: r.get("upload_to_links_seconds"),
+    }
+    out: dict[str, Any] = {}
+    for key, pick in picks.items():
+        a = [float(v) for r in on.get("runs_all", []) if isinstance(v := pick(r), int | float)]
+        b = [float(v) for r in off.get("runs_all", []) if isinstance(v := pick(r), int | float)]
+        out[key] = {
+            "with": statistics.median(a) if a else None,
+            "without": statistics.median(b) if b else None,
+        }
+    return out
+
+
 def _failed(results: dict[str, Any]) -> bool:
     return any("error" in r for res in results.values() for r in res.get("failed_runs", res.get("runs", [])))
 
@@ -195,6 +244,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=1, help="runs per input (the median is reported)")
     parser.add_argument("--baseline", action="store_true", help="also run the inputs on the previous ingest path")
     parser.add_argument("--baseline-repeat", type=int, default=1, help="baseline runs per input")
+    parser.add_argument(
+        "--predecode",
+        choices=("on", "off"),
+        default="on",
+        help="BONEMESH_DECODE_DURING_UPLOAD of the main runs (slices decoded while uploaded)",
+    )
+    parser.add_argument(
+        "--predecode-anchor",
+        action="store_true",
+        help="also run each input with decoding during the upload switched the other way",
+    )
     parser.add_argument("--redis-server", default=None, help="redis-server executable (default: PATH or apt-get)")
     parser.add_argument("--timeout", type=float, default=1800, help="seconds one job may take before giving up")
     parser.add_argument("--workdir", type=Path, default=None, help="data, logs and archives (default: a temp dir)")
@@ -234,6 +294,8 @@ def main(argv: list[str] | None = None) -> int:
     }
     if args.baseline:
         report["baseline"] = {"what": BASELINE, "worker_env": BASELINE_ENV, "runs_per_input": args.baseline_repeat}
+    main_env = {PREDECODE: "true" if args.predecode == "on" else "false"}
+    report["predecode"] = {"main_runs": args.predecode, "env": main_env}
 
     def write() -> None:
         write_json(args.out, report)
@@ -251,6 +313,7 @@ def main(argv: list[str] | None = None) -> int:
             extra_env={
                 "BONEMESH_JOB_SOFT_TIME_LIMIT": str(int(args.timeout)),
                 "BONEMESH_JOB_TIME_LIMIT": str(int(args.timeout) + 60),
+                **main_env,
             },
         ) as stack,
     ):
@@ -261,6 +324,18 @@ def main(argv: list[str] | None = None) -> int:
             for name, summary in _run_inputs(stack, inputs, args.repeat, args.timeout, ""):
                 results[name] = summary
                 write()
+            if args.predecode_anchor:  # the same inputs, the setting the other way (issue 46 item 4's anchor)
+                other = {PREDECODE: "false" if args.predecode == "on" else "true"}
+                report["predecode"]["anchor_env"] = other
+                _restart(stack, other)
+                report["predecode"]["anchor_warmup"] = _warm_up(stack, "predecode anchor ")
+                for name, summary in _run_inputs(stack, inputs, args.repeat, args.timeout, "predecode anchor "):
+                    results[name]["predecode_anchor"] = summary
+                    on, off = (results[name], summary) if args.predecode == "on" else (summary, results[name])
+                    results[name]["predecode_effect"] = effect = _effect(on, off)
+                    print(f"  {name}: with / without decoding during the upload: {effect}", flush=True)
+                    write()
+                _restart(stack, main_env)
             if args.baseline:
                 for worker in stack.workers:  # the same API, queue and data; a worker on the old ingest path
                     worker.stop(grace=10)

@@ -93,6 +93,19 @@ class Settings(BaseSettings):
         description="auto: plain grayscale PNG inflated on the host and unfiltered on the job's GPU (on a CPU: "
         "libpng); libpng: libpng on the host; pillow: every PNG through Pillow (slower)",
     )
+    decode_during_upload: bool = Field(
+        default=True,
+        description="a zip of PNG slices uploaded through the API is decoded while it arrives, into a volume file "
+        "beside the upload that the worker loads instead of decoding the zip (engine.io.predecode); local storage "
+        "only (on S3 it is not made: the worker decodes the zip)",
+    )
+    predecode_threads: int | None = Field(
+        default=None,
+        ge=1,
+        le=64,
+        description="threads of the API decoding one upload's slices as it arrives; "
+        "default: the API process's CPUs (engine.io.parallel.decode_threads)",
+    )
     outage_seconds: float = Field(
         default=60.0,
         ge=0,

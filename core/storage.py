@@ -192,6 +192,12 @@ class Storage(ABC):
     def inspect_path(self, job_id: str) -> contextlib.AbstractContextManager[Path]:
         """A local path of a just-committed upload for the API's checks (``service.upload_check``)."""
 
+    def predecode_path(self, job_id: str) -> Path | None:
+        """Where an upload streaming in is: the API decodes its slices beside it as they arrive
+        (``engine.io.predecode``) and the worker finds them there. None where the store is not local disk: the
+        decoded volume is about twice the zip, and sending it to the store and back costs more than decoding."""
+        return None
+
     @abstractmethod
     def staging_dir(self, job_id: str) -> Path:
         """A fresh private local folder to write outputs into before ``publish``."""
@@ -313,6 +319,9 @@ class LocalStorage(Storage):
 
     def inspect_path(self, job_id: str) -> contextlib.AbstractContextManager[Path]:
         return self.local_upload(job_id)
+
+    def predecode_path(self, job_id: str) -> Path | None:
+        return self.upload_path(job_id)
 
     def staging_dir(self, job_id: str) -> Path:
         folder = self._job(job_id) / f".staging-{uuid.uuid4().hex}"

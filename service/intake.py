@@ -14,6 +14,7 @@ from core.db import Database, Job
 from core.logsafe import escape_control, safe_logger
 from core.params import JobParams
 from core.storage import Storage, UploadTooLarge, is_storage_full, scrub_paths
+from engine.io.predecode import UploadDecoder
 from service.idempotency import Hold, UploadPrint
 from service.problems import Problem
 from service.services import Services
@@ -22,6 +23,7 @@ from service.uploads import UploadError, read_multipart
 from service.webhooks import CallbackRefused, check_callback_url
 
 log = safe_logger("bonemesh.api")
+PREDECODE_RESERVE = 1 << 30  # disk left free besides the upload and its decoded slices
 FULL = "the data volume is full: the upload was not kept; try again later or ask the operator to free space"
 
 
@@ -39,11 +41,14 @@ async def receive(
     is kept alive by the body's bytes, and ``fingerprint`` takes the upload's."""
     job_id = Database.new_id()
     writer = await svc.in_upload_thread(svc.storage.upload_writer, job_id, limit)
+    decoder = await svc.in_upload_thread(start_decoder, svc, job_id, request.headers.get("content-length"))
 
     def write(batch: list[memoryview]) -> None:
         if fingerprint is not None:
             fingerprint.update(batch)
         writer.write_many(batch)
+        if decoder is not None:  # the slices decoded as they arrive (never raises)
+            decoder.feed(batch)
 
     try:
         body = request.stream() if hold is None else hold.stream(request.stream())
@@ -65,6 +70,8 @@ async def receive(
                 ) from None
         await svc.in_upload_thread(writer.commit)
         summary = await svc.in_upload_thread(_inspect, svc.storage, job_id, parsed.filename, params)
+        if decoder is not None:
+            await svc.in_upload_thread(finish_decoder, decoder, job_id)
         log.info("job %s: upload of %d bytes: %s", job_id, writer.size, summary)
         name = parsed.filename or "upload"
         if hold is not None:  # the key is still this request's: nobody made the job meanwhile
@@ -73,6 +80,8 @@ async def receive(
             svc.accept, job_id, who, params.record(), engine, name, writer.size, callback, base_url
         )
     except Exception as exc:
+        if decoder is not None:
+            await svc.in_upload_thread(decoder.abort)
         await svc.in_upload_thread(svc.discard, writer, job_id)
         if isinstance(exc, UploadTooLarge):
             raise Problem(413, str(exc)) from None
@@ -83,8 +92,38 @@ async def receive(
             raise Problem(507, FULL) from None
         raise
     except BaseException:  # cancelled: clean up without awaiting
+        if decoder is not None:
+            decoder.abort()
         svc.discard(writer, job_id)
         raise
+
+
+def start_decoder(svc: Services, job_id: str, content_length: str | None) -> UploadDecoder | None:
+    """A decoder of the upload's PNG slices as they arrive (``engine.io.predecode``), where the settings ask for
+    one, the store is local disk, and its disk has room for the decoded volume (about three times the upload,
+    judged from the request's length); else None."""
+    path = svc.storage.predecode_path(job_id)
+    if not svc.settings.decode_during_upload or path is None:
+        return None
+    try:
+        size = int(content_length or 0)
+        free = svc.storage.free_bytes()
+        if free is not None and free < PREDECODE_RESERVE + 3 * size:
+            return None
+        from engine.io.parallel import decode_threads
+
+        return UploadDecoder(path, threads=decode_threads(svc.settings.predecode_threads))
+    except Exception as exc:  # never a reason to refuse the upload
+        log.warning("job %s: no decoding during the upload (%s)", job_id, type(exc).__name__)
+        return None
+
+
+def finish_decoder(decoder: UploadDecoder, job_id: str) -> None:
+    """Keep the decoded slices where they are the stack the worker would decode, else drop them (logged)."""
+    if decoder.finish():
+        log.info("job %s: %d slice(s) decoded during the upload", job_id, sum(m["png"] for m in decoder.members))
+    elif decoder.reason:
+        log.info("job %s: slices not decoded during the upload: %s", job_id, escape_control(decoder.reason))
 
 
 async def fingerprint_of(request: Request, svc: Services, limit: int) -> str:

@@ -298,6 +298,7 @@ def test_service(tmp_path: Path, no_data: Path, redis_executable: str) -> None:
     out = tmp_path / "service.json"
     args = ["--device", "cpu", "--data", str(no_data), "--phantom", PHANTOM, "--repeat", "1", "--baseline"]
     args += ["--redis-server", redis_executable, "--timeout", "120", "--workdir", str(tmp_path / "work")]
+    args += ["--predecode-anchor"]  # issue 46 item 4: the same input without decoding during the upload
     run_module("service", [*args, "--out", str(out)], tmp_path)
     report = load(out)
     has_keys(report, "benchmark", "device", "host", "timing", "preparation", "results", "warmup", "baseline")
@@ -308,6 +309,11 @@ def test_service(tmp_path: Path, no_data: Path, redis_executable: str) -> None:
         assert summary.get("failed_runs") == [], summary
         assert finite(summary["upload_to_links_seconds"]) and summary["median_run"]["mesh_faces"] > 0
     assert finite(r["baseline_over_new"])
+    assert r["median_run"]["decoded_during_upload"] is True and "load" in r["median_run"]["worker_seconds"]
+    anchor = r["predecode_anchor"]
+    assert anchor.get("failed_runs") == [] and anchor["median_run"]["decoded_during_upload"] is False
+    effect = r["predecode_effect"]["loading_seconds_worker"]
+    assert finite(effect["with"]) and finite(effect["without"])
 
 
 def test_throughput(tmp_path: Path, redis_executable: str) -> None:

@@ -24,6 +24,7 @@ from core.faults import Outage, outage_of, retrying
 from core.logsafe import escape_control, relabel, safe_logger
 from core.settings import Settings, get_settings
 from core.storage import is_storage_full, scrub_exception, scrub_paths, storage_from_settings, version_of
+from engine.io.predecode import remove_predecoded
 from engine.job import FILES, LABELS_ZIP, triangle_count
 from worker.app import app, runtime_of
 from worker.pacs import (
@@ -247,9 +248,19 @@ def _run(
     fetch_source(db, job.id, upload)  # a DICOMweb job's series (worker.pacs)
     timer.lap("fetch_source")
     laps = _Laps(holder, timer)
-    result = run_job(
-        upload, staged, spec, runtime_of(settings), on_progress=laps, label="upload", shares=(LOAD_END, PIPELINE_END)
-    )
+    try:
+        result = run_job(
+            upload,
+            staged,
+            spec,
+            runtime_of(settings),
+            on_progress=laps,
+            label="upload",
+            shares=(LOAD_END, PIPELINE_END),
+            predecoded=settings.decode_during_upload,  # the slices the API decoded as they arrived, if there
+        )
+    finally:  # read once: a rerun decodes the upload (and the disk gets its room back)
+        remove_predecoded(upload)
     timer.lap("write_files")
 
     def dicom_files() -> dict[str, Path]:  # a PACS job's Encapsulated STL (worker.pacs; reads its PACS records)

@@ -36,6 +36,11 @@ ZARR_MARKERS = ("zarr.json", ".zattrs", ".zgroup", ".zarray")  # the metadata fi
 _JUNK = re.compile(r"(^|/)(__MACOSX/|\.[^/]*$|Thumbs\.db$|desktop\.ini$)", re.IGNORECASE)
 
 
+def is_junk(name: str) -> bool:
+    """Whether a member's name is one every listing skips (``__MACOSX/``, hidden files, ``Thumbs.db``, ...)."""
+    return _JUNK.search(name) is not None
+
+
 @dataclass(frozen=True)
 class InputLimits:
     """Ceilings that protect the engine from oversized or malicious input.

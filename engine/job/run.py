@@ -58,9 +58,12 @@ def run_job(
     on_progress: OnProgress | None = None,
     label: str = "the upload",
     shares: tuple[float, float] = SHARES,
+    predecoded: bool = False,
 ) -> JobResult:
     """Run one job (see the module docstring): ``source`` is a path (a scan, a label map, a zip or folder of
-    either) or a loaded ``Volume`` (a scan); ``label`` names it in messages.
+    either) or a loaded ``Volume`` (a scan); ``label`` names it in messages. ``predecoded``: a scan's slices are
+    read from the volume decoded while it was uploaded, where its sidecar is there and still its own
+    (``engine.io.predecode``; the same volume, ``input.source.decoded_during_upload`` in the report).
 
     Raises:
         InputError: the input cannot give what the spec asks (NoSpacingError, LabelError, EmptySurfaceError, ...),
@@ -73,7 +76,7 @@ def run_job(
 
         heap.bound_heap()
         progress = _giving_back(progress)
-    job = _Job(Path(outdir), spec, runtime, progress, shares)
+    job = _Job(Path(outdir), spec, runtime, progress, shares, predecoded)
     inp = spec.input
     found = None
     if not isinstance(source, Volume) and inp.kind != "scan" and inp.pieces is None:
@@ -104,6 +107,7 @@ class _Job:
     runtime: Runtime
     progress: OnProgress
     shares: tuple[float, float]
+    predecoded: bool = False
 
 
 def _quiet(stage: str, fraction: float) -> None:
@@ -143,8 +147,20 @@ def _load(job: _Job, source: str | Path | Volume) -> Volume:
     """The scan, loaded on the runtime's decoders (``engine.io.load_volume``) and cropped to the roi."""
     spec, runtime, progress, end = job.spec, job.runtime, job.progress, job.shares[0]
     whole = runtime.budget.whole_volume_bytes  # under a host memory bound: a larger scan is read slab by slab
-    sliced = None
-    if whole is not None and not isinstance(source, Volume):
+    sliced = pre = None
+    if job.predecoded and not isinstance(source, Volume):  # decoded while it was uploaded (engine.io.predecode)
+        from engine.io.predecode import load_predecoded
+
+        pre = load_predecoded(
+            source,
+            spacing_zyx_mm=spec.input.spacing_zyx_mm,
+            allocate=runtime.volumes(),
+            threads=runtime.decode_threads,
+            whole_bytes=whole,
+        )
+        if pre is not None and not isinstance(pre.data, np.ndarray):
+            sliced = pre
+    if pre is None and whole is not None and not isinstance(source, Volume):
         from engine.io.slabs import open_slabs
 
         sliced = open_slabs(source, whole, spacing_zyx_mm=spec.input.spacing_zyx_mm, threads=runtime.decode_threads)
@@ -155,6 +171,8 @@ def _load(job: _Job, source: str | Path | Volume) -> Volume:
 
             _close(source, volume)
             refuse_out_of_core(volume, "a scan's bone pieces (pieces)", "leave it out")
+    elif pre is not None:
+        volume = pre
     elif isinstance(source, Volume):
         volume = source
     else:

@@ -1,0 +1,96 @@
+"""A zip of PNG slices decoded while it is uploaded (``BONEMESH_DECODE_DURING_UPLOAD``, ``engine.io.predecode``): the
+API leaves the decoded slices beside the upload, the worker loads them instead of the zip (and removes them), and
+the model is the same; a refused upload keeps nothing of them, and the setting switches them off."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import httpx
+from fastapi.testclient import TestClient
+
+from core.settings import Settings
+from engine.data import HEADSQ_ZIP
+from tests.service.checks import assert_succeeded
+from tests.service.conftest import HEADSQ, app_client, zip_to_tar_gz
+from tests.service.procs import ServiceStack, submit, wait_for_job
+
+KEY = {"X-API-Key": "key-a"}
+PARAMS = {"iso": 1150, "spacing": list(HEADSQ.spacing_zyx_mm)}
+
+
+def _post(client: TestClient, params: Any = PARAMS, data: bytes | None = None) -> Any:
+    body = HEADSQ_ZIP.read_bytes() if data is None else data
+    return client.post(
+        "/v1/jobs",
+        files={"file": ("headsq.zip", body, "application/zip")},
+        data={"params": params if isinstance(params, str) else json.dumps(params)},
+        headers=KEY,
+    )
+
+
+def _job_files(data_dir: Path) -> list[str]:
+    return sorted(p.relative_to(data_dir / "jobs").as_posix() for p in (data_dir / "jobs").rglob("*") if p.is_file())
+
+
+def test_the_api_leaves_the_decoded_slices_beside_the_upload(tmp_path: Path) -> None:
+    with app_client(tmp_path) as client:
+        resp = _post(client)
+        assert resp.status_code == 202, resp.text
+        job = resp.json()["id"]
+        assert _job_files(tmp_path) == [f"{job}/upload", f"{job}/upload.slices", f"{job}/upload.slices.json"]
+        manifest = json.loads((tmp_path / "jobs" / job / "upload.slices.json").read_text())
+        assert manifest["shape"] == [93, 64, 64] and manifest["order"] == list(range(93))
+
+
+def test_a_refused_upload_keeps_none_of_them(tmp_path: Path) -> None:
+    with app_client(tmp_path / "a") as client:  # refused after the whole body was read and decoded
+        resp = _post(client, params='{"iso": "bone"}')
+        assert resp.status_code == 422, resp.text
+        assert _job_files(tmp_path / "a") == []
+    with app_client(tmp_path / "b", max_upload_bytes=200_000) as client:  # refused half way
+        resp = _post(client)
+        assert resp.status_code == 413, resp.text
+        assert _job_files(tmp_path / "b") == []
+
+
+def test_the_setting_switches_it_off(tmp_path: Path) -> None:
+    from service.app import create_app
+
+    settings = Settings(
+        data_dir=tmp_path,
+        api_keys=["key-a"],
+        secret_key="s" * 32,
+        redis_url="redis://127.0.0.1:1/0",
+        reconcile_seconds=3600,
+        decode_during_upload=False,
+    )
+    with TestClient(create_app(settings)) as client:
+        resp = _post(client)
+        assert resp.status_code == 202, resp.text
+        assert _job_files(tmp_path) == [f"{resp.json()['id']}/upload"]
+
+
+def test_the_worker_loads_them_and_the_model_is_the_same(
+    stack: ServiceStack, client_a: httpx.Client, anon: httpx.Client
+) -> None:
+    """The same slices as a zip (decoded during the upload) and as a tar.gz (decoded by the worker): the same
+    files, byte for byte, but for the report, which says where the slices came from."""
+    jobs = {}
+    for name, body in (("headsq.zip", HEADSQ_ZIP.read_bytes()), ("headsq.tar.gz", zip_to_tar_gz(HEADSQ_ZIP))):
+        resp = submit(client_a, body, PARAMS, filename=name)
+        assert resp.status_code == 202, resp.text
+        job = wait_for_job(client_a, resp.json()["id"], stack=stack, timeout=300)
+        jobs[name] = assert_succeeded(job, stack.base_url)
+        folder = stack.data_dir / "jobs" / job["id"]
+        assert (folder / "upload").is_file() and not list(folder.glob("upload.slices*"))  # read once, then removed
+    fast, plain = jobs["headsq.zip"], jobs["headsq.tar.gz"]
+    reports = {k: anon.get(v["report.json"]["url"]).json() for k, v in jobs.items()}
+    assert reports["headsq.zip"]["input"]["source"]["decoded_during_upload"] is True
+    assert "decoded_during_upload" not in reports["headsq.tar.gz"]["input"]["source"]
+    assert sorted(fast) == sorted(plain)
+    for name in fast:
+        if name != "report.json":
+            assert anon.get(fast[name]["url"]).content == anon.get(plain[name]["url"]).content, name
