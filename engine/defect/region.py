@@ -580,16 +580,24 @@ def _ring(index: npt.NDArray[np.int64], grid: Grid, width_mm: float) -> npt.NDAr
 
 def _judge(region: Region, grid: Grid, params: DefectParams) -> None:
     """Keep the pieces that are defects; raise when the one that would be kept crosses the midline. Each piece is
-    judged on its own (``_judge_one``), side by side on the host's threads."""
+    judged on its own (``_passes_first``, ``_measures``, ``_judge_one``), side by side on the host's threads."""
     from engine.io.parallel import ordered_map
 
     point = None
     if params.point_lps_mm is not None:
         point = grid.from_patient(np.asarray(params.point_lps_mm))
     _merge_overlapping(region, grid)
-    live = [p for p in region.pieces if not p.reason]
+    live = [p for p in region.pieces if not p.reason and _passes_first(p, region, grid, params, point)]
+    # every piece's measures at once, each on a thread of its own (the span too where the rules may stop before
+    # they need it: the measures are independent, and the host has the cores), then each piece's verdict
     mirror_bone = region.mirrored >= region.level
-    across = ordered_map(lambda p: _judge_one(p, region, mirror_bone, grid, params, point), live, _threads(len(live)))
+    tasks = [(i, name, fn) for i, p in enumerate(live) for name, fn in _measures(p, region, mirror_bone, grid).items()]
+    results = ordered_map(lambda t: t[2](), tasks, _threads(len(tasks)))
+    measured: list[dict[str, Any]] = [{} for _ in live]
+    for (i, name, _), value in zip(tasks, results, strict=True):
+        measured[i][name] = value
+    verdicts = zip(live, measured, strict=True)
+    across = ordered_map(lambda pm: _judge_one(pm[0], pm[1], region, grid), verdicts, _threads(len(live)))
     crossing = [p for p, c in zip(live, across, strict=True) if c]
     if point is not None:  # the one piece nearest the hint point
         kept = [p for p in region.pieces if p.kept]
@@ -616,12 +624,9 @@ def _judge(region: Region, grid: Grid, params: DefectParams) -> None:
     region.mask = mask
 
 
-def _judge_one(p: Piece, region: Region, mirror_bone: BoolArray, grid: Grid, params: DefectParams, point: Any) -> bool:
-    """One piece judged (its ``reason``, ``kept``, rim and measures set; its voxels filled out to the rim when
-    kept): whether it is a hole that crosses the midline. ``mirror_bone``: ``region.mirrored`` at or above the
-    level. Reads ``region``, writes only ``p``."""
-    sp = np.asarray(grid.spacing_zyx)
-    full = np.asarray(grid.shape)
+def _passes_first(p: Piece, region: Region, grid: Grid, params: DefectParams, point: Any) -> bool:
+    """The rules that need no measure of the rim (moved bone, size, the hints): whether ``p`` passes them (else
+    its ``reason`` says why)."""
     if p.anti_mm3 > MAX_ANTI_SHARE * p.core_mm3:
         p.reason = "moved bone: the scan has bone beside it that the mirror lacks (asymmetry, not a hole)"
         return False
@@ -636,30 +641,77 @@ def _judge_one(p: Piece, region: Region, mirror_bone: BoolArray, grid: Grid, par
         p.reason = f"not on the {params.side} side (the hint)"
         return False
     assert p.index is not None and p.local_normal is not None and p.local_offset_mm is not None
-    xyz = grid.xyz(p.index + region.lo)
-    if point is not None and float(np.min(np.linalg.norm(xyz - point, axis=1))) > params.point_radius_mm:
-        p.reason = f"farther than {params.point_radius_mm:g} mm from the hint point"
-        return False
-    g = p.index + region.lo
+    if point is not None:
+        xyz = grid.xyz(p.index + region.lo)
+        if float(np.min(np.linalg.norm(xyz - point, axis=1))) > params.point_radius_mm:
+            p.reason = f"farther than {params.point_radius_mm:g} mm from the hint point"
+            return False
+    return True
+
+
+def _reach(region: Region, grid: Grid) -> float:
+    """How far the rim looks for bone (mm)."""
+    return max(region.shell_mm, 3.0 * float(max(grid.spacing_zyx)))
+
+
+def _measures(p: Piece, region: Region, mirror_bone: BoolArray, grid: Grid) -> dict[str, Any]:
+    """The piece's measures that ``_judge_one`` rules on, as calls: its rim, the mirror's fit around it, how far the
+    hole goes on toward the plane (only near it) and whether it spans the shell. Each reads ``region`` only."""
+    assert p.index is not None and p.local_normal is not None and p.local_offset_mm is not None
+    index, sp = p.index, np.asarray(grid.spacing_zyx)
+    g = index + region.lo
+    full = np.asarray(grid.shape)
     border = np.any((g == 0) | (g == full - 1), axis=1)
-    side = xyz @ np.asarray(p.local_normal) - p.local_offset_mm
-    reach = max(region.shell_mm, 3.0 * float(sp.max()))
     shell = p.shell_mm if p.shell_mm else region.shell_mm
-    p.rim = rim_of(p.index, region.bone, grid.spacing_zyx, border, reach)
-    p.fit = local_fit(p.index, region.bone, mirror_bone, grid.spacing_zyx,
-                      2.0 * region.shell_mm + float(sp.max()))  # fmt: skip
-    across = p.side_mm[0] < -float(sp.max()) and p.side_mm[2] > float(sp.max())
-    n_zyx = np.asarray(p.local_normal)[::-1]
-    toward = 0.0
+    fit_reach = 2.0 * region.shell_mm + float(sp.max())
+    out: dict[str, Any] = {
+        "rim": lambda: rim_of(index, region.bone, grid.spacing_zyx, border, _reach(region, grid)),
+        "fit": lambda: local_fit(index, region.bone, mirror_bone, grid.spacing_zyx, fit_reach),
+    }
     if min(abs(p.side_mm[0]), abs(p.side_mm[2])) <= max(region.shell_mm, float(sp.max())):
-        toward = open_toward_plane(p.index, region.bone, region.mirrored, grid.spacing_zyx, side, n_zyx,
-                                   max(MIDLINE_REACH_MM, 3.0 * shell))  # fmt: skip
-    p.rim = dataclasses.replace(p.rim, open_toward_plane=toward)
+        side = grid.xyz(g) @ np.asarray(p.local_normal) - p.local_offset_mm
+        n_zyx = np.asarray(p.local_normal)[::-1]
+        out["toward"] = lambda: open_toward_plane(index, region.bone, region.mirrored, grid.spacing_zyx, side, n_zyx,
+                                                  max(MIDLINE_REACH_MM, 3.0 * shell))  # fmt: skip
+    if not _across(p, grid):
+
+        def span() -> Any:  # measured before the rules know they need it: a failure counts only if they do
+            try:
+                return spans_shell(index, region.bone, region.mirrored, region.level, grid.spacing_zyx,
+                                   1.5 * shell + float(sp.max()))  # fmt: skip
+            except Exception as exc:  # raised by _judge_one where the span is needed
+                return exc
+
+        out["span"] = span
+    return out
+
+
+def _across(p: Piece, grid: Grid) -> bool:
+    """Whether the piece lies on both sides of its plane by more than a voxel."""
+    big = float(max(grid.spacing_zyx))
+    return p.side_mm[0] < -big and p.side_mm[2] > big
+
+
+def _judge_one(p: Piece, measured: dict[str, Any], region: Region, grid: Grid) -> bool:
+    """One piece judged on its ``measured`` (``_measures``' results): its ``reason``, ``kept``, rim and measures
+    set, its voxels filled out to the rim when kept; whether it is a hole that crosses the midline. Reads
+    ``region``, writes only ``p``."""
+    assert p.index is not None
+    sp = np.asarray(grid.spacing_zyx)
+    full = np.asarray(grid.shape)
+    reach = _reach(region, grid)
+    shell = p.shell_mm if p.shell_mm else region.shell_mm
+    p.fit = measured["fit"]
+    across = _across(p, grid)
+    toward = measured.get("toward", 0.0)
+    p.rim = dataclasses.replace(measured["rim"], open_toward_plane=toward)
     if across or toward >= MIN_OPEN_TOWARD_PLANE:
         p.reason = "crosses the midline" if across else "the hole goes on past it toward the midline"
         return True
-    p.span = spans_shell(p.index, region.bone, region.mirrored, region.level, grid.spacing_zyx,
-                         1.5 * shell + float(sp.max()))  # fmt: skip
+    span = measured["span"]
+    if isinstance(span, Exception):
+        raise span
+    p.span = span
     if p.span.missing < MIN_SPAN_MISSING:
         p.reason = (
             f"not a hole through the shell: on its median column the scan lacks {p.span.missing:.0%} of the "
