@@ -187,9 +187,8 @@ class _Rules:
     lo: npt.NDArray[np.int64]
     grown: BoolArray
     core: npt.NDArray[np.uint8]  # 1: core, 2: anti-core
-    code: npt.NDArray[np.uint8]
     mirrored: npt.NDArray[np.float32]
-    thick: npt.NDArray[np.float32]
+    thick: npt.NDArray[np.float32] | None  # the healthy shell's thickness where asked for (``_rules``' ``thick``)
 
 
 def _mirror_box(grid: Grid, lo: Any, hi: Any, normal: Any, offset: float, margin: Any) -> tuple[Any, Any]:
@@ -227,10 +226,11 @@ def _rules(
     mid: float,
     be: Backend,
     on_device: tuple[Any, Any, Any] | None = None,
+    want_thick: bool = False,
 ) -> _Rules:
     """Mirror, shell rule and growth on one box of the scan (the kernels, on the backend ``be``), mirror images
     sampled from ``source``; results on the host. ``on_device``: the box's scan, skull and distance to the bone when
-    already there (flat device arrays)."""
+    already there (flat device arrays); ``want_thick``: the shell's thickness comes back too."""
     from engine.defect.kernel_specs import CORE, GROW, MIRROR_MAP
     from engine.defect.kernel_specs import MIRROR as MIRROR_KERNEL
     from engine.defect.ops import bits, distance, select, upload_mask
@@ -269,7 +269,8 @@ def _rules(
     def host(arr: Any) -> Any:
         return be.to_host(arr).reshape(shape)
 
-    return _Rules(lo, host(grown).astype(bool), host(core), host(code), host(mirrored), host(thick))  # sync point
+    # sync point: only what the host reads comes back
+    return _Rules(lo, host(grown).astype(bool), host(core), host(mirrored), host(thick) if want_thick else None)
 
 
 def _box(be: Backend, shape: tuple[int, ...], lo: Any, sp: tuple[float, float, float]) -> Any:
@@ -330,7 +331,7 @@ def find_region(
 
     skull_mm3 = float(skull.sum()) * grid.voxel_mm3
     v_min = params.min_volume_mm3 if params.min_volume_mm3 is not None else min_defect_volume(shell_mm, skull_mm3)
-    region = Region(lo, np.zeros(data.shape, dtype=bool), data, rules.mirrored.copy(), bone_c, float(level), tissue,
+    region = Region(lo, np.zeros(data.shape, dtype=bool), data, rules.mirrored, bone_c, float(level), tissue,
                     mid, shell_mm, skull_mm3, float(v_min), seconds=seconds)  # fmt: skip
     t1 = time.perf_counter()
     candidates = _pieces_of(rules, grid, region, n_g, d_g)
@@ -498,7 +499,7 @@ def _local_rules(
     inner = tuple(slice(int(a - r), int(b - r)) for a, b, r in zip(lo, hi, region.lo, strict=True))
     data = np.ascontiguousarray(region.data[inner])
     return _rules(data, np.ascontiguousarray(skull[box]), np.ascontiguousarray(bone[box]), lo, source,
-                  reflection(lp.normal, lp.offset), grid, region.level, region.mid, be)  # fmt: skip
+                  reflection(lp.normal, lp.offset), grid, region.level, region.mid, be, want_thick=True)  # fmt: skip
 
 
 def _measure_local(
@@ -541,6 +542,7 @@ def _measure_local(
     local.volume_mm3 = len(idx) * grid.voxel_mm3
     local.core_mm3 = sum(q.core_mm3 for q in mine)
     local.index = idx - region.lo
+    assert rules.thick is not None
     local.shell_mm = float(np.median(rules.thick[tuple((idx - lo).T)]))
     _place(local, grid, region, n_l, d_l)
     # moved bone beside it: anti-cores near the piece, its own mirror image's surroundings left out
