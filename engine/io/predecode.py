@@ -1,8 +1,9 @@
 """A zip of PNG slices decoded while it is still arriving, into a volume file beside it (the "sidecar").
 
 :class:`UploadDecoder` is fed an upload's bytes in order as they arrive (``feed``: the API's upload writer hands it
-the same batches it writes). The archive is read front to back (``engine.io.zipstream``); each PNG member, once all
-its bytes are there, is inflated and decoded on a small thread pool (``engine.io.codecs.decode_png_fast``, the
+the same batches it writes, views of the received bytes: a member's bytes are not copied until its decoding thread
+joins them). The archive is read front to back (``engine.io.zipstream``); each PNG member, once all its bytes are
+there, is inflated and decoded on a small thread pool (``engine.io.codecs.decode_png_fast``, the
 loader's own decoder) straight into its plane of ``<upload>.slices`` (raw samples, plane after plane in the order
 the members came), while later bytes still arrive: memory holds only the members being decoded (``backlog_bytes``;
 past it, ``feed`` waits for the pool). ``finish`` (the upload complete) checks that the members decoded are exactly
@@ -16,8 +17,8 @@ goes on, and the worker decodes the archive as before. ``abort`` removes them to
 :func:`load_predecoded` gives the :class:`Volume` the loader would give (``engine.io.load_volume``: the same
 samples, spacing and report, ``source["decoded_during_upload"]``), read from a sidecar that is still the upload's
 (checked again as ``finish`` did, and written since the host last booted: the planes are not fsynced, for the
-upload's sake, so after a crash they are not trusted), or None (then load the upload as before). Under a host memory bound it gives a
-``engine.io.slabs.SlabSource`` reading the planes from the file.
+upload's sake, so after a crash they are not trusted), or None (then load the upload as before). Under a host
+memory bound it gives a ``engine.io.slabs.SlabSource`` reading the planes from the file.
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ __all__ = ["UploadDecoder", "load_predecoded", "remove_predecoded", "sidecar_pat
 
 VERSION = 1
 PNG = b"\x89PNG\r\n\x1a\n"
-BACKLOG_BYTES = 256 << 20
+BACKLOG_BYTES = 64 << 20  # members waiting for the pool (views of the received bytes); past it, feed waits
 READ_BYTES = 64 << 20  # planes read at a time when a sidecar is loaded
 
 
@@ -119,7 +120,7 @@ class UploadDecoder:
         record = {"name": entry.name, "offset": entry.offset, "crc": entry.crc, "compress_size": entry.compress_size,
                   "file_size": entry.file_size, "png": False}  # fmt: skip
         self.members.append(record)
-        size = len(entry.data)
+        size = entry.stored_bytes
         with self._lock:  # memory holds at most backlog_bytes of members waiting (the upload waits meanwhile)
             while self._pending and self._pending + size > self.backlog_bytes and self.reason is None:
                 self._lock.wait()

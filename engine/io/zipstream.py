@@ -34,8 +34,9 @@ class CannotStream(Exception):
 
 @dataclass(frozen=True)
 class ZipEntry:
-    """One member as its local header and data gave it. ``data``: its bytes as stored (deflated for ``method`` 8),
-    or already inflated where ``inflated`` (a deflated member with a data descriptor)."""
+    """One member as its local header and data gave it. ``parts``: its bytes as stored (deflated for ``method``
+    8), in pieces (views of the bytes fed: nothing is copied until ``content``), or already inflated where
+    ``inflated`` (a deflated member with a data descriptor)."""
 
     name: str
     offset: int
@@ -43,16 +44,23 @@ class ZipEntry:
     compress_size: int
     file_size: int
     method: int
-    data: bytes
+    parts: tuple[bytes | memoryview, ...]
     inflated: bool = False
 
+    @property
+    def stored_bytes(self) -> int:
+        """The bytes ``parts`` hold."""
+        return sum(len(p) for p in self.parts)
+
     def content(self) -> bytes:
-        """The member's bytes, inflated, their size and CRC checked.
+        """The member's bytes, joined (one copy, without the GIL for large members), inflated, their size and CRC
+        checked.
 
         Raises:
             CannotStream: they do not inflate, or not to the declared size and CRC.
         """
-        data = self.data
+        first = self.parts[0] if self.parts else b""
+        data = first if len(self.parts) == 1 and isinstance(first, bytes) else b"".join(self.parts)
         if self.method == 8 and not self.inflated:
             d = zlib.decompressobj(-15)
             try:
@@ -65,7 +73,12 @@ class ZipEntry:
 
 
 class ZipStream:
-    """Feed it the archive's bytes in order (``feed``); it returns the members each call completed."""
+    """Feed it the archive's bytes in order (``feed``); it returns the members each call completed.
+
+    The data of a member whose size its local header gives are kept as views of the bytes fed (``ZipEntry.parts``:
+    the caller's buffers must not change afterwards: bytes, or views of bytes); headers, descriptors and the data
+    of members with a descriptor go through a small buffer of its own.
+    """
 
     def __init__(self, max_member_bytes: int = MAX_MEMBER_BYTES) -> None:
         self.max_member_bytes = max_member_bytes
@@ -78,6 +91,8 @@ class ZipStream:
         self._produced = 0
         self._consumed = 0
         self._crc, self._crc_at, self._scan_at = 0, 0, 0  # a stored member with a descriptor: its running CRC
+        self._parts: list[bytes | memoryview] = []  # a member of known size: its data so far
+        self._need = 0  # ... and the bytes still to come
 
     def feed(self, data: bytes | memoryview) -> list[ZipEntry]:
         """The members completed by ``data`` (the archive's next bytes).
@@ -85,13 +100,34 @@ class ZipStream:
         Raises:
             CannotStream: see the module docstring (the stream cannot be used any further).
         """
-        if self.ended:
-            return []
-        self.buf += data
+        view = memoryview(data)
+        if view.ndim != 1 or view.itemsize != 1:
+            view = view.cast("B")
         done: list[ZipEntry] = []
-        while not self.ended and self._step(done):
-            pass
+        while view and not self.ended:
+            if self._known() and not self.buf:  # a member's data: kept as views, not copied
+                k = min(self._need, len(view))
+                self._parts.append(view[:k])
+                self._need -= k
+                self.at += k
+                view = view[k:]
+                if not self._need:
+                    self._finish_known(done)
+                continue
+            self.buf += view
+            view = view[:0]
+            while not self.ended and self._step(done):
+                pass
         return done
+
+    def _known(self) -> bool:
+        """Reading the data of a member whose size its header gave."""
+        return self._cur is not None and not self._cur["descriptor"]
+
+    def _finish_known(self, done: list[ZipEntry]) -> None:
+        assert self._cur is not None
+        parts, self._parts = tuple(self._parts), []
+        self._emit(done, parts, int(self._cur["crc"]), int(self._cur["csize"]), int(self._cur["usize"]))
 
     def _take(self, n: int) -> bytes:
         with memoryview(self.buf) as view:
@@ -105,12 +141,15 @@ class ZipStream:
             return self._header()
         if self._inflate is not None:
             return self._inflating(done)
-        if self._cur["descriptor"] and self._cur["method"] == 0:
+        if self._cur["descriptor"]:
             return self._scanning(done)
-        size = int(self._cur["csize"])
-        if len(self.buf) < size:
-            return False
-        self._emit(done, self._take(size), int(self._cur["crc"]), size, int(self._cur["usize"]))
+        if self._need and self.buf:  # what the buffer holds of its data (after its header, fed with it)
+            k = min(self._need, len(self.buf))
+            self._parts.append(self._take(k))
+            self._need -= k
+        if self._need:
+            return False  # the rest comes straight from feed
+        self._finish_known(done)
         return True
 
     def _header(self) -> bool:
@@ -145,6 +184,7 @@ class ZipStream:
                      "zip64": zip64, "descriptor": descriptor}  # fmt: skip
         if descriptor and method == 8:
             self._inflate, self._out, self._produced, self._consumed = zlib.decompressobj(-15), [], 0, 0
+        self._parts, self._need = [], 0 if descriptor else csize
         self._crc, self._crc_at, self._scan_at = 0, 0, 0
         return True
 
@@ -181,7 +221,7 @@ class ZipStream:
         self._take(at + struct.calcsize(fmt))
         data = b"".join(self._out)
         self._inflate, self._out = None, []
-        self._emit(done, data, crc, self._consumed, usize, inflated=True)
+        self._emit(done, (data,), crc, self._consumed, usize, inflated=True)
         return True
 
     def _scanning(self, done: list[ZipEntry]) -> bool:
@@ -207,17 +247,24 @@ class ZipStream:
                 if crc == self._crc:
                     data = self._take(p)
                     self._take(need)
-                    self._emit(done, data, crc, p, p)
+                    self._emit(done, (data,), crc, p, p)
                     return True
             self._scan_at = p + 1
 
     def _emit(
-        self, done: list[ZipEntry], data: bytes, crc: int, csize: int, usize: int, *, inflated: bool = False
+        self,
+        done: list[ZipEntry],
+        parts: tuple[bytes | memoryview, ...],
+        crc: int,
+        csize: int,
+        usize: int,
+        *,
+        inflated: bool = False,
     ) -> None:
         cur = self._cur
         assert cur is not None
         name, offset, method = str(cur["name"]), int(cur["offset"]), int(cur["method"])
-        done.append(ZipEntry(name, offset, crc, csize, usize, method, data, inflated))
+        done.append(ZipEntry(name, offset, crc, csize, usize, method, parts, inflated))
         self._cur = None
 
 
