@@ -553,9 +553,17 @@ def open_level(
     return ZarrLevel(arr, zyx, shape, target, spacing, origin, where, source)
 
 
-def read_planes(lv: ZarrLevel, z0: int, z1: int, out: np.ndarray) -> None:
+def read_planes(
+    lv: ZarrLevel,
+    z0: int,
+    z1: int,
+    out: np.ndarray,
+    ys: tuple[int, int] | None = None,
+    xs: tuple[int, int] | None = None,
+) -> None:
     """Planes ``z0:z1`` of the level into ``out`` ((z1 - z0, y, x), of ``lv.target``), decoded by zarr in place
-    where the types agree.
+    where the types agree; with ``ys`` and ``xs`` only rows ``ys[0]:ys[1]`` and columns ``xs[0]:xs[1]`` of them
+    (zarr decodes only the chunks that hold them).
 
     Raises:
         InputError: the planes cannot be read (named).
@@ -563,7 +571,9 @@ def read_planes(lv: ZarrLevel, z0: int, z1: int, out: np.ndarray) -> None:
     from zarr.core.buffer import default_buffer_prototype
 
     arr, zyx = lv.arr, lv.zyx
-    selection = tuple(slice(z0, z1) if i == zyx[0] else slice(None) if i in zyx else 0 for i in range(len(arr.shape)))
+    ys, xs = ys or (0, lv.shape[1]), xs or (0, lv.shape[2])
+    cut = {zyx[0]: slice(z0, z1), zyx[1]: slice(*ys), zyx[2]: slice(*xs)}
+    selection = tuple(cut.get(i, 0) for i in range(len(arr.shape)))
     view = out.transpose(sorted(range(3), key=lambda k: zyx[k]))  # out's axes in the array's order
     try:
         if arr.dtype == out.dtype:

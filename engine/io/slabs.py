@@ -11,7 +11,8 @@ loader would give, and ``read(z0, z1)``, planes ``z0..z1 - 1`` decoded into a ne
 What is read slab by slab: a folder, zip or tar of 2-D slices (PNG, TIFF, JPEG, BMP: a file per plane), one
 multi-page TIFF or BigTIFF (page by page through tifffile, where its bytes lie: a file, an uncompressed tar's
 member, a zip member stored without compression), a ``.npy`` file (each slab read from the file), an OME-Zarr
-level (zarr reads the rows of z-chunks a slab spans; the last row read is kept). A DICOM series, a compressed TIFF
+level (zarr reads the rows of z-chunks a slab spans; the last row read is kept; a box of it, a region of interest,
+reads only the chunks inside the box). A DICOM series, a compressed TIFF
 archive member, a TIFF without a page per plane and samples of a type the engine does not mesh as they are (int32,
 colour .npy) are refused when they do not fit the bound: one line that names a way out.
 """
@@ -40,7 +41,8 @@ class SlabSource:
     ``read(z0, z1)`` gives planes ``z0..z1 - 1`` as a new C-contiguous array of ``dtype``; ``strided(step)`` the
     samples ``data[::step, ::step, ::step]`` (read plane by plane); ``min()`` / ``max()`` a pass over all slabs.
     ``granule``: planes one read decodes at least (a row of Zarr chunks; 1 elsewhere). ``close()`` releases the
-    open file or store.
+    open file or store. ``fill_box(z0, z1, (y0, y1), (x0, x1), out)``, where the source can, decodes only a box of
+    the planes (an OME-Zarr's chunks inside it): a box of the scan then reads only what it holds.
     """
 
     ndim = 3
@@ -54,9 +56,10 @@ class SlabSource:
         label: str,
         granule: int = 1,
         close: Callable[[], None] | None = None,
+        fill_box: Callable[[int, int, tuple[int, int], tuple[int, int], np.ndarray], None] | None = None,
     ) -> None:
         self.shape, self.dtype, self.label, self.granule = shape, np.dtype(dtype), label, max(1, granule)
-        self._fill, self._close = fill, close
+        self._fill, self._close, self._fill_box = fill, close, fill_box
         self._range: tuple[float, float] | None = None
 
     @property
@@ -98,13 +101,25 @@ class SlabSource:
             raise TypeError("a scan read slab by slab is cut by a box (steps of 1)")
         shape = (max(z1 - z0, 0), max(y1 - y0, 0), max(x1 - x0, 0))
         step = self.granule
+        label = f"{self.label}[box]"
+        parent_box = self._fill_box
+        if parent_box is not None:  # only the box decoded
+
+            def fill_box(a: int, b: int, ys: tuple[int, int], xs: tuple[int, int], out: np.ndarray) -> None:
+                parent_box(z0 + a, z0 + b, (y0 + ys[0], y0 + ys[1]), (x0 + xs[0], x0 + xs[1]), out)
+
+            def fill_in_box(a: int, b: int, out: np.ndarray) -> None:
+                fill_box(a, b, (0, shape[1]), (0, shape[2]), out)
+
+            return SlabSource(shape, self.dtype, fill_in_box, label=label, granule=step, close=self.close,
+                              fill_box=fill_box)  # fmt: skip
 
         def fill(a: int, b: int, out: np.ndarray) -> None:
             for z in range(a, b, step):
                 top = min(z + step, b)
                 out[z - a : top - a] = self.read(z0 + z, z0 + top)[:, y0:y1, x0:x1]
 
-        return SlabSource(shape, self.dtype, fill, label=f"{self.label}[box]", granule=step, close=self.close)
+        return SlabSource(shape, self.dtype, fill, label=label, granule=step, close=self.close)
 
     def strided(self, step: int) -> np.ndarray:
         """``data[::step, ::step, ::step]``, read one plane at a time."""
@@ -216,27 +231,30 @@ def _zarr(src: Any, whole_bytes: int, spacing: Any, level: int | str | None, lim
         )
     target = lv.target
     step = z_step(lv)
-    cache: dict[str, Any] = {"z": -1, "row": None}
+    cache: dict[str, Any] = {"key": None, "row": None}
 
-    def fill(z0: int, z1: int, out: np.ndarray) -> None:
+    def fill_box(z0: int, z1: int, ys: tuple[int, int], xs: tuple[int, int], out: np.ndarray) -> None:
         if z1 - z0 >= step:  # a slab of rows: read as it is
-            read_planes(lv, z0, z1, out)
+            read_planes(lv, z0, z1, out, ys, xs)
             return
         z = z0
         while z < z1:  # short reads (a plane, a halo) from the row of chunks that holds them, kept for the next
             r0 = z // step * step
-            if cache["z"] != r0:
-                row = np.empty((min(r0 + step, lv.shape[0]) - r0, *lv.shape[1:]), target)
-                read_planes(lv, r0, r0 + len(row), row)
-                cache["z"], cache["row"] = r0, row
+            if cache["key"] != (r0, ys, xs):
+                row = np.empty((min(r0 + step, lv.shape[0]) - r0, ys[1] - ys[0], xs[1] - xs[0]), target)
+                read_planes(lv, r0, r0 + len(row), row, ys, xs)
+                cache["key"], cache["row"] = (r0, ys, xs), row
             n = min(z1, r0 + len(cache["row"])) - z
             out[z - z0 : z - z0 + n] = cache["row"][z - r0 : z - r0 + n]
             z += n
 
+    def fill(z0: int, z1: int, out: np.ndarray) -> None:
+        fill_box(z0, z1, (0, lv.shape[1]), (0, lv.shape[2]), out)
+
     def drop() -> None:
         cache["row"] = None
 
-    data = SlabSource(lv.shape, target, fill, label=lv.where, granule=step, close=drop)
+    data = SlabSource(lv.shape, target, fill, label=lv.where, granule=step, close=drop, fill_box=fill_box)
     source = {**lv.source, "read": "slab by slab (host memory bound)"}
     return Volume(data=_as_data(data), spacing_zyx_mm=lv.spacing, origin_mm=lv.origin, units="raw", source=source)
 

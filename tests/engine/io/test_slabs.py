@@ -87,3 +87,46 @@ def test_what_is_not_read_slab_by_slab_is_refused_when_it_does_not_fit(tmp_path:
         write_ome_zarr(tmp_path / "i32.ome.zarr", np.zeros((4, 8, 8), np.int32), chunks=(2, 8, 8))
         open_slabs(tmp_path / "i32.ome.zarr", 100)
     assert "\n" not in str(err.value) and "--max-host-bytes" in str(err.value)
+
+
+@pytest.mark.parametrize("kind", ["npy", "png-folder", "ome-zarr"])
+def test_a_box_of_the_scan_is_the_loaded_box(vol: np.ndarray, tmp_path: Path, kind: str) -> None:
+    """A region of interest out of core (``SlabSource[box]``, a box of a box too) reads the loaded scan's voxels."""
+    path = _written(kind, vol, tmp_path)
+    spacing = None if kind == "ome-zarr" else SPACING
+    loaded = load_volume(path, spacing_zyx_mm=spacing).data
+    src = open_slabs(path, loaded.nbytes - 1, spacing_zyx_mm=spacing).data
+    box = src[2:19, 3:16, 5:20]
+    assert box.shape == (17, 13, 15)
+    for z0, z1 in ((0, 17), (0, 1), (1, 2), (2, 11), (16, 17)):  # a plane, rows of chunks, across them
+        np.testing.assert_array_equal(box.read(z0, z1), loaded[2 + z0 : 2 + z1, 3:16, 5:20], err_msg=f"{z0}:{z1}")
+    inner = box[1:9, 2:12, 0:7]
+    np.testing.assert_array_equal(inner.read(0, 8), loaded[3:11, 5:15, 5:12])
+    np.testing.assert_array_equal(inner.read(4, 5), loaded[7:8, 5:15, 5:12])
+    src.close()
+
+
+@pytest.mark.parametrize("version", ["0.4", "0.5"])
+def test_a_box_of_an_ome_zarr_decodes_only_the_chunks_inside_it(vol: np.ndarray, tmp_path: Path, version: str) -> None:
+    """Out of core, a region of interest of an OME-Zarr reads the chunks it holds and no other: with every other
+    chunk made unreadable the box still reads (the whole scan does not), chunk by chunk in zarr's own layout."""
+    path = write_ome_zarr(tmp_path / "v.ome.zarr", vol, version=version, scale=[s * 1000 for s in SPACING],
+                          chunks=(4, 9, 11))  # fmt: skip
+    level = path / "0"
+    spoiled = 0
+    for f in level.rglob("*"):
+        if not f.is_file() or f.name in ("zarr.json", ".zarray", ".zattrs", ".zgroup"):
+            continue
+        rel = f.relative_to(level).as_posix()
+        index = [int(p) for p in (rel.split("/")[1:] if rel.startswith("c/") else rel.replace("/", ".").split("."))]
+        if index[1] != 0 or index[2] != 0:  # outside rows 0-8 and columns 0-10
+            f.write_bytes(b"not a chunk")
+            spoiled += 1
+    assert spoiled >= 6 * 3
+    src = open_slabs(path, vol.nbytes - 1).data
+    box = src[1:20, 2:9, 0:11]
+    np.testing.assert_array_equal(box.read(0, 19), vol[1:20, 2:9, 0:11])
+    np.testing.assert_array_equal(box.read(5, 6), vol[6:7, 2:9, 0:11])
+    with pytest.raises(InputError, match="cannot be read"):
+        src.read(0, 4)
+    src.close()
