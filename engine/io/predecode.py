@@ -10,9 +10,10 @@ past it, ``feed`` waits for the pool). ``finish`` (the upload complete) checks t
 the stack the loader would read from the complete archive, in its order (:func:`stack_order`: the loader's own
 listing, sorting and choice of images, every member's offset, CRC and sizes as its central directory gives them),
 and writes ``<upload>.slices.json`` (shape, sample type, upload size, the members, the loader's order): only then
-is the sidecar there. Anything it does not follow (a member not a plain grayscale PNG, slices of different shapes,
-what ``engine.io.zipstream`` cannot stream, a write that fails) stops it quietly and removes its files: the upload
-goes on, and the worker decodes the archive as before. ``abort`` removes them too.
+is the sidecar there. Anything it does not follow (an image member not a plain grayscale PNG, a DICOM member,
+slices of different shapes, what ``engine.io.zipstream`` cannot stream, a write that fails) stops it quietly and
+removes its files: the upload goes on, and the worker decodes the archive as before. ``abort`` removes them too.
+Members that are no image (by the loader's own test of their first bytes) are passed by, as the loader does.
 
 :func:`load_predecoded` gives the :class:`Volume` the loader would give (``engine.io.load_volume``: the same
 samples, spacing and report, ``source["decoded_during_upload"]``), read from a sidecar that is still the upload's
@@ -36,8 +37,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from engine.io.archive import InputLimits, is_junk, open_members
+from engine.io.archive import HEAD_BYTES, InputLimits, is_junk, open_members
 from engine.io.codecs import decode_png_fast, plain_gray_png
+from engine.io.dicom import has_dicom_images, looks_like_dicom
+from engine.io.stack import image_kind, natural_key
 from engine.io.zipstream import ZipEntry, ZipStream
 
 if TYPE_CHECKING:
@@ -46,7 +49,6 @@ if TYPE_CHECKING:
 __all__ = ["UploadDecoder", "load_predecoded", "remove_predecoded", "sidecar_paths", "stack_order"]
 
 VERSION = 1
-PNG = b"\x89PNG\r\n\x1a\n"
 BACKLOG_BYTES = 64 << 20  # members waiting for the pool (views of the received bytes); past it, feed waits
 READ_BYTES = 64 << 20  # planes read at a time when a sidecar is loaded
 
@@ -142,9 +144,12 @@ class UploadDecoder:
                 self._lock.notify_all()
 
     def _decode_into(self, k: int, entry: ZipEntry) -> None:
+        kind = image_kind(head := entry.head(HEAD_BYTES))  # the loader's tests of a member, on its first bytes
+        if kind not in ("png", None) or looks_like_dicom(head):
+            raise ValueError(f"a {kind or 'DICOM'} member: not a stack of PNG slices")
+        if kind is None:
+            return  # not an image (notes, a checksum file): the loader passes it by
         data = entry.content()
-        if not data.startswith(PNG):
-            return  # not a PNG: a stack with it is not read from the sidecar (finish checks the loader's choice)
         if not plain_gray_png(data):
             raise ValueError("not a plain grayscale PNG")
         width, height, depth = struct.unpack(">IIB", data[16:25])
@@ -232,9 +237,7 @@ def stack_order(upload: Path, manifest: dict[str, Any], limits: InputLimits | No
     listing, its choice of images and its sorting), or None where the sidecar does not hold exactly them: the upload
     is not a zip of two or more PNG slices (no DICOM, no Zarr), a slice was not decoded, or a member's offset, CRC
     or sizes are not those of the archive's central directory."""
-    from engine.io.dicom import has_dicom_images
     from engine.io.omezarr import zarr_in
-    from engine.io.stack import image_kind, natural_key
 
     with open_members(upload, limits or InputLimits(), heads_only=True) as members:
         if members.kind != "zip" or zarr_in(members, upload) is not None or has_dicom_images(members):

@@ -52,6 +52,26 @@ class ZipEntry:
         """The bytes ``parts`` hold."""
         return sum(len(p) for p in self.parts)
 
+    def head(self, n: int) -> bytes:
+        """The member's first ``n`` bytes (fewer where it is shorter), inflated where it is deflated; what does not
+        inflate gives what did."""
+        first = bytes(self.parts[0][:n]) if self.parts else b""
+        if len(first) < n and len(self.parts) > 1:
+            first = b"".join(self.parts)[:n]
+        if self.method != 8 or self.inflated:
+            return first
+        want, got = 4 * n + 64, 0  # a head's deflate stream is short
+        pieces: list[bytes] = []
+        for part in self.parts:
+            pieces.append(bytes(part[: want - got]))
+            got += len(pieces[-1])
+            if got >= want:
+                break
+        try:
+            return zlib.decompressobj(-15).decompress(b"".join(pieces), n)
+        except zlib.error:
+            return b""
+
     def content(self) -> bytes:
         """The member's bytes, joined (one copy, without the GIL for large members), inflated, their size and CRC
         checked.

@@ -146,7 +146,9 @@ def test_members_out_of_order_and_junk(tmp_path: Path) -> None:
     _same_as_loader(tmp_path / "upload")
 
 
-@pytest.mark.parametrize("case", ["corrupt", "tiff", "colour", "shapes", "truncated", "encrypted-like", "prefix"])
+@pytest.mark.parametrize(
+    "case", ["corrupt", "tiff", "dicom", "colour", "shapes", "truncated", "encrypted-like", "prefix"]
+)
 def test_what_it_cannot_vouch_for_leaves_no_sidecar(tmp_path: Path, case: str) -> None:
     pngs = _pngs(5)
     members = _named(pngs)
@@ -156,11 +158,13 @@ def test_what_it_cannot_vouch_for_leaves_no_sidecar(tmp_path: Path, case: str) -
         members[2] = (members[2][0], bytes(bad))
     elif case == "tiff":  # the loader reads it; the sidecar holds PNG slices only
         members[1] = ("scan/slice_001.tif", b"II*\x00" + bytes(100))
+    elif case == "dicom":  # the loader reads the archive as DICOM then
+        members.append(("scan/ct.dcm", bytes(128) + b"DICM" + bytes(64)))
     elif case == "colour":
         members[4] = (members[4][0], pngs[4][:25] + b"\x02" + pngs[4][26:])
     elif case == "shapes":
         members[3] = (members[3][0], _pngs(1, shape=(8, 8))[0])
-    data = _zip(members)
+    data = _zip(members, method=zipfile.ZIP_DEFLATED if case == "dicom" else zipfile.ZIP_STORED)
     if case == "truncated":  # the central directory never comes
         data = data[: len(data) // 2]
     elif case == "encrypted-like":
