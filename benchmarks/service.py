@@ -1,8 +1,8 @@
 """Service benchmark: upload-to-links latency of the web service, per stage, with real processes.
 
     python -m benchmarks.service --device cpu|cuda:0 [--data ../shared/data] [--phantom Z,Y,X] [--repeat N]
-                                 [--baseline] [--predecode on|off] [--predecode-anchor] [--redis-server PATH]
-                                 [--timeout S] [--workdir DIR] --out result.json
+                                 [--baseline] [--predecode on|off] [--predecode-anchor] [--upload-mbps MB/s]
+                                 [--redis-server PATH] [--timeout S] [--workdir DIR] --out result.json
 
 It starts a redis-server on a free loopback port, ``bonemesh serve`` and one ``bonemesh worker`` (device
 ``--device``) with a fresh data folder (the helpers of ``tests/service/procs.py``), then for each input POSTs the
@@ -34,7 +34,8 @@ switched the other way (the API and the worker restarted with the setting, warme
 comparison (``results.<input>.predecode_anchor``, and ``predecode_effect``: the median upload, loading phase and
 upload-to-links seconds both ways). Each run also records the worker's own seconds per step (its ``job <id>
 timings`` log line: ``load`` is the loading phase on the worker's clock, not the client's 0.1 s polling) and
-whether the report says the slices were ``decoded_during_upload``.
+whether the report says the slices were ``decoded_during_upload``. ``--upload-mbps`` sends each input's upload no
+faster than that (a client's link rather than loopback), so that the decoding can hide behind it.
 """
 
 from __future__ import annotations
@@ -60,6 +61,7 @@ from benchmarks.throughput import _worker_timings
 from tests.service.procs import RedisServer, ServiceStack
 
 PREDECODE = "BONEMESH_DECODE_DURING_UPLOAD"
+UPLOAD_RATE: list[float | None] = [None]  # --upload-mbps, in bytes a second (the inputs' uploads, not the warm-ups)
 BASELINE_ENV = {"BONEMESH_DECODE_THREADS": "1", "BONEMESH_PNG_DECODER": "pillow"}
 BASELINE = "the ingest path before issue 11: one decoding thread, every PNG through Pillow"
 CRANIUM = (
@@ -69,14 +71,39 @@ CRANIUM = (
 )
 
 
+class _Paced:
+    """A file read no faster than ``rate`` bytes a second (a client's network link, ``--upload-mbps``)."""
+
+    def __init__(self, fh: Any, rate: float) -> None:
+        self.fh, self.rate, self.sent, self.t0 = fh, rate, 0, time.perf_counter()
+
+    def read(self, n: int = -1) -> bytes:
+        data = self.fh.read(min(n, 1 << 20) if n and n > 0 else 1 << 20)
+        self.sent += len(data)
+        ahead = self.sent / self.rate - (time.perf_counter() - self.t0)
+        if ahead > 0:
+            time.sleep(ahead)
+        return bytes(data)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.fh, name)
+
+
 def run_job(
-    base_url: str, key: str, archive: Path, params: dict[str, Any], timeout: float, label: str
+    base_url: str,
+    key: str,
+    archive: Path,
+    params: dict[str, Any],
+    timeout: float,
+    label: str,
+    upload_rate: float | None = None,
 ) -> dict[str, Any]:
-    """Upload, poll to the links; the timings of one job."""
+    """Upload (at most ``upload_rate`` bytes a second, where given), poll to the links; the timings of one job."""
     stages_seen: dict[str, float] = {}
     with httpx.Client(base_url=base_url, headers={"X-API-Key": key}, timeout=3600) as client:
         t0 = time.perf_counter()
-        with open(archive, "rb") as fh:
+        with open(archive, "rb") as raw:
+            fh: Any = raw if upload_rate is None else _Paced(raw, upload_rate)
             resp = client.post(
                 "/v1/jobs",
                 files={"file": (archive.name, fh, "application/zip")},
@@ -172,7 +199,7 @@ def _run_inputs(
         runs = []
         for i in range(repeat):
             print(f"[service] {tag}{name} run {i + 1}/{repeat} ({path.stat().st_size:,} bytes)", flush=True)
-            run = run_job(stack.base_url, "key-a", path, params, timeout, f"{tag}{name}#{i + 1}")
+            run = run_job(stack.base_url, "key-a", path, params, timeout, f"{tag}{name}#{i + 1}", UPLOAD_RATE[0])
             if "job_id" in run:
                 time.sleep(0.2)  # the worker writes its timing line as the attempt ends
                 run["worker_seconds"] = _worker_timings(stack.workers).get(run["job_id"], (0, {}))[1]
@@ -255,6 +282,9 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also run each input with decoding during the upload switched the other way",
     )
+    parser.add_argument(
+        "--upload-mbps", type=float, default=None, help="send each input's upload at most this fast (MB/s): a link"
+    )
     parser.add_argument("--redis-server", default=None, help="redis-server executable (default: PATH or apt-get)")
     parser.add_argument("--timeout", type=float, default=1800, help="seconds one job may take before giving up")
     parser.add_argument("--workdir", type=Path, default=None, help="data, logs and archives (default: a temp dir)")
@@ -294,8 +324,9 @@ def main(argv: list[str] | None = None) -> int:
     }
     if args.baseline:
         report["baseline"] = {"what": BASELINE, "worker_env": BASELINE_ENV, "runs_per_input": args.baseline_repeat}
+    UPLOAD_RATE[0] = args.upload_mbps * 1e6 if args.upload_mbps else None
     main_env = {PREDECODE: "true" if args.predecode == "on" else "false"}
-    report["predecode"] = {"main_runs": args.predecode, "env": main_env}
+    report["predecode"] = {"main_runs": args.predecode, "env": main_env, "upload_mbps": args.upload_mbps}
 
     def write() -> None:
         write_json(args.out, report)
