@@ -22,7 +22,8 @@ short still leaves what it measured.
 
 ``--baseline`` adds, in the same run, each input once (``--baseline-repeat``) through a second worker on the
 ingest path of the commits before issue 11's ingest work: one decoding thread (``BONEMESH_DECODE_THREADS=1``) and
-every PNG through Pillow (``BONEMESH_PNG_DECODER=pillow``), with its own warm-up job. Everything else (the
+every PNG through Pillow (``BONEMESH_PNG_DECODER=pillow``), with its own warm-up job (the API restarted beside it
+without decoding during the upload, ``BONEMESH_DECODE_DURING_UPLOAD=false``). Everything else (the
 pipeline on the GPU, the one-pass writers) is today's in both, so the difference is the ingest change alone; the
 older pipeline and writers are not runnable in this build (their numbers are in the committed JSON of earlier
 runs: ``benchmarks/results/service_cuda.json``).
@@ -60,10 +61,13 @@ from benchmarks.report import stop_on_sigterm, write_json
 from benchmarks.throughput import _worker_timings
 from tests.service.procs import RedisServer, ServiceStack
 
-PREDECODE = "BONEMESH_DECODE_DURING_UPLOAD"
 UPLOAD_RATE: list[float | None] = [None]  # --upload-mbps, in bytes a second (the inputs' uploads, not the warm-ups)
-BASELINE_ENV = {"BONEMESH_DECODE_THREADS": "1", "BONEMESH_PNG_DECODER": "pillow"}
-BASELINE = "the ingest path before issue 11: one decoding thread, every PNG through Pillow"
+PREDECODE = "BONEMESH_DECODE_DURING_UPLOAD"
+BASELINE_ENV = {"BONEMESH_DECODE_THREADS": "1", "BONEMESH_PNG_DECODER": "pillow", PREDECODE: "false"}
+BASELINE = (
+    "the ingest path before issue 11: one decoding thread, every PNG through Pillow (and no decoding during the "
+    "upload: the API restarted without it)"
+)
 CRANIUM = (
     "cranium_ct",
     "cranium_ct_png16.zip",
@@ -367,11 +371,8 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"  {name}: with / without decoding during the upload: {effect}", flush=True)
                     write()
                 _restart(stack, main_env)
-            if args.baseline:
-                for worker in stack.workers:  # the same API, queue and data; a worker on the old ingest path
-                    worker.stop(grace=10)
-                stack.workers.clear()
-                stack.start_worker(extra_env=BASELINE_ENV)
+            if args.baseline:  # the same queue and data; the API and a worker on the old ingest path
+                _restart(stack, BASELINE_ENV)
                 report["baseline"]["warmup"] = _warm_up(stack, "baseline ")
                 for name, summary in _run_inputs(stack, inputs, args.baseline_repeat, args.timeout, "baseline "):
                     results[name]["baseline"] = summary
