@@ -286,14 +286,15 @@ def stream_parts(
     peaks: list[int | None] = [None] * n
 
     def run(indices: list[int], be: Any) -> None:
-        import warp as wp
-
         from engine.device import resolve_device
         from engine.isosurface.stream import stream_surface
 
         # the job's memory report measures its first device; another GPU's peak is measured here, per part
         tracker = be.peak_tracker() if be is not devices[0] and not be.is_host else None
-        with wp.ScopedDevice(resolve_device(be)):
+        # the device's CUDA context made current on this thread only (CUDA's current context is per thread); not
+        # wp.ScopedDevice, which sets Warp's default device for the whole process: the parts' threads would race on
+        # it. Every call of the stages names its device (tests/engine/job/test_multi_device.py checks it)
+        with resolve_device(be).context_guard:
             for i in indices:
                 t0 = time.perf_counter()
                 if tracker is not None:
@@ -319,15 +320,11 @@ def stream_parts(
         threading.Thread(target=run, args=(idx, be), name=f"bonemesh-part-{be.spec}", daemon=True)
         for be, idx in by_device.values()
     ]
-    import warp as wp
-
-    scope = wp.get_device()  # Warp's default device is the process's: each thread's scope sets it, this restores it
     t0 = time.perf_counter()
     for t in threads:
         t.start()
     for t in threads:
         t.join()
-    wp.set_device(scope)
     streamed = time.perf_counter() - t0
     for exc in errors:
         if exc is not None:

@@ -250,3 +250,25 @@ def test_two_gpus_give_the_one_gpu_mesh(phantom):
     assert got.report["counts"]["isosurface"] == one.report["counts"]["isosurface"]
     assert shape_of(got.report) == shape_of(one.report) == (True, True, 1, 2)
     assert abs(got.report["mesh"]["n_faces"] - one.report["mesh"]["n_faces"]) <= 0.01 * one.report["mesh"]["n_faces"]
+
+
+def test_the_parts_threads_never_lean_on_warps_default_device(phantom, monkeypatch):
+    """Warp's default device is the process's, not a thread's: parts on two GPUs, each in its own thread, would race
+    on it. Every Warp call a part's thread makes names its device (an array's, or the backend's): none asks Warp for
+    the default device (``get_device(None)``), here on the whole split, stream, decimation and join."""
+    from warp._src import context as wctx
+
+    asked: list[str] = []
+    original = wctx.runtime.get_device
+
+    def get_device(ident=None):
+        if ident is None and threading.current_thread().name.startswith("bonemesh-part-"):
+            import traceback
+
+            asked.append("".join(traceback.format_stack(limit=8)))
+        return original(ident)
+
+    monkeypatch.setattr(wctx.runtime, "get_device", get_device)
+    got = reconstruct(phantom, ReconParams(), device="cpu,cpu", max_device_bytes=12 * MIB)
+    assert len(got.report["memory"]["stream"]["parts"]) == 2
+    assert not asked, asked[0]
