@@ -1,7 +1,8 @@
 """Upload benchmark: how fast ``POST /v1/jobs`` takes a large scan archive in, with real processes.
 
     python -m benchmarks.upload [--phantom Z,Y,X | --input scan.zip --params JSON] [--repeat N]
-                                [--clients httpx,curl] [--api-workers N] [--baseline CHECKOUT] --out result.json
+                                [--clients httpx,curl] [--api-workers N] [--baseline CHECKOUT] [--predecode on|off]
+                                --out result.json
 
 It starts a redis-server on a free loopback port and ``bonemesh serve`` (``tests/service/procs.py``; no worker: the
 jobs stay queued), then POSTs the archive ``repeat`` times with each client, one after another: httpx (as
@@ -9,7 +10,8 @@ jobs stay queued), then POSTs the archive ``repeat`` times with each client, one
 its start to the 202, so it holds the multipart parsing, the write to storage and its fsync, the archive's
 inspection and the job's record. Throughput is the archive's bytes over that time; the median per client is the
 result. The archive (default: the bone phantom as 16-bit PNG slices, ``benchmarks.phantom_zip``) is written
-beforehand and not timed.
+beforehand and not timed. A PNG zip's slices are decoded by the API while it arrives (issue 46 item 4, on by
+default); ``--predecode off`` times the upload without it.
 
 ``--baseline`` names another checkout of bonemesh (e.g. ``git worktree add /tmp/before <commit>``): a second
 server runs its code (``PYTHONPATH``) beside this one, on the same data folder, broker and database, and every
@@ -71,6 +73,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--clients", default="httpx,curl")
     ap.add_argument("--api-workers", type=int, default=1)
     ap.add_argument("--baseline", default=None, help="another checkout whose server is timed in the same run")
+    ap.add_argument(
+        "--predecode",
+        choices=("on", "off"),
+        default="on",
+        help="BONEMESH_DECODE_DURING_UPLOAD: a PNG zip's slices decoded by the API while it arrives (issue 46)",
+    )
     ap.add_argument("--workdir", default=None)
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
@@ -87,6 +95,7 @@ def main(argv: list[str] | None = None) -> int:
         "host": {"platform": platform.platform(), "python": platform.python_version()},
         "api_workers": args.api_workers,
         "repeat": args.repeat,
+        "decode_during_upload": args.predecode == "on",
     }
     if args.input:
         archive, params = Path(args.input), json.loads(args.params or "{}")
@@ -102,7 +111,11 @@ def main(argv: list[str] | None = None) -> int:
     result["clients"] = {}
     limit = size + (1 << 20)
     stop_on_sigterm()  # `timeout`: the with-blocks below stop every process
-    with RedisServer(root / "redis") as redis, ServiceStack(root / "stack", redis.url, max_upload_bytes=limit) as stack:
+    predecode = {"BONEMESH_DECODE_DURING_UPLOAD": "true" if args.predecode == "on" else "false"}
+    with (
+        RedisServer(root / "redis") as redis,
+        ServiceStack(root / "stack", redis.url, max_upload_bytes=limit, extra_env=predecode) as stack,
+    ):
         servers = {"current": stack.start_server(workers=args.api_workers)}
         if args.baseline:
             env = {"PYTHONPATH": str(Path(args.baseline).resolve())}
