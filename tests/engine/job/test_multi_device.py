@@ -255,7 +255,8 @@ def test_two_gpus_give_the_one_gpu_mesh(phantom):
 def test_the_parts_threads_never_lean_on_warps_default_device(phantom, monkeypatch):
     """Warp's default device is the process's, not a thread's: parts on two GPUs, each in its own thread, would race
     on it. Every Warp call a part's thread makes names its device (an array's, or the backend's): none asks Warp for
-    the default device (``get_device(None)``), here on the whole split, stream, decimation and join."""
+    the default device (``get_device(None)``), here on the whole split, stream, decimation and join (two parts on
+one GPU where there is one: the CUDA paths; else on the CPU)."""
     from warp._src import context as wctx
 
     asked: list[str] = []
@@ -268,7 +269,10 @@ def test_the_parts_threads_never_lean_on_warps_default_device(phantom, monkeypat
             asked.append("".join(traceback.format_stack(limit=8)))
         return original(ident)
 
+    from engine.device import cuda_available
+
     monkeypatch.setattr(wctx.runtime, "get_device", get_device)
-    got = reconstruct(phantom, ReconParams(), device="cpu,cpu", max_device_bytes=12 * MIB)
+    spec = "cuda:0,cuda:0" if cuda_available() else "cpu,cpu"  # on a GPU, the CUDA paths too (pinned rings)
+    got = reconstruct(phantom, ReconParams(), device=spec, max_device_bytes=12 * MIB)
     assert len(got.report["memory"]["stream"]["parts"]) == 2
     assert not asked, asked[0]
