@@ -31,7 +31,7 @@ import struct
 import threading
 import zipfile
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -81,7 +81,6 @@ class UploadDecoder:
         self.dtype: np.dtype[Any] | None = None
         self._lock = threading.Condition()
         self._pending = 0  # bytes of members given to the pool, not yet decoded
-        self._futures: list[Future[None]] = []
         self._local = threading.local()
         self._fd: int | None = None
         self._pool: ThreadPoolExecutor | None = None
@@ -130,7 +129,7 @@ class UploadDecoder:
                 return
             self._pending += size
         assert self._pool is not None
-        self._futures.append(self._pool.submit(self._decode, k, entry, size))
+        self._pool.submit(self._decode, k, entry, size)
 
     def _decode(self, k: int, entry: ZipEntry, size: int) -> None:
         try:
