@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, StrictStr, field_validator, model_validator
 
 from engine.defect.params import DEFAULT_MAX_FACES, DefectParams
 from engine.job.spec import InputSpec, JobSpec
@@ -188,6 +188,11 @@ class JobParams(BaseModel):
         description=f"voxel size [z, y, x] in mm, each in [{SPACING_MM_MIN:g}, {SPACING_MM_MAX:g}]; image stacks "
         "need it unless their TIFF tags carry it",
     )
+    zarr_level: StrictInt | StrictStr | None = Field(
+        default=None,
+        description="an OME-Zarr upload's resolution level: its index (0, the default: full resolution) or its path "
+        "(as in the image's multiscales); refused for an upload of another kind",
+    )
     reduction: float | None = Field(
         default=None, gt=0, le=1, description=f"fraction of faces kept (default {_DECIMATE.reduction:g})"
     )
@@ -299,6 +304,7 @@ class JobParams(BaseModel):
             roi=None if self.roi is None else self.roi.engine(),
             pieces=None if self.pieces is None else PiecesParams(count=self.pieces),
             segments=None if self.segments is None else tuple(self.segments),
+            zarr_level=self.zarr_level,
         )
         return JobSpec(recon=recon, input=inp)
 

@@ -139,6 +139,11 @@ def add_input_args(parser: argparse.ArgumentParser, what: str) -> None:
     )  # fmt: skip
     size.add_argument("--spacing", dest="spacing", type=voxel_size_zyx, metavar="Z,Y,X", help="same as --voxel-size")
     parser.add_argument(
+        "--zarr-level", default=None, metavar="LEVEL",
+        help="an OME-Zarr's resolution level: its index (0, the default: full resolution) or its path (the same as "
+        "INPUT/LEVEL; the API's zarr_level)",
+    )  # fmt: skip
+    parser.add_argument(
         "--device", default="auto",
         help="auto, cpu, cuda[:N] or opencl[:N] (default auto); reconstruct: several GPUs for one scan, a list such as "
         "cuda:0,cuda:1, or cuda:all (the volume is split in z over them: docs/multi-gpu.md)",
@@ -281,6 +286,7 @@ def job_spec(args: argparse.Namespace) -> JobSpec:
             roi=roi_params(args),
             pieces=None if getattr(args, "pieces", None) is None else PiecesParams(count=args.pieces),
             segments=segments_of(args),
+            zarr_level=getattr(args, "zarr_level", None),
         )
         return JobSpec(recon=recon, input=inp, outputs=OutputSpec(label_stl_folder=True))
     except ValueError as exc:
@@ -332,7 +338,9 @@ def load_input(args: argparse.Namespace, on_progress: Callable[[float], None] | 
     if not is_remote(args.input) and not Path(args.input).exists():
         raise InputError(f"{args.input} does not exist")
     try:
-        return load_volume(args.input, spacing_zyx_mm=args.spacing, on_progress=on_progress, rows=rows), math.nan
+        level = getattr(args, "zarr_level", None)
+        volume = load_volume(args.input, spacing_zyx_mm=args.spacing, on_progress=on_progress, rows=rows, level=level)
+        return volume, math.nan
     except NoSpacingError as exc:  # the library names spacing_zyx_mm: say it with the command's option
         raise InputError(no_voxel_size_message(args.input, exc)) from None
 

@@ -189,6 +189,8 @@ def open_slabs(
         if (src := zarr_in(members, Path(path))) is not None:
             stack.close()
             return _zarr(src, whole_bytes, spacing, level, limits)
+        if level is not None:  # load_volume's refusal
+            raise InputError(f"level={level!r} was given, but {label} is not an OME-Zarr image")
         if has_dicom_images(members):
             total = sum(m.size for m in members.members)
             if total > whole_bytes:

@@ -148,7 +148,8 @@ def _load(job: _Job, source: str | Path | Volume) -> Volume:
     spec, runtime, progress, end = job.spec, job.runtime, job.progress, job.shares[0]
     whole = runtime.budget.whole_volume_bytes  # under a host memory bound: a larger scan is read slab by slab
     sliced = pre = None
-    if job.predecoded and not isinstance(source, Volume):  # decoded while it was uploaded (engine.io.predecode)
+    level = spec.input.zarr_level  # an OME-Zarr's level (refused by the loaders for any other input)
+    if job.predecoded and level is None and not isinstance(source, Volume):  # decoded while it was uploaded
         from engine.io.predecode import load_predecoded
 
         pre = load_predecoded(
@@ -163,7 +164,9 @@ def _load(job: _Job, source: str | Path | Volume) -> Volume:
     if pre is None and whole is not None and not isinstance(source, Volume):
         from engine.io.slabs import open_slabs
 
-        sliced = open_slabs(source, whole, spacing_zyx_mm=spec.input.spacing_zyx_mm, threads=runtime.decode_threads)
+        sliced = open_slabs(
+            source, whole, spacing_zyx_mm=spec.input.spacing_zyx_mm, level=level, threads=runtime.decode_threads
+        )
     if sliced is not None:
         volume = sliced
         if spec.input.pieces is not None:
@@ -187,6 +190,7 @@ def _load(job: _Job, source: str | Path | Volume) -> Volume:
             allocate=runtime.volumes(),  # reused from job to job; page-locked for the upload to a CUDA device
             rows=runtime.rows(),  # on a GPU, PNG slices are only inflated on the host (engine.io.png_rows)
             on_progress=_Steps(progress, "loading", end),
+            level=level,
         )
     if spec.input.roi is not None:  # cropped before anything runs
         try:

@@ -13,6 +13,7 @@ job as the API checked it. Importing this module never loads Warp.
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,6 +37,27 @@ def _segment(value: object) -> int | str:
     return value
 
 
+ZARR_LEVEL_CHARS = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+
+
+def check_zarr_level(level: object) -> int | str:
+    """An OME-Zarr level as given: an index (an int from 0) or a level's path (up to 64 letters, digits, ``_``,
+    ``.`` and ``-``; digits that are no level's path are an index, as ``engine.io.omezarr`` reads them).
+
+    Raises:
+        ValueError: anything else, in words.
+    """
+    if isinstance(level, bool) or not isinstance(level, int | str):
+        raise ValueError(f"zarr_level is a level's index (0: full resolution) or its path, not {level!r}")
+    if isinstance(level, int):
+        if level < 0:
+            raise ValueError(f"zarr_level is a level's index from 0 (the full resolution), not {level}")
+        return level
+    if not ZARR_LEVEL_CHARS.fullmatch(level) or level in (".", ".."):
+        raise ValueError(f"zarr_level {level!r} is no level's path (letters, digits, '_', '.', '-'; up to 64)")
+    return level
+
+
 @dataclass(frozen=True)
 class InputSpec:
     """What the input is and how it is cut before meshing.
@@ -47,6 +69,8 @@ class InputSpec:
         roi: a box the scan or label map is cropped to first.
         pieces: a scan's N largest bone pieces, each its own part (a label job made from a scan).
         segments: a label job keeps only these segments (numbers or names), each its own model.
+        zarr_level: an OME-Zarr input's resolution level: its index (0: the full resolution, the default) or its
+            path (``engine.io.omezarr``); an input of another kind refuses it when loaded.
     """
 
     kind: str = "auto"
@@ -54,6 +78,7 @@ class InputSpec:
     roi: RoiParams | None = None
     pieces: PiecesParams | None = None
     segments: tuple[int | str, ...] | None = None
+    zarr_level: int | str | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in INPUT_KINDS:
@@ -67,6 +92,8 @@ class InputSpec:
             if not 1 <= len(segments) <= SEGMENTS_MAX:
                 raise ValueError(f"segments lists 1..{SEGMENTS_MAX} segments, got {len(segments)}")
             object.__setattr__(self, "segments", segments)
+        if self.zarr_level is not None:
+            object.__setattr__(self, "zarr_level", check_zarr_level(self.zarr_level))
 
     @property
     def label_job(self) -> bool:
@@ -81,6 +108,7 @@ class InputSpec:
             "roi": None if self.roi is None else {"box": [list(r) for r in self.roi.box], "units": self.roi.units},
             "pieces": None if self.pieces is None else dataclasses.asdict(self.pieces),
             "segments": None if self.segments is None else list(self.segments),
+            "zarr_level": self.zarr_level,
         }
 
     @classmethod
@@ -101,6 +129,7 @@ class InputSpec:
             roi=roi,
             pieces=None if pieces is None else PiecesParams(**_known(pieces, PiecesParams, "pieces")),
             segments=None if segments is None else tuple(segments),
+            zarr_level=data.get("zarr_level"),
         )
 
 

@@ -368,3 +368,47 @@ def test_an_unreachable_store_is_named(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "s")
     with pytest.raises(InputError, match=r"s3://b/scan.ome.zarr \(S3 store at http://127.0.0.1:9\) cannot be reached"):
         load_volume("s3://b/scan.ome.zarr")
+
+
+# --- a level by name for every way in (issue 46: the API's zarr_level, the CLI's --zarr-level) ---------------------
+
+
+def test_the_cli_reads_the_level_it_is_given(tmp_path: Path) -> None:
+    """``--zarr-level`` by path and by index reads ome-zarr-py's second level (report and mesh the same either way);
+    given for an input of another kind, the command exits 2 with one line."""
+    zipped = zip_folder(FIXTURES / "phantom_v05.ome.zarr", tmp_path / "phantom_v05.zip")
+    meshes = []
+    for level in ("s1", "1"):
+        out = tmp_path / f"level-{level}"
+        res = run_cli("reconstruct", str(zipped), "--zarr-level", level, "-o", str(out), "--device", "cpu", "--quiet",
+                      "--iso", "1100", cwd=tmp_path)  # fmt: skip
+        assert res.returncode == 0, res.stderr
+        source = json.loads((out / "report.json").read_text())["input"]
+        assert source["source"]["level"] == "s1" and source["shape_zyx"] == [8, 16, 20]
+        meshes.append(read_stl(out / "model.stl")[0])
+    np.testing.assert_array_equal(meshes[0], meshes[1])
+    np.save(tmp_path / "v.npy", _vol())
+    res = run_cli("reconstruct", str(tmp_path / "v.npy"), "--voxel-size", "1,1,1", "--zarr-level", "1", "-o",
+                  str(tmp_path / "npy"), "--device", "cpu", "--quiet", cwd=tmp_path)  # fmt: skip
+    assert res.returncode == 2 and "level='1' was given, but v.npy is not an OME-Zarr image" in res.stderr
+    res = run_cli("reconstruct", str(zipped), "--zarr-level", "s9", "-o", str(tmp_path / "s9"), "--device", "cpu",
+                  "--quiet", cwd=tmp_path)  # fmt: skip
+    assert res.returncode == 2 and "no level 's9'; its levels are" in res.stderr
+
+
+def test_a_job_reads_its_zarr_level(tmp_path: Path) -> None:
+    """The job path (``run_job``: what the worker runs) reads the level its spec names; an unknown level fails the
+    job in words, naming the levels there are."""
+    from engine.errors import InputError as JobInputError
+    from engine.job import JobSpec, run_job
+    from engine.job.runtime import resolve_runtime
+    from engine.job.spec import InputSpec
+    from engine.params import IsoParams, ReconParams
+
+    zipped = zip_folder(FIXTURES / "phantom_v04.ome.zarr", tmp_path / "phantom_v04.zip")
+    spec = JobSpec(recon=ReconParams(iso=IsoParams(iso=1100.0)), input=InputSpec(zarr_level="s1"))
+    result = run_job(zipped, tmp_path / "out", spec, resolve_runtime("cpu"))
+    assert result.report["input"]["source"]["level"] == "s1"
+    assert result.report["input"]["shape_zyx"] == [8, 16, 20]
+    with pytest.raises(JobInputError, match="no level 's7'; its levels are"):
+        run_job(zipped, tmp_path / "s7", JobSpec(input=InputSpec(zarr_level="s7")), resolve_runtime("cpu"))
