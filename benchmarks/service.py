@@ -1,7 +1,8 @@
 """Service benchmark: upload-to-links latency of the web service, per stage, with real processes.
 
     python -m benchmarks.service --device cpu|cuda:0 [--data ../shared/data] [--phantom Z,Y,X] [--repeat N]
-                                 [--baseline] [--predecode on|off] [--predecode-anchor] [--upload-mbps MB/s]
+                                 [--baseline] [--predecode on|off] [--predecode-process on|off]
+                                 [--predecode-anchor] [--upload-mbps MB/s]
                                  [--redis-server PATH] [--timeout S] [--workdir DIR] --out result.json
 
 It starts a redis-server on a free loopback port, ``bonemesh serve`` and one ``bonemesh worker`` (device
@@ -37,6 +38,8 @@ upload-to-links seconds both ways). Each run also records the worker's own secon
 timings`` log line: ``load`` is the loading phase on the worker's clock, not the client's 0.1 s polling) and
 whether the report says the slices were ``decoded_during_upload``. ``--upload-mbps`` sends each input's upload no
 faster than that (a client's link rather than loopback), so that the decoding can hide behind it.
+``--predecode-process on|off`` (``BONEMESH_PREDECODE_PROCESS``, default on as the setting's default): the API
+decodes in a child process of its own (``engine.io.predecode_proc``) or on threads of the API process.
 """
 
 from __future__ import annotations
@@ -282,6 +285,12 @@ def main(argv: list[str] | None = None) -> int:
         help="BONEMESH_DECODE_DURING_UPLOAD of the main runs (slices decoded while uploaded)",
     )
     parser.add_argument(
+        "--predecode-process",
+        choices=("on", "off"),
+        default="on",
+        help="BONEMESH_PREDECODE_PROCESS: the API decodes in a child process (on) or on its own threads (off)",
+    )
+    parser.add_argument(
         "--predecode-anchor",
         action="store_true",
         help="also run each input with decoding during the upload switched the other way",
@@ -329,8 +338,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.baseline:
         report["baseline"] = {"what": BASELINE, "worker_env": BASELINE_ENV, "runs_per_input": args.baseline_repeat}
     UPLOAD_RATE[0] = args.upload_mbps * 1e6 if args.upload_mbps else None
-    main_env = {PREDECODE: "true" if args.predecode == "on" else "false"}
-    report["predecode"] = {"main_runs": args.predecode, "env": main_env, "upload_mbps": args.upload_mbps}
+    main_env = {
+        PREDECODE: "true" if args.predecode == "on" else "false",
+        "BONEMESH_PREDECODE_PROCESS": "true" if args.predecode_process == "on" else "false",
+    }
+    report["predecode"] = {
+        "main_runs": args.predecode,
+        "process": args.predecode_process,
+        "env": main_env,
+        "upload_mbps": args.upload_mbps,
+    }
 
     def write() -> None:
         write_json(args.out, report)

@@ -106,6 +106,18 @@ class Settings(BaseSettings):
         description="threads of the API decoding one upload's slices as it arrives; "
         "default: the API process's CPUs (engine.io.parallel.decode_threads)",
     )
+    predecode_process: bool = Field(
+        default=True,
+        description="the API decodes an upload's slices as it arrives in a child process of its own (one per "
+        "upload, one started ahead), so the decoding does not share the API process with the upload's receiving; "
+        "false: on threads of the API process (engine.io.predecode_proc)",
+    )
+    predecode_wait_seconds: float = Field(
+        default=60.0,
+        gt=0,
+        description="the API waits this long for the decoding process's verdict once an upload is complete; past "
+        "it the decoded slices are dropped and the worker decodes the zip",
+    )
     outage_seconds: float = Field(
         default=60.0,
         ge=0,

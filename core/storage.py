@@ -70,6 +70,15 @@ class UploadWriter(ABC):
         for chunk in chunks:
             self.write(chunk)
 
+    def local_part(self) -> Path | None:
+        """The local file the upload is written to until ``commit`` (its first ``size`` bytes there after
+        ``flush``), or None where there is none (S3)."""
+        return None
+
+    def flush(self) -> None:
+        """Hand what ``write`` took to the file (``local_part``)."""
+        return None
+
     @abstractmethod
     def commit(self) -> None:
         """Make the upload the job's upload."""
@@ -429,6 +438,12 @@ class _LocalUpload(UploadWriter):
             self.abort()
             raise UploadTooLarge(f"the upload is larger than the limit of {self.max_bytes:,} bytes")
         self.fh.write(chunk)
+
+    def local_part(self) -> Path | None:
+        return self.tmp
+
+    def flush(self) -> None:
+        self.fh.flush()
 
     def commit(self) -> None:
         self.fh.flush()

@@ -17,6 +17,6 @@ cd "$(dirname "$0")/.."
     engine/defect/__init__.py engine/defect/params.py engine/defect/step.py engine/defect/template.py \
     engine/backend/__init__.py engine/backend/base.py engine/backend/select.py engine/backend/warp_backend.py \
     engine/backend/opencl_backend.py engine/io/png_rows.py engine/io/kernels/steps.py engine/io/zipstream.py \
-    engine/io/predecode.py \
+    engine/io/predecode.py engine/io/predecode_proc.py \
     engine/job/__init__.py engine/job/spec.py engine/job/runtime.py engine/job/run.py engine/backend/warp_device.py \
     engine/cli/args.py

@@ -139,6 +139,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         background.start()
         yield
         background.stop()
+        svc.close()
 
     app = FastAPIOffline(  # /docs and /redoc with their scripts served from the package: no CDN
         title="bonemesh",

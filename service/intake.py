@@ -13,8 +13,9 @@ from pydantic import ValidationError
 from core.db import Database, Job
 from core.logsafe import escape_control, safe_logger
 from core.params import JobParams
-from core.storage import Storage, UploadTooLarge, is_storage_full, scrub_paths
+from core.storage import Storage, UploadTooLarge, UploadWriter, is_storage_full, scrub_paths
 from engine.io.predecode import UploadDecoder
+from engine.io.predecode_proc import DecoderProcess
 from service.idempotency import Hold, UploadPrint
 from service.problems import Problem
 from service.services import Services
@@ -41,13 +42,16 @@ async def receive(
     is kept alive by the body's bytes, and ``fingerprint`` takes the upload's."""
     job_id = Database.new_id()
     writer = await svc.in_upload_thread(svc.storage.upload_writer, job_id, limit)
-    decoder = await svc.in_upload_thread(start_decoder, svc, job_id, request.headers.get("content-length"))
+    decoder = await svc.in_upload_thread(start_decoder, svc, job_id, request.headers.get("content-length"), writer)
 
     def write(batch: list[memoryview]) -> None:
         if fingerprint is not None:
             fingerprint.update(batch)
         writer.write_many(batch)
-        if decoder is not None:  # the slices decoded as they arrive (never raises)
+        if isinstance(decoder, DecoderProcess):  # its process reads the file: tell it how far (O(1), never waits)
+            writer.flush()
+            decoder.advance(writer.size)
+        elif decoder is not None:  # the slices decoded as they arrive (never raises)
             decoder.feed(batch)
 
     try:
@@ -71,7 +75,7 @@ async def receive(
         await svc.in_upload_thread(writer.commit)
         summary = await svc.in_upload_thread(_inspect, svc.storage, job_id, parsed.filename, params)
         if decoder is not None:
-            await svc.in_upload_thread(finish_decoder, decoder, job_id)
+            await svc.in_upload_thread(finish_decoder, decoder, job_id, writer.size)
         log.info("job %s: upload of %d bytes: %s", job_id, writer.size, summary)
         name = parsed.filename or "upload"
         if hold is not None:  # the key is still this request's: nobody made the job meanwhile
@@ -98,10 +102,13 @@ async def receive(
         raise
 
 
-def start_decoder(svc: Services, job_id: str, content_length: str | None) -> UploadDecoder | None:
+def start_decoder(
+    svc: Services, job_id: str, content_length: str | None, writer: UploadWriter | None = None
+) -> UploadDecoder | DecoderProcess | None:
     """A decoder of the upload's PNG slices as they arrive (``engine.io.predecode``), where the settings ask for
     one, the store is local disk, and its disk has room for the decoded volume (about three times the upload,
-    judged from the request's length); else None."""
+    judged from the request's length); else None. In a child process reading ``writer``'s file as it grows
+    (``engine.io.predecode_proc``) where ``BONEMESH_PREDECODE_PROCESS`` (the default), else on threads here."""
     path = svc.storage.predecode_path(job_id)
     if not svc.settings.decode_during_upload or path is None:
         return None
@@ -112,15 +119,25 @@ def start_decoder(svc: Services, job_id: str, content_length: str | None) -> Upl
             return None
         from engine.io.parallel import decode_threads
 
-        return UploadDecoder(path, threads=decode_threads(svc.settings.predecode_threads))
+        threads = decode_threads(svc.settings.predecode_threads)
+        part = writer.local_part() if writer is not None else None
+        if svc.settings.predecode_process and svc.decoders is not None and part is not None:
+            return svc.decoders.start(path, part, threads)
+        return UploadDecoder(path, threads=threads)
     except Exception as exc:  # never a reason to refuse the upload
         log.warning("job %s: no decoding during the upload (%s)", job_id, type(exc).__name__)
         return None
 
 
-def finish_decoder(decoder: UploadDecoder, job_id: str) -> None:
-    """Keep the decoded slices where they are the stack the worker would decode, else drop them (logged)."""
-    if decoder.finish():
+def finish_decoder(decoder: UploadDecoder | DecoderProcess, job_id: str, size: int) -> None:
+    """Keep the decoded slices where they are the stack the worker would decode, else drop them (logged); the
+    upload is complete and committed (``size`` bytes)."""
+    if isinstance(decoder, DecoderProcess):
+        if decoder.finish(size):
+            log.info("job %s: %d slice(s) decoded during the upload (process)", job_id, decoder.slices)
+        elif decoder.reason:
+            log.info("job %s: slices not decoded during the upload: %s", job_id, escape_control(decoder.reason))
+    elif decoder.finish():
         log.info("job %s: %d slice(s) decoded during the upload", job_id, sum(m["png"] for m in decoder.members))
     elif decoder.reason:
         log.info("job %s: slices not decoded during the upload: %s", job_id, escape_control(decoder.reason))

@@ -15,6 +15,7 @@ from core.queue import Queue
 from core.settings import Settings
 from core.storage import Storage, storage_from_settings, version_of
 from engine.export.files import FILES
+from engine.io.predecode_proc import DecoderChildren
 from service import tokens
 from service.pacs import api as pacs_api
 from service.schemas import AttemptOut, JobError, JobOut, OutputFile, WebhookAttempt, WebhookOut
@@ -41,6 +42,15 @@ class Services:
         self.key = settings.signing_key()
         self.upload_threads = anyio.CapacityLimiter(UPLOAD_THREADS)
         self.active_uploads = anyio.Semaphore(settings.active_uploads)
+        # children decoding uploads' slices as they arrive (service.intake.start_decoder), one started ahead
+        self.decoders: DecoderChildren | None = None
+        if settings.decode_during_upload and settings.predecode_process:
+            self.decoders = DecoderChildren(settings.predecode_wait_seconds)
+
+    def close(self) -> None:
+        """End what the services started (the decoding child waiting for an upload)."""
+        if self.decoders is not None:
+            self.decoders.close()
 
     async def in_upload_thread(self, fn: Any, *args: Any) -> Any:
         """``fn(*args)`` in one of the uploads' threads."""

@@ -1,9 +1,10 @@
 """A zip of PNG slices decoded while it is still arriving, into a volume file beside it (the "sidecar").
 
-:class:`UploadDecoder` is fed an upload's bytes in order as they arrive (``feed``: the API's upload writer hands it
-the same batches it writes, views of the received bytes: a member's bytes are not copied until its decoding thread
-joins them). The archive is read front to back (``engine.io.zipstream``); each PNG member, once all its bytes are
-there, is inflated and decoded on a small thread pool (``engine.io.codecs.decode_png_fast``, the
+:class:`UploadDecoder` is fed an upload's bytes in order as they arrive (``feed``: by default a child process of
+the API reads them from the upload's file as it grows, ``engine.io.predecode_proc``; else the API's upload writer
+hands it the same batches it writes, views of the received bytes: a member's bytes are not copied until its
+decoding thread joins them). The archive is read front to back (``engine.io.zipstream``); each PNG member, once
+all its bytes are there, is inflated and decoded on a small thread pool (``engine.io.codecs.decode_png_fast``, the
 loader's own decoder) straight into its plane of ``<upload>.slices`` (raw samples, plane after plane in the order
 the members came), while later bytes still arrive: memory holds only the members being decoded (``backlog_bytes``;
 past it, ``feed`` waits for the pool). ``finish`` (the upload complete) checks that the members decoded are exactly
@@ -60,7 +61,8 @@ def sidecar_paths(upload: Path) -> tuple[Path, Path]:
 
 def remove_predecoded(upload: Path) -> None:
     """Remove the sidecar of ``upload`` (never raises)."""
-    for path in sidecar_paths(upload):
+    data, manifest = sidecar_paths(upload)
+    for path in (data, manifest, manifest.with_name(manifest.name + ".tmp")):
         with contextlib.suppress(OSError):
             path.unlink()
 
@@ -93,6 +95,10 @@ class UploadDecoder:
     @property
     def stopped(self) -> bool:
         return self.reason is not None
+
+    def stop(self, reason: str) -> None:
+        """Stop decoding (``finish`` then keeps nothing; ``reason`` says why)."""
+        self._stop(reason)
 
     def _stop(self, reason: str) -> None:
         with self._lock:

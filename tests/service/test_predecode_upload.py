@@ -56,21 +56,71 @@ def test_a_refused_upload_keeps_none_of_them(tmp_path: Path) -> None:
         assert _job_files(tmp_path / "b") == []
 
 
+def _settings(data_dir: Path, **kw: Any) -> Settings:
+    return Settings(
+        data_dir=data_dir, api_keys=["key-a"], secret_key="s" * 32, redis_url="redis://127.0.0.1:1/0",
+        reconcile_seconds=3600, **kw,
+    )  # fmt: skip
+
+
 def test_the_setting_switches_it_off(tmp_path: Path) -> None:
     from service.app import create_app
 
-    settings = Settings(
-        data_dir=tmp_path,
-        api_keys=["key-a"],
-        secret_key="s" * 32,
-        redis_url="redis://127.0.0.1:1/0",
-        reconcile_seconds=3600,
-        decode_during_upload=False,
-    )
-    with TestClient(create_app(settings)) as client:
+    with TestClient(create_app(_settings(tmp_path, decode_during_upload=False))) as client:
         resp = _post(client)
         assert resp.status_code == 202, resp.text
         assert _job_files(tmp_path) == [f"{resp.json()['id']}/upload"]
+
+
+def test_a_child_process_decodes_them_or_the_apis_threads(tmp_path: Path, monkeypatch: Any) -> None:
+    """``BONEMESH_PREDECODE_PROCESS`` (default on): a child process decodes the slices; off: threads of the API;
+    the same sidecar either way."""
+    from engine.io.predecode_proc import DecoderProcess
+    from service.app import create_app
+
+    verdicts: list[bool] = []
+    finish = DecoderProcess.finish
+
+    def spy(self: DecoderProcess, length: int) -> bool:
+        verdicts.append(finish(self, length))
+        return verdicts[-1]
+
+    monkeypatch.setattr(DecoderProcess, "finish", spy)
+    sidecars = []
+    for process in (True, False):
+        data_dir = tmp_path / str(process)
+        with TestClient(create_app(_settings(data_dir, predecode_process=process))) as client:
+            resp = _post(client)
+            assert resp.status_code == 202, resp.text
+            job = data_dir / "jobs" / resp.json()["id"]
+            assert verdicts == [True]  # the child's, the first time only
+            sidecars.append([(job / name).read_bytes() for name in ("upload.slices", "upload.slices.json")])
+    assert sidecars[0] == sidecars[1]
+
+
+def test_a_child_that_dies_never_costs_the_upload(tmp_path: Path, monkeypatch: Any) -> None:
+    """The child killed as the upload begins: the job is accepted all the same, without the decoded slices (the
+    worker decodes the zip)."""
+    import os
+    import signal
+
+    from engine.io.predecode_proc import DecoderChildren, DecoderProcess
+
+    start = DecoderChildren.start
+    pids = []
+
+    def killed(self: DecoderChildren, *args: Any) -> DecoderProcess | None:
+        child = start(self, *args)
+        assert child is not None
+        os.kill(child.pid, signal.SIGKILL)
+        pids.append(child.pid)
+        return child
+
+    monkeypatch.setattr(DecoderChildren, "start", killed)
+    with app_client(tmp_path) as client:
+        resp = _post(client)
+        assert resp.status_code == 202, resp.text
+        assert pids and _job_files(tmp_path) == [f"{resp.json()['id']}/upload"]
 
 
 def test_the_worker_loads_them_and_the_model_is_the_same(
