@@ -134,7 +134,10 @@ def finish_decoder(decoder: UploadDecoder | DecoderProcess, job_id: str, size: i
     upload is complete and committed (``size`` bytes)."""
     if isinstance(decoder, DecoderProcess):
         if decoder.finish(size):
-            log.info("job %s: %d slice(s) decoded during the upload (process)", job_id, decoder.slices)
+            log.info(
+                "job %s: %d slice(s) decoded during the upload (in a process: %s)", job_id, decoder.slices,
+                ", ".join(f"{k} {v:.3f}" for k, v in decoder.timings.items()),
+            )  # fmt: skip
         elif decoder.reason:
             log.info("job %s: slices not decoded during the upload: %s", job_id, escape_control(decoder.reason))
     elif decoder.finish():

@@ -77,6 +77,7 @@ class DecoderProcess:
         self.wait_seconds = wait_seconds
         self.reason: str | None = None
         self.slices = 0
+        self.timings: dict[str, float] = {}  # waited (the API, for the verdict), feed and finish (the child's)
         self.told = 0
         self.done = False
         assert proc.stdin is not None and proc.stdout is not None
@@ -119,7 +120,10 @@ class DecoderProcess:
                     raise _Gone(f"the decoding process ended ({self.proc.returncode})")
                 if not select.select([], [self._in.fileno()], [], max(0.0, deadline - time.monotonic()))[1]:
                     raise _Gone(f"the decoding process took no order in {self.wait_seconds:g} s")
+            sent = time.monotonic()
             verdict = json.loads(self._verdict(deadline))
+            self.timings = {"waited_s": round(time.monotonic() - sent, 4)}
+            self.timings.update({k: float(verdict[k]) for k in ("feed_s", "finish_s") if k in verdict})
             kept = verdict["kept"] is True
             self.reason = None if kept else str(verdict.get("reason") or "not kept")
             self.slices = int(verdict.get("slices") or 0) if kept else 0
@@ -247,6 +251,7 @@ class _Orders:
     def __init__(self, stream: IO[bytes]) -> None:
         self.on_disk = 0
         self.length: int | None = None  # finish's
+        self.finish_at: float | None = None  # when it came (time.monotonic)
         self.gone = False  # stdin closed, or a line not understood: abort
         self.cond = threading.Condition()
         self.stream = stream
@@ -258,7 +263,7 @@ class _Orders:
                 word, _, rest = line.strip().partition(b" ")
                 with self.cond:
                     if word == b"finish":
-                        self.length = int(rest)
+                        self.length, self.finish_at = int(rest), time.monotonic()
                     else:
                         self.on_disk = max(self.on_disk, int(word))
                     self.cond.notify_all()
@@ -321,11 +326,14 @@ def main() -> None:
             break
         if decoder.stopped:
             at = max(at, target)  # read no more: wait for the finish
+    fed = time.monotonic()
     if fd is not None:
         os.close(fd)
     kept = decoder.finish()
     slices = sum(bool(m["png"]) for m in decoder.members) if kept else 0
     verdict: dict[str, Any] = {"kept": kept, "reason": decoder.reason, "slices": slices}
+    verdict["feed_s"] = round(max(0.0, fed - (orders.finish_at or fed)), 4)  # feeding left when the upload was complete
+    verdict["finish_s"] = round(time.monotonic() - fed, 4)  # the decoding left, the checks and the manifest
     sys.stdout.buffer.write(json.dumps(verdict).encode() + b"\n")
     sys.stdout.buffer.flush()
 
