@@ -90,4 +90,4 @@ def test_worker_loads_with_the_decode_settings(monkeypatch: pytest.MonkeyPatch, 
         rows = seen.pop("rows")  # PNG rows unfiltered on the job's GPU (auto only); none on a CPU
         on_device = settings.png_decoder == "auto" and device_rows(settings.device) is not None
         assert isinstance(rows, DeviceRows) if on_device else rows is None
-        assert seen == {"spacing_zyx_mm": (1.0, 0.5, 0.5), "allocate": allocate, **expected}
+        assert seen == {"spacing_zyx_mm": (1.0, 0.5, 0.5), "allocate": allocate, "level": None, **expected}
