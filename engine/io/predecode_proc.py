@@ -13,13 +13,15 @@ removed: the upload goes on and the worker decodes the zip, as when the decoder 
 
 :class:`DecoderChildren` keeps one child started and waiting (its interpreter and ``engine.io.predecode``
 imported, about 0.2 s of CPU), so an upload does not wait for a start: each child decodes one upload and exits,
-and the next is started when one is done with. Children are started with ``subprocess`` (fork and exec at once: safe
+and the next is started when one is done with (the first upload, and a second one at the same time, start their
+own). Children are started with ``subprocess`` (fork and exec at once: safe
 from a process with threads), in a session of their own (a terminal's Ctrl-C goes to the API, which ends them).
 The child imports ``engine.io.predecode`` only (no Warp).
 
 Protocol (text lines): the parent sends ``{"upload": ..., "part": ..., "threads": ...}`` (JSON: where the upload
 will be committed, the file it is written to meanwhile, the decoding threads), then ``<bytes on disk>`` lines, then
-``finish <length>``; the child answers ``{"kept": ..., "reason": ..., "slices": ...}`` once, and exits.
+``finish <length>``; the child answers ``{"kept": ..., "reason": ..., "slices": ..., "feed_s": ..., "finish_s":
+...}`` once (the last two: its feeding and its finishing left when the finish came), and exits.
 """
 
 from __future__ import annotations
