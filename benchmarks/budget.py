@@ -34,20 +34,33 @@ from engine.types import Volume
 PAPER = ReconParams(iso=IsoParams(preset="bone", hu_offset=1024.0), body=None, islands=None)
 
 
-def _run(volume: Volume, device: str, budget: int | None, write: bool, repeat: int) -> dict[str, Any]:
+def timed_reconstruct(
+    volume: Volume, device: str, budget: int | None, repeat: int
+) -> tuple[Any, list[float], str | None]:
+    """``reconstruct`` of ``volume`` with the paper's parameters, ``repeat`` times (the last run's mesh dropped before
+    the next, so it is not counted in its memory): the last result, each run's seconds, and the error of a run that
+    failed (e.g. no budget and a volume larger than the device; its seconds last), where one did."""
     from engine.job.pipeline import reconstruct
 
-    times = []
+    times: list[float] = []
     recon = None
     for _ in range(repeat):
-        recon = None  # the last run's mesh is not this run's memory
+        recon = None
         gc.collect()
         t0 = time.perf_counter()
         try:
             recon = reconstruct(volume, PAPER, device=device, max_device_bytes=budget)
-        except Exception as exc:  # recorded: e.g. no budget and a volume larger than the device
-            return {"error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t0}
+        except Exception as exc:  # recorded by the caller
+            times.append(time.perf_counter() - t0)
+            return None, times, f"{type(exc).__name__}: {exc}"
         times.append(time.perf_counter() - t0)
+    return recon, times, None
+
+
+def _run(volume: Volume, device: str, budget: int | None, write: bool, repeat: int) -> dict[str, Any]:
+    recon, times, error = timed_reconstruct(volume, device, budget, repeat)
+    if error is not None:
+        return {"error": error, "seconds": times[-1]}
     seconds = sorted(times)[len(times) // 2]
     rep = recon.report
     mesh = rep["mesh"]

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import gc
 import json
 import time
 from pathlib import Path
@@ -27,31 +26,19 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.budget import PAPER, timed_reconstruct
 from benchmarks.phantom import bone_phantom
 from engine.budget import parse_bytes
-from engine.params import IsoParams, ReconParams
 from engine.types import Volume
 
-PAPER = ReconParams(iso=IsoParams(preset="bone", hu_offset=1024.0), body=None, islands=None)
 SPACING = (0.05, 0.05, 0.05)
 
 
 def _run(volume: Volume, devices: list[str], budget: int, repeat: int) -> dict[str, Any]:
     """``reconstruct`` on ``devices`` (one, or a list) within ``budget`` per device: the median of ``repeat``."""
-    from engine.job.pipeline import reconstruct
-
-    spec = ",".join(devices)
-    times: list[float] = []
-    recon = None
-    for _ in range(repeat):
-        recon = None  # the last run's mesh is not this run's memory
-        gc.collect()
-        t0 = time.perf_counter()
-        try:
-            recon = reconstruct(volume, PAPER, device=spec, max_device_bytes=budget)
-        except Exception as exc:  # recorded: e.g. a device missing, a budget too small
-            return {"devices": devices, "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t0}
-        times.append(time.perf_counter() - t0)
+    recon, times, error = timed_reconstruct(volume, ",".join(devices), budget, repeat)
+    if error is not None:  # recorded: e.g. a device missing, a budget too small
+        return {"devices": devices, "error": error, "seconds": times[-1]}
     assert recon is not None
     rep = recon.report
     mesh, mem = rep["mesh"], rep["memory"]
