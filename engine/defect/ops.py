@@ -132,7 +132,8 @@ def largest_piece(be: Backend, bone: Any, shape: tuple[int, ...]) -> tuple[Any, 
     mask, and the number of pieces; of pieces the same size, the one whose first voxel comes first in the flat
     order (``scipy.ndimage.label``'s numbering, as ``grid.bone_and_skull`` picks). Min-label hooking with pointer
     jumping: a sync point per round (a few rounds), one for the pieces' sizes."""
-    from engine.defect.kernel_specs import PIECE_GATHER, PIECE_HOOK, PIECE_INIT, PIECE_JUMP, PIECE_MASK, PIECE_ROOTS
+    from engine.defect.kernel_specs import PIECE_GATHER, PIECE_HOOK, PIECE_INIT, PIECE_MASK, PIECE_ROOTS
+    from engine.surface.kernel_specs import JUMP_LABELS  # the meshes' pointer jumping (unlabelled voxels left)
 
     nz, ny, nx = (int(s) for s in shape)
     n = nz * ny * nx
@@ -142,7 +143,7 @@ def largest_piece(be: Backend, bone: Any, shape: tuple[int, ...]) -> tuple[Any, 
     while True:
         be.fill(changed, 0)
         be.launch(PIECE_HOOK, n, [nz, ny, nx, label, changed])
-        be.launch(PIECE_JUMP, n, [label])
+        be.launch(JUMP_LABELS, n, [label])
         if int(be.to_host(changed)[0]) == 0:  # sync point
             break
     size = be.zeros(n, np.int32)

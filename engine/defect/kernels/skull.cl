@@ -53,17 +53,6 @@ __kernel void hook(const int nz, const int ny, const int nx, __global int *label
     if (moved != 0) changed[0] = 1;
 }
 
-/* pointer jumping: every bone voxel's label becomes its label chain's root */
-__kernel void jump(__global int *label)
-{
-    const int i = (int)get_global_id(0);
-    int r = label[i];
-    if (r >= 0) {
-        while (label[r] != r) r = label[r];
-        label[i] = r;
-    }
-}
-
 /* size[root] += 1 for every bone voxel; flags = 1 at the roots (each piece's first voxel) */
 __kernel void roots(__global const int *label, __global int *size, __global int *flags)
 {

@@ -64,17 +64,6 @@ def hook_kernel(nz: int, ny: int, nx: int, label: wp.array(dtype=wp.int32), chan
 
 
 @wp.kernel
-def jump_kernel(label: wp.array(dtype=wp.int32)):
-    """Pointer jumping: every bone voxel's label becomes its label chain's root."""
-    i = wp.tid()
-    r = label[i]
-    if r >= 0:
-        while label[r] != r:
-            r = label[r]
-        label[i] = r
-
-
-@wp.kernel
 def roots_kernel(label: wp.array(dtype=wp.int32), size: wp.array(dtype=wp.int32), flags: wp.array(dtype=wp.int32)):
     """size[root] += 1 for every bone voxel; flags = 1 at the roots (each piece's first voxel)."""
     i = wp.tid()

@@ -114,10 +114,12 @@ __kernel void hook_labels(__global const int *faces, volatile __global int *labe
     }
 }
 
+/* pointer jumping: every labelled entry's label becomes its chain's root (a negative label: none, left) */
 __kernel void jump_labels(volatile __global int *label)
 {
     const int v = get_global_id(0);
     int r = label[v];
+    if (r < 0) return;
     while (label[r] != r) r = label[r];
     label[v] = r;
 }

@@ -123,11 +123,13 @@ def hook_labels(faces: wp.array(dtype=wp.vec3i), label: wp.array(dtype=wp.int32)
 
 @wp.kernel
 def jump_labels(label: wp.array(dtype=wp.int32)):
+    """Pointer jumping: every labelled entry's label becomes its chain's root (a negative label: none, left)."""
     v = wp.tid()
     r = label[v]
-    while label[r] != r:
-        r = label[r]
-    label[v] = r
+    if r >= 0:
+        while label[r] != r:
+            r = label[r]
+        label[v] = r
 
 
 @wp.kernel
