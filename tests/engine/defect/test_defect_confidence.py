@@ -47,24 +47,31 @@ def _region(bone: np.ndarray):
                   skull_mm3=float(bone.sum()), min_volume_mm3=1.0)  # fmt: skip
 
 
-def _grid(shape: tuple[int, ...]):
+def _grid(shape: tuple[int, ...], spacing: tuple[float, float, float] = (1.0, 1.0, 1.0)):
     from engine.defect.grid import Grid
 
-    return Grid(tuple(shape), (1.0, 1.0, 1.0), np.eye(3), np.zeros(3), "test")  # type: ignore[arg-type]
+    return Grid(tuple(shape), spacing, np.eye(3), np.zeros(3), "test")  # type: ignore[arg-type]
+
+
+def _short_piece(bone: np.ndarray, template: np.ndarray, spacing: tuple[float, float, float] = (1.0, 1.0, 1.0)):
+    """The region of ``bone``, its grid, and ``template`` as a piece with its rim measured (reach 6 mm)."""
+    from engine.defect.region import Piece
+    from engine.defect.rim import rim_of
+
+    region, grid = _region(bone), _grid(bone.shape, spacing)
+    index = np.argwhere(template)
+    piece = Piece(label=1, voxels=len(index), volume_mm3=float(len(index)), core_mm3=1.0, index=index)
+    piece.rim = rim_of(index, bone, grid.spacing_zyx, np.zeros(len(index), dtype=bool), 6.0)
+    return region, grid, piece
 
 
 def test_a_rim_gap_is_closed_across_to_the_bone():
     """A template 2 voxels short of the rim all round: closed, it touches the bone (gap <= 1 voxel), and what it
     gained lies in the hole, never in the bone."""
-    from engine.defect.region import Piece, _close_rim
-    from engine.defect.rim import rim_of
+    from engine.defect.region import _close_rim
 
     bone, template, hole = _plate_with_hole(gap=2)
-    region, grid = _region(bone), _grid(bone.shape)
-    index = np.argwhere(template)
-    border = np.zeros(len(index), dtype=bool)
-    piece = Piece(label=1, voxels=len(index), volume_mm3=float(len(index)), core_mm3=1.0, index=index)
-    piece.rim = rim_of(index, bone, grid.spacing_zyx, border, 6.0)
+    region, grid, piece = _short_piece(bone, template)
     assert piece.rim.gap_voxels > 1.0
     contact = piece.rim.contact
     _close_rim(piece, region, grid, 4.0, border_of=grid.shape, reach=6.0)
@@ -80,19 +87,37 @@ def test_a_rim_gap_is_closed_across_to_the_bone():
 
 def test_a_gap_wider_than_half_the_shell_is_not_bridged():
     """A template 4 voxels short of the rim (a 4 mm shell): the gap is left as it is (no plate grown that far)."""
-    from engine.defect.region import Piece, _close_rim
-    from engine.defect.rim import rim_of
+    from engine.defect.region import _close_rim
 
     bone, template, _ = _plate_with_hole(gap=4)
-    region, grid = _region(bone), _grid(bone.shape)
-    index = np.argwhere(template)
-    border = np.zeros(len(index), dtype=bool)
-    piece = Piece(label=1, voxels=len(index), volume_mm3=float(len(index)), core_mm3=1.0, index=index)
-    piece.rim = rim_of(index, bone, grid.spacing_zyx, border, 6.0)
+    region, grid, piece = _short_piece(bone, template)
     before = piece.rim.gap_voxels
     _close_rim(piece, region, grid, 4.0, border_of=grid.shape, reach=6.0)
     assert piece.rim.gap_voxels == pytest.approx(before, abs=0.5)
     assert piece.rim.gap_voxels > 1.0
+
+
+def test_a_slice_the_mirror_stops_short_of_is_bridged_between_thick_slices():
+    """A wall 4 mm thick cut across by 5 mm slices, its round hole's template one slice short at the top (as the
+    head phantom's mirror was): the closing bridges that slice (a step along the coarse axis counts as the ball's
+    radius at most) and takes nothing of the bone."""
+    from engine.defect.region import _close_rim
+
+    shape, zc, yc = (14, 40, 40), 7, 19.6
+    z, y, x = np.indices(shape)
+    wall = (x >= 18) & (x < 22)
+    hole = wall & (np.hypot((z - zc) * 5.0, y - yc) < 12.0)
+    bone = wall & ~hole
+    top = int(np.argwhere(hole)[:, 0].max())
+    template = hole & (z < top)  # the hole's last slice missing from the template
+    region, grid, piece = _short_piece(bone, template, spacing=(5.0, 1.0, 1.0))
+    assert piece.rim.gap_voxels > 0.0
+    _close_rim(piece, region, grid, 4.0, border_of=grid.shape, reach=6.0)
+    grown = np.zeros(shape, dtype=bool)
+    grown[tuple(piece.index.T)] = True
+    missing = hole & (z == top)
+    assert (grown & missing).sum() >= 0.5 * missing.sum()
+    assert not (grown & bone).any()
 
 
 def test_a_template_that_the_mirror_does_not_fit_is_refused_with_the_measure(headsq, device, monkeypatch):
