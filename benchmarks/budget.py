@@ -57,27 +57,35 @@ def timed_reconstruct(
     return recon, times, None
 
 
-def _run(volume: Volume, device: str, budget: int | None, write: bool, repeat: int) -> dict[str, Any]:
-    recon, times, error = timed_reconstruct(volume, device, budget, repeat)
-    if error is not None:
-        return {"error": error, "seconds": times[-1]}
-    seconds = sorted(times)[len(times) // 2]
+def run_record(recon: Any, times: list[float]) -> dict[str, Any]:
+    """What every ``reconstruct`` benchmark records of its runs: the median and each run's seconds, the stages,
+    the device peak, and the mesh (faces, topology, enclosed volume)."""
     rep = recon.report
     mesh = rep["mesh"]
-    mem = rep["memory"]
-    out = {
-        "seconds": seconds,
+    return {
+        "seconds": sorted(times)[len(times) // 2],
         "runs_seconds": times,
         "stage_seconds": rep["stage_seconds"],
-        "peak_device_bytes": mem["peak_bytes"],
-        "peak_measured_by": mem["measured_by"],
-        "within_budget": None if budget is None or mem["peak_bytes"] is None else mem["peak_bytes"] <= budget,
+        "peak_device_bytes": rep["memory"]["peak_bytes"],
         "mc33_faces": rep["counts"]["isosurface"]["faces"],
         "faces": mesh["n_faces"],
         "watertight": mesh["watertight"],
         "components": mesh["components"],
         "euler": mesh["euler"],
         "volume_mm3": mesh["volume_mm3"],
+    }
+
+
+def _run(volume: Volume, device: str, budget: int | None, write: bool, repeat: int) -> dict[str, Any]:
+    recon, times, error = timed_reconstruct(volume, device, budget, repeat)
+    if error is not None:
+        return {"error": error, "seconds": times[-1]}
+    rep = recon.report
+    mem = rep["memory"]
+    out = run_record(recon, times)
+    out |= {
+        "peak_measured_by": mem["measured_by"],
+        "within_budget": None if budget is None or mem["peak_bytes"] is None else mem["peak_bytes"] <= budget,
     }
     if "stream" in mem:
         out["stream"] = mem["stream"]

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.budget import PAPER, timed_reconstruct
+from benchmarks.budget import PAPER, run_record, timed_reconstruct
 from benchmarks.phantom import bone_phantom
 from engine.budget import parse_bytes
 from engine.types import Volume
@@ -41,20 +41,10 @@ def _run(volume: Volume, devices: list[str], budget: int, repeat: int) -> dict[s
         return {"devices": devices, "error": error, "seconds": times[-1]}
     assert recon is not None
     rep = recon.report
-    mesh, mem = rep["mesh"], rep["memory"]
-    stream = mem.get("stream", {})
+    stream = rep["memory"].get("stream", {})
     out: dict[str, Any] = {
         "devices": devices,
-        "seconds": sorted(times)[len(times) // 2],
-        "runs_seconds": times,
-        "stage_seconds": rep["stage_seconds"],
-        "peak_device_bytes": mem["peak_bytes"],
-        "mc33_faces": rep["counts"]["isosurface"]["faces"],
-        "faces": mesh["n_faces"],
-        "watertight": mesh["watertight"],
-        "components": mesh["components"],
-        "euler": mesh["euler"],
-        "volume_mm3": mesh["volume_mm3"],
+        **run_record(recon, times),
         "groups": stream.get("groups"),
         "group_mode": stream.get("group_mode"),
         "decimate_seconds": rep.get("decimate", {}).get("seconds"),
