@@ -203,7 +203,13 @@ def evaluate(name: str, device: str, sizes: list[float], log: Any = print) -> li
 
 
 def sweep(
-    name: str, device: str, sizes: list[float], poses: Any = SWEEP_POSES, log: Any = print, on_row: Any = None
+    name: str,
+    device: str,
+    sizes: list[float],
+    poses: Any = SWEEP_POSES,
+    log: Any = print,
+    on_row: Any = None,
+    only: Any = None,
 ) -> list[dict]:
     """The reviewer's sweep on one scan (issue 42): full-thickness cuts (``engine.defect.synthetic.cut_at``) at 8
     directions x 3 heights x the sizes on the scan's own pose; on each turned pose (``synthetic.posed``, yaw and
@@ -211,7 +217,8 @@ def sweep(
     cycle over the cases. On a scan with a real defect (the cranium) the template's pieces on the real defect are
     left out of the Dice, and cuts that touch it or its mirror image are not one-sided: left out. ``on_row`` is
     called with each case's row as it is measured (the results written as they come: a long sweep cut short keeps
-    what it measured)."""
+    what it measured). ``only``: a test of a case's name (``case_name``): the cases it refuses are not run (nor
+    listed); a pose none of whose cases it takes is not turned."""
     from engine.defect.synthetic import EDGES, FILLS, posed
 
     cfg = SCANS[name]
@@ -219,21 +226,57 @@ def sweep(
     rows: list[dict[str, Any]] = []
     k = 0  # the place's number: edges and fills turn with it (and with the size), so each size meets each edge
     for yaw, roll in poses:
-        base = volume if not (yaw or roll) else posed(volume, yaw, roll, orient=cfg["orient"])
-        real = None
-        if "real_defect_slices" in cfg:
-            real = _real_defect(base, cfg, device)
+        cases = []
         for az in SWEEP_AZIMUTHS:
             for h in SWEEP_HEIGHTS:
                 for i, size in enumerate(sizes if not (yaw or roll) else [sizes[k % len(sizes)]]):
                     edge, fill = EDGES[(k + i) % len(EDGES)], FILLS[(k // len(EDGES) + i) % len(FILLS)]
-                    row = _sweep_case(base, cfg, device, name, (yaw, roll), az, h, size, edge, fill, real)
-                    rows.append(row)
-                    log(_line(row))
-                    if on_row is not None:
-                        on_row(row)
+                    if only is None or only(case_name(name, (yaw, roll), az, h, size, edge, fill)):
+                        cases.append((az, h, size, edge, fill))
                 k += 1
+        if not cases:
+            continue
+        base = volume if not (yaw or roll) else posed(volume, yaw, roll, orient=cfg["orient"])
+        real = None
+        if "real_defect_slices" in cfg:
+            real = _real_defect(base, cfg, device)
+        for az, h, size, edge, fill in cases:
+            row = _sweep_case(base, cfg, device, name, (yaw, roll), az, h, size, edge, fill, real)
+            rows.append(row)
+            log(_line(row))
+            if on_row is not None:
+                on_row(row)
     return rows
+
+
+def case_name(scan: str, pose: tuple[float, float], az: float, h: float, size: float, edge: str, fill: str) -> str:
+    """A sweep case's name, as ``--only`` matches it: the scan, the row's ``case`` and the diameter, e.g.
+    ``headsq az 22.5 h 0.8 ball tissue yaw 7 roll -5 40 mm``."""
+    return f"{scan} az {az:g} h {h:g} {edge} {fill} yaw {pose[0]:g} roll {pose[1]:g} {size:g} mm"
+
+
+def row_name(row: dict[str, Any]) -> str:
+    """``case_name`` of a row of the sweep's JSON."""
+    return f"{row['scan']} {row['case']} {row['diameter_mm']:g} mm"
+
+
+def failing(rows: list[dict[str, Any]]) -> set[str]:
+    """The names of the rows that miss the issue's goals: a template with Dice under 0.6 or a rim gap over a voxel,
+    or on the wrong side."""
+    return {
+        row_name(r)
+        for r in rows
+        if "dice" in r
+        and (r["dice"] < 0.6 or r["rim_gap_voxels"] > 1.0 or not r["expected"].endswith(r.get("side", "?")))
+    }
+
+
+def chooser(only: list[str], names: set[str] | None) -> Any:
+    """The test of a case's name for ``sweep``: it holds one of the ``only`` substrings (any, when none is given)
+    and, with ``names`` (``--from-json``), is one of them. None: every case."""
+    if not only and names is None:
+        return None
+    return lambda name: (not only or any(s in name for s in only)) and (names is None or name in names)
 
 
 def _real_defect(volume: Any, cfg: dict[str, Any], device: str) -> tuple[Any, Any, float] | None:
@@ -343,8 +386,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=None)
     ap.add_argument("--sweep", action="store_true", help="the reviewer's sweep (issue 42) instead of the cases")
     ap.add_argument("--poses", default="0:0,7:-5", help="yaw:roll in degrees, comma-separated (the sweep)")
+    ap.add_argument("--only", action="append", default=[], metavar="SUBSTRING",
+                    help="the sweep: only the cases whose name (scan, case, diameter: 'headsq az 22.5 h 0.8 ball "
+                    "tissue yaw 7 roll -5 40 mm') holds this; repeatable (any of them)")  # fmt: skip
+    ap.add_argument(
+        "--from-json",
+        default=None,
+        metavar="FILE",
+        help="the sweep: only the cases of this sweep's JSON (with --failing: those that missed the goals)",
+    )
+    ap.add_argument("--failing", action="store_true", help="with --from-json: only its rows that missed the goals")
     args = ap.parse_args(argv)
-    out = args.out or f"benchmarks/results/defect_{'sweep' if args.sweep else 'quality'}_cpu.json"
+    tag = "cpu" if args.device == "cpu" else args.device.replace(":", "")
+    out = args.out or f"benchmarks/results/defect_{'sweep' if args.sweep else 'quality'}_{tag}.json"
+    names = None
+    if args.from_json:
+        old = json.loads(Path(args.from_json).read_text())["rows"]
+        names = failing(old) if args.failing else {row_name(r) for r in old}
+    only = chooser(args.only, names)
     poses = [tuple(float(v) for v in p.split(":")) for p in args.poses.split(",")]
     from engine.device import init_runtime, resolve_device
 
@@ -363,7 +422,7 @@ def main(argv: list[str] | None = None) -> int:
                 done.append(row)
                 _write(out, dev, sizes, done)
 
-            rows += sweep(name, args.device, sizes, poses, on_row=keep)
+            rows += sweep(name, args.device, sizes, poses, on_row=keep, only=only)
         else:
             rows += evaluate(name, args.device, sizes)
         _write(out, dev, sizes, rows)
