@@ -85,6 +85,10 @@ MIN_SPAN_SHARE = 0.15
 # lacks none of it on most columns (0.0), the gantry-tilt head's skull base joined to a low cut 0.6-0.65 (issue 42:
 # until then half was enough, and those pieces were kept beside the hole's)
 MIN_SPAN_MISSING = 0.75
+# a piece joined to another through a thin neck (narrower than a ball of this many shells' radius) is cut apart
+# there, and each part is held to the median column's bar on its own: a part that is not a hole through the shell
+# (the skull's own asymmetry joined to a cut) is left out, the hole's part kept (issue 42)
+NECK_SHELLS = 0.25
 MIN_CORE_VOXELS = 4
 MIN_DEFECT_WIDTH_MM = 15.0  # the smallest defect reported: a plug this wide through the shell
 MIN_DEFECT_SKULL_SHARE = 0.001  # ... and at least this share of the skull's volume
@@ -121,6 +125,7 @@ class Piece:
     fit: float | None = None
     shell_mm: float | None = None  # the healthy shell's local thickness over the piece (median)
     bridged_mm3: float = 0.0  # added across rim gaps (``_close_rim``)
+    cut_mm3: float = 0.0  # parts joined through a thin neck that are not a hole through the shell (``_cut_necks``)
     kept: bool = False
     reason: str = ""
     index: npt.NDArray[np.int64] | None = field(default=None, repr=False)  # voxels (z, y, x) in the region's crop
@@ -152,6 +157,8 @@ class Piece:
             out["spans_shell"] = self.span.to_dict()
         if self.bridged_mm3:
             out["rim_gap_bridged_mm3"] = round(self.bridged_mm3, 2)
+        if self.cut_mm3:
+            out["cut_at_necks_mm3"] = round(self.cut_mm3, 2)
         return out
 
 
@@ -734,6 +741,7 @@ def _judge_one(p: Piece, measured: dict[str, Any], region: Region, grid: Grid) -
     _to_rim(p, region, grid, shell, border_of=full, reach=reach)
     if p.rim is not None and p.rim.gap_voxels > CLOSE_GAP_VOXELS:
         _close_rim(p, region, grid, shell, border_of=full, reach=reach)
+    _cut_necks(p, region, grid, shell)
     if p.rim is not None and p.fit * p.rim.contact < MIN_CONFIDENCE:
         p.reason = (
             f"low confidence: around it the mirror image matches the scan's bone over {p.fit:.0%} (overlap "
@@ -753,6 +761,63 @@ def _judge_one(p: Piece, measured: dict[str, Any], region: Region, grid: Grid) -
     p.kept = True
     p.reason = "defect"
     return False
+
+
+def neck_parts(index: npt.NDArray[np.int64], spacing_zyx: Any, radius_mm: float) -> npt.NDArray[np.int64] | None:
+    """The parts of a piece (voxels ``index``) joined through necks narrower than a ball of ``radius_mm``: the
+    piece opened with that ball (a step along a coarser axis counted as the radius at most, as in ``_close_rim``),
+    its 26-connected pieces, and every voxel of the piece given to the nearest of them. Per voxel its part (0, 1,
+    ...); None when the piece is one part."""
+    from scipy import ndimage as ndi
+
+    sp = np.asarray(spacing_zyx, dtype=np.float64)
+    lo = index.min(axis=0) - 1
+    local = index - lo
+    piece = np.zeros(tuple(int(v) for v in local.max(axis=0) + 2), dtype=bool)
+    piece[tuple(local.T)] = True
+    step = np.minimum(sp, radius_mm)
+    inner = ndi.distance_transform_edt(piece, sampling=step) > radius_mm + 1e-6
+    opened = (ndi.distance_transform_edt(~inner, sampling=step) <= radius_mm + 1e-6) & piece
+    labels, n = ndi.label(opened, structure=CONNECTIVITY)
+    if n <= 1:
+        return None
+    _, near = ndi.distance_transform_edt(labels == 0, sampling=sp, return_indices=True)
+    return labels[tuple(near)][tuple(local.T)].astype(np.int64) - 1
+
+
+def _cut_necks(p: Piece, region: Region, grid: Grid, shell: float) -> None:
+    """The filled piece cut apart at its thin necks (``neck_parts``, a ball ``NECK_SHELLS`` shells wide), and each
+    part held to the median column's bar (``MIN_SPAN_MISSING``, its columns measured by ``spans_shell``) on its
+    own: the parts that are not a hole through the shell (the skull's own asymmetry, a turned skull base or an
+    inner wall, joined to the cut through a rim's few voxels) are left out, and the piece's rim and fit are
+    measured again on what is left. A piece none of whose parts passes is left as it is."""
+    assert p.index is not None
+    if len(p.index) < 8:
+        return
+    part = neck_parts(p.index, grid.spacing_zyx, NECK_SHELLS * shell)
+    if part is None:
+        return
+    sp = np.asarray(grid.spacing_zyx)
+    reach_mm = 1.5 * shell + float(sp.max())
+    missing = spans_shell(p.index, region.bone, region.mirrored, region.level, grid.spacing_zyx, reach_mm)
+    assert missing.column_missing is not None
+    medians = np.array([np.median(missing.column_missing[part == k]) for k in range(int(part.max()) + 1)])
+    keep = (medians >= MIN_SPAN_MISSING)[part]
+    if keep.all() or not keep.any():
+        return
+    p.cut_mm3 += float(np.count_nonzero(~keep)) * grid.voxel_mm3
+    p.index = p.index[keep]
+    p.voxels = len(p.index)
+    p.volume_mm3 = p.voxels * grid.voxel_mm3
+    assert p.local_normal is not None and p.local_offset_mm is not None
+    _place(p, grid, region, p.local_normal, p.local_offset_mm)
+    p.span = spans_shell(p.index, region.bone, region.mirrored, region.level, grid.spacing_zyx, reach_mm)
+    g = p.index + region.lo
+    border = np.any((g == 0) | (g == np.asarray(grid.shape) - 1), axis=1)
+    rim = rim_of(p.index, region.bone, grid.spacing_zyx, border, _reach(region, grid))
+    p.rim = dataclasses.replace(rim, open_toward_plane=p.rim.open_toward_plane if p.rim else 0.0)
+    p.fit = local_fit(p.index, region.bone, region.mirrored >= region.level, grid.spacing_zyx,
+                      2.0 * region.shell_mm + float(sp.max()))  # fmt: skip
 
 
 def _min_volume(p: Piece, region: Region, params: DefectParams) -> float:

@@ -215,12 +215,14 @@ class Span:
     """Whether a piece goes through the whole shell (``spans_shell``): ``area_mm2`` of its outline (seen along its
     thinnest axis) where its columns along the shell's local normal span the mirrored shell, ``share`` that area
     over the outline's, ``missing``: the median share of the mirrored shell the scan lacks on the piece's columns.
-    ``spans``: per voxel of the piece, whether its column spans the shell (not in ``to_dict``)."""
+    ``spans``: per voxel of the piece, whether its column spans the shell; ``column_missing``: per voxel, the share
+    of the mirrored shell the scan lacks on its column (neither in ``to_dict``)."""
 
     area_mm2: float
     share: float
     missing: float
     spans: npt.NDArray[np.bool_] | None = field(default=None, repr=False, compare=False)
+    column_missing: npt.NDArray[np.float64] | None = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict[str, Any]:
         return {"area_mm2": round(self.area_mm2, 2), "share": round(self.share, 4), "missing": round(self.missing, 4)}
@@ -316,4 +318,5 @@ def spans_shell(
         share=float(span_img.sum()) / max(outline, 1.0),
         missing=float(np.median(missing)),
         spans=spans,
+        column_missing=missing,
     )
