@@ -145,7 +145,7 @@ def start(
         quad = be.clone(quadrics)
     if locked is not None:
         be.launch(K.LOCK_VERTICES, nv, [locked, state])
-    classes = np.bincount(be.to_host(state), minlength=4)  # sync point
+    classes = devmesh.class_counts(state)  # sync point
     c = Collapsing(
         be=be,
         pos=pos,

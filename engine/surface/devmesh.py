@@ -91,6 +91,16 @@ def vertex_classes(faces: Any, inc: Incidence) -> Any:
     return state
 
 
+def class_counts(state: Any) -> np.ndarray:
+    """How many vertices of each class (``CLASS_NAMES``' order), counted on the device (a sync point: 16 bytes
+    come back; reading the class of each of the phantom's 15 M vertices back cost 0.14 s on an H200)."""
+    bk = backend_of(state)
+    counts = bk.zeros(len(CLASS_NAMES), np.int32)
+    if len(state):
+        bk.launch(k.COUNT_CLASSES, len(state), [state, counts])
+    return bk.to_host(counts).astype(np.int64)
+
+
 def exclusive_scan(flag: Any) -> tuple[Any, int]:
     """Exclusive prefix sum of an int32 0/1 array on its device, and the total (a sync point)."""
     bk = backend_of(flag)
@@ -201,7 +211,7 @@ def mesh_stats_device(pos: Any, faces: Any, inc: Incidence | None = None) -> Mes
     totals = bk.zeros(4, np.int64)
     bk.launch(k.EDGE_CENSUS, nv, [faces, *inc.inputs, totals])
     volume, area_sum, degenerate = _face_sums(pos, faces)
-    classes = np.bincount(bk.to_host(vertex_classes(faces, inc)), minlength=4)
+    classes = class_counts(vertex_classes(faces, inc))
     label = component_labels_device(faces, nv)
     roots = bk.zeros(1, np.int32)
     bk.launch(k.COUNT_ROOTS, nv, [label, inc.count, roots])

@@ -19,6 +19,7 @@ COUNT_INCIDENCE = _spec("topology", "count_incidence")
 FILL_INCIDENCE = _spec("topology", "fill_incidence")
 SORT_INCIDENCE = _spec("topology", "sort_incidence")
 CLASSIFY = _spec("topology", "classify_vertices")
+COUNT_CLASSES = _spec("topology", "count_classes")
 
 # compaction: removed faces and unused vertices dropped, order kept; the bounding box
 ALIVE_FLAGS = _spec("compaction", "alive_flags")

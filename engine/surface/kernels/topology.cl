@@ -102,3 +102,8 @@ __kernel void classify_vertices(__global const int *faces, __global const int *o
     else if (open_fwd == 0) state[v] = FREE;
     else state[v] = BORDER;
 }
+
+__kernel void count_classes(__global const int *state, __global int *counts)
+{
+    atomic_inc(&counts[state[get_global_id(0)]]);
+}

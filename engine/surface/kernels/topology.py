@@ -157,3 +157,10 @@ def classify_vertices(
         state[v] = FREE
     else:
         state[v] = BORDER
+
+
+@wp.kernel
+def count_classes(state: wp.array(dtype=wp.int32), counts: wp.array(dtype=wp.int32)):
+    """How many vertices of each class (``counts`` has one slot per class, zeroed by the caller): four numbers
+    come back to the host instead of a class per vertex."""
+    wp.atomic_add(counts, state[wp.tid()], 1)
