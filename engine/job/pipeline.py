@@ -22,7 +22,7 @@ import numpy as np
 
 from engine.budget import Budget, BudgetSpec
 from engine.errors import EmptySurfaceError, InputError, StageError
-from engine.job.plans import STAGES, Stage, State, out_of_core, plan_for
+from engine.job.plans import STAGES, Stage, State, join_warnings, out_of_core, plan_for
 from engine.job.progress import StageProgress
 from engine.params import ReconParams
 from engine.report import Report
@@ -284,6 +284,7 @@ def _run_plan(
 
         with wp.ScopedDevice(_warp_device(st.pos, dev)):  # sync point: the counts come back
             report["mesh"] = mesh_stats_device(st.pos, st.faces, st.incidence_built())
+        join_warnings(st, report)
         report["finish_seconds"] = time.perf_counter() - t0
         report["memory"] = {
             "budget_bytes": st.budget.bytes,

@@ -165,6 +165,24 @@ def test_the_report_and_its_warnings_say_when_the_model_is_skin():
     assert [w["code"] for w in skin.report["warnings"]] == ["looks_like_skin"]
 
 
+def test_warnings_measured_beside_the_stages_fail_as_the_preprocess_stage(monkeypatch):
+    """The warnings run on a thread while the device stages run: their failure still fails the job, named as the
+    preprocess stage's, and a second job after it runs as before."""
+    from engine.errors import StageError
+    from engine.job import plans
+
+    def broken(volume, choice):
+        raise RuntimeError("the sample could not be read")
+
+    monkeypatch.setattr(plans, "model_warnings", broken)
+    vol = Volume(hu_plus_1024_head(), (1.0, 1.0, 1.0))
+    params = ReconParams(decimate=None, smooth=None, iso=IsoParams(iso=524.0, hu_offset=1024.0))
+    with pytest.raises(StageError, match="stage 'preprocess' failed: RuntimeError: the sample could not be read"):
+        reconstruct(vol, params, device="cpu")
+    monkeypatch.undo()
+    assert [w["code"] for w in reconstruct(vol, params, device="cpu").report["warnings"]] == ["looks_like_skin"]
+
+
 def test_real_cranium_skin_level_is_flagged():
     from engine.io import load_volume
     from tests.conftest import shared_file
