@@ -146,6 +146,7 @@ def _case(
         slices=[int(v) for v in np.argwhere(mask)[:, 0][[0, -1]]] if mask.any() else None,
         centroid_lps_mm=[round(float(v), 1) for v in res.to_json()["defect"]["centroid_lps_mm"]],
         stage_seconds={k: round(v, 3) for k, v in res.seconds.items()},
+        confidence=min((round(p.fit * p.rim.contact, 4) for p in res.kept if p.fit and p.rim), default=None),
     )
     if intact_plane is not None:
         row["plane_vs_intact_deg"] = round(_angle(res.plane.normal, intact_plane.normal), 3)

@@ -741,6 +741,8 @@ def _judge_one(p: Piece, measured: dict[str, Any], region: Region, grid: Grid) -
     _to_rim(p, region, grid, shell, border_of=full, reach=reach)
     if p.rim is not None and p.rim.gap_voxels > CLOSE_GAP_VOXELS:
         _close_rim(p, region, grid, shell, border_of=full, reach=reach)
+    if p.rim is not None and p.rim.gap_voxels > CLOSE_GAP_VOXELS:
+        _to_rim_across_slices(p, region, grid, shell, border_of=full, reach=reach)
     _cut_necks(p, region, grid, shell)
     if p.rim is not None and p.fit * p.rim.contact < MIN_CONFIDENCE:
         p.reason = (
@@ -854,11 +856,16 @@ def _merge_overlapping(region: Region, grid: Grid) -> None:
         p.reason = "the same hole as a larger candidate (they met when mirrored locally): joined to it"
 
 
-def _to_rim(p: Piece, region: Region, grid: Grid, shell: float, border_of: Any, reach: float) -> None:
+def _to_rim(
+    p: Piece, region: Region, grid: Grid, shell: float, border_of: Any, reach: float, across_slices: bool = False
+) -> None:
     """The kept piece filled out to the hole's rim: the mirrored bone missing from the scan within
     ``min(largest voxel side, half the shell)`` mm of it, connected to it. The rules leave out a band along a
     bevelled or partial-volume rim (bone across the shell within its thickness); the mirror's own bone there fills
-    it. Its rim is measured again."""
+    it. Its rim is measured again. ``across_slices`` (where the rim gap is still over a voxel): a step along a
+    coarser axis counts as that reach at most, so the mirror's bone in the slice beyond the template's last, which
+    the scan lacks, joins it (between thick slices the hole's rim lies a slice past the template: the head
+    phantom's 5 mm slices)."""
     from scipy import ndimage as ndi
 
     assert p.index is not None
@@ -870,7 +877,8 @@ def _to_rim(p: Piece, region: Region, grid: Grid, shell: float, border_of: Any, 
     box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
     piece = np.zeros(tuple(int(b - a) for a, b in zip(lo, hi, strict=True)), dtype=bool)
     piece[tuple((p.index - lo).T)] = True
-    near = ndi.distance_transform_edt(~piece, sampling=sp) <= reach_mm
+    step = np.minimum(sp, reach_mm) if across_slices else sp
+    near = ndi.distance_transform_edt(~piece, sampling=step) <= reach_mm + (1e-6 if across_slices else 0.0)
     fill = near & (region.mirrored[box] >= region.level) & ~region.bone[box]
     labels, _ = ndi.label(fill | piece, structure=CONNECTIVITY)
     keep = np.isin(labels, np.unique(labels[piece]))
@@ -881,6 +889,16 @@ def _to_rim(p: Piece, region: Region, grid: Grid, shell: float, border_of: Any, 
     border = np.any((g == 0) | (g == np.asarray(border_of) - 1), axis=1)
     rim = rim_of(p.index, region.bone, grid.spacing_zyx, border, reach)
     p.rim = dataclasses.replace(rim, open_toward_plane=p.rim.open_toward_plane if p.rim else 0.0)
+
+
+def _to_rim_across_slices(p: Piece, region: Region, grid: Grid, shell: float, border_of: Any, reach: float) -> None:
+    """A rim gap still over a voxel once bridged: the piece filled out to the rim across slices (``_to_rim``'s
+    ``across_slices``), kept where that brings its rim nearer the bone (else the piece is left as it was)."""
+    assert p.index is not None and p.rim is not None
+    before = (p.index, p.voxels, p.volume_mm3, p.rim)
+    _to_rim(p, region, grid, shell, border_of=border_of, reach=reach, across_slices=True)
+    if p.rim is None or p.rim.gap_voxels >= before[3].gap_voxels:
+        p.index, p.voxels, p.volume_mm3, p.rim = before
 
 
 def _close_width(shell: float, grid: Grid) -> float:

@@ -32,10 +32,10 @@ def _region(bone: np.ndarray, mirrored_bone: np.ndarray, shell_mm: float):
                   skull_mm3=float(bone.sum()), min_volume_mm3=1.0)  # fmt: skip
 
 
-def _grid(shape: tuple[int, ...]):
+def _grid(shape: tuple[int, ...], spacing: tuple[float, float, float] = (1.0, 1.0, 1.0)):
     from engine.defect.grid import Grid
 
-    return Grid(tuple(shape), (1.0, 1.0, 1.0), np.eye(3), np.zeros(3), "test")  # type: ignore[arg-type]
+    return Grid(tuple(shape), spacing, np.eye(3), np.zeros(3), "test")  # type: ignore[arg-type]
 
 
 def _piece(index: np.ndarray):
@@ -101,3 +101,30 @@ def test_a_turned_cut_beside_the_skulls_own_asymmetry_is_not_joined_to_it(headsq
     assert dice(mask, cut.removed) >= 0.6
     assert mask.sum() <= 2.0 * cut.removed.sum()
     assert sum(p.cut_mm3 for p in res.kept) > 0
+
+
+def test_the_mirrors_bone_a_slice_past_the_template_joins_it_between_thick_slices():
+    """A wall 4 mm thick cut across by 5 mm slices, its round hole's template one slice short at the top, the
+    mirror's bone there (the scan lacks it): filled out to the rim across slices, the template takes that slice and
+    nothing of the bone; the ordinary fill (half the shell, 2 mm) does not reach across a 5 mm slice."""
+    from engine.defect.region import _to_rim
+    from engine.defect.rim import rim_of
+
+    shape, zc, yc = (14, 40, 40), 7, 19.6
+    z, y, x = np.indices(shape)
+    wall = (x >= 18) & (x < 22)
+    hole = wall & (np.hypot((z - zc) * 5.0, y - yc) < 12.0)
+    bone = wall & ~hole
+    top = int(np.argwhere(hole)[:, 0].max())
+    template = hole & (z < top)
+    missing = hole & (z == top)
+    grid = _grid(shape, (5.0, 1.0, 1.0))
+    for across, gained in ((False, 0), (True, int(missing.sum()))):
+        region = _region(bone, wall, 4.0)
+        piece = _piece(np.argwhere(template))
+        piece.rim = rim_of(piece.index, bone, grid.spacing_zyx, np.zeros(len(piece.index), dtype=bool), 15.0)
+        _to_rim(piece, region, grid, 4.0, border_of=shape, reach=15.0, across_slices=across)
+        grown = np.zeros(shape, dtype=bool)
+        grown[tuple(piece.index.T)] = True
+        assert (grown & missing).sum() == gained
+        assert not (grown & bone).any()
