@@ -16,8 +16,10 @@ scratch copy from S3, removed afterwards) and gives its outputs back through ``p
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import datetime as dt
 import errno
+import functools
 import os
 import re
 import shutil
@@ -423,12 +425,38 @@ class LocalStorage(Storage):
         return {str(self.upload_path(job_id)): "upload", str(self._job(job_id)): "the job's files"}
 
 
+WRITEBACK_BYTES = 64 << 20  # an upload's bytes are handed to the disk every this many (``start_writeback``)
+_SYNC_FILE_RANGE_WRITE = 2  # Linux's SYNC_FILE_RANGE_WRITE: start writing the range's dirty pages, do not wait
+
+
+@functools.cache
+def _sync_file_range() -> Any:
+    """libc's ``sync_file_range`` (Linux), or None where there is none."""
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).sync_file_range
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes = (ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ctypes.c_uint)
+    fn.restype = ctypes.c_int
+    return fn
+
+
+def start_writeback(fd: int, offset: int, length: int) -> None:
+    """Start writing a file's range to the disk without waiting for it (Linux; elsewhere nothing), so that the
+    fsync that makes an upload durable waits for its last range only, not for the whole file: the kernel would
+    otherwise hold a 1 GB upload in memory until that fsync."""
+    fn = _sync_file_range()
+    if fn is not None:
+        fn(fd, offset, length, _SYNC_FILE_RANGE_WRITE)  # a failure here leaves it to the fsync, which reports it
+
+
 class _LocalUpload(UploadWriter):
     def __init__(self, folder: Path, max_bytes: int) -> None:
         folder.mkdir(parents=True, exist_ok=True)
         self.folder = folder
         self.max_bytes = max_bytes
         self.size = 0
+        self.written_back = 0  # bytes handed to the disk so far (``start_writeback``)
         self.tmp = folder / f".upload-{uuid.uuid4().hex}.part"
         self.fh = self.tmp.open("wb")
 
@@ -438,6 +466,10 @@ class _LocalUpload(UploadWriter):
             self.abort()
             raise UploadTooLarge(f"the upload is larger than the limit of {self.max_bytes:,} bytes")
         self.fh.write(chunk)
+        if self.size - self.written_back >= WRITEBACK_BYTES:
+            self.fh.flush()
+            start_writeback(self.fh.fileno(), self.written_back, self.size - self.written_back)
+            self.written_back = self.size
 
     def local_part(self) -> Path | None:
         return self.tmp

@@ -78,6 +78,32 @@ def test_upload_streams_in_and_shows_only_once_committed(store: Storage) -> None
         assert hashlib.sha256(path.read_bytes()).digest() == hashlib.sha256(data).digest()
 
 
+def test_a_local_upload_is_handed_to_the_disk_as_it_arrives(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every ``WRITEBACK_BYTES`` the bytes written so far start on their way to the disk (each range once, in
+    order, flushed first: the fsync at commit then waits for the last range only), and the upload is the same."""
+    import core.storage as storage
+
+    ranges: list[tuple[int, int, int]] = []
+
+    def record(fd: int, offset: int, length: int) -> None:
+        ranges.append((offset, length, os.fstat(fd).st_size))
+        real(fd, offset, length)  # the real call on the real file: Linux's sync_file_range, elsewhere nothing
+
+    real = storage.start_writeback
+    monkeypatch.setattr(storage, "WRITEBACK_BYTES", 1 << 20)
+    monkeypatch.setattr(storage, "start_writeback", record)
+    store = LocalStorage(tmp_path)
+    data = os.urandom((7 << 20) // 2 + 5)
+    writer = store.upload_writer(JOB, max_bytes=len(data))
+    for i in range(0, len(data), 300_000):
+        writer.write(memoryview(data)[i : i + 300_000])
+    writer.commit()
+    assert [r[0] for r in ranges] == [sum(r[1] for r in ranges[:k]) for k in range(len(ranges))]  # in order, once
+    assert len(ranges) == 3 and all(length >= 1 << 20 and size == off + length for off, length, size in ranges)
+    with store.local_upload(JOB) as path:
+        assert path.read_bytes() == data
+
+
 def test_a_refused_or_aborted_upload_leaves_nothing(store: Storage) -> None:
     writer = store.upload_writer(JOB, max_bytes=PART_BYTES + 10)
     writer.write(os.urandom(PART_BYTES))  # a part is on its way (S3)
