@@ -11,6 +11,16 @@ Each cut scan goes through ``engine.defect.run`` from scratch (plane included); 
 with the removed bone (Dice, precision, recall), and the rim gap is the template's (``DefectResult.rim``). The
 cranium (real defect, slices about 55-85) gives its template's volume and place. A table in Markdown is printed
 (``docs/defect.md`` holds it).
+
+The reviewer's sweep (issue 42, ``--sweep``; ``--device cuda:0`` runs it on a GPU, ``--out`` names its JSON, by
+default ``benchmarks/results/defect_sweep_<device>.json``) runs every case, or the chosen ones only:
+
+    python -m benchmarks.defect_quality --sweep --scans headsq,gantry_tilt --only "az 67.5 h 0.2" --out OUT.json
+    python -m benchmarks.defect_quality --sweep --scans headsq,head_phantom,gantry_tilt,cranium \
+        --from-json benchmarks/results/defect_sweep_cpu.json --failing --out OUT.json
+
+(``--only``: the cases whose name, ``headsq az 22.5 h 0.8 ball tissue yaw 7 roll -5 40 mm``, holds the string,
+repeatable; ``--from-json`` with ``--failing``: the cases of that run that missed the issue's goals.)
 """
 
 from __future__ import annotations
