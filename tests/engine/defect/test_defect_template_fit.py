@@ -128,3 +128,22 @@ def test_the_mirrors_bone_a_slice_past_the_template_joins_it_between_thick_slice
         grown[tuple(piece.index.T)] = True
         assert (grown & missing).sum() == gained
         assert not (grown & bone).any()
+
+
+def test_the_fill_across_slices_does_not_lift_a_piece_the_mirror_does_not_fit(device):
+    """The head phantom turned (yaw 7, roll -5), a 40 mm ball-shaped cut high at 112.5 degrees: its piece is refused
+    for low confidence (its rim 3 voxels from the bone). Filled across slices before its verdict, its rim came to
+    1.9 voxels, its confidence over the bar, and a template with Dice 0.30 was made; the fill runs on kept
+    templates only."""
+    from engine.defect import DefectParams, run
+    from engine.defect.synthetic import cut_at, posed
+    from engine.errors import NoDefectError
+    from engine.io import load_volume
+    from tests.conftest import shared_file
+
+    path = shared_file("head_phantom_dicom", "head_phantom_png16.zip")
+    orient = OrientParams(first_slice="inferior")
+    volume = posed(load_volume(path, spacing_zyx_mm=(5.0, 0.451171875, 0.451171875)), 7.0, -5.0, orient=orient)
+    cut = cut_at(volume, 1324.0, 112.5, 0.8, 40.0, slices=(12, 27), orient=orient, edge="ball", fill="tissue")
+    with pytest.raises(NoDefectError, match="low confidence"):
+        run(cut.volume, DefectParams(), 1324.0, device, orient=orient)
