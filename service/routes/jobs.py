@@ -110,17 +110,19 @@ def _source_print(spec: SourceJobCreate) -> str:
 async def _create(
     request: Request, svc: Services, who: str, base: str, size: int | None, hold: idempotency.Hold | None = None
 ) -> tuple[Job, str]:
-    """Make the job (a DICOMweb series, or an upload) and its request's fingerprint."""
+    """Make the job (a DICOMweb series, or an upload) and, under an Idempotency-Key (``hold``), its request's
+    fingerprint (else ""): an upload's is the SHA-256 of its bytes (1.7 GB/s on this machine: 0.7 s of a 1 GB upload's
+    write thread), not spent where no key will compare it."""
     if pacs_api.is_json(request):  # a DICOMweb series instead of a file
         spec = await pacs_api.read_source(request)
         return await pacs_api.create_source_job(svc, who, spec), _source_print(spec)
     free = await svc.in_upload_thread(svc.storage.free_bytes)
     if size is not None and free is not None and size > free:
         raise Problem(507, f"{FULL} ({size:,} bytes sent, {free:,} free)")
-    fingerprint = idempotency.UploadPrint()
+    fingerprint = idempotency.UploadPrint() if hold is not None else None
     async with svc.active_uploads:
         job = await receive(request, svc, who, svc.settings.max_upload_bytes, base, hold=hold, fingerprint=fingerprint)
-    return job, fingerprint.hexdigest()
+    return job, fingerprint.hexdigest() if fingerprint is not None else ""
 
 
 @router.get("/jobs", response_model=JobList, summary="your jobs, newest first", responses=KEYED)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
+import hashlib
 import json
 import socket
 import time
@@ -48,6 +49,24 @@ def _upload(client: TestClient | httpx.Client, key: str | None, params: dict[str
     files = {"file": ("headsq.zip", HEADSQ.path.read_bytes(), "application/zip")}
     sent = {**headers, **({"Idempotency-Key": key} if key is not None else {})}
     return client.post("/v1/jobs", headers=sent, files=files, data={"params": json.dumps(params)})
+
+
+def test_an_upload_is_hashed_only_under_a_key(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The fingerprint (the SHA-256 of the upload's bytes) is made only where a key will compare it: an upload
+    without one is not hashed, one with a key is, over every byte of its file."""
+    made: list[idempotency.UploadPrint] = []
+
+    class Counted(idempotency.UploadPrint):
+        def __init__(self) -> None:
+            super().__init__()
+            made.append(self)
+
+    monkeypatch.setattr(idempotency, "UploadPrint", Counted)
+    with _app(tmp_path) as client:
+        assert _upload(client, None, HEADSQ.params, **KEY_A).status_code == 202
+        assert made == []
+        assert _upload(client, str(uuid.uuid4()), HEADSQ.params, **KEY_A).status_code == 202
+        assert [m.file.hexdigest() for m in made] == [hashlib.sha256(HEADSQ.path.read_bytes()).hexdigest()]
 
 
 def test_the_same_key_and_request_give_the_same_job(tmp_path: Path) -> None:
