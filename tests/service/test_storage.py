@@ -104,6 +104,38 @@ def test_a_local_upload_is_handed_to_the_disk_as_it_arrives(tmp_path: Path, monk
         assert path.read_bytes() == data
 
 
+def test_a_local_upload_written_in_batches_survives_short_writes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A batch goes to the file in one ``writev`` where it can; where the system writes less (here at most 7 bytes
+    a call, at most 3 buffers), the rest follows in order. Over the limit, nothing is kept."""
+    import core.storage as storage
+
+    real = os.writev
+    calls: list[int] = []
+
+    def short(fd: int, buffers: list[memoryview]) -> int:
+        calls.append(len(buffers))
+        return real(fd, [bytes(b"".join(bytes(b) for b in buffers[:3])[:7])])
+
+    monkeypatch.setattr(storage.os, "writev", short)
+    store = LocalStorage(tmp_path)
+    data = os.urandom(1000)
+    writer = store.upload_writer(JOB, max_bytes=len(data))
+    writer.write(memoryview(data)[:10])  # a single write first: its buffered bytes go before the batch
+    writer.write_many([memoryview(data)[i : i + 33] for i in range(10, 1000, 33)])
+    writer.commit()
+    assert writer.size == len(data) and len(calls) > 100 and max(calls) > 3
+    with store.local_upload(JOB) as path:
+        assert path.read_bytes() == data
+    too_big = store.upload_writer(JOB, max_bytes=10)
+    with pytest.raises(UploadTooLarge):
+        too_big.write_many([memoryview(b"x" * 6), memoryview(b"y" * 6)])
+    assert not list(tmp_path.rglob(".upload-*.part"))  # the refused one left nothing; the earlier upload stays
+    with store.local_upload(JOB) as path:
+        assert path.read_bytes() == data
+
+
 def test_a_refused_or_aborted_upload_leaves_nothing(store: Storage) -> None:
     writer = store.upload_writer(JOB, max_bytes=PART_BYTES + 10)
     writer.write(os.urandom(PART_BYTES))  # a part is on its way (S3)
