@@ -475,28 +475,29 @@ class _LocalUpload(UploadWriter):
         self.fh = self.tmp.open("wb")
 
     def write(self, chunk: bytes | memoryview) -> None:
-        self.size += len(chunk)
-        if self.size > self.max_bytes:
-            self.abort()
-            raise UploadTooLarge(f"the upload is larger than the limit of {self.max_bytes:,} bytes")
+        self._grow(len(chunk))
         self.fh.write(chunk)
-        if self.size - self.written_back >= WRITEBACK_BYTES:
-            self.fh.flush()
-            start_writeback(self.fh.fileno(), self.written_back, self.size - self.written_back)
-            self.written_back = self.size
+        self._hand_over()
 
     def write_many(self, chunks: list[memoryview]) -> None:
         """One ``writev`` per batch instead of a ``write`` per received buffer (a batch is 64 of them): the thread
         that writes gives the API's event loop the interpreter back once per batch, not once per 64 KiB."""
-        n = sum(len(c) for c in chunks)
-        if self.size + n > self.max_bytes:
-            self.size += n
-            self.abort()
-            raise UploadTooLarge(f"the upload is larger than the limit of {self.max_bytes:,} bytes")
+        self._grow(sum(len(c) for c in chunks))
         self.fh.flush()  # what ``write`` left in the file object's buffer goes first
         write_all(self.fh.fileno(), chunks)
+        self._hand_over()
+
+    def _grow(self, n: int) -> None:
+        """Count ``n`` more bytes; past the limit, nothing is kept (UploadTooLarge)."""
         self.size += n
+        if self.size > self.max_bytes:
+            self.abort()
+            raise UploadTooLarge(f"the upload is larger than the limit of {self.max_bytes:,} bytes")
+
+    def _hand_over(self) -> None:
+        """Every ``WRITEBACK_BYTES``, the bytes written since start on their way to the disk."""
         if self.size - self.written_back >= WRITEBACK_BYTES:
+            self.fh.flush()
             start_writeback(self.fh.fileno(), self.written_back, self.size - self.written_back)
             self.written_back = self.size
 
