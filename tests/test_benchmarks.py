@@ -182,6 +182,20 @@ def test_labels_speed(tmp_path: Path) -> None:
     assert run["parts"] == run["watertight_parts"] == 4 and run["faces"] > 0
 
 
+def test_body_mask(tmp_path: Path) -> None:
+    from benchmarks.body_mask import main
+
+    out = tmp_path / "body_mask.json"
+    args = ["--shape", "8,32,32", "--repeat", "1", "--data", str(tmp_path / "none"), "--before", str(REPO)]
+    assert main([*args, "--out", str(out)]) == 0
+    report = load(out)
+    has_keys(report, "benchmark", "cpus", "repeat", "before", "results")
+    row = report["results"]["clinical_8x32x32"]
+    assert "error" not in row["after"] and finite(row["after"]["median_seconds"])
+    assert row["same_result"] and finite(row["ratio_before_over_after"])  # this checkout against itself
+    assert row["after"]["info"]["pieces_removed"] == 2  # the couch and the holder
+
+
 def test_determinism(tmp_path: Path) -> None:
     from benchmarks.determinism import main
 

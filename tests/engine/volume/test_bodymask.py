@@ -116,6 +116,77 @@ def test_thick_body_parts_stay_and_a_lone_thin_part_stays():
     assert body[1:5, 11:19, 14:16].all()
 
 
+def _outline_slice_by_slice(data, level, outline, pixel_mm, radius_mm=3.0):
+    """The outline as scipy gives it one slice at a time (``binary_fill_holes``, a 2-D erosion and 2-D labels): the
+    oracle that the chunked, in-plane 3-D calls must equal."""
+    from scipy import ndimage as ndi
+
+    cross = ndi.generate_binary_structure(2, 1)
+    out = np.zeros(data.shape, bool)
+    for z in range(data.shape[0]):
+        body = ndi.binary_fill_holes((data[z] >= outline) & (data[z] < level))
+        thick = ndi.binary_erosion(body, structure=cross, iterations=max(1, round(radius_mm / pixel_mm)))
+        if thick.any():
+            parts, n = ndi.label(body, structure=cross)
+            keep = np.bincount(parts[thick], minlength=n + 1) > 0
+            keep[0] = False
+            body = keep[parts]
+        out[z] = body
+    return out
+
+
+@pytest.mark.parametrize("chunk", [1, 3, 16])
+def test_the_outline_in_chunks_is_scipys_slice_by_slice(monkeypatch, chunk):
+    """Holes that reach the slice's edge (not filled) and holes that do not (filled), a slice of thin parts only, a
+    thin plate beside the body, empty slices, chunks that split the slices unevenly: the same outline as scipy's
+    own per-slice calls, on the bundled headsq (another project's scan) and on these cases."""
+    import engine.volume.bodymask as bm
+    from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
+    from engine.io.stack import load_slice_zip
+
+    monkeypatch.setattr(bm, "CHUNK_PLANES", chunk)
+    data = with_thin_plate(patient_on_a_couch(couch=True, holder=True))
+    data[5, :, 0:3] = 40.0  # tissue on the slice's edge: the background beside it reaches the edge elsewhere
+    data[6, 10:20, 10:20] = 40.0  # a square ring: its hole is filled
+    data[6, 13:17, 13:17] = -1000.0
+    data[7, :, 30:33] = 40.0  # a band across the whole slice splits its background: both halves reach the edge
+    data[0] = -1000.0
+    data[19] = 40.0  # a slice full of tissue
+    for vol, level, outline, pixel in (
+        (data, 300.0, -500.0, 1.0),
+        (load_slice_zip(HEADSQ_ZIP), 1150.0, 300.0, HEADSQ_SPACING_ZYX_MM[1]),
+    ):
+        spacing = (1.0, pixel, pixel)
+        got = body_outline(vol, level, outline, spacing, 0.0)
+        np.testing.assert_array_equal(got, _outline_slice_by_slice(vol, level, outline, pixel))
+    assert got.any() and not got.all()
+
+
+@pytest.mark.parametrize("chunk", [1, 2, 5, 64])
+def test_bone_pieces_in_chunks_are_scipys_pieces(monkeypatch, chunk):
+    """The pieces labelled chunk by chunk and joined across the chunks' borders are the pieces of one
+    ``scipy.ndimage.label`` call over the volume (26-connected; numbered in another order): random specks and
+    strands that touch the next slice only diagonally, and the bundled headsq."""
+    import engine.volume.bodymask as bm
+    from scipy import ndimage as ndi
+
+    from engine.data import HEADSQ_LEVEL, HEADSQ_ZIP
+    from engine.io.stack import load_slice_zip
+
+    monkeypatch.setattr(bm, "CHUNK_PLANES", chunk)
+    rng = np.random.default_rng(7)
+    specks = (rng.random((23, 40, 37)) > 0.82).astype(np.float32)
+    diagonal = np.zeros((12, 12, 12), np.float32)
+    for i in range(12):
+        diagonal[i, i, i] = diagonal[i, 11 - i, i] = 1.0  # two strands, corner to corner: one piece where they cross
+    for data, level in ((specks, 0.5), (diagonal, 0.5), (load_slice_zip(HEADSQ_ZIP), HEADSQ_LEVEL)):
+        got, n = bm.bone_pieces(data, level)
+        ref, n_ref = ndi.label(data >= level, structure=np.ones((3, 3, 3), bool))
+        assert n == n_ref and got.max() == n and np.array_equal(got > 0, ref > 0)
+        pairs = np.unique(np.stack([got[ref > 0], ref[ref > 0]]), axis=1)
+        assert pairs.shape[1] == n  # one to one: the same pieces
+
+
 # ---- the real scans (../shared/data) -----------------------------------------------------------------------------
 def test_cranium_print_model_has_no_holder_plates():
     vol = load_volume(shared_file("cranium_ct", "cranium_ct_png16.zip"), spacing_zyx_mm=(1.5, 0.9570312, 0.9570312))
