@@ -97,25 +97,29 @@ def test_a_gap_wider_than_half_the_shell_is_not_bridged():
     assert piece.rim.gap_voxels > 1.0
 
 
+def thick_slice_hole() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A wall 4 mm thick cut across by 5 mm slices (spacing 5, 1, 1 mm) with a round hole, and a template of the
+    hole one slice short at the top: ``(wall, bone, template, missing)``, ``missing`` the hole's last slice."""
+    shape, zc, yc = (14, 40, 40), 7, 19.6
+    z, y, x = np.indices(shape)
+    wall = (x >= 18) & (x < 22)
+    hole = wall & (np.hypot((z - zc) * 5.0, y - yc) < 12.0)
+    top = int(np.argwhere(hole)[:, 0].max())
+    return wall, wall & ~hole, hole & (z < top), hole & (z == top)
+
+
 def test_a_slice_the_mirror_stops_short_of_is_bridged_between_thick_slices():
     """A wall 4 mm thick cut across by 5 mm slices, its round hole's template one slice short at the top (as the
     head phantom's mirror was): the closing bridges that slice (a step along the coarse axis counts as the ball's
     radius at most) and takes nothing of the bone."""
     from engine.defect.region import _close_rim
 
-    shape, zc, yc = (14, 40, 40), 7, 19.6
-    z, y, x = np.indices(shape)
-    wall = (x >= 18) & (x < 22)
-    hole = wall & (np.hypot((z - zc) * 5.0, y - yc) < 12.0)
-    bone = wall & ~hole
-    top = int(np.argwhere(hole)[:, 0].max())
-    template = hole & (z < top)  # the hole's last slice missing from the template
+    wall, bone, template, missing = thick_slice_hole()  # the hole's last slice missing from the template
     region, grid, piece = _short_piece(bone, template, spacing=(5.0, 1.0, 1.0))
     assert piece.rim.gap_voxels > 0.0
     _close_rim(piece, region, grid, 4.0, border_of=grid.shape, reach=6.0)
-    grown = np.zeros(shape, dtype=bool)
+    grown = np.zeros(wall.shape, dtype=bool)
     grown[tuple(piece.index.T)] = True
-    missing = hole & (z == top)
     assert (grown & missing).sum() >= 0.5 * missing.sum()
     assert not (grown & bone).any()
 

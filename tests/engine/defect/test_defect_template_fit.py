@@ -110,21 +110,16 @@ def test_the_mirrors_bone_a_slice_past_the_template_joins_it_between_thick_slice
     from engine.defect.region import _to_rim
     from engine.defect.rim import rim_of
 
-    shape, zc, yc = (14, 40, 40), 7, 19.6
-    z, y, x = np.indices(shape)
-    wall = (x >= 18) & (x < 22)
-    hole = wall & (np.hypot((z - zc) * 5.0, y - yc) < 12.0)
-    bone = wall & ~hole
-    top = int(np.argwhere(hole)[:, 0].max())
-    template = hole & (z < top)
-    missing = hole & (z == top)
-    grid = _grid(shape, (5.0, 1.0, 1.0))
+    from tests.engine.defect.test_defect_confidence import thick_slice_hole
+
+    wall, bone, template, missing = thick_slice_hole()
+    grid = _grid(wall.shape, (5.0, 1.0, 1.0))
     for across, gained in ((False, 0), (True, int(missing.sum()))):
         region = _region(bone, wall, 4.0)
         piece = _piece(np.argwhere(template))
         piece.rim = rim_of(piece.index, bone, grid.spacing_zyx, np.zeros(len(piece.index), dtype=bool), 15.0)
-        _to_rim(piece, region, grid, 4.0, border_of=shape, reach=15.0, across_slices=across)
-        grown = np.zeros(shape, dtype=bool)
+        _to_rim(piece, region, grid, 4.0, border_of=wall.shape, reach=15.0, across_slices=across)
+        grown = np.zeros(wall.shape, dtype=bool)
         grown[tuple(piece.index.T)] = True
         assert (grown & missing).sum() == gained
         assert not (grown & bone).any()
