@@ -267,12 +267,9 @@ def skin_warning(volume: Volume, level: float, offset: float | None) -> dict[str
     if offset is not None:
         if level >= offset + _SKIN_CHECK_BELOW_HU:
             return None
-        from scipy import ndimage as ndi
+        from engine.volume.bodymask import fill_holes_in_plane
 
-        outline = data >= offset - 500.0
-        body = np.empty_like(outline)
-        for z in range(outline.shape[0]):
-            body[z] = ndi.binary_fill_holes(outline[z])
+        body = fill_holes_in_plane(data >= offset - 500.0)  # the outline's holes filled slice by slice
         n_body = int(np.count_nonzero(body))
         share = float(np.count_nonzero(model & body)) / n_body if n_body else 0.0
         if share < SKIN_BODY_SHARE:

@@ -54,7 +54,7 @@ def body_outline(
 
     def chunk(z0: int, z1: int) -> None:
         d = data[z0:z1]
-        part = _filled((d >= outline) & (d < level))
+        part = fill_holes_in_plane((d >= outline) & (d < level))
         if thin_radius_mm is not None and part.any():
             part = _without_thin_parts(part, thin_radius_mm, pixel_mm)
         if dilate_mm > 0:
@@ -152,7 +152,7 @@ def _touching(below: np.ndarray, above: np.ndarray) -> tuple[np.ndarray, np.ndar
     return np.concatenate(out_a), np.concatenate(out_b)
 
 
-def _filled(tissue: np.ndarray) -> np.ndarray:
+def fill_holes_in_plane(tissue: np.ndarray) -> np.ndarray:
     """Each slice's holes filled, as ``scipy.ndimage.binary_fill_holes`` fills one slice: the background (4-connected
     in the slice) that reaches the slice's edge is outside; everything else is body."""
     from scipy import ndimage as ndi
