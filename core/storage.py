@@ -454,7 +454,10 @@ def write_all(fd: int, chunks: list[memoryview]) -> None:
     """Write the buffers to ``fd`` in order with as few ``writev`` calls as the system allows (a short write goes
     on from where it stopped)."""
     left = [memoryview(c).cast("B") for c in chunks if len(c)]
-    most = os.sysconf("SC_IOV_MAX") if hasattr(os, "sysconf") else 16
+    try:
+        most = max(1, os.sysconf("SC_IOV_MAX"))  # -1 where the system sets no limit
+    except (AttributeError, ValueError, OSError):
+        most = 16
     while left:
         done = os.writev(fd, left[:most])
         while done and left:
