@@ -455,9 +455,10 @@ def write_all(fd: int, chunks: list[memoryview]) -> None:
     on from where it stopped)."""
     left = [memoryview(c).cast("B") for c in chunks if len(c)]
     try:
-        most = max(1, os.sysconf("SC_IOV_MAX"))  # -1 where the system sets no limit
+        most = os.sysconf("SC_IOV_MAX")
     except (AttributeError, ValueError, OSError):
-        most = 16
+        most = 16  # POSIX's least
+    most = most if most > 0 else 1024  # -1: the system names no limit
     while left:
         done = os.writev(fd, left[:most])
         while done and left:
