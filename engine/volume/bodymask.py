@@ -13,6 +13,7 @@ to the volume's minimum (air).
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import os
 import threading
 import time
@@ -115,23 +116,21 @@ def bone_pieces(data: np.ndarray, level: float) -> tuple[np.ndarray, int]:
     first, total = {}, 0  # each chunk's labels follow the chunks' before it
     for z0, _ in spans:
         first[z0], total = total, total + counts[z0]
-
-    def offset(z0: int, z1: int) -> None:
-        part = labels[z0:z1]
-        part[part > 0] += first[z0]
-
-    _by_chunks(offset, nz)
-    pairs = [_touching(labels[z - 1], labels[z]) for _, z in spans[:-1]]
-    if not pairs or total == 0:
+    if len(spans) == 1 or total == 0:
         return labels, total
+    pairs = []  # in the chunks' own numbering, moved to the volume's
+    for (z0, _), (z, _) in itertools.pairwise(spans):
+        a, b = _touching(labels[z - 1], labels[z])
+        pairs.append((a + first[z0], b + first[z]))
     a, b = np.concatenate([p[0] for p in pairs]), np.concatenate([p[1] for p in pairs])
     graph = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(total + 1, total + 1))
     _, comp = connected_components(graph, directed=False)
     _, joined = np.unique(comp[1:], return_inverse=True)
-    remap = np.concatenate([[0], joined.astype(np.int32) + 1]).astype(np.int32)
+    remap = joined.astype(np.int32) + 1  # a chunk's label k is the volume's label first + k, here at first + k - 1
 
     def renumber(z0: int, z1: int) -> None:
-        labels[z0:z1] = remap[labels[z0:z1]]
+        lut = np.concatenate([[0], remap[first[z0] : first[z0] + counts[z0]]]).astype(np.int32)
+        labels[z0:z1] = lut[labels[z0:z1]]
 
     _by_chunks(renumber, nz)
     return labels, int(joined.max()) + 1
