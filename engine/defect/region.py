@@ -808,16 +808,10 @@ def _cut_necks(p: Piece, region: Region, grid: Grid, shell: float) -> None:
     if keep.all() or not keep.any():
         return
     p.cut_mm3 += float(np.count_nonzero(~keep)) * grid.voxel_mm3
-    p.index = p.index[keep]
-    p.voxels = len(p.index)
-    p.volume_mm3 = p.voxels * grid.voxel_mm3
+    _take(p, p.index[keep], region, grid, border_of=grid.shape, reach=_reach(region, grid))
     assert p.local_normal is not None and p.local_offset_mm is not None
     _place(p, grid, region, p.local_normal, p.local_offset_mm)
     p.span = spans_shell(p.index, region.bone, region.mirrored, region.level, grid.spacing_zyx, reach_mm)
-    g = p.index + region.lo
-    border = np.any((g == 0) | (g == np.asarray(grid.shape) - 1), axis=1)
-    rim = rim_of(p.index, region.bone, grid.spacing_zyx, border, _reach(region, grid))
-    p.rim = dataclasses.replace(rim, open_toward_plane=p.rim.open_toward_plane if p.rim else 0.0)
     p.fit = local_fit(p.index, region.bone, region.mirrored >= region.level, grid.spacing_zyx,
                       2.0 * region.shell_mm + float(sp.max()))  # fmt: skip
 
@@ -882,12 +876,18 @@ def _to_rim(
     fill = near & (region.mirrored[box] >= region.level) & ~region.bone[box]
     labels, _ = ndi.label(fill | piece, structure=CONNECTIVITY)
     keep = np.isin(labels, np.unique(labels[piece]))
-    p.index = np.argwhere(keep) + lo
-    p.voxels = len(p.index)
+    _take(p, np.argwhere(keep) + lo, region, grid, border_of=border_of, reach=reach)
+
+
+def _take(p: Piece, index: npt.NDArray[np.int64], region: Region, grid: Grid, border_of: Any, reach: float) -> None:
+    """The piece made of ``index`` (voxels of the region's crop) from now on: its size, and its rim measured again
+    (the scan's border at ``border_of``, bone looked for within ``reach`` mm; how open it is toward the plane kept)."""
+    p.index = index
+    p.voxels = len(index)
     p.volume_mm3 = p.voxels * grid.voxel_mm3
-    g = p.index + region.lo
+    g = index + region.lo
     border = np.any((g == 0) | (g == np.asarray(border_of) - 1), axis=1)
-    rim = rim_of(p.index, region.bone, grid.spacing_zyx, border, reach)
+    rim = rim_of(index, region.bone, grid.spacing_zyx, border, reach)
     p.rim = dataclasses.replace(rim, open_toward_plane=p.rim.open_toward_plane if p.rim else 0.0)
 
 
@@ -946,14 +946,8 @@ def _close_rim(p: Piece, region: Region, grid: Grid, shell: float, border_of: An
     labels, _ = ndi.label(add | piece, structure=CONNECTIVITY)
     keep = np.isin(labels, np.unique(labels[piece]))
     before = len(p.index)
-    p.index = np.argwhere(keep) + lo
-    p.voxels = len(p.index)
-    p.volume_mm3 = p.voxels * grid.voxel_mm3
+    _take(p, np.argwhere(keep) + lo, region, grid, border_of=border_of, reach=reach)
     p.bridged_mm3 = (p.voxels - before) * grid.voxel_mm3
-    g = p.index + region.lo
-    border = np.any((g == 0) | (g == np.asarray(border_of) - 1), axis=1)
-    rim = rim_of(p.index, region.bone, grid.spacing_zyx, border, reach)
-    p.rim = dataclasses.replace(rim, open_toward_plane=p.rim.open_toward_plane)
 
 
 def _no_core(region: Region, grid: Grid) -> str:
