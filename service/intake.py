@@ -133,15 +133,16 @@ def finish_decoder(decoder: UploadDecoder | DecoderProcess, job_id: str, size: i
     """Keep the decoded slices where they are the stack the worker would decode, else drop them (logged); the
     upload is complete and committed (``size`` bytes)."""
     if isinstance(decoder, DecoderProcess):
-        if decoder.finish(size):
-            log.info(
-                "job %s: %d slice(s) decoded during the upload (in a process: %s)", job_id, decoder.slices,
-                ", ".join(f"{k} {v:.3f}" for k, v in decoder.timings.items()),
-            )  # fmt: skip
-        elif decoder.reason:
-            log.info("job %s: slices not decoded during the upload: %s", job_id, escape_control(decoder.reason))
-    elif decoder.finish():
-        log.info("job %s: %d slice(s) decoded during the upload", job_id, sum(m["png"] for m in decoder.members))
+        kept = decoder.finish(size)
+        slices, where = (
+            decoder.slices,
+            " (in a process: " + ", ".join(f"{k} {v:.3f}" for k, v in decoder.timings.items()) + ")",
+        )
+    else:
+        kept = decoder.finish()
+        slices, where = sum(m["png"] for m in decoder.members), ""
+    if kept:
+        log.info("job %s: %d slice(s) decoded during the upload%s", job_id, slices, where)
     elif decoder.reason:
         log.info("job %s: slices not decoded during the upload: %s", job_id, escape_control(decoder.reason))
 
