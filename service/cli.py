@@ -14,6 +14,7 @@ installed version.
 from __future__ import annotations
 
 import argparse
+import copy
 import sys
 from typing import Any
 
@@ -93,9 +94,20 @@ def _serve(argv: list[str]) -> int:
         host=args.host,
         port=args.port,
         log_level=args.log_level,
+        log_config=log_config(args.log_level),
         workers=args.workers if args.workers > 1 else None,
     )
     return 0
+
+
+def log_config(level: str) -> dict[str, Any]:
+    """uvicorn's own logging, with the API's loggers (``bonemesh.*``: uploads, decoders, the background sweeps)
+    written beside uvicorn's lines at ``level``. Without it only their warnings reach the log, and bare."""
+    from uvicorn.config import LOGGING_CONFIG
+
+    config = copy.deepcopy(LOGGING_CONFIG)
+    config["loggers"]["bonemesh"] = {"handlers": ["default"], "level": level.upper(), "propagate": False}
+    return config
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -14,6 +14,7 @@ from core.db import Database, Job
 from core.logsafe import escape_control, safe_logger
 from core.params import JobParams
 from core.storage import Storage, UploadTooLarge, UploadWriter, is_storage_full, scrub_paths
+from core.timings import Timings
 from engine.io.predecode import UploadDecoder
 from engine.io.predecode_proc import DecoderProcess
 from service.idempotency import Hold, UploadPrint
@@ -41,8 +42,10 @@ async def receive(
     """Stream, check and record one upload; nothing of a refused one is kept. With an ``Idempotency-Key``, ``hold``
     is kept alive by the body's bytes, and ``fingerprint`` takes the upload's."""
     job_id = Database.new_id()
+    timer = Timings(log, "upload timings")  # where the upload's time goes (benchmarks/service.py reads the line)
     writer = await svc.in_upload_thread(svc.storage.upload_writer, job_id, limit)
     decoder = await svc.in_upload_thread(start_decoder, svc, job_id, request.headers.get("content-length"), writer)
+    timer.lap("open")
 
     def write(batch: list[memoryview]) -> None:
         if fingerprint is not None:
@@ -59,6 +62,7 @@ async def receive(
         parsed = await read_multipart(
             request.headers.get("content-type", ""), body, lambda batch: svc.in_upload_thread(write, batch)
         )
+        timer.lap("body")  # received, parsed and written (the last batch's write awaited)
         if fingerprint is not None:
             fingerprint.seal(parsed.filename, parsed.fields)
         if hold is not None:
@@ -72,17 +76,24 @@ async def receive(
                 raise Problem(
                     422, str(exc), code="callback_refused", errors=[{"field": "callback_url", "message": str(exc)}]
                 ) from None
+        timer.lap("fields")
         await svc.in_upload_thread(writer.commit)
+        timer.lap("commit")
         summary = await svc.in_upload_thread(_inspect, svc.storage, job_id, parsed.filename, params)
+        timer.lap("inspect")
         if decoder is not None:
             await svc.in_upload_thread(finish_decoder, decoder, job_id, writer.size)
+            timer.lap("decoder")
         log.info("job %s: upload of %d bytes: %s", job_id, writer.size, summary)
         name = parsed.filename or "upload"
         if hold is not None:  # the key is still this request's: nobody made the job meanwhile
             await svc.in_upload_thread(hold.still_held)
-        return await svc.in_upload_thread(  # type: ignore[no-any-return]
+        job: Job = await svc.in_upload_thread(
             svc.accept, job_id, who, params.record(), engine, name, writer.size, callback, base_url
         )
+        timer.lap("record")
+        timer.log(job_id)
+        return job
     except Exception as exc:
         if decoder is not None:
             await svc.in_upload_thread(decoder.abort)

@@ -324,6 +324,9 @@ def test_service(tmp_path: Path, no_data: Path, redis_executable: str) -> None:
         assert finite(summary["upload_to_links_seconds"]) and summary["median_run"]["mesh_faces"] > 0
     assert finite(r["baseline_over_new"])
     assert r["median_run"]["decoded_during_upload"] is True and "load" in r["median_run"]["worker_seconds"]
+    api = r["median_run"]["api_upload_seconds"]  # the API's own line: each step of the upload, the decoder's end too
+    assert {"open", "body", "commit", "inspect", "decoder", "record", "total"} <= set(api)
+    assert sum(v for k, v in api.items() if k != "total") == pytest.approx(api["total"], abs=0.01)
     anchor = r["predecode_anchor"]
     assert anchor.get("failed_runs") == [] and anchor["median_run"]["decoded_during_upload"] is False
     effect = r["predecode_effect"]["loading_seconds_worker"]

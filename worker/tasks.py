@@ -24,6 +24,7 @@ from core.faults import Outage, outage_of, retrying
 from core.logsafe import escape_control, relabel, safe_logger
 from core.settings import Settings, get_settings
 from core.storage import is_storage_full, scrub_exception, scrub_paths, storage_from_settings, version_of
+from core.timings import Timings
 from engine.io.predecode import remove_predecoded
 from engine.job import FILES, LABELS_ZIP, triangle_count
 from worker.app import app, runtime_of
@@ -35,7 +36,6 @@ from worker.pacs import (
     write_dicom_labels,
     write_dicom_model,
 )
-from worker.timings import Timings
 
 if TYPE_CHECKING:
     from engine.job import JobSpec
@@ -113,7 +113,7 @@ def reconstruct_job(self: Any, job_id: str) -> str:
     worker = f"{host}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
     stale_before = utcnow() - dt.timedelta(seconds=settings.stale_seconds)
     name = getattr(self.request, "hostname", None) or worker  # the Celery node name: the job shows who ran it
-    timer = Timings()
+    timer = Timings(log)
     job = db.claim(job_id, worker, stale_before, name=name, host=host)
     timer.lap("claim")
     if job is None:
@@ -241,7 +241,7 @@ def _run(
     each)."""
     from engine.job import run_job
 
-    timer = timer or Timings()  # the attempt's (reconstruct_job), or one of its own
+    timer = timer or Timings(log)  # the attempt's (reconstruct_job), or one of its own
     spec = job_spec_of(job)
     holder.progress("loading", 1.0)
     timer.lap("prepare")  # the imports above (a new worker's first job), the spec, the first beat

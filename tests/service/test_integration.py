@@ -87,6 +87,10 @@ def test_tar_gz_upload(stack: ServiceStack, client_a: httpx.Client, anon: httpx.
     job = wait_for_job(client_a, resp.json()["id"], stack=stack, timeout=300)
     outputs = assert_succeeded(job, stack.base_url)
     check_outputs(anon, outputs, HEADSQ.shape_zyx, HEADSQ.spacing_zyx_mm)
+    # the API's own info lines reach its log (`bonemesh serve`'s logging), the upload's name never
+    logs = "".join(p.read_text(errors="replace") for p in stack.log_dir.glob("server-*.log"))
+    assert f"job {job['id']}: upload of " in logs and f"job {job['id']} upload timings {{" in logs
+    assert "headsq.tar.gz" not in logs
 
 
 def test_health(anon: httpx.Client) -> None:
