@@ -96,8 +96,9 @@ class Settings(BaseSettings):
     decode_during_upload: bool = Field(
         default=True,
         description="a zip of PNG slices uploaded through the API is decoded while it arrives, into a volume file "
-        "beside the upload that the worker loads instead of decoding the zip (engine.io.predecode); local storage "
-        "only (on S3 it is not made: the worker decodes the zip)",
+        "beside the upload that the worker loads instead of decoding the zip (engine.io.predecode; only inflated, "
+        "for the worker's GPU to unfilter, unless BONEMESH_DEVICE is cpu or BONEMESH_PNG_DECODER is not auto); "
+        "local storage only (on S3 it is not made: the worker decodes the zip)",
     )
     predecode_threads: int | None = Field(
         default=None,

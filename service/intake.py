@@ -13,9 +13,10 @@ from pydantic import ValidationError
 from core.db import Database, Job
 from core.logsafe import escape_control, safe_logger
 from core.params import JobParams
+from core.settings import Settings
 from core.storage import Storage, UploadTooLarge, UploadWriter, is_storage_full, scrub_paths
 from core.timings import Timings
-from engine.io.predecode import UploadDecoder
+from engine.io.predecode import PLANES, ROWS, UploadDecoder
 from engine.io.predecode_proc import DecoderProcess
 from service.idempotency import Hold, UploadPrint
 from service.problems import Problem
@@ -131,13 +132,21 @@ def start_decoder(
         from engine.io.parallel import decode_threads
 
         threads = decode_threads(svc.settings.predecode_threads)
+        layout = predecode_layout(svc.settings)
         part = writer.local_part() if writer is not None else None
         if svc.settings.predecode_process and svc.decoders is not None and part is not None:
-            return svc.decoders.start(path, part, threads)
-        return UploadDecoder(path, threads=threads)
+            return svc.decoders.start(path, part, threads, layout)
+        return UploadDecoder(path, threads=threads, layout=layout)
     except Exception as exc:  # never a reason to refuse the upload
         log.warning("job %s: no decoding during the upload (%s)", job_id, type(exc).__name__)
         return None
+
+
+def predecode_layout(settings: Settings) -> str:
+    """What the upload's decoder writes (``engine.io.predecode``): a PNG's filtered rows, only inflated (about a third
+    of a slice's decoding), where the workers may unfilter them on a GPU (``BONEMESH_DEVICE`` other than ``cpu``,
+    ``BONEMESH_PNG_DECODER`` ``auto``; a worker without one unfilters them on its host); else the samples."""
+    return ROWS if settings.device != "cpu" and settings.png_decoder == "auto" else PLANES
 
 
 def finish_decoder(decoder: UploadDecoder | DecoderProcess, job_id: str, size: int) -> None:

@@ -92,6 +92,13 @@ def _stored(codecs: object, data: bytes) -> memoryview | None:
     rows = _inflated(codecs, parts, _scratch("rows", size))
     if rows is None:
         return None
+    return _with_stored_idat(codecs, head, rows, tail)
+
+
+def _with_stored_idat(codecs: object, head: list[memoryview], rows: memoryview, tail: list[memoryview]) -> memoryview:
+    """A PNG of the chunks ``head``, one IDAT holding ``rows`` as a stored zlib stream, and the chunks ``tail``, in
+    this thread's scratch buffer (valid until its next call)."""
+    size = len(rows)
     bound = size + (size >> 12) + (size >> 14) + (size >> 25) + 13  # zlib's compressBound
     before, after = sum(len(c) for c in head), sum(len(c) for c in tail)
     png = _scratch("png", before + 12 + bound + after)
@@ -100,6 +107,41 @@ def _stored(codecs: object, data: bytes) -> memoryview | None:
     png[at - 8 : at] = struct.pack(">I", stored) + b"IDAT"
     png[at + stored : at + stored + 4] = struct.pack(">I", zlib.crc32(png[at - 4 : at + stored]))
     return png[: _put(png, at + stored + 4, tail)]
+
+
+def _chunk(kind: bytes, data: bytes) -> memoryview:
+    return memoryview(struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data)))
+
+
+def rows_bytes(shape: tuple[int, int], dtype: np.dtype[Any]) -> int:
+    """The size of a grayscale PNG's filtered rows: each row's filter-type byte, then its samples."""
+    return shape[0] * (1 + shape[1] * np.dtype(dtype).itemsize)
+
+
+def filters_known(rows: memoryview, shape: tuple[int, int], dtype: np.dtype[Any]) -> bool:
+    """Whether every row of ``rows`` (``inflate_rows``' output) names a filter type PNG defines (0-4), as libpng
+    and the device's unfiltering (``engine.io.png_rows``) require."""
+    width = 1 + shape[1] * np.dtype(dtype).itemsize
+    return int(np.frombuffer(rows, np.uint8)[::width].max(initial=0)) <= 4
+
+
+def unfilter_rows(rows: memoryview, shape: tuple[int, int], dtype: np.dtype[Any], out: np.ndarray) -> bool:
+    """Undo the row filters of ``rows`` (a grayscale, non-interlaced PNG's inflated rows, ``inflate_rows``) on the
+    host, into ``out`` ((y, x) of ``dtype``, C-contiguous): libpng unfilters them from a PNG made around them, as
+    it does for a slice it decodes. False where imagecodecs is missing, the rows are not of that shape and type, or
+    libpng refuses them (a filter type PNG does not define)."""
+    codecs = _imagecodecs()
+    dtype = np.dtype(dtype)
+    if codecs is None or len(rows) != rows_bytes(shape, dtype) or out.shape != shape or out.dtype != dtype:
+        return False
+    header = struct.pack(">IIBBBBB", shape[1], shape[0], 8 * dtype.itemsize, 0, 0, 0, 0)  # grayscale
+    head = [memoryview(b"\x89PNG\r\n\x1a\n"), _chunk(b"IHDR", header)]
+    png = _with_stored_idat(codecs, head, rows, [_chunk(b"IEND", b"")])
+    try:
+        arr = codecs.png_decode(png, out=out)  # type: ignore[attr-defined]
+    except Exception:  # a filter type PNG does not define
+        return False
+    return arr is out or bool(np.shares_memory(arr, out))
 
 
 def inflate_rows(data: bytes, shape: tuple[int, int], dtype: np.dtype[Any], out: memoryview) -> bool:

@@ -72,6 +72,13 @@ class DeviceRows:
         self.staged[k] = inflate_rows(data, self.out.shape[1:], self.out.dtype, memoryview(self.rows[k]))
         return bool(self.staged[k])
 
+    def stage(self, k0: int, k1: int) -> np.ndarray:
+        """The staging rows of slices ``k0`` to ``k1`` (z, rows' bytes), counted as staged: the caller writes rows
+        inflated elsewhere into them (``engine.io.predecode``'s sidecar) before it calls :meth:`ready` past them."""
+        assert self.rows is not None
+        self.staged[k0:k1] = True
+        return self.rows[k0:k1]
+
     def ready(self, done: int) -> None:
         """Slices before ``done`` are decoded or staged: send every whole slab among them to the device."""
         while self.out is not None and self.flushed + self.slab <= done:

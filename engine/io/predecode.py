@@ -1,26 +1,29 @@
 """A zip of PNG slices decoded while it is still arriving, into a volume file beside it (the "sidecar").
 
-:class:`UploadDecoder` is fed an upload's bytes in order as they arrive (``feed``: by default a child process of
-the API reads them from the upload's file as it grows, ``engine.io.predecode_proc``; else the API's upload writer
-hands it the same batches it writes, views of the received bytes: a member's bytes are not copied until its
-decoding thread joins them). The archive is read front to back (``engine.io.zipstream``); each PNG member, once
-all its bytes are there, is inflated and decoded on a small thread pool (``engine.io.codecs.decode_png_fast``, the
-loader's own decoder) straight into its plane of ``<upload>.slices`` (raw samples, plane after plane in the order
-the members came), while later bytes still arrive: memory holds only the members being decoded (``backlog_bytes``;
-past it, ``feed`` waits for the pool). ``finish`` (the upload complete) checks that the members decoded are exactly
-the stack the loader would read from the complete archive, in its order (:func:`stack_order`: the loader's own
-listing, sorting and choice of images, every member's offset, CRC and sizes as its central directory gives them),
-and writes ``<upload>.slices.json`` (shape, sample type, upload size, the members, the loader's order): only then
-is the sidecar there. Anything it does not follow (an image member not a plain grayscale PNG, a DICOM member,
-slices of different shapes, what ``engine.io.zipstream`` cannot stream, a write that fails) stops it quietly and
-removes its files: the upload goes on, and the worker decodes the archive as before. ``abort`` removes them too.
-Members that are no image (by the loader's own test of their first bytes) are passed by, as the loader does.
+:class:`UploadDecoder` is fed an upload's bytes in order as they arrive (``feed``: by default a child process of the API
+reads them from the upload's file as it grows, ``engine.io.predecode_proc``; else the API's upload writer hands it the
+same batches it writes, views of the received bytes: a member's bytes are not copied until its decoding thread joins
+them). The archive is read front to back (``engine.io.zipstream``); each PNG member, once all its bytes are there, is
+inflated and decoded on a small thread pool (``engine.io.codecs.decode_png_fast``, the loader's own decoder) straight
+into its plane of ``<upload>.slices`` (raw samples, plane after plane in the order the members came; or, in the
+``"rows"`` layout, only inflated: the PNG's filtered rows, every row's filter type checked, for the worker's GPU to
+unfilter as it does for the slices it decodes itself, ``engine.io.png_rows``: about a third of a slice's decoding, the
+rest left to the device), while later bytes still arrive: memory holds only the members being decoded
+(``backlog_bytes``; past it, ``feed`` waits for the pool). ``finish`` (the upload complete) checks that the members
+decoded are exactly the stack the loader would read from the complete archive, in its order (:func:`stack_order`: the
+loader's own listing, sorting and choice of images, every member's offset, CRC and sizes as its central directory gives
+them), and writes ``<upload>.slices.json`` (shape, sample type, upload size, the members, the loader's order): only then
+is the sidecar there. Anything it does not follow (an image member not a plain grayscale PNG, a DICOM member, slices of
+different shapes, what ``engine.io.zipstream`` cannot stream, a write that fails) stops it quietly and removes its
+files: the upload goes on, and the worker decodes the archive as before. ``abort`` removes them too. Members that are no
+image (by the loader's own test of their first bytes) are passed by, as the loader does.
 
-:func:`load_predecoded` gives the :class:`Volume` the loader would give (``engine.io.load_volume``: the same
-samples, spacing and report, ``source["decoded_during_upload"]``), read from a sidecar that is still the upload's
-(checked again as ``finish`` did, and written since the host last booted: the planes are not fsynced, for the
-upload's sake, so after a crash they are not trusted), or None (then load the upload as before). Under a host
-memory bound it gives a ``engine.io.slabs.SlabSource`` reading the planes from the file.
+:func:`load_predecoded` gives the :class:`Volume` the loader would give (``engine.io.load_volume``: the same samples,
+spacing and report, ``source["decoded_during_upload"]``), read from a sidecar that is still the upload's (checked again
+as ``finish`` did, and written since the host last booted: the planes are not fsynced, for the upload's sake, so after a
+crash they are not trusted), or None (then load the upload as before). Rows are unfiltered on the job's GPU
+(``DeviceRows``) where it has one, else by libpng on the host's threads. Under a host memory bound it gives a
+``engine.io.slabs.SlabSource`` reading the planes from the file (rows unfiltered by libpng).
 """
 
 from __future__ import annotations
@@ -39,12 +42,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from engine.io.archive import HEAD_BYTES, InputLimits, is_junk, open_members
-from engine.io.codecs import decode_png_fast, plain_gray_png
+from engine.io.codecs import decode_png_fast, filters_known, inflate_rows, plain_gray_png, rows_bytes, unfilter_rows
 from engine.io.dicom import has_dicom_images, looks_like_dicom
 from engine.io.stack import image_kind, natural_key
 from engine.io.zipstream import ZipEntry, ZipStream
 
 if TYPE_CHECKING:
+    from engine.io.png_rows import DeviceRows
     from engine.types import Volume
 
 __all__ = ["UploadDecoder", "load_predecoded", "remove_predecoded", "sidecar_paths", "stack_order"]
@@ -52,6 +56,7 @@ __all__ = ["UploadDecoder", "load_predecoded", "remove_predecoded", "sidecar_pat
 VERSION = 1
 BACKLOG_BYTES = 64 << 20  # members waiting for the pool (views of the received bytes); past it, feed waits
 READ_BYTES = 64 << 20  # planes read at a time when a sidecar is loaded
+PLANES, ROWS = "planes", "rows"  # what a sidecar's planes hold: samples, or the PNG's filtered rows (the layouts)
 
 
 def sidecar_paths(upload: Path) -> tuple[Path, Path]:
@@ -71,8 +76,13 @@ class UploadDecoder:
     """Decodes the PNG slices of a zip upload as its bytes arrive (see the module docstring). ``feed``, ``finish``
     and ``abort`` never raise; ``reason`` says why it stopped, where it did."""
 
-    def __init__(self, upload: Path, *, threads: int = 2, backlog_bytes: int = BACKLOG_BYTES) -> None:
+    def __init__(
+        self, upload: Path, *, threads: int = 2, backlog_bytes: int = BACKLOG_BYTES, layout: str = PLANES
+    ) -> None:
+        if layout not in (PLANES, ROWS):
+            raise ValueError(f"layout must be {PLANES!r} or {ROWS!r}, got {layout!r}")
         self.upload = Path(upload)
+        self.layout = layout
         self.data_path, self.manifest_path = sidecar_paths(self.upload)
         self.stream = ZipStream()
         self.backlog_bytes = backlog_bytes
@@ -164,18 +174,36 @@ class UploadDecoder:
                 self.shape, self.dtype = (height, width), dtype
         if (height, width) != self.shape or dtype != self.dtype:
             raise ValueError(f"{width}x{height} {dtype}, unlike the slices before it")
-        plane = getattr(self._local, "plane", None)
-        if plane is None or plane.shape != self.shape or plane.dtype != dtype:
-            plane = self._local.plane = np.empty(self.shape, dtype)
-        arr = decode_png_fast(data, plane)
-        if arr is None or arr.shape != plane.shape or arr.dtype != dtype:
-            raise ValueError("not decoded by libpng")
+        view = self._rows(data) if self.layout == ROWS else self._samples(data)
         assert self._fd is not None
-        view, at = np.ascontiguousarray(arr).reshape(-1).view(np.uint8).data, k * plane.nbytes
+        at = k * len(view)
         while view:
             n = os.pwrite(self._fd, view, at)
             view, at = view[n:], at + n
         self.members[k]["png"] = True
+
+    def _samples(self, data: bytes) -> memoryview:
+        """A slice's samples (libpng), in this thread's plane."""
+        assert self.shape is not None and self.dtype is not None
+        plane = getattr(self._local, "plane", None)
+        if plane is None or plane.shape != self.shape or plane.dtype != self.dtype:
+            plane = self._local.plane = np.empty(self.shape, self.dtype)
+        arr = decode_png_fast(data, plane)
+        if arr is None or arr.shape != plane.shape or arr.dtype != self.dtype:
+            raise ValueError("not decoded by libpng")
+        return np.ascontiguousarray(arr).reshape(-1).view(np.uint8).data
+
+    def _rows(self, data: bytes) -> memoryview:
+        """A slice's filtered rows (only inflated: the worker's GPU unfilters them), in this thread's buffer; every
+        row's filter type checked, so that unfiltering them later cannot fail."""
+        assert self.shape is not None and self.dtype is not None
+        size = rows_bytes(self.shape, self.dtype)
+        buf = getattr(self._local, "rows", None)
+        if buf is None or len(buf) != size:
+            buf = self._local.rows = memoryview(bytearray(size))
+        if not inflate_rows(data, self.shape, self.dtype, buf) or not filters_known(buf, self.shape, self.dtype):
+            raise ValueError("its rows do not inflate to what its header says")
+        return buf
 
     def _drain(self, cancel: bool = False) -> None:
         """Wait for the pool (its members not yet begun dropped where ``cancel``) and close the file."""
@@ -213,6 +241,7 @@ class UploadDecoder:
                 "upload_bytes": self.fed,
                 "shape": [len(self.members), *self.shape],
                 "dtype": self.dtype.str,
+                "layout": self.layout,
                 "members": self.members,
             }
             order = stack_order(self.upload, manifest, limits)
@@ -279,8 +308,11 @@ def load_predecoded(
     allocate: Callable[[tuple[int, ...], np.dtype[Any]], np.ndarray] | None = None,
     threads: int | None = None,
     whole_bytes: int | None = None,
+    rows: DeviceRows | None = None,
 ) -> Volume | None:
-    """The volume of the upload at ``path`` read from its sidecar (see the module docstring), or None.
+    """The volume of the upload at ``path`` read from its sidecar (see the module docstring), or None. A sidecar of
+    filtered rows is unfiltered on ``rows``' device (a GPU's, ``engine.io.png_rows``) where given, else on the host
+    (libpng, on ``threads`` threads).
 
     Raises:
         InputError: as ``engine.io.load_volume`` for this stack (holes in its numbering, too few slices, too many
@@ -298,13 +330,18 @@ def load_predecoded(
         manifest = json.loads(manifest_path.read_text())
         z, h, w = (int(n) for n in manifest["shape"])
         dtype = np.dtype(manifest["dtype"])
-        ok = manifest.get("version") == VERSION and manifest["upload_bytes"] == path.stat().st_size
+        layout = manifest.get("layout", PLANES)
+        ok = (
+            layout in (PLANES, ROWS)
+            and manifest.get("version") == VERSION
+            and manifest["upload_bytes"] == path.stat().st_size
+        )
         # written since this host last booted: its planes are not fsynced (the upload's latency), so a crash may
         # have lost them while the manifest survived
         booted = boot_id()
         ok = ok and booted is not None and manifest.get("boot_id") == booted
         order = stack_order(path, manifest, limits) if ok else None
-        plane = h * w * dtype.itemsize
+        plane = rows_bytes((h, w), dtype) if layout == ROWS else h * w * dtype.itemsize
         if order is None or not (max(order) + 1) * plane <= data_path.stat().st_size <= z * plane:
             return None
     except Exception:  # no sidecar, or not this upload's: the loader reads the upload (and says what is wrong)
@@ -320,7 +357,7 @@ def load_predecoded(
     spacing, how = _resolve_spacing(check_spacing(spacing_zyx_mm), {}, label)
     source = {"format": "png", "container": "zip", "files": len(names), "spacing_from": how,
               "completeness": completeness.report(), "decoded_during_upload": True}  # fmt: skip
-    reader = _Planes(data_path, order, (h, w), dtype, decode_threads(threads))
+    reader = _Planes(data_path, order, (h, w), dtype, decode_threads(threads), layout)
     nbytes = len(order) * h * w * dtype.itemsize
     if whole_bytes is not None and nbytes > whole_bytes:  # under a host memory bound: slab by slab
         from engine.io.slabs import SlabSource
@@ -329,7 +366,12 @@ def load_predecoded(
     else:
         data = np.empty(shape, dtype) if allocate is None else allocate(shape, dtype)
         try:
-            reader.fill(0, len(order), data)
+            if layout == ROWS and rows is not None and rows.start(data):
+                reader.to_device(rows, data)
+            else:
+                reader.fill(0, len(order), data)
+        except _Unreadable:  # never expected (the decoder checked every row): the loader reads the upload
+            return None
         finally:
             reader.close()
     return Volume(data=data, spacing_zyx_mm=spacing, units="raw", source=source)
@@ -343,44 +385,91 @@ def boot_id() -> str | None:
         return None
 
 
+class _Unreadable(Exception):
+    """A sidecar's rows that do not unfilter (the decoder checked them: never expected)."""
+
+
 class _Planes:
     """Planes of a sidecar read into arrays, in the loader's order (runs of consecutive planes read at once, on
-    ``threads`` threads)."""
+    ``threads`` threads); a sidecar of filtered rows (``layout`` ``"rows"``) unfiltered on the host plane by plane
+    (``fill``) or on a GPU (``to_device``)."""
 
-    def __init__(self, path: Path, order: list[int], shape: tuple[int, int], dtype: np.dtype[Any], threads: int):
+    def __init__(
+        self, path: Path, order: list[int], shape: tuple[int, int], dtype: np.dtype[Any], threads: int, layout: str
+    ) -> None:
         self.fd: int | None = os.open(path, os.O_RDONLY)
-        self.order, self.threads = order, threads
-        self.plane = shape[0] * shape[1] * dtype.itemsize
+        self.order, self.threads, self.layout = order, threads, layout
+        self.shape, self.dtype = shape, dtype
+        self.plane = rows_bytes(shape, dtype) if layout == ROWS else shape[0] * shape[1] * dtype.itemsize
+        self._local = threading.local()
 
-    def fill(self, z0: int, z1: int, out: np.ndarray) -> None:
-        assert self.fd is not None
-        fd, flat = self.fd, out.reshape(z1 - z0, -1).view(np.uint8)
-        per = max(1, READ_BYTES // max(self.plane, 1))
-        runs: list[tuple[int, int, int]] = []  # (first plane of out, first plane of the file, count)
-        z = z0
+    def _runs(self, z0: int, z1: int, per: int) -> list[tuple[int, int, int]]:
+        """(first plane of the output, first plane of the file, count): consecutive planes, at most ``per``."""
+        runs, z = [], z0
         while z < z1:
             n = 1
             while z + n < z1 and n < per and self.order[z + n] == self.order[z] + n:
                 n += 1
             runs.append((z - z0, self.order[z], n))
             z += n
+        return runs
 
-        def read(run: tuple[int, int, int]) -> None:
-            i, k, n = run
-            view = flat[i : i + n].reshape(-1).data
-            at = k * self.plane
-            while view:
-                got = os.preadv(fd, [view], at)
-                if got <= 0:
-                    raise OSError(f"the sidecar ends before plane {k}")
-                view, at = view[got:], at + got
+    def _read(self, into: np.ndarray, k: int) -> None:
+        """File planes from ``k`` into ``into`` (uint8, planes of the file's size)."""
+        assert self.fd is not None
+        view, at = into.reshape(-1).data, k * self.plane
+        while view:
+            got = os.preadv(self.fd, [view], at)
+            if got <= 0:
+                raise OSError(f"the sidecar ends before plane {k}")
+            view, at = view[got:], at + got
 
-        if self.threads <= 1 or len(runs) <= 1:
-            for run in runs:
-                read(run)
+    def _map(self, fn: Callable[[Any], None], items: list[Any]) -> None:
+        if self.threads <= 1 or len(items) <= 1:
+            for item in items:
+                fn(item)
             return
-        with ThreadPoolExecutor(min(self.threads, len(runs))) as pool:
-            list(pool.map(read, runs))
+        with ThreadPoolExecutor(min(self.threads, len(items))) as pool:
+            list(pool.map(fn, items))
+
+    def fill(self, z0: int, z1: int, out: np.ndarray) -> None:
+        if self.layout == ROWS:
+            self._map(lambda z: self._unfilter(z, out[z - z0]), list(range(z0, z1)))
+            return
+        flat = out.reshape(z1 - z0, -1).view(np.uint8)
+        runs = self._runs(z0, z1, max(1, READ_BYTES // max(self.plane, 1)))
+        self._map(lambda run: self._read(flat[run[0] : run[0] + run[2]], run[1]), runs)
+
+    def _unfilter(self, z: int, out: np.ndarray) -> None:
+        """Plane ``z``'s rows, read into this thread's buffer and unfiltered into ``out`` on the host."""
+        buf = getattr(self._local, "rows", None)
+        if buf is None:
+            buf = self._local.rows = np.empty((1, self.plane), np.uint8)
+        self._read(buf, self.order[z])
+        if not unfilter_rows(buf.reshape(-1).data, self.shape, self.dtype, out):
+            raise _Unreadable(f"plane {self.order[z]}")
+
+    def to_device(self, rows: DeviceRows, out: np.ndarray) -> None:
+        """The rows read into ``rows``' staging array (started on ``out``) and unfiltered by its device into ``out``,
+        slab by slab as the reads before it are done."""
+        from engine.io.parallel import ordered_map
+
+        z = len(self.order)
+        runs = self._runs(0, z, max(1, READ_BYTES // max(self.plane, 1)))
+        try:
+            staged = rows.stage(0, z)
+
+            def read(run: tuple[int, int, int]) -> int:
+                i, k, n = run
+                self._read(staged[i : i + n], k)
+                return i + n
+
+            for done in ordered_map(read, runs, max(1, self.threads)):  # in order: the slabs before it are whole
+                rows.ready(done)
+            if rows.finish():
+                raise _Unreadable("a filter type the device does not know")
+        finally:
+            rows.close()
 
     def close(self) -> None:
         if self.fd is not None:

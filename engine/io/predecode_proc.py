@@ -18,10 +18,11 @@ own). Children are started with ``subprocess`` (fork and exec at once: safe
 from a process with threads), in a session of their own (a terminal's Ctrl-C goes to the API, which ends them).
 The child imports ``engine.io.predecode`` only (no Warp).
 
-Protocol (text lines): the parent sends ``{"upload": ..., "part": ..., "threads": ...}`` (JSON: where the upload
-will be committed, the file it is written to meanwhile, the decoding threads), then ``<bytes on disk>`` lines, then
-``finish <length>``; the child answers ``{"kept": ..., "reason": ..., "slices": ..., "feed_s": ..., "finish_s":
-...}`` once (the last two: its feeding and its finishing left when the finish came), and exits.
+Protocol (text lines): the parent sends ``{"upload": ..., "part": ..., "threads": ..., "layout": ...}`` (JSON: where
+the upload will be committed, the file it is written to meanwhile, the decoding threads, the sidecar's layout), then
+``<bytes on disk>`` lines, then ``finish <length>``; the child answers ``{"kept": ..., "reason": ..., "slices": ...,
+"feed_s": ..., "finish_s": ...}`` once (the last two: its feeding and its finishing left when the finish came), and
+exits.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-from engine.io.predecode import remove_predecoded
+from engine.io.predecode import PLANES, remove_predecoded
 
 __all__ = ["DecoderChildren", "DecoderProcess", "main"]
 
@@ -100,8 +101,8 @@ class DecoderProcess:
         except (OSError, ValueError):  # the child is gone: finish finds out
             return False
 
-    def start(self, part: Path, threads: int) -> bool:
-        job = {"upload": str(self.upload), "part": str(part), "threads": threads}
+    def start(self, part: Path, threads: int, layout: str = PLANES) -> bool:
+        job = {"upload": str(self.upload), "part": str(part), "threads": threads, "layout": layout}
         return self._send(json.dumps(job).encode() + b"\n")
 
     def advance(self, on_disk: int) -> None:
@@ -196,9 +197,9 @@ class DecoderChildren:
         self._spare: subprocess.Popen[bytes] | None = None
         self._closed = False
 
-    def start(self, upload: Path, part: Path, threads: int) -> DecoderProcess | None:
-        """A child decoding the upload being written to ``part`` (to be committed at ``upload``), or None where it
-        could not be started."""
+    def start(self, upload: Path, part: Path, threads: int, layout: str = PLANES) -> DecoderProcess | None:
+        """A child decoding the upload being written to ``part`` (to be committed at ``upload``) into a sidecar of
+        ``layout`` (``engine.io.predecode``), or None where it could not be started."""
         with self._lock:
             if self._closed:
                 return None
@@ -206,7 +207,7 @@ class DecoderChildren:
         if proc is None or proc.poll() is not None:
             proc = _spawn()
         child = DecoderProcess(proc, upload, self.wait_seconds, on_done=self._refill_later)
-        if not child.start(part, threads):
+        if not child.start(part, threads, layout):
             child.abort()
             return None
         return child
@@ -304,7 +305,7 @@ def main() -> None:
     if not line:
         return
     job = json.loads(line)
-    decoder = UploadDecoder(Path(job["upload"]), threads=int(job["threads"]))
+    decoder = UploadDecoder(Path(job["upload"]), threads=int(job["threads"]), layout=job.get("layout", PLANES))
     orders = _Orders(sys.stdin.buffer)
     fd: int | None = None
     at = 0

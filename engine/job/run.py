@@ -158,6 +158,7 @@ def _load(job: _Job, source: str | Path | Volume) -> Volume:
             allocate=runtime.volumes(),
             threads=runtime.decode_threads,
             whole_bytes=whole,
+            rows=runtime.rows(),  # a sidecar of PNG rows is unfiltered on the job's GPU
         )
         if pre is not None and not isinstance(pre.data, np.ndarray):
             sliced = pre

@@ -43,6 +43,19 @@ def test_the_api_leaves_the_decoded_slices_beside_the_upload(tmp_path: Path) -> 
         assert _job_files(tmp_path) == [f"{job}/upload", f"{job}/upload.slices", f"{job}/upload.slices.json"]
         manifest = json.loads((tmp_path / "jobs" / job / "upload.slices.json").read_text())
         assert manifest["shape"] == [93, 64, 64] and manifest["order"] == list(range(93))
+        assert manifest["layout"] == "rows"  # the default device (auto): the worker's GPU, if any, unfilters them
+
+
+def test_the_layout_follows_the_workers_device() -> None:
+    """Rows (only inflated) where the workers may have a GPU to unfilter them; samples for CPU workers, and where
+    PNG slices are not to be unfiltered on a GPU (``png_decoder``)."""
+    from service.intake import predecode_layout
+
+    def layout(**kw: Any) -> str:
+        return predecode_layout(_settings(Path("/tmp"), **kw))
+
+    assert layout() == layout(device="cuda:0") == layout(device="opencl:0") == "rows"
+    assert layout(device="cpu") == layout(png_decoder="libpng") == layout(png_decoder="pillow") == "planes"
 
 
 def test_a_refused_upload_keeps_none_of_them(tmp_path: Path) -> None:
@@ -126,21 +139,33 @@ def test_a_child_that_dies_never_costs_the_upload(tmp_path: Path, monkeypatch: A
 def test_the_worker_loads_them_and_the_model_is_the_same(
     stack: ServiceStack, client_a: httpx.Client, anon: httpx.Client
 ) -> None:
-    """The same slices as a zip (decoded during the upload) and as a tar.gz (decoded by the worker): the same
-    files, byte for byte, but for the report, which says where the slices came from."""
+    """The same slices as a zip (decoded during the upload: samples from this stack's API, whose workers are CPU
+    ones; rows from a second API that expects GPU workers, unfiltered by the CPU worker's libpng) and as a tar.gz
+    (decoded by the worker): the same files, byte for byte, but for the report, which says where the slices came
+    from."""
+    rows_api = stack.start_server(extra_env={"BONEMESH_DEVICE": "auto"})
     jobs = {}
     for name, body in (("headsq.zip", HEADSQ_ZIP.read_bytes()), ("headsq.tar.gz", zip_to_tar_gz(HEADSQ_ZIP))):
-        resp = submit(client_a, body, PARAMS, filename=name)
-        assert resp.status_code == 202, resp.text
-        job = wait_for_job(client_a, resp.json()["id"], stack=stack, timeout=300)
-        jobs[name] = assert_succeeded(job, stack.base_url)
-        folder = stack.data_dir / "jobs" / job["id"]
-        assert (folder / "upload").is_file() and not list(folder.glob("upload.slices*"))  # read once, then removed
-    fast, plain = jobs["headsq.zip"], jobs["headsq.tar.gz"]
+        jobs[name] = _through_worker(stack, client_a, name, body)
+    with httpx.Client(base_url=rows_api, headers=KEY, timeout=60) as client_rows:
+        jobs["rows.zip"] = _through_worker(stack, client_rows, "rows.zip", HEADSQ_ZIP.read_bytes())
+    plain = jobs["headsq.tar.gz"]
     reports = {k: anon.get(v["report.json"]["url"]).json() for k, v in jobs.items()}
     assert reports["headsq.zip"]["input"]["source"]["decoded_during_upload"] is True
+    assert reports["rows.zip"]["input"]["source"]["decoded_during_upload"] is True
     assert "decoded_during_upload" not in reports["headsq.tar.gz"]["input"]["source"]
-    assert sorted(fast) == sorted(plain)
-    for name in fast:
-        if name != "report.json":
-            assert anon.get(fast[name]["url"]).content == anon.get(plain[name]["url"]).content, name
+    for fast in (jobs["headsq.zip"], jobs["rows.zip"]):
+        assert sorted(fast) == sorted(plain)
+        for name in fast:
+            if name != "report.json":
+                assert anon.get(fast[name]["url"]).content == anon.get(plain[name]["url"]).content, name
+
+
+def _through_worker(stack: ServiceStack, client: httpx.Client, name: str, body: bytes) -> dict[str, Any]:
+    """Upload, wait for the worker, and check the sidecar was read once and removed; the job's outputs."""
+    resp = submit(client, body, PARAMS, filename=name)
+    assert resp.status_code == 202, resp.text
+    job = wait_for_job(client, resp.json()["id"], stack=stack, timeout=300)
+    folder = stack.data_dir / "jobs" / job["id"]
+    assert (folder / "upload").is_file() and not list(folder.glob("upload.slices*"))  # read once, then removed
+    return assert_succeeded(job, str(client.base_url).rstrip("/"))

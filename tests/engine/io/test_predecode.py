@@ -6,20 +6,25 @@ the loader would not read as that stack leaves no sidecar, and the job's mesh is
 from __future__ import annotations
 
 import io
+import json
 import shutil
+import struct
 import subprocess
 import zipfile
+import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
-from engine.errors import IncompleteSeriesError
+from engine.errors import IncompleteSeriesError, InputError
 from engine.io import load_volume
-from engine.io.predecode import UploadDecoder, load_predecoded, sidecar_paths
+from engine.io.png_rows import DeviceRows
+from engine.io.predecode import PLANES, ROWS, UploadDecoder, load_predecoded, sidecar_paths
 from engine.io.zipstream import CannotStream, ZipStream
-from tests.engine.pngfactory import encode_png, gray_slices
+from tests.engine.pngfactory import encode_png, gray_slices, png_of_stream
 
 SPACING = (1.0, 0.5, 0.5)
 
@@ -63,9 +68,9 @@ def _named(pngs: list[bytes]) -> list[tuple[str, bytes]]:
     return [(f"scan/slice_{i:03d}.png", p) for i, p in enumerate(pngs)]
 
 
-def _decode(upload: Path, data: bytes, chunk: int) -> UploadDecoder:
+def _decode(upload: Path, data: bytes, chunk: int, layout: str = PLANES) -> UploadDecoder:
     """Write ``data`` to ``upload`` and feed it to a decoder in ``chunk``-byte pieces, then finish."""
-    dec = UploadDecoder(upload, threads=2)
+    dec = UploadDecoder(upload, threads=2, layout=layout)
     with upload.open("wb") as fh:
         for i in range(0, len(data), chunk):
             piece = memoryview(data)[i : i + chunk]
@@ -75,8 +80,8 @@ def _decode(upload: Path, data: bytes, chunk: int) -> UploadDecoder:
     return dec
 
 
-def _same_as_loader(upload: Path, spacing: tuple[float, float, float] = SPACING) -> None:
-    got = load_predecoded(upload, spacing_zyx_mm=spacing)
+def _same_as_loader(upload: Path, spacing: tuple[float, float, float] = SPACING, rows: Any = None) -> None:
+    got = load_predecoded(upload, spacing_zyx_mm=spacing, rows=rows)
     assert got is not None
     ref = load_volume(upload, spacing_zyx_mm=spacing)
     assert got.data.dtype == ref.data.dtype and np.array_equal(got.data, ref.data)
@@ -236,14 +241,15 @@ def test_a_host_memory_bound_reads_the_sidecar_slab_by_slab(tmp_path: Path) -> N
         vol.data.close()
 
 
-def test_the_job_is_the_same_with_and_without_the_sidecar(tmp_path: Path) -> None:
-    """``run_job`` on the bundled scan: every file but the report byte for byte the same; the report says where
-    the slices came from."""
+@pytest.mark.parametrize("layout", [PLANES, ROWS])
+def test_the_job_is_the_same_with_and_without_the_sidecar(tmp_path: Path, layout: str) -> None:
+    """``run_job`` on the bundled scan: every file but the report byte for byte the same, from a sidecar of samples
+    or of rows; the report says where the slices came from."""
     from engine.job import InputSpec, JobSpec, resolve_runtime, run_job
     from engine.params import ReconParams
 
     upload = tmp_path / "upload"
-    assert _decode(upload, HEADSQ_ZIP.read_bytes(), 1 << 20).reason is None
+    assert _decode(upload, HEADSQ_ZIP.read_bytes(), 1 << 20, layout).reason is None
     spec = JobSpec(
         recon=ReconParams.from_dict({"iso": {"iso": 1150.0}}), input=InputSpec(spacing_zyx_mm=HEADSQ_SPACING_ZYX_MM)
     )
@@ -271,3 +277,64 @@ def test_it_reads_into_the_buffer_the_loader_is_given(tmp_path: Path) -> None:
     vol = load_predecoded(upload, spacing_zyx_mm=SPACING, allocate=allocate, threads=3)
     assert vol is not None and np.shares_memory(vol.data, backing)
     assert np.array_equal(vol.data, load_volume(upload, spacing_zyx_mm=SPACING).data)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+@pytest.mark.parametrize("chunk", [7, 1 << 30], ids=["7B", "whole"])
+def test_a_sidecar_of_rows_is_the_loaders_volume_on_the_host_and_on_a_device(
+    tmp_path: Path, backend: Any, dtype: type, chunk: int
+) -> None:
+    """Only inflated by the decoder (every filter type, chosen per row), unfiltered by libpng on the host or by a
+    device's kernel (Warp's CPU path, OpenCL), in slabs, and slab by slab under a host memory bound: the
+    loader's samples, bit for bit."""
+    upload = tmp_path / "upload"
+    data = _zip(_named(_pngs(7, (13, 11), dtype))[::-1], method=zipfile.ZIP_DEFLATED)
+    assert _decode(upload, data, chunk, ROWS).reason is None
+    manifest = json.loads(sidecar_paths(upload)[1].read_text())
+    assert manifest["layout"] == ROWS
+    assert sidecar_paths(upload)[0].stat().st_size == 7 * 13 * (1 + 11 * np.dtype(dtype).itemsize)
+    _same_as_loader(upload)  # libpng on the host
+    rows = DeviceRows(backend, slab_bytes=3 * 13 * (1 + 11 * np.dtype(dtype).itemsize))  # slabs of 3 slices
+    _same_as_loader(upload, rows=rows)
+    assert rows.rows is None and rows.out is None and not rows.pending  # nothing held, nothing in flight
+    vol = load_predecoded(upload, spacing_zyx_mm=SPACING, whole_bytes=100, rows=rows)
+    assert vol is not None and not isinstance(vol.data, np.ndarray)
+    try:
+        ref = load_volume(upload, spacing_zyx_mm=SPACING).data
+        assert np.array_equal(vol.data.read(0, 7), ref) and np.array_equal(vol.data.read(2, 5), ref[2:5])
+    finally:
+        vol.data.close()
+
+
+def test_rows_it_could_not_unfilter_leave_no_sidecar_and_are_the_loaders_error(tmp_path: Path) -> None:
+    """A row naming filter type 5 inflates fine: the decoder checks every row's type, keeps no sidecar, and the
+    loader reports the slice; a sidecar changed on disk afterwards is not read (host or device)."""
+    from engine.backend import get_backend
+
+    imgs = gray_slices(np.random.default_rng(3), 4, (6, 5), np.uint8)
+    pngs = [encode_png(img, np.zeros(6, int)) for img in imgs]
+    raw = bytearray(zlib.decompress(_idat(pngs[2])))
+    raw[2 * 6] = 5  # row 2's filter type
+    pngs[2] = png_of_stream(imgs[2], zlib.compress(bytes(raw)))
+    upload = tmp_path / "upload"
+    dec = _decode(upload, _zip(_named(pngs)), 1 << 20, ROWS)
+    assert dec.reason is not None and "inflate" in dec.reason and _nothing_left(upload)
+    with pytest.raises(InputError):
+        load_volume(upload, spacing_zyx_mm=SPACING)
+
+    good = tmp_path / "good"
+    assert (
+        _decode(good, _zip(_named([encode_png(img, np.zeros(6, int)) for img in imgs])), 1 << 20, ROWS).reason is None
+    )
+    planes = sidecar_paths(good)[0]
+    hurt = bytearray(planes.read_bytes())
+    hurt[6 * 2 + 6] = 7  # plane 0, row 1's filter type
+    planes.write_bytes(bytes(hurt))
+    assert load_predecoded(good, spacing_zyx_mm=SPACING) is None
+    assert load_predecoded(good, spacing_zyx_mm=SPACING, rows=DeviceRows(get_backend("cpu"))) is None
+
+
+def _idat(png: bytes) -> bytes:
+    at = png.index(b"IDAT")
+    (length,) = struct.unpack(">I", png[at - 4 : at])
+    return png[at + 4 : at + 4 + length]

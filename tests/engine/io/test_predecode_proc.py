@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from engine.data import HEADSQ_ZIP
-from engine.io.predecode import UploadDecoder, sidecar_paths
+from engine.data import HEADSQ_SPACING_ZYX_MM, HEADSQ_ZIP
+from engine.io.predecode import PLANES, ROWS, UploadDecoder, sidecar_paths
 from engine.io.predecode_proc import DecoderChildren, DecoderProcess
 from tests.engine.io.test_predecode import _named, _nothing_left, _pngs, _same_as_loader, _zip
 
@@ -27,13 +27,13 @@ ROOT = Path(__file__).resolve().parents[3]
 
 
 def _upload_through_child(
-    folder: Path, data: bytes, chunk: int, children: DecoderChildren, *, finish: bool = True
+    folder: Path, data: bytes, chunk: int, children: DecoderChildren, *, finish: bool = True, layout: str = PLANES
 ) -> tuple[DecoderProcess, Path]:
     """Write ``data`` into a part file in ``chunk``-byte pieces, telling a child after each, then commit it (the
     part renamed to ``upload``) and finish, as the API does."""
     folder.mkdir(parents=True, exist_ok=True)
     upload, part = folder / "upload", folder / ".upload-x.part"
-    child = children.start(upload, part, 2)
+    child = children.start(upload, part, 2, layout)
     assert child is not None
     with part.open("wb") as fh:
         for i in range(0, len(data), chunk):
@@ -46,11 +46,11 @@ def _upload_through_child(
     return child, upload
 
 
-def _in_process(folder: Path, data: bytes) -> Path:
+def _in_process(folder: Path, data: bytes, layout: str = PLANES) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     upload = folder / "upload"
     upload.write_bytes(data)
-    dec = UploadDecoder(upload, threads=2)
+    dec = UploadDecoder(upload, threads=2, layout=layout)
     dec.feed([data])
     assert dec.finish(), dec.reason
     return upload
@@ -90,13 +90,15 @@ def test_the_childs_sidecar_is_the_in_process_decoders(
     assert child.proc.poll() is not None  # one upload, then it exits
 
 
-def test_the_bundled_scan_through_a_child(tmp_path: Path, children: DecoderChildren) -> None:
+@pytest.mark.parametrize("layout", [PLANES, ROWS])
+def test_the_bundled_scan_through_a_child(tmp_path: Path, children: DecoderChildren, layout: str) -> None:
     data = HEADSQ_ZIP.read_bytes()
-    child, upload = _upload_through_child(tmp_path / "child", data, 65_537, children)
+    child, upload = _upload_through_child(tmp_path / "child", data, 65_537, children, layout=layout)
     assert child.slices == 93, child.reason
-    ref = _in_process(tmp_path / "threads", data)
+    ref = _in_process(tmp_path / "threads", data, layout)
     assert json.loads(sidecar_paths(upload)[1].read_text()) == json.loads(sidecar_paths(ref)[1].read_text())
     assert sidecar_paths(upload)[0].read_bytes() == sidecar_paths(ref)[0].read_bytes()
+    _same_as_loader(upload, HEADSQ_SPACING_ZYX_MM)
 
 
 def test_what_it_cannot_vouch_for_leaves_nothing(tmp_path: Path, children: DecoderChildren) -> None:
