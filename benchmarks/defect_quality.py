@@ -103,7 +103,9 @@ def _load(name: str) -> Any:
     return load_volume(cfg["path"], spacing_zyx_mm=cfg["spacing"])
 
 
-def _run(volume: Any, cfg: dict[str, Any], device: str) -> tuple[Any, str, float]:
+def _run(volume: Any, cfg: dict[str, Any], device: str, errors: list[Any] | None = None) -> tuple[Any, str, float]:
+    """``engine.defect.run`` on the scan: the result (None when refused), the outcome and the seconds; a refusal's
+    exception is appended to ``errors`` when given."""
     from engine.defect import DefectParams, run
     from engine.errors import InputError
 
@@ -112,7 +114,71 @@ def _run(volume: Any, cfg: dict[str, Any], device: str) -> tuple[Any, str, float
         res = run(volume, DefectParams(), cfg["level"], device, orient=cfg["orient"])
         return res, "template", time.perf_counter() - t0
     except InputError as exc:
+        if errors is not None:
+            errors.append(exc)
         return None, f"{type(exc).__name__}: {exc}", time.perf_counter() - t0
+
+
+def cut_verdict(exc: Any, volume: Any, cfg: dict[str, Any], removed: Any) -> dict[str, Any]:
+    """Why a refused cut was refused, measured on the cut itself (a refusal's message names the largest candidate,
+    often the head's own asymmetry elsewhere): the candidate holding most of the removed bone and its verdict, or,
+    where none holds any, what the rules saw there: the share of the removed voxels whose mirror image is bone of
+    the scan (a hole whose other side lacks the bone cannot be mirrored), the hole's widest opening (the largest
+    distance from a removed voxel to the scan's bone, the radius a core needs beyond the healthy shell's
+    thickness) and the healthy shell's thickness at the mirror image (twice the largest depth of its bone)."""
+    from scipy import ndimage as ndi
+
+    from engine.defect.grid import Grid, bone_and_skull, reflect
+
+    n_removed = int(removed.sum())
+    best: tuple[int, str, float, int] | None = None
+    for reason, vol_mm3, index in getattr(exc, "candidates", None) or []:
+        inside = np.all((index >= 0) & (index < np.asarray(removed.shape)), axis=1)
+        held = int(removed[tuple(index[inside].T)].sum())
+        if held and (best is None or held > best[0]):
+            best = (held, reason, float(vol_mm3), len(index))
+    if best is not None:
+        held, reason, vol_mm3, n = best
+        return {"candidate": "the cut's", "reason": reason, "volume_mm3": round(vol_mm3, 1),
+                "holds_removed": round(held / max(n_removed, 1), 3),
+                "on_removed": round(held / max(n, 1), 3)}  # fmt: skip
+    out: dict[str, Any] = {"candidate": "none on the cut", "reason": "no candidate holds any removed voxel"}
+    plane = getattr(exc, "plane_grid", None)
+    if plane is None or not n_removed:
+        return out
+    grid = Grid.of(volume, cfg["orient"])
+    sp = np.asarray(grid.spacing_zyx)
+    bone, _ = bone_and_skull(volume.data, cfg["level"])
+    idx = np.argwhere(removed)
+    mir = np.rint(reflect(grid.xyz(idx), plane[0], plane[1])[:, ::-1] / sp).astype(np.int64)
+    ok = np.all((mir >= 0) & (mir < np.asarray(bone.shape)), axis=1)
+    m_bone = np.zeros(len(idx), dtype=bool)
+    m_bone[ok] = bone[tuple(mir[ok].T)]
+    pad = np.ceil(20.0 / sp).astype(np.int64)
+
+    def box_of(pts: Any) -> tuple[slice, ...]:
+        lo = np.maximum(pts.min(axis=0) - pad, 0)
+        hi = np.minimum(pts.max(axis=0) + pad + 1, bone.shape)
+        return tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+
+    b = box_of(idx)
+    to_bone = ndi.distance_transform_edt(~bone[b], sampling=sp)
+    opening = float(to_bone[tuple((idx - [s.start for s in b]).T)].max())
+    shell = float("nan")
+    if m_bone.any():
+        mb = box_of(mir[ok])
+        depth = ndi.distance_transform_edt(bone[mb], sampling=sp)
+        shell = 2.0 * float(depth[tuple((mir[ok][m_bone[ok]] - [s.start for s in mb]).T)].max())
+    skull_shell = float(getattr(exc, "shell_mm", float("nan")))
+    out.update(mirror_bone_share=round(float(m_bone.mean()), 3), opening_radius_mm=round(opening, 2),
+               mirror_shell_mm=round(shell, 2), skull_shell_mm=round(skull_shell, 2))  # fmt: skip
+    if m_bone.mean() < 0.5:
+        out["reason"] = "no candidate on the cut: its mirror image lacks the bone (the other side differs there)"
+    elif opening <= shell:
+        out["reason"] = "no candidate on the cut: the opening is narrower than twice the healthy shell (no core)"
+    else:
+        out["reason"] = "no candidate on the cut"
+    return out
 
 
 def _side_of(mask: Any, volume: Any, cfg: dict[str, Any], plane: Any) -> str | None:
@@ -134,9 +200,12 @@ def _case(
 ) -> dict[str, Any]:
     from engine.defect.synthetic import dice
 
-    res, outcome, secs = _run(volume, cfg, device)
+    errors: list[Any] = []
+    res, outcome, secs = _run(volume, cfg, device, errors)
     row.update(outcome=outcome if res is None else "template", seconds=round(secs, 3))
     if res is None:
+        if removed is not None and errors:
+            row["cut_verdict"] = cut_verdict(errors[0], volume, cfg, removed)
         return row
     mask = res.full_mask()
     side = res.side
@@ -251,8 +320,9 @@ def sweep(
         real = None
         if "real_defect_slices" in cfg:
             real = _real_defect(base, cfg, device)
+        plane = _intact_plane(base, cfg)
         for az, h, size, edge, fill in cases:
-            row = _sweep_case(base, cfg, device, name, (yaw, roll), az, h, size, edge, fill, real)
+            row = _sweep_case(base, cfg, device, name, (yaw, roll), az, h, size, edge, fill, real, plane)
             rows.append(row)
             log(_line(row))
             if on_row is not None:
@@ -308,8 +378,38 @@ def _real_defect(volume: Any, cfg: dict[str, Any], device: str) -> tuple[Any, An
     return ndi.binary_dilation(mask, iterations=3), mirror, radius
 
 
+def _intact_plane(volume: Any, cfg: dict[str, Any]) -> Any:
+    """The scan's own symmetry plane (before any cut; the host's), that the sweep's cuts are placed against."""
+    from engine.defect.plane import find_symmetry_plane
+
+    return find_symmetry_plane(volume, cfg["level"], orient=cfg["orient"])
+
+
+MIDLINE_EXPECTED = "MidlineDefectError: the cut crosses the midline"
+
+
+def midline_crossing(removed: Any, volume: Any, cfg: dict[str, Any], plane: Any) -> dict[str, Any]:
+    """Where a cut lies against the scan's own symmetry plane: the removed bone's signed distances to it (mm, +:
+    the patient's left), the share of it on the side the cut's centre is not on, and whether the cut crosses the
+    midline by the engine's own rule for a piece (``region._across``: bone on both sides by more than the largest
+    voxel side). A cut that crosses it is missing on both sides: mirroring cannot fill it, and
+    ``MidlineDefectError`` is the right answer, not a template."""
+    from engine.defect.grid import Grid
+
+    grid = Grid.of(volume, cfg["orient"])
+    sd = grid.xyz(np.argwhere(removed)) @ np.asarray(plane.normal_grid) - plane.offset_grid_mm
+    big = float(max(grid.spacing_zyx))
+    far = float(np.mean(sd < 0) if np.median(sd) > 0 else np.mean(sd > 0))
+    return {
+        "removed_plane_mm": [round(float(sd.min()), 2), round(float(sd.max()), 2)],
+        "removed_across_share": round(far, 4),
+        "crosses_midline": bool(sd.min() < -big and sd.max() > big),
+    }
+
+
 def _sweep_case(volume: Any, cfg: dict[str, Any], device: str, name: str, pose: tuple[float, float], az: float,
-                h: float, size: float, edge: str, fill: str, real: Any) -> dict[str, Any]:  # fmt: skip
+                h: float, size: float, edge: str, fill: str, real: Any,
+                plane: Any = None) -> dict[str, Any]:  # fmt: skip
     from engine.defect.synthetic import cut_at
 
     side = "left" if 0 < az < 180 else "right"
@@ -332,6 +432,10 @@ def _sweep_case(volume: Any, cfg: dict[str, Any], device: str, name: str, pose: 
         if (cut.removed & real[0]).any() or np.linalg.norm(entry - real[1]) < real[2] + size / 2:
             base.update(expected="left out: touches the scan's real defect or its mirror image", outcome="not run")
             return base
+    if plane is not None:
+        base.update(midline_crossing(cut.removed, volume, cfg, plane))
+        if base["crosses_midline"]:
+            base["expected"] = MIDLINE_EXPECTED
     return _case(cut.volume, cfg, device, None, cut.removed, exclude=None if real is None else real[0], **base)
 
 
@@ -466,13 +570,24 @@ def overall(rows: list[dict[str, Any]]) -> dict[str, Any]:
     d = np.array([r["dice"] for r in found]) if found else np.zeros(0)
     g = np.array([r["rim_gap_voxels"] for r in found]) if found else np.zeros(0)
     reasons: dict[str, int] = {}
+    on_cut: dict[str, int] = {}
     for r in refused:
         key = f"{r['scan']} {r['diameter_mm']:g} mm: {refusal_reason(r['outcome'])}"
         reasons[key] = reasons.get(key, 0) + 1
+        if "cut_verdict" in r:
+            key = f"{r['scan']} {r['diameter_mm']:g} mm: {cut_reason(r['cut_verdict'])}"
+            on_cut[key] = on_cut.get(key, 0) + 1
+    across = [r for r in rows if r["expected"] == MIDLINE_EXPECTED]
     return {
         "cases": len(one),
         "templates": len(found),
         "refused": len(refused),
+        "across_midline": {  # cuts that cross the scan's own plane (``midline_crossing``): not one-sided cases
+            "cases": len(across),
+            "midline_refusals": sum(1 for r in across if r["outcome"].startswith("MidlineDefectError")),
+            "other_refusals": sum(1 for r in across if r["outcome"].startswith("NoDefectError")),
+            "templates": sum(1 for r in across if r["outcome"] == "template"),
+        },
         "left_out": sum(1 for r in rows if r["outcome"] == "not run"),
         "dice_mean": round(float(d.mean()), 4) if len(d) else None,
         "dice_min": round(float(d.min()), 4) if len(d) else None,
@@ -482,7 +597,18 @@ def overall(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "rim_gap_over_1_voxel": int((g > 1.0).sum()),
         "wrong_side": sum(1 for r in found if not r["expected"].endswith(r.get("side", "?"))),
         "refused_by_reason": dict(sorted(reasons.items())),
+        "refused_by_cut_reason": dict(sorted(on_cut.items())),
     }
+
+
+def cut_reason(verdict: dict[str, Any]) -> str:
+    """A refused cut's own reason (``cut_verdict``), without its numbers."""
+    import re
+
+    text = verdict["reason"]
+    if verdict["candidate"] == "the cut's":
+        text = "the cut's candidate: " + re.split(r" \(|: ", text, maxsplit=1)[0]
+    return re.sub(r"\d+(\.\d+)?%", "N%", text)
 
 
 def _write(out: str, dev: Any, sizes: list[float], rows: list[dict[str, Any]]) -> dict[str, Any]:

@@ -364,7 +364,16 @@ def find_region(
     t2 = time.perf_counter()
     pieces.sort(key=lambda p: -p.volume_mm3)
     region.pieces = pieces
-    _judge(region, grid, params)
+    try:
+        _judge(region, grid, params)
+    except (NoDefectError, MidlineDefectError) as exc:
+        # what a caller measuring the refusal needs (the sweep: which candidate held its cut, and why it went):
+        # each candidate's verdict, volume and voxels (whole grid), the skull's shell and the plane (grid mm)
+        found = [(p.reason, p.volume_mm3, p.index + region.lo) for p in region.pieces if p.index is not None]
+        setattr(exc, "candidates", found)  # noqa: B010 (attributes of this one exception, not of its class)
+        setattr(exc, "shell_mm", region.shell_mm)  # noqa: B010
+        setattr(exc, "plane_grid", (np.asarray(n_g, dtype=np.float64), d_g))  # noqa: B010
+        raise
     seconds["judge"] = time.perf_counter() - t2
     return region
 
