@@ -52,7 +52,7 @@ def test_the_sweeps_refusal_reason_is_the_candidate_holding_the_cut():
     volume = Volume(np.zeros((6, 10, 40), dtype=np.int16), (1.0, 1.0, 1.0))
     removed = np.zeros(volume.data.shape, dtype=bool)
     removed[2:4, 2:6, 30:34] = True  # 32 voxels
-    elsewhere = np.argwhere(np.ones((4, 8, 8), dtype=bool)) + [1, 1, 2]
+    elsewhere = np.argwhere(np.ones((4, 8, 8), dtype=bool)) + np.array([1, 1, 2])
     on_cut = np.argwhere(removed)[:24]
     exc = SimpleNamespace(candidates=[("moved bone: asymmetry", 500.0, elsewhere),
                                       ("smaller than the smallest defect (957 mm3)", 24.0, on_cut)])  # fmt: skip
