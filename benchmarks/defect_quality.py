@@ -123,9 +123,11 @@ def cut_verdict(exc: Any, volume: Any, cfg: dict[str, Any], removed: Any) -> dic
     """Why a refused cut was refused, measured on the cut itself (a refusal's message names the largest candidate,
     often the head's own asymmetry elsewhere): the candidate holding most of the removed bone and its verdict, or,
     where none holds any, what the rules saw there: the share of the removed voxels whose mirror image is bone of
-    the scan (a hole whose other side lacks the bone cannot be mirrored), the hole's widest opening (the largest
-    distance from a removed voxel to the scan's bone, the radius a core needs beyond the healthy shell's
-    thickness) and the healthy shell's thickness at the mirror image (twice the largest depth of its bone)."""
+    the scan (a hole whose other side lacks the bone cannot be mirrored) and of that bone in the skull's piece (the
+    rules mirror the skull: a thin vault apart from it at the level is not mirrored), the hole's widest opening
+    (the largest distance from a removed voxel to the scan's bone, the radius a core needs beyond the healthy
+    shell's thickness) and the healthy shell's thickness at the mirror image (twice the largest depth of its
+    bone)."""
     from scipy import ndimage as ndi
 
     from engine.defect.grid import Grid, bone_and_skull, reflect
@@ -148,12 +150,14 @@ def cut_verdict(exc: Any, volume: Any, cfg: dict[str, Any], removed: Any) -> dic
         return out
     grid = Grid.of(volume, cfg["orient"])
     sp = np.asarray(grid.spacing_zyx)
-    bone, _ = bone_and_skull(volume.data, cfg["level"])
+    bone, skull = bone_and_skull(volume.data, cfg["level"])
     idx = np.argwhere(removed)
     mir = np.rint(reflect(grid.xyz(idx), plane[0], plane[1])[:, ::-1] / sp).astype(np.int64)
     ok = np.all((mir >= 0) & (mir < np.asarray(bone.shape)), axis=1)
     m_bone = np.zeros(len(idx), dtype=bool)
     m_bone[ok] = bone[tuple(mir[ok].T)]
+    m_skull = np.zeros(len(idx), dtype=bool)
+    m_skull[ok] = skull[tuple(mir[ok].T)]
     pad = np.ceil(20.0 / sp).astype(np.int64)
 
     def box_of(pts: Any) -> tuple[slice, ...]:
@@ -170,10 +174,17 @@ def cut_verdict(exc: Any, volume: Any, cfg: dict[str, Any], removed: Any) -> dic
         depth = ndi.distance_transform_edt(bone[mb], sampling=sp)
         shell = 2.0 * float(depth[tuple((mir[ok][m_bone[ok]] - [s.start for s in mb]).T)].max())
     skull_shell = float(getattr(exc, "shell_mm", float("nan")))
-    out.update(mirror_bone_share=round(float(m_bone.mean()), 3), opening_radius_mm=round(opening, 2),
+    in_skull = float(m_skull.sum()) / max(int(m_bone.sum()), 1)
+    out.update(mirror_bone_share=round(float(m_bone.mean()), 3), mirror_bone_in_skull=round(in_skull, 3),
+               opening_radius_mm=round(opening, 2),
                mirror_shell_mm=round(shell, 2), skull_shell_mm=round(skull_shell, 2))  # fmt: skip
     if m_bone.mean() < 0.5:
         out["reason"] = "no candidate on the cut: its mirror image lacks the bone (the other side differs there)"
+    elif in_skull < 0.5:
+        out["reason"] = (
+            "no candidate on the cut: its mirror image's bone is not the skull's piece (the largest): a thin "
+            "vault apart from it at the level"
+        )
     elif opening <= shell:
         out["reason"] = "no candidate on the cut: the opening is narrower than twice the healthy shell (no core)"
     else:

@@ -80,7 +80,8 @@ def _symmetric_shell(hole: bool) -> tuple[Volume, np.ndarray]:
 def test_a_cut_no_candidate_holds_is_measured_where_it_is():
     """No candidate on the cut: the share of it whose mirror image is bone, its widest opening (the largest distance
     from a removed voxel to the bone) and the healthy shell at the mirror image; an opening narrower than that
-    shell leaves no core. Where the mirror lacks the bone, that is the reason."""
+    shell leaves no core. Where the mirror's bone is not the skull's piece (the largest), or the mirror lacks the
+    bone, that is the reason."""
     from benchmarks.defect_quality import cut_verdict
 
     volume, removed = _symmetric_shell(hole=True)
@@ -89,7 +90,12 @@ def test_a_cut_no_candidate_holds_is_measured_where_it_is():
     verdict = cut_verdict(exc, volume, {"orient": None, "level": 500.0}, removed)
     assert verdict["candidate"] == "none on the cut" and verdict["mirror_bone_share"] == 1.0
     assert 3.0 <= verdict["opening_radius_mm"] <= 4.5 and verdict["mirror_shell_mm"] >= 5.0
-    assert "narrower than twice the healthy shell" in verdict["reason"]
+    assert "narrower than twice the healthy shell" in verdict["reason"] and verdict["mirror_bone_in_skull"] == 1.0
+    volume.data[:, :, 12:28] = 1000  # a larger piece apart from the walls: the skull, and the mirror's wall is not it
+    volume.data[:, :, 11] = volume.data[:, :, 28] = 0
+    verdict = cut_verdict(exc, volume, {"orient": None, "level": 500.0}, removed)
+    assert verdict["mirror_bone_in_skull"] == 0.0 and "not the skull's piece" in verdict["reason"]
+    volume.data[:, :, 12:28] = 0
     volume.data[:, :, 2:8] = 0  # the other side lacks the bone too
     verdict = cut_verdict(exc, volume, {"orient": None, "level": 500.0}, removed)
     assert verdict["mirror_bone_share"] == 0.0 and "mirror image lacks the bone" in verdict["reason"]
