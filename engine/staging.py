@@ -11,7 +11,6 @@ not CUDA gets ordinary arrays, the same values.
 
 from __future__ import annotations
 
-import gc
 import os
 import sys
 import threading
@@ -152,15 +151,7 @@ class VolumeBuffer(PinnedBuffer):
             return 0 if self.buf is None else int(self.buf.capacity)
 
     def _free(self, nbytes: int) -> bool:
-        if not 0 < nbytes <= pinned_max():
-            return False
-        if self.buf is not None and self._held():
-            # an earlier job's array may be kept alive only by a reference cycle (a traceback, a closure) until the
-            # collector runs: without this, a job now and then got plain memory (page faults, pageable copies:
-            # seconds for a 2 GB volume) while nothing used the buffer
-            gc.collect()
-            return not self._held()
-        return True
+        return 0 < nbytes <= pinned_max() and not (self.buf is not None and self._held())
 
     def _grown(self, nbytes: int) -> Any:
         return self.at_least(nbytes, min(nbytes * 9 // 8, pinned_max()), self.pinned)

@@ -113,29 +113,6 @@ def test_a_reserved_volume_buffer_serves_the_first_load_without_growing(monkeypa
     assert volumes.reserve(200_000) >= 200_000
 
 
-def test_a_volume_kept_only_by_a_reference_cycle_does_not_hold_the_buffer(monkeypatch):
-    """The previous job's volume, unreachable but in a reference cycle the collector has not reached yet, is
-    collected before the buffer is judged held: the next volume gets the buffer, not plain memory."""
-    import gc
-
-    from engine.staging import VolumeBuffer
-
-    monkeypatch.setenv("BONEMESH_PINNED_MAX", "1M")
-    volumes = VolumeBuffer(pinned=False)
-    ptr = volumes.reserve(100_000) and volumes.buf.ptr
-    cycle: list = [volumes((10, 50, 100), np.uint16)]
-    cycle.append(cycle)  # only the cycle keeps the array alive once `cycle` goes
-    del cycle
-    gc.disable()  # the collector does not run on its own meanwhile
-    try:
-        second = volumes((10, 50, 100), np.uint16)
-    finally:
-        gc.enable()
-    assert second.ctypes.data == ptr
-    third = volumes((10, 50, 100), np.uint16)  # `second` is alive: plain memory, as before
-    assert third.ctypes.data != ptr
-
-
 def test_warm_up_reserves_load_buffers_only_on_cuda():
     from engine.staging import reserve_load_buffers
     from engine.job.warmup import warm_up
