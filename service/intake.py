@@ -80,6 +80,8 @@ async def receive(
         timer.lap("fields")
         await svc.in_upload_thread(writer.commit)
         timer.lap("commit")
+        if isinstance(decoder, DecoderProcess):  # its last slices and its checks run beside the inspection
+            decoder.complete(writer.size)
         summary = await svc.in_upload_thread(_inspect, svc.storage, job_id, parsed.filename, params)
         timer.lap("inspect")
         if decoder is not None:

@@ -139,6 +139,29 @@ def test_abort_kills_it_and_keeps_nothing(tmp_path: Path, children: DecoderChild
     assert child.finish(len(data)) is False
 
 
+def test_told_early_it_checks_beside_the_api_and_the_verdict_is_the_same(
+    tmp_path: Path, children: DecoderChildren
+) -> None:
+    """``complete`` right after the commit: the child finishes while the API inspects (here: waits), ``finish``
+    only collects its verdict, the same sidecar as when told by ``finish``; told early, then aborted (the
+    inspection refused the upload), nothing is left."""
+    data = _zip(_named(_pngs(9, (33, 21))))
+    child, upload = _upload_through_child(tmp_path / "early", data, 4099, children, finish=False)
+    child.complete(len(data))
+    deadline = time.monotonic() + 20
+    while not sidecar_paths(upload)[1].exists() and time.monotonic() < deadline:  # the manifest, before finish
+        time.sleep(0.01)
+    assert sidecar_paths(upload)[1].exists()
+    assert child.finish(len(data)) is True and child.slices == 9
+    ref = _in_process(tmp_path / "threads", data)
+    for got, want in zip(sidecar_paths(upload), sidecar_paths(ref), strict=True):
+        assert got.read_bytes() == want.read_bytes(), got.name
+    child, upload = _upload_through_child(tmp_path / "refused", data, 4099, children, finish=False)
+    child.complete(len(data))
+    child.abort()
+    assert _nothing_left(upload) and _gone(child.pid)
+
+
 def test_a_child_whose_api_is_gone_removes_its_files(tmp_path: Path, children: DecoderChildren) -> None:
     data = _zip(_named(_pngs(12, (64, 64))))
     child, upload = _upload_through_child(tmp_path, data[: len(data) // 2], 1 << 12, children, finish=False)
