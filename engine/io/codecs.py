@@ -125,6 +125,11 @@ def filters_known(rows: memoryview, shape: tuple[int, int], dtype: np.dtype[Any]
     return int(np.frombuffer(rows, np.uint8)[::width].max(initial=0)) <= 4
 
 
+def can_unfilter() -> bool:
+    """Whether ``unfilter_rows`` can run here (imagecodecs' libpng is installed)."""
+    return _imagecodecs() is not None
+
+
 def unfilter_rows(rows: memoryview, shape: tuple[int, int], dtype: np.dtype[Any], out: np.ndarray) -> bool:
     """Undo the row filters of ``rows`` (a grayscale, non-interlaced PNG's inflated rows, ``inflate_rows``) on the
     host, into ``out`` ((y, x) of ``dtype``, C-contiguous): libpng unfilters them from a PNG made around them, as

@@ -42,7 +42,15 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from engine.io.archive import HEAD_BYTES, InputLimits, is_junk, open_members
-from engine.io.codecs import decode_png_fast, filters_known, inflate_rows, plain_gray_png, rows_bytes, unfilter_rows
+from engine.io.codecs import (
+    can_unfilter,
+    decode_png_fast,
+    filters_known,
+    inflate_rows,
+    plain_gray_png,
+    rows_bytes,
+    unfilter_rows,
+)
 from engine.io.dicom import has_dicom_images, looks_like_dicom
 from engine.io.stack import image_kind, natural_key
 from engine.io.zipstream import ZipEntry, ZipStream
@@ -340,6 +348,7 @@ def load_predecoded(
         # have lost them while the manifest survived
         booted = boot_id()
         ok = ok and booted is not None and manifest.get("boot_id") == booted
+        ok = ok and (layout == PLANES or rows is not None or can_unfilter())  # rows: a device, or libpng here
         order = stack_order(path, manifest, limits) if ok else None
         plane = rows_bytes((h, w), dtype) if layout == ROWS else h * w * dtype.itemsize
         if order is None or not (max(order) + 1) * plane <= data_path.stat().st_size <= z * plane:

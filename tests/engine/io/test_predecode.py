@@ -334,6 +334,18 @@ def test_rows_it_could_not_unfilter_leave_no_sidecar_and_are_the_loaders_error(t
     assert load_predecoded(good, spacing_zyx_mm=SPACING, rows=DeviceRows(get_backend("cpu"))) is None
 
 
+def test_rows_without_a_device_or_libpng_here_are_left_to_the_loader(tmp_path: Path, monkeypatch: Any) -> None:
+    """A worker with neither a GPU nor imagecodecs cannot unfilter rows: the loader reads the upload (Pillow), also
+    under a host memory bound, where the slabs would otherwise fail half way through a job."""
+    import engine.io.codecs as codecs
+
+    upload = tmp_path / "upload"
+    assert _decode(upload, _zip(_named(_pngs(4))), 1 << 20, ROWS).reason is None
+    monkeypatch.setattr(codecs, "_imagecodecs", lambda: None)
+    assert load_predecoded(upload, spacing_zyx_mm=SPACING) is None
+    assert load_predecoded(upload, spacing_zyx_mm=SPACING, whole_bytes=100) is None
+
+
 def _idat(png: bytes) -> bytes:
     at = png.index(b"IDAT")
     (length,) = struct.unpack(">I", png[at - 4 : at])
