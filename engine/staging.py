@@ -126,31 +126,17 @@ class VolumeBuffer(PinnedBuffer):
     It is handed out only while nothing holds the previous volume: each call views the buffer through a new numpy
     array, and any array or view still alive from an earlier call holds the buffer (its reference count says so);
     then, or past the cap, the call returns a plain ``np.empty``, the same values either way.
-
-    A volume larger than the buffer gets a plain ``np.empty`` too where ``grow_aside`` (page-locked buffers), and the
-    buffer grows on a thread of its own meanwhile, for the next one: page-locking takes about a second for 2 GB (on
-    the H200, a fresh worker's first 1 G voxel job loaded in 1.5-3.0 s instead of 0.2-0.4 s while its buffers grew),
-    more than the plain array's first touch costs the job that needs it.
     """
 
-    def __init__(self, pinned: bool = True, grow_aside: bool | None = None) -> None:
+    def __init__(self, pinned: bool = True) -> None:
         super().__init__()
         self.pinned = pinned
-        self.grow_aside = pinned if grow_aside is None else grow_aside
-        self.growing: threading.Thread | None = None
 
     def __call__(self, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
         dtype = np.dtype(dtype)
         nbytes = int(np.prod(shape)) * dtype.itemsize
         with self.lock:
             if not self._free(nbytes):
-                return np.empty(shape, dtype)
-            if self.grow_aside and (self.buf is None or self.buf.capacity < nbytes or self.buf.pinned != self.pinned):
-                if self.growing is None or not self.growing.is_alive():
-                    self.growing = threading.Thread(
-                        target=self.reserve, args=(nbytes,), name="bonemesh-grow-buffer", daemon=True
-                    )
-                    self.growing.start()  # takes the lock once this call lets go of it
                 return np.empty(shape, dtype)
             whole: np.ndarray = self._grown(nbytes).numpy()
             out: np.ndarray = whole.view(np.uint8)[:nbytes].view(dtype).reshape(shape)

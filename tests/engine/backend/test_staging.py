@@ -113,26 +113,6 @@ def test_a_reserved_volume_buffer_serves_the_first_load_without_growing(monkeypa
     assert volumes.reserve(200_000) >= 200_000
 
 
-def test_a_larger_volume_gets_plain_memory_while_the_buffer_grows_aside(monkeypatch):
-    """Page-locking is slow: a volume larger than the buffer is handed a plain array at once, the buffer grows on
-    a thread meanwhile, and the next volume of that size lands in it."""
-    from engine.staging import VolumeBuffer
-
-    monkeypatch.setenv("BONEMESH_PINNED_MAX", "1M")
-    volumes = VolumeBuffer(pinned=False, grow_aside=True)
-    first = volumes((10, 50, 100), np.uint16)
-    volumes.growing.join(timeout=30)
-    assert volumes.buf is not None and volumes.buf.capacity >= first.nbytes
-    assert first.ctypes.data != volumes.buf.ptr  # plain memory, not the buffer it did not yet have
-    del first
-    second = volumes((10, 50, 100), np.uint16)
-    assert second.ctypes.data == volumes.buf.ptr
-    small = VolumeBuffer(pinned=False, grow_aside=True)
-    assert small.reserve(100_000) >= 100_000
-    inside = small((5, 50, 100), np.uint16)  # fits the buffer it has: no thread, the buffer itself
-    assert small.growing is None and inside.ctypes.data == small.buf.ptr
-
-
 def test_warm_up_reserves_load_buffers_only_on_cuda():
     from engine.staging import reserve_load_buffers
     from engine.job.warmup import warm_up
@@ -170,7 +150,6 @@ def test_cuda_workers_load_into_one_reused_pinned_buffer(tmp_path):
 
     volumes = pinned_volumes("cuda:0")
     assert volumes is not None and volumes is pinned_volumes("cuda:0")
-    volumes.reserve(3 * 64 * 64 * 2)  # a worker's warm-up
     a = volumes((3, 64, 64), np.uint16)
     a[...] = np.arange(64, dtype=np.uint16)
     assert volumes.buf.pinned and volumes.buf.ptr == a.ctypes.data
@@ -179,11 +158,6 @@ def test_cuda_workers_load_into_one_reused_pinned_buffer(tmp_path):
     ptr = volumes.buf.ptr
     del a
     assert volumes((3, 64, 64), np.uint16).ctypes.data == ptr
-    big = volumes((9, 512, 512), np.uint16)  # larger than the buffer: plain memory now, the buffer grown aside
-    volumes.growing.join(timeout=60)
-    assert big.ctypes.data != volumes.buf.ptr and volumes.buf.pinned and volumes.buf.capacity >= big.nbytes
-    del big
-    assert volumes((9, 512, 512), np.uint16).ctypes.data == volumes.buf.ptr
 
 
 @pytest.mark.gpu
