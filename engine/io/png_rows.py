@@ -52,14 +52,15 @@ class DeviceRows:
         self.slab = 1  # slices sent at a time (set by start)
         self.pending: list[tuple[int, Any]] = []  # slabs sent: first slice, the device's bad-filter flags
 
-    def start(self, out: np.ndarray) -> bool:
-        """Stage slices for ``out`` (z, y, x) of uint8 or uint16; False (nothing staged) for any other type."""
+    def start(self, out: np.ndarray, staging: bool = True) -> bool:
+        """Stage slices for ``out`` (z, y, x) of uint8 or uint16; False (nothing staged) for any other type. Without
+        ``staging`` no staging array is made: the rows come whole slabs at a time (:meth:`send_rows`)."""
         if out.ndim != 3 or out.dtype not in (np.uint8, np.uint16) or not out.flags.c_contiguous:
             return False
         z, h, w = out.shape
         plane = h * (1 + w * out.itemsize)
         shape, dtype = (z, plane), np.dtype(np.uint8)
-        rows = np.empty(shape, dtype) if self.allocate is None else self.allocate(shape, dtype)
+        rows = None if not staging else np.empty(shape, dtype) if self.allocate is None else self.allocate(shape, dtype)
         self.out, self.rows, self.staged, self.flushed = out, rows, np.zeros(z, bool), 0
         # the kernels index a slab's bytes with 32-bit integers
         self.slab = max(1, min(z, self.slab_bytes // plane, (2**31 - 1) // plane))
@@ -71,13 +72,6 @@ class DeviceRows:
             return False
         self.staged[k] = inflate_rows(data, self.out.shape[1:], self.out.dtype, memoryview(self.rows[k]))
         return bool(self.staged[k])
-
-    def stage(self, k0: int, k1: int) -> np.ndarray:
-        """The staging rows of slices ``k0`` to ``k1`` (z, rows' bytes), counted as staged: the caller writes rows
-        inflated elsewhere into them (``engine.io.predecode``'s sidecar) before it calls :meth:`ready` past them."""
-        assert self.rows is not None
-        self.staged[k0:k1] = True
-        return self.rows[k0:k1]
 
     def ready(self, done: int) -> None:
         """Slices before ``done`` are decoded or staged: send every whole slab among them to the device."""
@@ -111,15 +105,27 @@ class DeviceRows:
         be.launch(UNFILTER, 1, [rows, 2, slices, be.empty(1, np.uint8), be.zeros(1, np.int32), 1, 1, 1, 0])
         be.synchronize()
 
+    def send_rows(self, lo: int, hi: int, rows: np.ndarray) -> None:
+        """Slices ``lo`` to ``hi`` (the next slab, in order) unfiltered from ``rows`` ((hi - lo, rows' bytes),
+        inflated elsewhere: ``engine.io.predecode``'s sidecar) into the volume begun by ``start(out,
+        staging=False)``; ``rows`` may be written again once the backend has synchronized."""
+        self.flushed = hi
+        self._unfilter(lo, hi, np.arange(hi - lo, dtype=np.int32), rows)
+
     def _send(self, lo: int, hi: int) -> None:
         assert self.out is not None and self.rows is not None
         self.flushed = hi
         picked = np.flatnonzero(self.staged[lo:hi]).astype(np.int32)
-        if not len(picked):
-            return
+        if len(picked):
+            self._unfilter(lo, hi, picked, self.rows[lo:hi])
+
+    def _unfilter(self, lo: int, hi: int, picked: np.ndarray, host_rows: np.ndarray) -> None:
+        """The slab ``lo`` to ``hi``'s slices ``picked`` (indices in the slab) from ``host_rows`` to the device,
+        unfiltered there, their samples copied back into the volume."""
+        assert self.out is not None
         be, (_, h, w), bpp = self.backend, self.out.shape, self.out.itemsize
-        plane = self.rows.shape[1]
-        rows = be.from_host(self.rows[lo:hi].reshape(-1))
+        plane = host_rows.shape[1]
+        rows = be.from_host(host_rows.reshape(-1))
         slices = be.from_host(picked)
         bad = be.zeros(hi - lo, np.int32)
         samples = be.empty((hi - lo) * h * w * bpp, np.uint8)

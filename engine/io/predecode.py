@@ -375,7 +375,7 @@ def load_predecoded(
     else:
         data = np.empty(shape, dtype) if allocate is None else allocate(shape, dtype)
         try:
-            if layout == ROWS and rows is not None and rows.start(data):
+            if layout == ROWS and rows is not None and rows.start(data, staging=False):
                 reader.to_device(rows, data)
             else:
                 reader.fill(0, len(order), data)
@@ -459,22 +459,31 @@ class _Planes:
             raise _Unreadable(f"plane {self.order[z]}")
 
     def to_device(self, rows: DeviceRows, out: np.ndarray) -> None:
-        """The rows read into ``rows``' staging array (started on ``out``) and unfiltered by its device into ``out``,
-        slab by slab as the reads before it are done."""
-        from engine.io.parallel import ordered_map
-
-        z = len(self.order)
-        runs = self._runs(0, z, max(1, READ_BYTES // max(self.plane, 1)))
+        """The rows unfiltered by ``rows``' device (started on ``out`` without staging) into ``out``, a slab at a
+        time through a ring of two slabs' rows (page-locked on a CUDA device): the next slab is read while the
+        device works on the one before, and no staging array the volume's size is needed."""
+        z, slab = len(self.order), rows.slab
+        shape = (min(z, 2 * slab), self.plane)
+        ring = np.empty(shape, np.uint8) if rows.allocate is None else rows.allocate(shape, np.dtype(np.uint8))
+        slabs = [(lo, min(z, lo + slab)) for lo in range(0, z, slab)]
+        per = max(1, READ_BYTES // max(self.plane, 1))
         try:
-            staged = rows.stage(0, z)
+            with ThreadPoolExecutor(max(1, self.threads)) as pool:
 
-            def read(run: tuple[int, int, int]) -> int:
-                i, k, n = run
-                self._read(staged[i : i + n], k)
-                return i + n
+                def read(s: int) -> list[Any]:  # slab s's rows into its half of the ring, on the pool
+                    lo, hi = slabs[s]
+                    half = ring[(s % 2) * slab :][: hi - lo]
+                    return [pool.submit(self._read, half[i : i + n], k) for i, k, n in self._runs(lo, hi, per)]
 
-            for done in ordered_map(read, runs, max(1, self.threads)):  # in order: the slabs before it are whole
-                rows.ready(done)
+                reading = read(0)
+                for s, (lo, hi) in enumerate(slabs):
+                    for done in reading:
+                        done.result()
+                    if s + 1 < len(slabs):
+                        if s >= 1:  # the next slab's half held slab s - 1: the device must have taken it
+                            rows.backend.synchronize()
+                        reading = read(s + 1)
+                    rows.send_rows(lo, hi, ring[(s % 2) * slab :][: hi - lo])
             if rows.finish():
                 raise _Unreadable("a filter type the device does not know")
         finally:
