@@ -184,11 +184,6 @@ class Backend(abc.ABC):
         more than its launch: Warp records the command)."""
 
     @abc.abstractmethod
-    def stepped(self, kernel: Kernel, dim: int, args: list[Any], index: int) -> Callable[[int], None]:
-        """A launch packed once whose int32 argument ``index`` is given per call (a wavefront's step: hundreds of
-        launches that differ in it alone; Warp's per-launch packing costs more than the launch)."""
-
-    @abc.abstractmethod
     def exclusive_scan(self, src: Any, dst: Any) -> int:
         """``dst[i] = sum(src[:i])`` over int32 arrays; returns the total (a sync point)."""
 

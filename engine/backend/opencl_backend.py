@@ -307,9 +307,6 @@ class OpenCLBackend(Backend):
     def prepared(self, kernel: Kernel, dim: int, args: list[Any]) -> Callable[[], None]:
         return lambda: self.launch(kernel, dim, args)
 
-    def stepped(self, kernel: Kernel, dim: int, args: list[Any], index: int) -> Callable[[int], None]:
-        return lambda value: self.launch(kernel, dim, [*args[:index], np.int32(value), *args[index + 1 :]])
-
     def struct(self, spec: Struct, **values: Any) -> Any:
         dtype = np.dtype([(name, t) for name, t in spec.fields])
         rec = np.zeros((), dtype)

@@ -151,17 +151,6 @@ class WarpBackend(Backend):
         cmd = wp.launch(_resolve(kernel.warp), dim=dim, inputs=args, device=self.device, record_cmd=True)
         return cmd.launch  # type: ignore[no-any-return]
 
-    def stepped(self, kernel: Kernel, dim: int, args: list[Any], index: int) -> Callable[[int], None]:
-        import warp as wp
-
-        cmd = wp.launch(_resolve(kernel.warp), dim=dim, inputs=args, device=self.device, record_cmd=True)
-
-        def run(value: int) -> None:
-            cmd.set_param_at_index(index, value)
-            cmd.launch()
-
-        return run
-
     def struct(self, spec: Struct, **values: Any) -> Any:
         s = _resolve(spec.warp)()
         for name, _ in spec.fields:

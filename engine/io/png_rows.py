@@ -130,9 +130,8 @@ class DeviceRows:
         bad = be.zeros(hi - lo, np.int32)
         samples = be.empty((hi - lo) * h * w * bpp, np.uint8)
         threads = len(picked) * bpp * -(-w // BLOCK)
-        launch = be.stepped(UNFILTER, threads, [rows, plane, slices, samples, bad, h, w, bpp, 0], 8)
         for step in range(wavefront_steps(h, w)):  # each step needs the one before: the device's queue orders them
-            launch(step)
+            be.launch(UNFILTER, threads, [rows, plane, slices, samples, bad, h, w, bpp, step])
         dest = self.out[lo:hi].reshape(hi - lo, -1).view(np.uint8)
         # one copy per run of consecutive device slices (the host decoded the others, e.g. the first of the stack)
         firsts = np.flatnonzero(np.diff(picked, prepend=-2) != 1)
