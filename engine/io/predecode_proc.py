@@ -125,15 +125,15 @@ class DecoderProcess:
             return False
         deadline = time.monotonic() + self.wait_seconds
         try:
-            line = b"finish %d\n" % length
-            while self.completed is None and not self._send(line):
+            self.complete(length)
+            while self.completed is None:  # the pipe was full: wait for room
                 if self.proc.poll() is not None:
                     raise _Gone(f"the decoding process ended ({self.proc.returncode})")
                 if not select.select([], [self._in.fileno()], [], max(0.0, deadline - time.monotonic()))[1]:
                     raise _Gone(f"the decoding process took no order in {self.wait_seconds:g} s")
-            sent = time.monotonic() if self.completed is None else self.completed
+                self.complete(length)
             verdict = json.loads(self._verdict(deadline))
-            self.timings = {"waited_s": round(time.monotonic() - sent, 4)}
+            self.timings = {"waited_s": round(time.monotonic() - self.completed, 4)}
             self.timings.update({k: float(verdict[k]) for k in ("feed_s", "finish_s") if k in verdict})
             kept = verdict["kept"] is True
             self.reason = None if kept else str(verdict.get("reason") or "not kept")
