@@ -406,15 +406,15 @@ def midline_crossing(removed: Any, volume: Any, cfg: dict[str, Any], plane: Any)
     voxel side). A cut that crosses it is missing on both sides: mirroring cannot fill it, and
     ``MidlineDefectError`` is the right answer, not a template."""
     from engine.defect.grid import Grid
+    from engine.defect.region import lies_across
 
     grid = Grid.of(volume, cfg["orient"])
     sd = grid.xyz(np.argwhere(removed)) @ np.asarray(plane.normal_grid) - plane.offset_grid_mm
-    big = float(max(grid.spacing_zyx))
     far = float(np.mean(sd < 0) if np.median(sd) > 0 else np.mean(sd > 0))
     return {
         "removed_plane_mm": [round(float(sd.min()), 2), round(float(sd.max()), 2)],
         "removed_across_share": round(far, 4),
-        "crosses_midline": bool(sd.min() < -big and sd.max() > big),
+        "crosses_midline": lies_across(float(sd.min()), float(sd.max()), grid),
     }
 
 
@@ -560,8 +560,6 @@ def main(argv: list[str] | None = None) -> int:
 
 def refusal_reason(outcome: str) -> str:
     """A refusal's class and reason, without its numbers (the sweep's count of refusals by reason)."""
-    import re
-
     kind, _, text = outcome.partition(": ")
     if kind == "MidlineDefectError":
         return f"{kind}: " + ("crosses the midline" if "crosses the midline" in text else "the hole goes on toward it")
@@ -569,8 +567,21 @@ def refusal_reason(outcome: str) -> str:
         text = text.split("was left out: ", 1)[1]
     elif "looks intact" in text:
         text = "the scan looks intact at this level"
-    text = re.split(r" \(|: ", text, maxsplit=1)[0]
-    return f"{kind}: " + re.sub(r"\d+(\.\d+)?%", "N%", text)
+    return f"{kind}: " + _without_numbers(_reason_head(text))
+
+
+def _reason_head(text: str) -> str:
+    """A reason's head: what comes before its first parenthesis or colon (its numbers and details)."""
+    import re
+
+    return re.split(r" \(|: ", text, maxsplit=1)[0]
+
+
+def _without_numbers(text: str) -> str:
+    """A reason's shares as ``N%``, so that reasons count together."""
+    import re
+
+    return re.sub(r"\d+(\.\d+)?%", "N%", text)
 
 
 def overall(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -614,12 +625,10 @@ def overall(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 def cut_reason(verdict: dict[str, Any]) -> str:
     """A refused cut's own reason (``cut_verdict``), without its numbers."""
-    import re
-
     text = verdict["reason"]
     if verdict["candidate"] == "the cut's":
-        text = "the cut's candidate: " + re.split(r" \(|: ", text, maxsplit=1)[0]
-    return re.sub(r"\d+(\.\d+)?%", "N%", text)
+        text = "the cut's candidate: " + _reason_head(text)
+    return _without_numbers(text)
 
 
 def _write(out: str, dev: Any, sizes: list[float], rows: list[dict[str, Any]]) -> dict[str, Any]:

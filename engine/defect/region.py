@@ -704,10 +704,17 @@ def _measures(p: Piece, region: Region, mirror_bone: BoolArray, grid: Grid) -> d
     return out
 
 
+def lies_across(nearest_mm: float, farthest_mm: float, grid: Grid) -> bool:
+    """Whether bone whose signed distances to the plane run from ``nearest_mm`` to ``farthest_mm`` lies on both
+    sides of it by more than a voxel (the largest side): a piece, or a cut (the reviewer's sweep), across the
+    midline."""
+    big = float(max(grid.spacing_zyx))
+    return nearest_mm < -big and farthest_mm > big
+
+
 def _across(p: Piece, grid: Grid) -> bool:
     """Whether the piece lies on both sides of its plane by more than a voxel."""
-    big = float(max(grid.spacing_zyx))
-    return p.side_mm[0] < -big and p.side_mm[2] > big
+    return lies_across(p.side_mm[0], p.side_mm[2], grid)
 
 
 def _judge_one(p: Piece, measured: dict[str, Any], region: Region, grid: Grid) -> bool:
