@@ -237,6 +237,7 @@ def _case(
         centroid_lps_mm=[round(float(v), 1) for v in res.to_json()["defect"]["centroid_lps_mm"]],
         stage_seconds={k: round(v, 3) for k, v in res.seconds.items()},
         confidence=min((round(p.fit * p.rim.contact, 4) for p in res.kept if p.fit and p.rim), default=None),
+        past_plane_mm=max((round(p.across.past_mm, 2) for p in res.kept if p.across), default=None),
     )
     if intact_plane is not None:
         row["plane_vs_intact_deg"] = round(_angle(res.plane.normal, intact_plane.normal), 3)
@@ -562,6 +563,8 @@ def refusal_reason(outcome: str) -> str:
     """A refusal's class and reason, without its numbers (the sweep's count of refusals by reason)."""
     kind, _, text = outcome.partition(": ")
     if kind == "MidlineDefectError":
+        if "past the midline plane" in text:  # issue 42's measure of the hole past the plane (``rim.past_plane``)
+            return f"{kind}: the hole goes on past the plane"
         return f"{kind}: " + ("crosses the midline" if "crosses the midline" in text else "the hole goes on toward it")
     if "was left out: " in text:
         text = text.split("was left out: ", 1)[1]
@@ -578,10 +581,11 @@ def _reason_head(text: str) -> str:
 
 
 def _without_numbers(text: str) -> str:
-    """A reason's shares as ``N%``, so that reasons count together."""
+    """A reason's shares as ``N%`` and how far a hole goes past the midline as ``N mm``, so that reasons count
+    together."""
     import re
 
-    return re.sub(r"\d+(\.\d+)?%", "N%", text)
+    return re.sub(r"goes on \d+(\.\d+)? mm", "goes on N mm", re.sub(r"\d+(\.\d+)?%", "N%", text))
 
 
 def overall(rows: list[dict[str, Any]]) -> dict[str, Any]:

@@ -53,7 +53,7 @@ from engine.backend.base import Backend
 from engine.defect.grid import CONNECTIVITY, BoolArray, FloatArray, Grid, bounding_box, reflect
 from engine.defect.params import DefectParams
 from engine.defect.plane import SymmetryPlane, reflection, ring_plane
-from engine.defect.rim import Rim, Span, open_toward_plane, rim_of, spans_shell
+from engine.defect.rim import Across, Rim, Span, open_toward_plane, past_plane, rim_of, spans_shell
 from engine.errors import MidlineDefectError, NoDefectError
 
 THICKNESS_REACH_MM = 5.0  # the shell's middle is looked for this far around a voxel (shells up to 10 mm)
@@ -74,6 +74,15 @@ RIM_CLOSE_SHELLS = 0.5
 # past its edge toward the plane (at least 3 shells)
 MIDLINE_REACH_MM = 15.0
 MIN_OPEN_TOWARD_PLANE = 0.4  # measured: one-sided defects 0.0-0.41 (near the midline), across it 0.45-0.78
+# how far the hole goes on past the plane (``engine.defect.rim.past_plane``: from the template's edge facing the
+# plane along the shell to the hole's rim, over a front MIN_SPAN_WIDTH_MM wide): past the plane the mirror image
+# lacks the bone too, and the template stops about as far short of it, so the strip it leaves open at the midline
+# is about twice as wide. A hole reaching past the plane by more than MIDLINE_PAST_MM (or a voxel along the way,
+# the measure's own step, where that is more) is a midline defect; one reaching past it by less keeps its template
+# with a warning in defect.json (issue 42). Measured on the sweep (docs/defect.md): one-sided cuts within 10 mm of
+# the plane -11.3 to +2.3 mm, the cuts across it that got templates until then 1.6 (the cranium's, 3 mm past by
+# its removed bone) and 3.0-15 mm
+MIDLINE_PAST_MM = 2.5
 # a defect is a hole through the shell: the scan lacks the mirrored shell across its whole thickness (its columns
 # along the shell's normal span it, ``engine.defect.rim.spans_shell``) over an opening at least this wide, and over
 # at least this share of its outline (a bevelled rim spans it only over its narrowest opening)
@@ -122,6 +131,7 @@ class Piece:
     local_used: bool = False
     rim: Rim | None = None
     span: Span | None = None
+    across: Across | None = None  # how far the hole goes on past the plane (``past_plane``), where measured
     fit: float | None = None
     shell_mm: float | None = None  # the healthy shell's local thickness over the piece (median)
     bridged_mm3: float = 0.0  # added across rim gaps (``_close_rim``)
@@ -155,6 +165,8 @@ class Piece:
             out["rim"] = self.rim.to_dict()
         if self.span is not None:
             out["spans_shell"] = self.span.to_dict()
+        if self.across is not None:
+            out["midline"] = self.across.to_dict()
         if self.bridged_mm3:
             out["rim_gap_bridged_mm3"] = round(self.bridged_mm3, 2)
         if self.cut_mm3:
@@ -691,6 +703,20 @@ def _measures(p: Piece, region: Region, mirror_bone: BoolArray, grid: Grid) -> d
         n_zyx = np.asarray(p.local_normal)[::-1]
         out["toward"] = lambda: open_toward_plane(index, region.bone, region.mirrored, grid.spacing_zyx, side, n_zyx,
                                                   max(MIDLINE_REACH_MM, 3.0 * shell))  # fmt: skip
+    if min(abs(p.side_mm[0]), abs(p.side_mm[2])) <= MIDLINE_REACH_MM + (p.side_mm[2] - p.side_mm[0]):
+        side = grid.xyz(g) @ np.asarray(p.local_normal) - p.local_offset_mm
+        n_zyx = np.asarray(p.local_normal)[::-1]
+        out["past"] = lambda: past_plane(
+            index,
+            region.bone,
+            grid.spacing_zyx,
+            side,
+            n_zyx,
+            MIDLINE_REACH_MM,
+            0.5 * (shell + float(sp.max())),
+            MIN_SPAN_WIDTH_MM,
+            2.0 * shell + float(sp.max()),
+        )
     if not _across(p, grid):
 
         def span() -> Any:  # measured before the rules know they need it: a failure counts only if they do
@@ -712,6 +738,24 @@ def lies_across(nearest_mm: float, farthest_mm: float, grid: Grid) -> bool:
     return nearest_mm < -big and farthest_mm > big
 
 
+def midline_tolerance(across: Across) -> float:
+    """How far past the midline plane a hole may go (mm) and keep its template (with a warning):
+    ``MIDLINE_PAST_MM``, or a voxel's extent along the way to the plane where that is more (the measure's step)."""
+    return max(MIDLINE_PAST_MM, across.voxel_mm)
+
+
+def midline_warning(p: Piece) -> str | None:
+    """The warning for a kept piece whose hole goes on past the midline plane by less than the tolerance (None
+    where it stops short of the plane)."""
+    if p.across is None or p.across.past_mm <= 0.0:
+        return None
+    return (
+        f"the hole goes on {p.across.past_mm:.1f} mm past the midline plane (along the shell, over a front "
+        f"{p.across.front_mm:.0f} mm wide): the mirror image lacks that bone too, so the template stops about as "
+        "far short of the plane; check its edge at the midline"
+    )
+
+
 def _across(p: Piece, grid: Grid) -> bool:
     """Whether the piece lies on both sides of its plane by more than a voxel."""
     return lies_across(p.side_mm[0], p.side_mm[2], grid)
@@ -730,8 +774,16 @@ def _judge_one(p: Piece, measured: dict[str, Any], region: Region, grid: Grid) -
     across = _across(p, grid)
     toward = measured.get("toward", 0.0)
     p.rim = dataclasses.replace(measured["rim"], open_toward_plane=toward)
+    p.across = measured.get("past")
     if across or toward >= MIN_OPEN_TOWARD_PLANE:
         p.reason = "crosses the midline" if across else "the hole goes on past it toward the midline"
+        return True
+    if p.across is not None and p.across.past_mm > midline_tolerance(p.across):
+        p.reason = (
+            f"the hole goes on {p.across.past_mm:.1f} mm past the midline plane (along the shell from the "
+            f"template's edge facing it, over a front {p.across.front_mm:.0f} mm wide; more than the "
+            f"{midline_tolerance(p.across):.2g} mm a template may stop short of it)"
+        )
         return True
     span = measured["span"]
     if isinstance(span, Exception):

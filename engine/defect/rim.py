@@ -19,6 +19,7 @@ piece is a hole through the whole shell, judged on its columns along the mirrore
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -319,4 +320,140 @@ def spans_shell(
         missing=float(np.median(missing)),
         spans=spans,
         column_missing=missing,
+    )
+
+
+@dataclass(frozen=True)
+class Across:
+    """How far the hole around a piece goes on past the symmetry plane (``past_plane``), where the mirror image
+    lacks the bone too. ``past_mm``: the hole reaches this far past the plane (+: on the plane's other side; a
+    negative value: its rim lies this far short of the plane) over a front at least ``front_mm`` wide; ``rows``:
+    the paths measured, ``open_rows``: those that met no bone before ``reach_mm`` past the plane; ``voxel_mm``: a
+    voxel's extent along the paths (their median), the measure's own step."""
+
+    past_mm: float
+    front_mm: float
+    rows: int
+    open_rows: int
+    reach_mm: float
+    voxel_mm: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"past_plane_mm": round(self.past_mm, 2), "front_mm": round(self.front_mm, 2), "paths": self.rows,
+                "open_paths": self.open_rows, "reach_mm": round(self.reach_mm, 2),
+                "voxel_along_mm": round(self.voxel_mm, 3)}  # fmt: skip
+
+
+def _plate_normals(pts: npt.NDArray[np.float64], at: npt.NDArray[np.float64], radius_mm: float) -> Any:
+    """A plate's normals (unit, z, y, x) at points ``at`` (mm): the thinnest principal axis of the plate's points
+    ``pts`` (mm) within ``radius_mm`` of each (of all of them where fewer than four are). The piece's own shape,
+    not the mirrored scan's gradients: at a piece's edge the mirror's own hole (past the plane, the mirror lacks
+    the bone too) turns those toward the plane."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(pts)
+    out = np.empty((len(at), 3))
+    for i, near in enumerate(tree.query_ball_point(at, radius_mm, workers=1)):
+        q = pts[near] if len(near) >= 4 else pts
+        _, axes = np.linalg.eigh(np.cov((q - q.mean(axis=0)).T))
+        out[i] = axes[:, 0]
+    return out
+
+
+def past_plane(
+    index: npt.NDArray[np.int64],
+    bone: npt.NDArray[np.bool_],
+    spacing_zyx: tuple[float, float, float],
+    side_mm: npt.NDArray[np.float64],
+    plane_normal_zyx: npt.NDArray[np.float64],
+    reach_mm: float,
+    tube_mm: float,
+    front_mm: float,
+    normal_mm: float,
+) -> Across | None:
+    """How far the hole that a piece fills goes on past the symmetry plane: where the scan lacks the bone on both
+    sides of it, and the mirror image too (past the plane the mirror image is this side's missing bone).
+
+    The piece is cut into rows across the way to the plane (the plane's direction less its part along the shell's
+    normal over the piece, the rows one voxel extent apart across it). From each row's voxel nearest the plane a
+    path runs along the shell toward the plane (its direction less its part along the piece's local normal there:
+    the thinnest axis of its voxels within ``normal_mm``, ``_plate_normals``) until it meets the scan's bone within
+    ``tube_mm`` of it along that normal: the hole's rim on that row. A one-sided defect's rows meet their rim at
+    once, short of the plane; a hole across the midline's rows facing it meet its rim past the plane, as far past
+    it as the hole goes (the template stops as far short of the plane: the mirror image lacks that bone too).
+    Returns the hole's reach past the plane (mm; + past it, - the rim that far short of it) over a front
+    ``front_mm`` wide: the smallest of the rows' largest reaches that make that width (one row's is noise). A row
+    meeting no bone up to ``reach_mm`` past the plane counts as ``reach_mm``; one that leaves the scan first, or
+    whose shell faces the plane (a side wall: the way to the plane runs through the shell, not along it), is left
+    out. None when no row is measured.
+
+    Args:
+        index: (N, 3) voxel indices (z, y, x) of the piece in ``bone``'s and ``mirrored``'s arrays.
+        bone: the scan's bone (bool).
+        spacing_zyx: voxel size in mm.
+        side_mm: (N,) the piece's voxels' signed distances to the plane (mm).
+        plane_normal_zyx: the plane's unit normal (z, y, x).
+        reach_mm: how far past the plane a row looks for bone.
+        tube_mm: bone this far from a path along the shell's normal is met (the shell curves away from a straight
+            path: half the shell's thickness or so).
+        front_mm: the width of the front whose reach is returned.
+        normal_mm: the piece's local normal is that of its voxels within this distance.
+    """
+    if len(index) < 4:
+        return None
+    sp = np.asarray(spacing_zyx, dtype=np.float64)
+    n = np.asarray(plane_normal_zyx, dtype=np.float64)
+    pts = index * sp
+    sgn = 1.0 if float(np.median(side_mm)) > 0 else -1.0
+    toward = -sgn * n
+    nu = _plate_normals(pts, pts.mean(axis=0)[None, :], float("inf"))[0]
+    across = np.cross(nu, toward)  # the rows run across the way to the plane
+    if float(np.linalg.norm(across)) < 1e-6:
+        return None
+    across /= float(np.linalg.norm(across))
+    h2 = float(np.abs(across) @ sp)
+    row = np.round((pts - pts.mean(axis=0)) @ across / h2).astype(np.int64)
+    past_v = -sgn * np.asarray(side_mm, dtype=np.float64)
+    order = np.lexsort((-past_v, row))  # by row, the voxel nearest the plane first
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = row[order][1:] != row[order][:-1]
+    ends = index[order[first]]
+    past_e = past_v[order[first]]
+    nus = _plate_normals(pts, ends * sp, normal_mm)
+    tan = toward[None, :] - (nus @ toward)[:, None] * nus
+    along = np.linalg.norm(tan, axis=1)
+    ok = along >= MIN_ALONG
+    if not ok.any():
+        return None
+    ends, past_e, nus, tan, along = ends[ok], past_e[ok], nus[ok], tan[ok] / along[ok, None], along[ok]
+    step = 0.5 * float(sp.min())
+    depth = np.arange(-tube_mm, tube_mm + 0.5 * step, step)
+    shape = np.asarray(bone.shape)
+    past = np.full(len(ends), np.nan)  # nan: not known yet
+    met = np.zeros(len(ends), dtype=bool)
+    k = 0
+    live = np.arange(len(ends))
+    while len(live):
+        here = past_e[live] + along[live] * k * step  # each path's reach past the plane at this step
+        pos = (ends[live] * sp + (k * step) * tan[live])[:, None, :] + depth[None, :, None] * nus[live][:, None, :]
+        vox = np.round(pos / sp).astype(np.int64)
+        inside = np.all((vox >= 0) & (vox < shape), axis=2)
+        vox = np.clip(vox, 0, shape - 1)
+        hit = (bone[vox[..., 0], vox[..., 1], vox[..., 2]] & inside).any(axis=1)
+        gone = ~inside[:, len(depth) // 2]  # the path itself left the scan
+        beyond = here >= reach_mm
+        past[live[hit]] = np.minimum(here[hit], reach_mm)
+        met[live[hit]] = True
+        past[live[~hit & beyond & ~gone]] = reach_mm
+        live = live[~(hit | beyond | gone)]
+        k += 1
+    known = np.isfinite(past)
+    if not known.any():
+        return None
+    past, met = past[known], met[known]
+    w = min(len(past), max(1, math.ceil(front_mm / h2)))
+    front = float(np.sort(past)[::-1][w - 1])
+    voxel = float(np.median(np.abs(tan[known]) @ sp))
+    return Across(
+        past_mm=front, front_mm=w * h2, rows=len(past), open_rows=int((~met).sum()), reach_mm=reach_mm, voxel_mm=voxel
     )

@@ -49,6 +49,7 @@ class DefectOutcome:
             **{k: info["defect"][k] for k in keep},
             "plane_residual_mm": info["plane"]["residual_mm"],
             "implant_faces": info["implant"]["faces"],
+            **({"warnings": info["warnings"]} if info["warnings"] else {}),
             **on,
             "seconds": round(self.seconds, 4),
         }

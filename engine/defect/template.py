@@ -82,6 +82,14 @@ class DefectResult:
             "contact_share": float(np.average([r.contact for r in rims], weights=w)),
         }
 
+    @property
+    def warnings(self) -> list[str]:
+        """What the template's user must know: a hole that goes on past the midline plane by less than the
+        tolerance (``region.midline_warning``)."""
+        from engine.defect.region import midline_warning
+
+        return [w for w in (midline_warning(p) for p in self.kept) if w]
+
     def full_mask(self) -> npt.NDArray[np.bool_]:
         """The template's voxels on the whole grid."""
         out = np.zeros(self.shape, dtype=bool)
@@ -96,6 +104,7 @@ class DefectResult:
         idx = np.argwhere(self.mask) + np.asarray(self.mask_lo)
         rim = self.rim()
         voxel_gap = rim["gap_voxels"]
+        past = [p.across.past_mm for p in self.kept if p.across is not None]
         return {
             "format": FORMAT,
             "found": True,
@@ -124,7 +133,9 @@ class DefectResult:
                 "shell_thickness_mm": round(self.shell_mm, 3),
                 "tissue_level": round(self.tissue, 2),
                 "min_volume_mm3": round(self.min_volume_mm3, 2),
+                "past_midline_mm": round(max(past), 2) if past else None,
             },
+            "warnings": self.warnings,
             "implant": {
                 "file": IMPLANT_STL,
                 "faces": int(self.mesh_stats["n_faces"]),
