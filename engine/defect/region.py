@@ -778,13 +778,6 @@ def _judge_one(p: Piece, measured: dict[str, Any], region: Region, grid: Grid) -
     if across or toward >= MIN_OPEN_TOWARD_PLANE:
         p.reason = "crosses the midline" if across else "the hole goes on past it toward the midline"
         return True
-    if p.across is not None and p.across.past_mm > midline_tolerance(p.across):
-        p.reason = (
-            f"the hole goes on {p.across.past_mm:.1f} mm past the midline plane (along the shell from the "
-            f"template's edge facing it, over a front {p.across.front_mm:.0f} mm wide; more than the "
-            f"{midline_tolerance(p.across):.2g} mm a template may stop short of it)"
-        )
-        return True
     span = measured["span"]
     if isinstance(span, Exception):
         raise span
@@ -826,6 +819,16 @@ def _judge_one(p: Piece, measured: dict[str, Any], region: Region, grid: Grid) -
             f"the bone (gap {p.rim.gap_voxels:.1f} voxels)"
         )
         return False
+    # the hole past the plane is judged on a piece that would be a template: where the rules above refuse a piece
+    # (a skull base's asymmetry far off, whose paths along a straight line leave the shell and meet no bone) it is
+    # not made a midline defect that overrides the one-sided template kept beside it
+    if p.across is not None and p.across.past_mm > midline_tolerance(p.across):
+        p.reason = (
+            f"the hole goes on {p.across.past_mm:.1f} mm past the midline plane (along the shell from the "
+            f"template's edge facing it, over a front {p.across.front_mm:.0f} mm wide; more than the "
+            f"{midline_tolerance(p.across):.2g} mm a template may stop short of it)"
+        )
+        return True
     if p.rim is not None and p.rim.gap_voxels > CLOSE_GAP_VOXELS:  # a kept template only: it decides nothing
         _to_rim_across_slices(p, region, grid, shell, border_of=full, reach=reach)
     p.kept = True
