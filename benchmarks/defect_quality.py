@@ -613,7 +613,11 @@ def overall(rows: list[dict[str, Any]]) -> dict[str, Any]:
             "midline_refusals": sum(1 for r in across if r["outcome"].startswith("MidlineDefectError")),
             "other_refusals": sum(1 for r in across if r["outcome"].startswith("NoDefectError")),
             "templates": sum(1 for r in across if r["outcome"] == "template"),
+            "templates_with_a_midline_warning": sum(1 for r in across if _warned(r)),
         },
+        # templates whose hole goes on past the midline plane by less than the engine's tolerance: kept, with a
+        # warning in defect.json (``region.midline_warning``; issue 42)
+        "midline_warnings": sum(1 for r in found if _warned(r)),
         "left_out": sum(1 for r in rows if r["outcome"] == "not run"),
         "dice_mean": round(float(d.mean()), 4) if len(d) else None,
         "dice_min": round(float(d.min()), 4) if len(d) else None,
@@ -625,6 +629,12 @@ def overall(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "refused_by_reason": dict(sorted(reasons.items())),
         "refused_by_cut_reason": dict(sorted(on_cut.items())),
     }
+
+
+def _warned(row: dict[str, Any]) -> bool:
+    """Whether a row's template carries the engine's midline warning (its hole past the plane: ``past_plane_mm``
+    over 0, ``region.midline_warning``'s rule)."""
+    return row["outcome"] == "template" and (row.get("past_plane_mm") or 0.0) > 0.0
 
 
 def cut_reason(verdict: dict[str, Any]) -> str:
