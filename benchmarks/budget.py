@@ -66,6 +66,7 @@ def run_record(recon: Any, times: list[float]) -> dict[str, Any]:
         "seconds": sorted(times)[len(times) // 2],
         "runs_seconds": times,
         "stage_seconds": rep["stage_seconds"],
+        "finish_seconds": rep.get("finish_seconds"),  # the mesh's measures after the stages
         "peak_device_bytes": rep["memory"]["peak_bytes"],
         "mc33_faces": rep["counts"]["isosurface"]["faces"],
         "faces": mesh["n_faces"],

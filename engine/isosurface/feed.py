@@ -24,7 +24,9 @@ from engine.staging import PinnedBuffer, pinned_max
 
 FEED_MIN_BYTES = 256 << 20  # the pinned ring of planes that the slab uploads go through: at least this,
 RING_SLABS = 2  # or this many of the largest slabs (the next slab is read while the device works on this one),
-FEED_MAX_BYTES = 1 << 30  # up to this (locking 1 GiB took 0.6 s on the H100 host, once per process)
+FEED_MAX_BYTES = 2 << 30  # up to this (locking 1 GiB took 0.6 s on the H100 host, once per process; 2 GiB holds
+# two slabs of 1024 x 1024 uint16 planes in an 8 GiB budget: the 8 G voxel phantom on an H200 waited 0.16 s for planes
+# in all, against 0.49 s with 1 GiB, docs/multi-gpu.md)
 FEED_CHUNK_BYTES = 32 << 20  # the ring is filled this much at a time,
 READERS = 4  # by this many threads (one copied 5 GB/s on the H100 host: slower than the pageable upload)
 
@@ -101,7 +103,7 @@ class PlaneFeed:
         self.error: BaseException | None = None
         self.stopped = False
         self.stats = {"requests": 0, "direct": 0, "longest_request_planes": 0, "waited_seconds": 0.0}
-        self.stats |= {"read_seconds": 0.0, "ring_wait_seconds": 0.0}
+        self.stats |= {"first_wait_seconds": 0.0, "read_seconds": 0.0, "ring_wait_seconds": 0.0}
         self.cond = threading.Condition()
         self.readers = ThreadPoolExecutor(READERS, thread_name_prefix="bonemesh-plane-read")
         self.thread = threading.Thread(target=self._fill, name="bonemesh-plane-feed", daemon=True)
@@ -174,7 +176,10 @@ class PlaneFeed:
                 t0 = time.perf_counter()
                 while self.filled <= z and self.error is None:
                     self.cond.wait()
-                self.stats["waited_seconds"] += time.perf_counter() - t0
+                waited = time.perf_counter() - t0
+                self.stats["waited_seconds"] += waited
+                if self.stats["requests"] == 1:  # the first slab's planes: read before the device has work
+                    self.stats["first_wait_seconds"] += waited
                 if self.error is not None:
                     raise RuntimeError(f"reading the volume's planes failed: {self.error}") from self.error
                 s = z % self.cap

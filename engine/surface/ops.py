@@ -13,7 +13,7 @@ from engine.backend.select import backend_of, get_backend
 
 SUM_RUNS = 1024  # runs of a float64 sum (each summed in order by one thread; the host adds the runs in order)
 
-__all__ = ["arange", "backend_of", "clone", "dtype_of", "get_backend", "sum_f64"]
+__all__ = ["backend_of", "clone", "dtype_of", "get_backend", "sum_f64"]
 
 
 def dtype_of(arr: Any) -> DType:
@@ -35,11 +35,6 @@ def clone(bk: Backend, arr: Any) -> Any:
     if len(arr):
         bk.copy(out, arr)
     return out
-
-
-def arange(bk: Backend, n: int) -> Any:
-    """``0, 1, ..., n - 1`` as a device int32 array."""
-    return bk.from_host(np.arange(n, dtype=np.int32))
 
 
 def sum_f64(bk: Backend, values: Any, n: int, runs: Any = None) -> float:

@@ -65,12 +65,10 @@ __kernel void edge_census(__global const int *faces, __global const int *offset,
             else if (fwd != 1) inconsistent += 1;
         }
     }
-    if (edges > 0) {
-        atom_add(&totals[0], edges);
-        atom_add(&totals[1], border);
-        atom_add(&totals[2], nonmanifold);
-        atom_add(&totals[3], inconsistent);
-    }
+    if (edges > 0) atom_add(&totals[0], edges); /* the faults' totals only where there are some */
+    if (border > 0) atom_add(&totals[1], border);
+    if (nonmanifold > 0) atom_add(&totals[2], nonmanifold);
+    if (inconsistent > 0) atom_add(&totals[3], inconsistent);
 }
 
 __kernel void face_measures(__global const float *pos, __global const int *faces, const int first,
@@ -112,6 +110,13 @@ __kernel void hook_labels(__global const int *faces, volatile __global int *labe
             changed[0] = 1;
         }
     }
+}
+
+/* every vertex its own piece (made on the device: no volume-sized copy up) */
+__kernel void own_labels(__global int *label)
+{
+    const int v = get_global_id(0);
+    label[v] = v;
 }
 
 /* pointer jumping: every labelled entry's label becomes its chain's root (a negative label: none, left) */

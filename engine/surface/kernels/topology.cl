@@ -105,5 +105,6 @@ __kernel void classify_vertices(__global const int *faces, __global const int *o
 
 __kernel void count_classes(__global const int *state, __global int *counts)
 {
-    atomic_inc(&counts[state[get_global_id(0)]]);
+    const int c = state[get_global_id(0)];
+    if (c != FREE) atomic_inc(&counts[c]); /* FREE's count is the rest (the host's) */
 }

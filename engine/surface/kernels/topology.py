@@ -161,6 +161,9 @@ def classify_vertices(
 
 @wp.kernel
 def count_classes(state: wp.array(dtype=wp.int32), counts: wp.array(dtype=wp.int32)):
-    """How many vertices of each class (``counts`` has one slot per class, zeroed by the caller): four numbers
-    come back to the host instead of a class per vertex."""
-    wp.atomic_add(counts, state[wp.tid()], 1)
+    """How many vertices of each class but FREE (``counts`` has one slot per class, zeroed by the caller; the
+    caller takes FREE's as the rest): four numbers come back to the host instead of a class per vertex, and the
+    common class adds to no counter (every vertex adding to one address cost more than classifying them)."""
+    c = state[wp.tid()]
+    if c != FREE:
+        wp.atomic_add(counts, c, 1)
