@@ -83,6 +83,10 @@ MIN_OPEN_TOWARD_PLANE = 0.4  # measured: one-sided defects 0.0-0.41 (near the mi
 # the plane -11.3 to +2.3 mm, the cuts across it that got templates until then 1.6 (the cranium's, 3 mm past by
 # its removed bone) and 3.0-15 mm
 MIDLINE_PAST_MM = 2.5
+# ... measured from a template's edge within this distance of the plane (a hole across it by as much has its
+# template's edge there); a straight path along the shell from farther off leaves the skull's curve and meets no
+# bone (the gantry-tilt head's one-sided cuts low at the side, 61 mm off, read 15 mm past it)
+MIDLINE_NEAR_MM = 2.0 * MIDLINE_REACH_MM
 # a defect is a hole through the shell: the scan lacks the mirrored shell across its whole thickness (its columns
 # along the shell's normal span it, ``engine.defect.rim.spans_shell``) over an opening at least this wide, and over
 # at least this share of its outline (a bevelled rim spans it only over its narrowest opening)
@@ -703,7 +707,7 @@ def _measures(p: Piece, region: Region, mirror_bone: BoolArray, grid: Grid) -> d
         n_zyx = np.asarray(p.local_normal)[::-1]
         out["toward"] = lambda: open_toward_plane(index, region.bone, region.mirrored, grid.spacing_zyx, side, n_zyx,
                                                   max(MIDLINE_REACH_MM, 3.0 * shell))  # fmt: skip
-    if min(abs(p.side_mm[0]), abs(p.side_mm[2])) <= MIDLINE_REACH_MM + (p.side_mm[2] - p.side_mm[0]):
+    if min(abs(p.side_mm[0]), abs(p.side_mm[2])) <= MIDLINE_NEAR_MM:
         side = grid.xyz(g) @ np.asarray(p.local_normal) - p.local_offset_mm
         n_zyx = np.asarray(p.local_normal)[::-1]
         out["past"] = lambda: past_plane(
@@ -716,6 +720,7 @@ def _measures(p: Piece, region: Region, mirror_bone: BoolArray, grid: Grid) -> d
             0.5 * (shell + float(sp.max())),
             MIN_SPAN_WIDTH_MM,
             2.0 * shell + float(sp.max()),
+            MIDLINE_NEAR_MM,
         )
     if not _across(p, grid):
 

@@ -370,6 +370,7 @@ def past_plane(
     tube_mm: float,
     front_mm: float,
     normal_mm: float,
+    near_mm: float,
 ) -> Across | None:
     """How far the hole that a piece fills goes on past the symmetry plane: where the scan lacks the bone on both
     sides of it, and the mirror image too (past the plane the mirror image is this side's missing bone).
@@ -383,9 +384,9 @@ def past_plane(
     it as the hole goes (the template stops as far short of the plane: the mirror image lacks that bone too).
     Returns the hole's reach past the plane (mm; + past it, - the rim that far short of it) over a front
     ``front_mm`` wide: the smallest of the rows' largest reaches that make that width (one row's is noise). A row
-    meeting no bone up to ``reach_mm`` past the plane counts as ``reach_mm``; one that leaves the scan first, or
-    whose shell faces the plane (a side wall: the way to the plane runs through the shell, not along it), is left
-    out. None when no row is measured.
+    meeting no bone up to ``reach_mm`` past the plane counts as ``reach_mm``; one that leaves the scan first, whose
+    shell faces the plane (a side wall: the way to the plane runs through the shell, not along it) or that starts
+    more than ``near_mm`` from the plane is left out. None when no row is measured.
 
     Args:
         index: (N, 3) voxel indices (z, y, x) of the piece in ``bone``'s and ``mirrored``'s arrays.
@@ -398,6 +399,9 @@ def past_plane(
             path: half the shell's thickness or so).
         front_mm: the width of the front whose reach is returned.
         normal_mm: the piece's local normal is that of its voxels within this distance.
+        near_mm: rows whose voxel nearest the plane lies farther from it are left out: a straight path that long
+            leaves the skull's curved shell and meets no bone, whatever the hole (the gantry-tilt head's one-sided
+            cuts 61 mm off the plane, low at the side, read 15 mm past it).
     """
     if len(index) < 4:
         return None
@@ -419,6 +423,10 @@ def past_plane(
     first[1:] = row[order][1:] != row[order][:-1]
     ends = index[order[first]]
     past_e = past_v[order[first]]
+    near = past_e >= -near_mm
+    if not near.any():
+        return None
+    ends, past_e = ends[near], past_e[near]
     nus = _plate_normals(pts, ends * sp, normal_mm)
     tan = toward[None, :] - (nus @ toward)[:, None] * nus
     along = np.linalg.norm(tan, axis=1)

@@ -31,7 +31,7 @@ def _measure(bone: np.ndarray, piece: np.ndarray):
 
     index = np.argwhere(piece)
     side = index[:, 2] * SP[2] - 60.0
-    return past_plane(index, bone, SP, side, np.array([0.0, 0.0, 1.0]), 15.0, 3.0, 8.0, 13.0)
+    return past_plane(index, bone, SP, side, np.array([0.0, 0.0, 1.0]), 15.0, 3.0, 8.0, 13.0, 40.0)
 
 
 def test_the_hole_past_the_plane_is_measured_from_the_template_edge_along_the_shell():
