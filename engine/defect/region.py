@@ -31,7 +31,10 @@ pieces and measures them):
    the bone, so its rim meets the bone; a piece whose rim meets it over less than ``MIN_CONTACT`` is not a hole's
    fill. A kept piece is filled out to the rim with the mirror's bone (``_to_rim``), and a rim gap still over a voxel
    is bridged across to the bone (``_close_rim``). A piece whose rim is open on the side of the plane, or that lies
-   across the plane, is a defect across the midline (``MidlineDefectError``).
+   across the plane, is a defect across the midline (``MidlineDefectError``). So is a would-be template whose hole
+   goes on past the plane (``engine.defect.rim.past_plane``, followed along the shell from the template's edge
+   facing it) by more than ``MIDLINE_PAST_MM``: past the plane the mirror image lacks the bone too, and the
+   template stops as far short of it; by less, the template is kept with a warning (``midline_warning``).
 6. **Confidence**: the mirror image's overlap with the bone around the piece (``local_fit``) times the share of its
    filled rim that meets the bone must reach ``MIN_CONFIDENCE``; below it the template would not fit the hole (the
    sides differ there, or the pose and slices defeat the mirror) and the piece is refused with both measures.
@@ -690,7 +693,8 @@ def _reach(region: Region, grid: Grid) -> float:
 
 def _measures(p: Piece, region: Region, mirror_bone: BoolArray, grid: Grid) -> dict[str, Any]:
     """The piece's measures that ``_judge_one`` rules on, as calls: its rim, the mirror's fit around it, how far the
-    hole goes on toward the plane (only near it) and whether it spans the shell. Each reads ``region`` only."""
+    hole goes on toward the plane and past it (only near it) and whether it spans the shell. Each reads ``region``
+    only."""
     assert p.index is not None and p.local_normal is not None and p.local_offset_mm is not None
     index, sp = p.index, np.asarray(grid.spacing_zyx)
     g = index + region.lo
@@ -702,14 +706,13 @@ def _measures(p: Piece, region: Region, mirror_bone: BoolArray, grid: Grid) -> d
         "rim": lambda: rim_of(index, region.bone, grid.spacing_zyx, border, _reach(region, grid)),
         "fit": lambda: local_fit(index, region.bone, mirror_bone, grid.spacing_zyx, fit_reach),
     }
-    if min(abs(p.side_mm[0]), abs(p.side_mm[2])) <= max(region.shell_mm, float(sp.max())):
-        side = grid.xyz(g) @ np.asarray(p.local_normal) - p.local_offset_mm
-        n_zyx = np.asarray(p.local_normal)[::-1]
+    near_mm = min(abs(p.side_mm[0]), abs(p.side_mm[2]))
+    side = grid.xyz(g) @ np.asarray(p.local_normal) - p.local_offset_mm  # the voxels' distances to the plane
+    n_zyx = np.asarray(p.local_normal)[::-1]
+    if near_mm <= max(region.shell_mm, float(sp.max())):
         out["toward"] = lambda: open_toward_plane(index, region.bone, region.mirrored, grid.spacing_zyx, side, n_zyx,
                                                   max(MIDLINE_REACH_MM, 3.0 * shell))  # fmt: skip
-    if min(abs(p.side_mm[0]), abs(p.side_mm[2])) <= MIDLINE_NEAR_MM:
-        side = grid.xyz(g) @ np.asarray(p.local_normal) - p.local_offset_mm
-        n_zyx = np.asarray(p.local_normal)[::-1]
+    if near_mm <= MIDLINE_NEAR_MM:
         out["past"] = lambda: past_plane(
             index,
             region.bone,
