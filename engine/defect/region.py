@@ -82,9 +82,9 @@ MIN_OPEN_TOWARD_PLANE = 0.4  # measured: one-sided defects 0.0-0.41 (near the mi
 # lacks the bone too, and the template stops about as far short of it, so the strip it leaves open at the midline
 # is about twice as wide. A hole reaching past the plane by more than MIDLINE_PAST_MM (or a voxel along the way,
 # the measure's own step, where that is more) is a midline defect; one reaching past it by less keeps its template
-# with a warning in defect.json (issue 42). Measured on the sweep (docs/defect.md): one-sided cuts within 10 mm of
-# the plane -11.3 to +2.3 mm, the cuts across it that got templates until then 1.6 (the cranium's, 3 mm past by
-# its removed bone) and 3.0-15 mm
+# with a warning in defect.json (issue 42). Measured on the sweep (docs/defect.md): the one-sided templates within
+# MIDLINE_NEAR_MM of the plane -28.9 to +2.3 mm, the cuts across it that got templates until then 1.6 (the
+# cranium's, its removed bone 3 mm past) and 3.0-15 mm
 MIDLINE_PAST_MM = 2.5
 # ... measured from a template's edge within this distance of the plane (a hole across it by as much has its
 # template's edge there); a straight path along the shell from farther off leaves the skull's curve and meets no
