@@ -752,16 +752,18 @@ def midline_tolerance(across: Across) -> float:
     return max(MIDLINE_PAST_MM, across.voxel_mm)
 
 
-def midline_warning(p: Piece) -> str | None:
-    """The warning for a kept piece whose hole goes on past the midline plane by less than the tolerance (None
-    where it stops short of the plane)."""
+def midline_warning(p: Piece) -> dict[str, Any] | None:
+    """The warning (``{"code": "past_midline", "message": ..., "past_midline_mm": ...}``, as the report's warnings
+    are) for a kept piece whose hole goes on past the midline plane by less than the tolerance; None where it stops
+    short of the plane or was not measured."""
     if p.across is None or p.across.past_mm <= 0.0:
         return None
-    return (
+    message = (
         f"the hole goes on {p.across.past_mm:.1f} mm past the midline plane (along the shell, over a front "
         f"{p.across.front_mm:.0f} mm wide): the mirror image lacks that bone too, so the template stops about as "
         "far short of the plane; check its edge at the midline"
     )
+    return {"code": "past_midline", "message": message, "past_midline_mm": round(p.across.past_mm, 2)}
 
 
 def _across(p: Piece, grid: Grid) -> bool:

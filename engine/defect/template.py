@@ -83,9 +83,9 @@ class DefectResult:
         }
 
     @property
-    def warnings(self) -> list[str]:
-        """What the template's user must know: a hole that goes on past the midline plane by less than the
-        tolerance (``region.midline_warning``)."""
+    def warnings(self) -> list[dict[str, Any]]:
+        """What the template's user must know (``{"code", "message", ...}``): a hole that goes on past the midline
+        plane by less than the tolerance (``region.midline_warning``, code ``past_midline``)."""
         from engine.defect.region import midline_warning
 
         return [w for w in (midline_warning(p) for p in self.kept) if w]

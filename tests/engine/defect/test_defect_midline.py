@@ -106,8 +106,9 @@ def test_a_hole_touching_the_plane_keeps_its_template_with_a_warning(device):
     volume, hole = _egg(11.0, 14.0)  # removed bone 1.5 mm past the plane (one voxel)
     res = _run(volume, device)
     doc = res.to_json()
-    assert len(doc["warnings"]) == 1 and "mm past the midline plane" in doc["warnings"][0]
-    assert 0.0 < doc["defect"]["past_midline_mm"] <= 2.5
+    (warning,) = doc["warnings"]
+    assert warning["code"] == "past_midline" and "mm past the midline plane" in warning["message"]
+    assert 0.0 < doc["defect"]["past_midline_mm"] == warning["past_midline_mm"] <= 2.5
     assert dice(res.full_mask(), hole) > 0.6
     volume, hole = _egg(22.0, 14.0)  # its rim 8 mm short of the plane
     res = _run(volume, device)
@@ -156,5 +157,6 @@ def test_cranium_cut_touching_the_midline_keeps_its_template_with_a_warning(devi
     cut = cut_at(volume, 1324.0, 202.5, 0.2, 40.0, slices=(60, 100), orient=orient, edge="ball", fill="tissue")
     res = _run(cut.volume, device, 1324.0, orient)
     warnings = res.to_json()["warnings"]
-    assert len(res.kept) == 2 and len(warnings) == 1 and "mm past the midline plane" in warnings[0]
+    assert len(res.kept) == 2 and [w["code"] for w in warnings] == ["past_midline"]
+    assert 0.0 < warnings[0]["past_midline_mm"] <= 2.5
     assert res.full_mask()[cut.removed].mean() > 0.8

@@ -115,10 +115,16 @@ def test_the_overall_counts_keep_cuts_across_the_midline_apart():
                                                              "reason": "no candidate on the cut"}},
         {"scan": "s", "diameter_mm": 40.0, "expected": MIDLINE_EXPECTED,
          "outcome": "MidlineDefectError: the defect (1 mm3) the hole goes on past it toward the midline"},
+        {"scan": "s", "diameter_mm": 40.0, "expected": MIDLINE_EXPECTED, "outcome": "template", "dice": 0.9,
+         "rim_gap_voxels": 0.2, "side": "left", "past_plane_mm": 1.6},
+        {"scan": "s", "diameter_mm": 30.0, "expected": "template, left", "outcome": "template", "dice": 0.8,
+         "rim_gap_voxels": 0.2, "side": "left", "past_plane_mm": 0.7},
     ]  # fmt: skip
     out = overall(rows)
-    assert out["cases"] == 2 and out["templates"] == 1 and out["refused"] == 1
-    assert out["across_midline"] == {"cases": 1, "midline_refusals": 1, "other_refusals": 0, "templates": 0}
+    assert out["cases"] == 3 and out["templates"] == 2 and out["refused"] == 1
+    assert out["across_midline"] == {"cases": 2, "midline_refusals": 1, "other_refusals": 0, "templates": 1,
+                                     "templates_with_a_midline_warning": 1}  # fmt: skip
+    assert out["midline_warnings"] == 1  # the one-sided template whose hole reaches past the plane (under the bar)
     assert out["refused_by_reason"] == {"s 20 mm: NoDefectError: moved bone": 1}
     assert out["refused_by_cut_reason"] == {"s 20 mm: no candidate on the cut": 1}
 
