@@ -73,6 +73,12 @@ MIN_CONFIDENCE = 0.36
 # a rim gap of more than this many voxels is closed across gaps up to RIM_CLOSE_SHELLS shells wide
 CLOSE_GAP_VOXELS = 1.0
 RIM_CLOSE_SHELLS = 0.5
+# ... and a template whose rim is still more than this many voxels (mean over its outline) off the bone once filled
+# out to the rim, bridged and filled across slices is refused: it would not close the hole (issue 42's goal; the
+# sweep's one such template, the turned head phantom's 40 mm cut at 67.5 degrees, high: 1.36 voxels, its top
+# slice's rim 1.4-8.6 mm in-plane from the bone, where the mirror's oblique thin vault falls under the level; wider
+# bridges made it 1.39-1.54)
+MAX_RIM_GAP_VOXELS = 1.0
 # a piece that comes within a shell's thickness of the plane is looked at for a hole going on across it, this far
 # past its edge toward the plane (at least 3 shells)
 MIDLINE_REACH_MM = 15.0
@@ -839,11 +845,27 @@ def _judge_one(p: Piece, measured: dict[str, Any], region: Region, grid: Grid) -
             f"{midline_tolerance(p.across):.2g} mm a template may stop short of it)"
         )
         return True
-    if p.rim is not None and p.rim.gap_voxels > CLOSE_GAP_VOXELS:  # a kept template only: it decides nothing
+    if p.rim is not None and p.rim.gap_voxels > CLOSE_GAP_VOXELS:  # a would-be template only (see its doc)
         _to_rim_across_slices(p, region, grid, shell, border_of=full, reach=reach)
+    if p.rim is not None and p.rim.gap_voxels > MAX_RIM_GAP_VOXELS:
+        # filled out to the rim, bridged and filled across slices, and still off the bone: the mirror's bone stops
+        # short of the hole's rim, so the template would leave the hole open along that stretch (issue 42)
+        p.reason = rim_gap_reason(p.rim)
+        return False
     p.kept = True
     p.reason = "defect"
     return False
+
+
+def rim_gap_reason(rim: Rim) -> str:
+    """The reason a piece whose rim stays more than ``MAX_RIM_GAP_VOXELS`` off the bone once filled and bridged
+    is not a template."""
+    return (
+        f"its rim does not close on the bone: once filled out to the rim and bridged, the template's rim lies "
+        f"{rim.gap_voxels:.1f} voxels ({rim.gap_mm:.1f} mm) from the hole's bone on average and meets it over "
+        f"{rim.contact:.0%} only (at most {MAX_RIM_GAP_VOXELS:g} voxel allowed): the mirror's bone stops short of the "
+        "hole's rim there, so the template would leave the hole open along its edge"
+    )
 
 
 def neck_parts(index: npt.NDArray[np.int64], spacing_zyx: Any, radius_mm: float) -> npt.NDArray[np.int64] | None:
