@@ -24,15 +24,17 @@ def _plate(open_beyond: float | None) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _judge(bone: np.ndarray, template: np.ndarray):
-    """``template`` judged as a candidate piece of ``bone``'s region (its mirror image the scan itself: nothing to
-    fill from it), with the measures of a hole through the shell whose mirror fits: (kept, piece)."""
+    """``template`` judged as a candidate piece of ``bone``'s region (its mirror image the scan's bone and the
+    template: the mirror stops where the template does), with the measures of a hole through the shell whose mirror
+    fits: (kept, piece)."""
     from engine.defect.grid import Grid
     from engine.defect.region import Piece, Region, _judge_one
     from engine.defect.rim import Span, rim_of
 
     data = np.where(bone, 1000.0, 0.0).astype(np.float32)
     region = Region(lo=np.zeros(3, dtype=np.int64), mask=np.zeros(bone.shape, dtype=bool), data=data,
-                    mirrored=data.copy(), bone=bone, level=500.0, tissue=0.0, mid=250.0, shell_mm=4.0,
+                    mirrored=np.where(bone | template, 1000.0, 0.0).astype(np.float32), bone=bone, level=500.0,
+                    tissue=0.0, mid=250.0, shell_mm=4.0,
                     skull_mm3=float(bone.sum()), min_volume_mm3=1.0)  # fmt: skip
     grid = Grid(bone.shape, (1.0, 1.0, 1.0), np.eye(3), np.zeros(3), "test")  # type: ignore[arg-type]
     index = np.argwhere(template)
