@@ -206,7 +206,7 @@ def run_phase(
         "queued": queued,
         "uploads_seconds": max(e for _, _, e in posts) - posting,
         "jobs_detail": detail,
-        "after_first_jobs_per_minute": _after_first(detail),
+        "after_first_jobs_per_minute": _after_first(detail, len(devices)),
         "stage_medians": _stage_medians(detail),
         "load_average_at_end": list(os.getloadavg()),
     }
@@ -265,15 +265,15 @@ def _jobs_detail(
     return rows
 
 
-def _after_first(detail: list[dict[str, Any]]) -> float | None:
-    """Jobs per minute once every worker has finished its first job: the sum over the workers of (jobs after its
-    first) / (its last finish - its first finish). Without the phase's start (the first uploads, a fresh worker's
-    first job) and its tail (one worker idle while the other ends), this is the rate long-running workers keep;
-    None where a worker ran fewer than 2 jobs."""
+def _after_first(detail: list[dict[str, Any]], workers: int) -> float | None:
+    """Jobs per minute once every one of the phase's ``workers`` has finished its first job: the sum over the
+    workers of (jobs after its first) / (its last finish - its first finish). Without the phase's start (the first
+    uploads, a fresh worker's first job) and its tail (one worker idle while the other ends), this is the rate
+    long-running workers keep; None where a worker ran fewer than 2 jobs (or none: another took its share)."""
     ends: dict[Any, list[float]] = {}
     for row in detail:
         ends.setdefault(row["worker"], []).append(row["finished_at"])
-    if not ends or min(len(e) for e in ends.values()) < 2:
+    if len(ends) < workers or not ends or min(len(e) for e in ends.values()) < 2:
         return None
     return sum(60 * (len(e) - 1) / (max(e) - min(e)) for e in ends.values())
 
