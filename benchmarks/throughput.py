@@ -59,7 +59,9 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import functools
 import json
+import multiprocessing
 import os
 import platform
 import re
@@ -68,13 +70,24 @@ import statistics
 import sys
 import tempfile
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+import httpx
+
 from benchmarks.cpu_contention import cpu_shares
 from benchmarks.report import stop_on_sigterm, write_json
-from tests.service.procs import Proc, RedisServer, ServiceStack, bonemesh_argv, submit, wait_for_job, wait_until
+from tests.service.procs import (
+    API_KEYS,
+    Proc,
+    RedisServer,
+    ServiceStack,
+    bonemesh_argv,
+    submit,
+    wait_for_job,
+    wait_until,
+)
 
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 TIMINGS = re.compile(r"job (\S+) timings (\{.*\})")  # the worker's line per attempt (worker.tasks._Timings)
@@ -117,6 +130,15 @@ def _warms_up(stack: ServiceStack, device: str) -> bool:
     return warms_up(Settings(device=device, warmup=stack.env.get("BONEMESH_WARMUP", "auto")))
 
 
+def _post_from_process(base_url: str, archive: Path, params: dict[str, Any], _: int) -> tuple[str, float, float]:
+    """One upload by a client process (``--upload-processes``): the job's id, and the POST's start and end."""
+    with httpx.Client(base_url=base_url, headers={"X-API-Key": API_KEYS[0]}, timeout=600) as client:
+        start = time.time()
+        resp = submit(client, archive, params)
+        assert resp.status_code == 202, resp.text
+        return resp.json()["id"], start, time.time()
+
+
 def _phases(mode: str, devices: list[str], round_: int = 0) -> list[tuple[str, list[str], bool]]:
     """The phases of a round: (report key, its devices, queued), per mode; one worker first, then all, in even
     rounds, and the other way round in odd ones (a slow spell of the host then falls on either side)."""
@@ -141,13 +163,18 @@ def run_phase(
     jobs: int,
     uploaders: int = 1,
     queued: bool = False,
+    upload_processes: bool = False,
 ) -> dict[str, Any]:
     """Start one worker per device (each warmed up, on a GPU), push ``jobs`` jobs from ``uploaders`` clients at
     once, wait for all; stop the workers. The phase's timings.
 
     ``queued``: the workers are paused (SIGSTOP to each worker's process group) while the jobs are uploaded and
     resumed together once all are queued; the phase's time runs from the resume, so it measures the workers alone,
-    without the uploads sharing the host's CPUs (``uploads_seconds`` says how long those took)."""
+    without the uploads sharing the host's CPUs (``uploads_seconds`` says how long those took).
+
+    ``upload_processes``: each client is a process of its own (started before the phase's clock), not a thread of
+    this one: on the 4 x H200 host the threads' multipart encoding, under this process's GIL, took about 1 GB/s
+    in all whether 4 or 8 of them uploaded, less than four workers take."""
     workers = [start_worker(stack, i, dev, shares[i]) for i, dev in enumerate(devices)]
     for w, dev in zip(workers, devices, strict=True):
         warm = _warms_up(stack, dev)
@@ -163,10 +190,18 @@ def run_phase(
             assert resp.status_code == 202, resp.text
             return resp.json()["id"], start, time.time()
 
+    pool: Executor = (
+        ProcessPoolExecutor(uploaders, mp_context=multiprocessing.get_context("spawn"))
+        if upload_processes
+        else ThreadPoolExecutor(uploaders)
+    )
     try:
+        if upload_processes:  # every client process started (and its imports done) before the clock starts
+            list(pool.map(time.sleep, [0.5] * uploaders))
+            upload = functools.partial(_post_from_process, stack.base_url, archive, params)
         t0 = posting = time.time()
-        with ThreadPoolExecutor(uploaders) as pool:  # clients upload side by side, as many users would
-            posts = list(pool.map(post, range(jobs)))
+        with pool:  # clients upload side by side, as many users would
+            posts = list(pool.map(upload if upload_processes else post, range(jobs)))
         if queued:
             t0 = time.time()
             for w in workers:
@@ -195,6 +230,7 @@ def run_phase(
         "cpus_per_worker": [len(s) for s in shares[: len(devices)]],
         "jobs": jobs,
         "uploaders": uploaders,
+        "upload_processes": upload_processes,
         "seconds": end - t0,
         "client_seconds": wall_end - t0,
         "jobs_per_minute": 60 * jobs / (end - t0),
@@ -308,6 +344,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--params", default=None, help="job params JSON for --input")
     parser.add_argument("--phantom", default=None, help="instead of --input: the bone phantom of this shape Z,Y,X")
     parser.add_argument("--uploaders", type=int, default=2, help="clients uploading the jobs side by side (default 2)")
+    parser.add_argument(
+        "--upload-processes",
+        action="store_true",
+        help="each uploading client in a process of its own (default: threads of this one, about 1 GB/s in all)",
+    )
     parser.add_argument("--api-workers", type=int, default=2, help="API processes (bonemesh serve --workers)")
     parser.add_argument(
         "--front-cpus",
@@ -420,7 +461,9 @@ def main(argv: list[str] | None = None) -> int:
                     how = "queued" if queued else "uploading"
                     where = f"{len(devs)} worker(s): {devs}, CPUs {shares}"
                     print(f"[throughput] round {round_}: {args.jobs} jobs ({how}) on {where}", flush=True)
-                    phase = run_phase(stack, devs, shares, archive, params, args.jobs, args.uploaders, queued)
+                    phase = run_phase(
+                        stack, devs, shares, archive, params, args.jobs, args.uploaders, queued, args.upload_processes
+                    )
                     print(
                         f"  {phase['seconds']:.1f} s, {phase['jobs_per_minute']:.2f} jobs/min, mean job "
                         f"{phase['mean_job_seconds']:.1f} s, at most {phase['most_jobs_running_at_once']} at once",

@@ -347,6 +347,7 @@ def test_throughput(tmp_path: Path, redis_executable: str) -> None:
     args = ["--devices", "cpu,cpu", "--jobs", "2", "--phantom", PHANTOM, "--uploaders", "2", "--api-workers", "1"]
     args += ["--mode", "both", "--cpu-layout", "halves"]  # uploading, then queued (workers paused while uploading)
     args += ["--rounds", "2"]  # the second round: all workers first, then one
+    args += ["--upload-processes"]  # each client a process of its own
     args += ["--redis-server", redis_executable, "--warp-cache", str(cache), "--workdir", str(tmp_path / "work")]
     run_module("throughput", [*args, "--out", str(out)], tmp_path)
     report = load(out)
@@ -354,7 +355,7 @@ def test_throughput(tmp_path: Path, redis_executable: str) -> None:
     phases = (("one_worker", 1), ("all_workers", 2), ("queued_one_worker", 1), ("queued_all_workers", 2))
     (second,) = report["more_rounds"]
     for key, workers, phase in [*((k, n, report[k]) for k, n in phases), *((k, n, second[k]) for k, n in phases)]:
-        assert phase["workers"] == workers and phase["jobs"] == 2, key
+        assert phase["workers"] == workers and phase["jobs"] == 2 and phase["upload_processes"] is True, key
         assert phase["queued"] is key.startswith("queued_") and finite(phase["uploads_seconds"]), key
         assert finite(phase["seconds"]) and finite(phase["jobs_per_minute"]), key
         assert 0 <= phase["first_start_seconds"] <= phase["seconds"], key
