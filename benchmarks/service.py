@@ -305,6 +305,13 @@ def main(argv: list[str] | None = None) -> int:
         help="BONEMESH_PREDECODE_PROCESS: the API decodes in a child process (on) or on its own threads (off)",
     )
     parser.add_argument(
+        "--predecode-min-bytes",
+        type=int,
+        default=None,
+        help="BONEMESH_PREDECODE_MIN_BYTES of the runs: the smallest upload decoded while it arrives (default: the "
+        "setting's, 64 MiB: the cranium is left to the worker; 0: every upload)",
+    )
+    parser.add_argument(
         "--predecode-anchor",
         action="store_true",
         help="also run each input with decoding during the upload switched the other way",
@@ -356,6 +363,8 @@ def main(argv: list[str] | None = None) -> int:
         PREDECODE: "true" if args.predecode == "on" else "false",
         "BONEMESH_PREDECODE_PROCESS": "true" if args.predecode_process == "on" else "false",
     }
+    if args.predecode_min_bytes is not None:
+        main_env["BONEMESH_PREDECODE_MIN_BYTES"] = str(args.predecode_min_bytes)
     report["predecode"] = {
         "main_runs": args.predecode,
         "process": args.predecode_process,

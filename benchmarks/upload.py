@@ -17,6 +17,15 @@ default); ``--predecode off`` times the upload without it.
 server runs its code (``PYTHONPATH``) beside this one, on the same data folder, broker and database, and every
 round POSTs to both, one after the other (alternating which goes first), so the two are compared in the same run
 under the same conditions; the JSON gives each one's medians and the ratio.
+
+``--compare-env K=V[,K=V]`` does the same with a second server of this code whose settings differ (e.g.
+``BONEMESH_PREDECODE_MIN_BYTES=0``), and ``--side-by-side N`` makes every round N POSTs at once to each server
+(each client a thread; every POST's time is kept, and each round's wall time under ``round_seconds``), as when
+several users upload at the same time:
+
+    python -m benchmarks.upload --input cranium_ct_png16.zip --params '{"preset": "bone", "hu_offset": 1024,
+        "spacing": [1.5, 0.957, 0.957]}' --clients httpx --api-workers 2 --side-by-side 4 --repeat 6 \
+        --compare-env BONEMESH_PREDECODE_MIN_BYTES=0 --out benchmarks/results/upload_cpu_small_side_by_side.json
 """
 
 from __future__ import annotations
@@ -30,6 +39,7 @@ import statistics
 import subprocess
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
         default="on",
         help="BONEMESH_DECODE_DURING_UPLOAD: a PNG zip's slices decoded by the API while it arrives (issue 46)",
     )
+    ap.add_argument("--compare-env", default=None, help="K=V[,K=V]: a second server of this code with these settings")
+    ap.add_argument("--side-by-side", type=int, default=1, help="POSTs at once to a server in each round")
     ap.add_argument("--workdir", default=None)
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
@@ -121,22 +133,41 @@ def main(argv: list[str] | None = None) -> int:
             env = {"PYTHONPATH": str(Path(args.baseline).resolve())}
             servers["baseline"] = stack.start_server(workers=args.api_workers, extra_env=env)
             result["baseline"] = str(Path(args.baseline).resolve())
+        if args.compare_env:
+            env = dict(kv.split("=", 1) for kv in args.compare_env.split(",") if kv)
+            servers["compare"] = stack.start_server(workers=args.api_workers, extra_env=env)
+            result["compare_env"] = env
+        result["side_by_side"] = args.side_by_side
         for name in clients:
             runs: dict[str, list[float]] = {label: [] for label in servers}
-            for i in range(args.repeat):
-                order = list(servers) if i % 2 == 0 else list(reversed(servers))
-                for label in order:
-                    status, seconds = CLIENTS[name](servers[label], archive, params)
-                    if status != 202:
-                        raise SystemExit(f"{name} POST {i + 1} to {label}: HTTP {status}\n{stack.logs()}")
-                    runs[label].append(seconds)
-                    print(f"{name} #{i + 1} {label}: {seconds:.2f} s, {size / seconds / 1e6:.0f} MB/s", flush=True)
+            rounds: dict[str, list[float]] = {label: [] for label in servers}
+            post = CLIENTS[name]
+            with ThreadPoolExecutor(args.side_by_side) as pool:
+                for i in range(args.repeat):
+                    order = list(servers) if i % 2 == 0 else list(reversed(servers))
+                    for label in order:
+                        t0 = time.perf_counter()
+                        posts = list(
+                            pool.map(
+                                lambda _, u=servers[label], f=post: f(u, archive, params), range(args.side_by_side)
+                            )
+                        )
+                        rounds[label].append(time.perf_counter() - t0)
+                        for status, seconds in posts:
+                            if status != 202:
+                                raise SystemExit(f"{name} POST {i + 1} to {label}: HTTP {status}\n{stack.logs()}")
+                            runs[label].append(seconds)
+                        times = ", ".join(f"{s:.2f}" for _, s in posts)
+                        print(f"{name} #{i + 1} {label}: {times} s, {size / posts[0][1] / 1e6:.0f} MB/s", flush=True)
             entry: dict[str, Any] = {}
             for label, times in runs.items():
                 med = statistics.median(times)
                 entry[label] = {"seconds": times, "median_seconds": med, "median_mb_per_s": size / med / 1e6}
-            if "baseline" in entry:
-                entry["speedup"] = entry["baseline"]["median_seconds"] / entry["current"]["median_seconds"]
+                entry[label]["round_seconds"] = rounds[label]
+            for other in ("baseline", "compare"):
+                if other in entry:
+                    key = "speedup" if other == "baseline" else "compare_over_current"
+                    entry[key] = entry[other]["median_seconds"] / entry["current"]["median_seconds"]
             result["clients"][name] = entry
             write_json(Path(args.out), result)
     write_json(Path(args.out), result)

@@ -120,14 +120,17 @@ def start_decoder(
     svc: Services, job_id: str, content_length: str | None, writer: UploadWriter | None = None
 ) -> UploadDecoder | DecoderProcess | None:
     """A decoder of the upload's PNG slices as they arrive (``engine.io.predecode``), where the settings ask for
-    one, the store is local disk, and its disk has room for the decoded volume (about three times the upload,
-    judged from the request's length); else None. In a child process reading ``writer``'s file as it grows
-    (``engine.io.predecode_proc``) where ``BONEMESH_PREDECODE_PROCESS`` (the default), else on threads here."""
+    one, the request's length is unknown or at least ``BONEMESH_PREDECODE_MIN_BYTES``, the store is local disk, and
+    its disk has room for the decoded volume (about three times the upload, judged from that length); else None. In
+    a child process reading ``writer``'s file as it grows (``engine.io.predecode_proc``) where
+    ``BONEMESH_PREDECODE_PROCESS`` (the default), else on threads here."""
     path = svc.storage.predecode_path(job_id)
     if not svc.settings.decode_during_upload or path is None:
         return None
     try:
         size = int(content_length or 0)
+        if content_length is not None and size < svc.settings.predecode_min_bytes:
+            return None  # the worker decodes a small scan's few slices faster than a child is started and fed
         free = svc.storage.free_bytes()
         if free is not None and free < PREDECODE_RESERVE + 3 * size:
             return None

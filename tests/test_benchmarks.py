@@ -313,6 +313,7 @@ def test_service(tmp_path: Path, no_data: Path, redis_executable: str) -> None:
     args = ["--device", "cpu", "--data", str(no_data), "--phantom", PHANTOM, "--repeat", "1", "--baseline"]
     args += ["--redis-server", redis_executable, "--timeout", "120", "--workdir", str(tmp_path / "work")]
     args += ["--predecode-anchor"]  # issue 46 item 4: the same input without decoding during the upload
+    args += ["--predecode-min-bytes", "0"]  # the tiny phantom decoded during its upload too
     run_module("service", [*args, "--out", str(out)], tmp_path)
     report = load(out)
     has_keys(report, "benchmark", "device", "host", "timing", "preparation", "results", "warmup", "baseline")

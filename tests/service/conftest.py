@@ -396,23 +396,24 @@ def long_scan(tmp_path_factory: pytest.TempPathFactory) -> Scan:
 
 
 @contextlib.contextmanager
-def app_client(data_dir: Path, max_upload_bytes: int = 8 << 20) -> Iterator[TestClient]:
+def app_client(data_dir: Path, max_upload_bytes: int = 8 << 20, **settings: Any) -> Iterator[TestClient]:
     """The API in-process (FastAPI's test client) with two keys and a broker address nothing listens on: an
-    accepted job stays queued."""
+    accepted job stays queued. ``settings``: more of its settings (``core.settings.Settings`` fields)."""
     from fastapi.testclient import TestClient
 
     from core.settings import Settings
     from service.app import create_app
 
-    settings = Settings(
+    config = Settings(
         data_dir=data_dir,
         api_keys=["key-a", "key-b"],
         secret_key="s" * 32,
         redis_url="redis://127.0.0.1:1/0",
         max_upload_bytes=max_upload_bytes,
         reconcile_seconds=3600,
+        **settings,
     )
-    with TestClient(create_app(settings)) as c:
+    with TestClient(create_app(config)) as c:
         yield c
 
 

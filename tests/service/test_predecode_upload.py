@@ -1,6 +1,8 @@
 """A zip of PNG slices decoded while it is uploaded (``BONEMESH_DECODE_DURING_UPLOAD``, ``engine.io.predecode``): the
 API leaves the decoded slices beside the upload, the worker loads them instead of the zip (and removes them), and
-the model is the same; a refused upload keeps nothing of them, and the setting switches them off."""
+the model is the same; a refused upload keeps nothing of them, and the setting switches them off. The bundled CT head
+is smaller than ``BONEMESH_PREDECODE_MIN_BYTES``, so these tests set it to 0 (every upload), but the one that checks
+the default leaves small scans to the worker."""
 
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from tests.service.conftest import HEADSQ, app_client, zip_to_tar_gz
 from tests.service.procs import ServiceStack, submit, wait_for_job
 
 KEY = {"X-API-Key": "key-a"}
+EVERY = {"predecode_min_bytes": 0}  # the bundled head's 0.3 MB zip decoded during its upload too
 PARAMS = {"iso": 1150, "spacing": list(HEADSQ.spacing_zyx_mm)}
 
 
@@ -36,7 +39,7 @@ def _job_files(data_dir: Path) -> list[str]:
 
 
 def test_the_api_leaves_the_decoded_slices_beside_the_upload(tmp_path: Path) -> None:
-    with app_client(tmp_path) as client:
+    with app_client(tmp_path, **EVERY) as client:
         resp = _post(client)
         assert resp.status_code == 202, resp.text
         job = resp.json()["id"]
@@ -59,11 +62,11 @@ def test_the_layout_follows_the_workers_device() -> None:
 
 
 def test_a_refused_upload_keeps_none_of_them(tmp_path: Path) -> None:
-    with app_client(tmp_path / "a") as client:  # refused after the whole body was read and decoded
+    with app_client(tmp_path / "a", **EVERY) as client:  # refused after the whole body was read and decoded
         resp = _post(client, params='{"iso": "bone"}')
         assert resp.status_code == 422, resp.text
         assert _job_files(tmp_path / "a") == []
-    with app_client(tmp_path / "b", max_upload_bytes=200_000) as client:  # refused half way
+    with app_client(tmp_path / "b", max_upload_bytes=200_000, **EVERY) as client:  # refused half way
         resp = _post(client)
         assert resp.status_code == 413, resp.text
         assert _job_files(tmp_path / "b") == []
@@ -72,8 +75,31 @@ def test_a_refused_upload_keeps_none_of_them(tmp_path: Path) -> None:
 def _settings(data_dir: Path, **kw: Any) -> Settings:
     return Settings(
         data_dir=data_dir, api_keys=["key-a"], secret_key="s" * 32, redis_url="redis://127.0.0.1:1/0",
-        reconcile_seconds=3600, **kw,
+        reconcile_seconds=3600, **{**EVERY, **kw},
     )  # fmt: skip
+
+
+def test_a_small_upload_is_left_to_the_worker(tmp_path: Path) -> None:
+    """By default (``BONEMESH_PREDECODE_MIN_BYTES``, 64 MiB) the bundled head's 0.3 MB zip is not decoded during its
+    upload, a request of unknown length or of the bound's size is, and the worker's model is the same either way
+    (``test_the_worker_loads_them_and_the_model_is_the_same``)."""
+    from service.intake import start_decoder
+    from service.services import Services
+
+    with app_client(tmp_path) as client:
+        resp = _post(client)
+        assert resp.status_code == 202, resp.text
+        assert _job_files(tmp_path) == [f"{resp.json()['id']}/upload"]
+    settings = _settings(tmp_path / "s", predecode_min_bytes=1 << 20)
+    svc = Services(settings)
+    try:
+        for job, (length, decoded) in enumerate((("1048575", False), ("1048576", True), (None, True))):
+            decoder = start_decoder(svc, f"{job:032x}", length)
+            assert (decoder is not None) is decoded, length
+            if decoder is not None:
+                decoder.abort()
+    finally:
+        svc.close()
 
 
 def test_the_setting_switches_it_off(tmp_path: Path) -> None:
@@ -130,23 +156,24 @@ def test_a_child_that_dies_never_costs_the_upload(tmp_path: Path, monkeypatch: A
         return child
 
     monkeypatch.setattr(DecoderChildren, "start", killed)
-    with app_client(tmp_path) as client:
+    with app_client(tmp_path, **EVERY) as client:
         resp = _post(client)
         assert resp.status_code == 202, resp.text
         assert pids and _job_files(tmp_path) == [f"{resp.json()['id']}/upload"]
 
 
-def test_the_worker_loads_them_and_the_model_is_the_same(
-    stack: ServiceStack, client_a: httpx.Client, anon: httpx.Client
-) -> None:
+def test_the_worker_loads_them_and_the_model_is_the_same(stack: ServiceStack, anon: httpx.Client) -> None:
     """The same slices as a zip (decoded during the upload: samples from this stack's API, whose workers are CPU
     ones; rows from a second API that expects GPU workers, unfiltered by the CPU worker's libpng) and as a tar.gz
     (decoded by the worker): the same files, byte for byte, but for the report, which says where the slices came
     from."""
-    rows_api = stack.start_server(extra_env={"BONEMESH_DEVICE": "auto"})
+    every = {"BONEMESH_PREDECODE_MIN_BYTES": "0"}
+    planes_api = stack.start_server(extra_env=every)
+    rows_api = stack.start_server(extra_env={**every, "BONEMESH_DEVICE": "auto"})
     jobs = {}
-    for name, body in (("headsq.zip", HEADSQ_ZIP.read_bytes()), ("headsq.tar.gz", zip_to_tar_gz(HEADSQ_ZIP))):
-        jobs[name] = _through_worker(stack, client_a, name, body)
+    with httpx.Client(base_url=planes_api, headers=KEY, timeout=60) as client_planes:
+        for name, body in (("headsq.zip", HEADSQ_ZIP.read_bytes()), ("headsq.tar.gz", zip_to_tar_gz(HEADSQ_ZIP))):
+            jobs[name] = _through_worker(stack, client_planes, name, body)
     with httpx.Client(base_url=rows_api, headers=KEY, timeout=60) as client_rows:
         jobs["rows.zip"] = _through_worker(stack, client_rows, "rows.zip", HEADSQ_ZIP.read_bytes())
     plain = jobs["headsq.tar.gz"]
