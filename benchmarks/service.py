@@ -49,7 +49,6 @@ import datetime as dt
 import json
 import os
 import platform
-import re
 import statistics
 import sys
 import tempfile
@@ -62,10 +61,9 @@ import httpx
 
 from benchmarks.phantom_zip import PHANTOM_SPACING_MM, write_phantom_zip
 from benchmarks.report import stop_on_sigterm, write_json
-from benchmarks.throughput import _worker_timings
+from benchmarks.timing_lines import api_timings, worker_timings
 from tests.service.procs import RedisServer, ServiceStack
 
-UPLOAD_TIMINGS = re.compile(r"job (\S+) upload timings (\{.*\})")  # the API's line per upload (service.intake)
 UPLOAD_RATE: list[float | None] = [None]  # --upload-mbps, in bytes a second (the inputs' uploads, not the warm-ups)
 PREDECODE = "BONEMESH_DECODE_DURING_UPLOAD"
 BASELINE_ENV = {"BONEMESH_DECODE_THREADS": "1", "BONEMESH_PNG_DECODER": "pillow", PREDECODE: "false"}
@@ -200,17 +198,6 @@ def _summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def _api_timings(stack: ServiceStack) -> dict[str, dict[str, float]]:
-    """The API's ``job <id> upload timings {json}`` lines (``service.intake``) by job id: the upload's seconds per
-    step on the API's clock (opening, the body received and written, the fsync, the inspection, the decoder's end,
-    the record)."""
-    found: dict[str, dict[str, float]] = {}
-    for log in sorted(stack.log_dir.glob("server-*.log")):
-        for match in UPLOAD_TIMINGS.finditer(log.read_text(errors="replace")):
-            found[match.group(1)] = json.loads(match.group(2))
-    return found
-
-
 def _run_inputs(
     stack: ServiceStack, inputs: dict[str, tuple[Path, dict[str, Any]]], repeat: int, timeout: float, tag: str
 ) -> Iterator[tuple[str, dict[str, Any]]]:
@@ -222,8 +209,8 @@ def _run_inputs(
             run = run_job(stack.base_url, "key-a", path, params, timeout, f"{tag}{name}#{i + 1}", UPLOAD_RATE[0])
             if "job_id" in run:
                 time.sleep(0.2)  # the worker writes its timing line as the attempt ends
-                run["worker_seconds"] = _worker_timings(stack.workers).get(run["job_id"], (0, {}))[1]
-                run["api_upload_seconds"] = _api_timings(stack).get(run["job_id"], {})
+                run["worker_seconds"] = worker_timings(stack.workers).get(run["job_id"], (0, {}))[1]
+                run["api_upload_seconds"] = api_timings(stack).get(run["job_id"], {})
             runs.append(run)
             if "error" in run:
                 print(f"  FAILED: {run['error']}", flush=True)

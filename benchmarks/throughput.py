@@ -64,7 +64,6 @@ import json
 import multiprocessing
 import os
 import platform
-import re
 import signal
 import statistics
 import sys
@@ -78,6 +77,7 @@ import httpx
 
 from benchmarks.cpu_contention import cpu_shares
 from benchmarks.report import stop_on_sigterm, write_json
+from benchmarks.timing_lines import api_timings, worker_timings
 from tests.service.procs import (
     API_KEYS,
     Proc,
@@ -90,7 +90,6 @@ from tests.service.procs import (
 )
 
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
-TIMINGS = re.compile(r"job (\S+) timings (\{.*\})")  # the worker's line per attempt (worker.tasks._Timings)
 
 
 def split_front(front: str) -> tuple[list[int], list[int]]:
@@ -248,16 +247,6 @@ def run_phase(
     }
 
 
-def _worker_timings(workers: list[Proc]) -> dict[str, tuple[int, dict[str, float]]]:
-    """The worker's ``job <id> timings {json}`` lines (``worker.tasks``) by job id: (worker index, seconds per step);
-    a job run twice keeps its last attempt."""
-    found: dict[str, tuple[int, dict[str, float]]] = {}
-    for index, w in enumerate(workers):
-        for match in TIMINGS.finditer(w.log.read_text(errors="replace")):
-            found[match.group(1)] = (index, json.loads(match.group(2)))
-    return found
-
-
 def _report_seconds(client: Any, job: dict[str, Any]) -> dict[str, float]:
     """The engine's own seconds from the job's ``report.json``: each pipeline stage (``stage_seconds``) and the
     files' writing (``write_seconds``' totals), keyed ``pipeline.<stage>`` and ``files.<part>``; empty if absent."""
@@ -287,9 +276,11 @@ def _jobs_detail(
 ) -> list[dict[str, Any]]:
     """One row per job, in the order they started: its worker (index in the phase), the client's POST time, when
     it started and ended (seconds from the first POST, server clock), the worker's seconds per step (``timings``,
-    ``worker.tasks``) and the engine's per stage (``engine``, from the job's report.json)."""
+    ``worker.tasks``), the engine's per stage (``engine``, from the job's report.json) and the API's per step of the
+    upload (``api``: body, commit, inspect, decoder, ...; empty where its log has no line for the job)."""
     uploads = {i: (s, e) for i, s, e in posts}
-    timings = _worker_timings(workers)
+    timings = worker_timings(workers)
+    api = api_timings(stack)  # the API's seconds per step of each upload (service.intake's line)
     rows = []
     with stack.client(timeout=60) as client:
         for j in sorted(done, key=lambda j: _ts(j, "started_at")):
@@ -297,7 +288,7 @@ def _jobs_detail(
             start, end = uploads[j["id"]]
             row = {"id": j["id"], "worker": index, "upload_seconds": end - start, "upload_done_at": end - t0}
             row.update(started_at=_ts(j, "started_at") - t0, finished_at=_ts(j, "finished_at") - t0)
-            rows.append({**row, "timings": steps, "engine": _report_seconds(client, j)})
+            rows.append({**row, "timings": steps, "engine": _report_seconds(client, j), "api": api.get(j["id"], {})})
     return rows
 
 
@@ -315,10 +306,12 @@ def _after_first(detail: list[dict[str, Any]], workers: int) -> float | None:
 
 
 def _stage_medians(detail: list[dict[str, Any]]) -> dict[str, float]:
-    """The median seconds of each step over the jobs (the client's upload, the worker's and the engine's)."""
+    """The median seconds of each step over the jobs (the client's upload, the worker's, the engine's and the API's,
+    ``api.<step>``)."""
     values: dict[str, list[float]] = {"upload": [r["upload_seconds"] for r in detail]}
     for row in detail:
-        for step, seconds in {**row["timings"], **row["engine"]}.items():
+        api = {f"api.{k}": v for k, v in row.get("api", {}).items()}
+        for step, seconds in {**row["timings"], **row["engine"], **api}.items():
             values.setdefault(step, []).append(seconds)
     return {step: statistics.median(v) for step, v in values.items()}
 

@@ -374,6 +374,7 @@ def test_throughput(tmp_path: Path, redis_executable: str) -> None:
             assert finite(row["upload_seconds"]) and "pipeline.isosurface" in row["engine"], row
         medians = phase["stage_medians"]
         assert finite(medians["reconstruct"]) and finite(medians["upload"]) and finite(medians["queue_wait"]), key
+        assert finite(medians["api.body"]) and finite(medians["api.total"]), key  # the API's own line per upload
         assert len(phase["load_average_at_end"]) == 3, key
         if workers == 1:  # two jobs: the rate after the first is 60 / the time between their finishes
             ends = sorted(r["finished_at"] for r in rows)
