@@ -112,6 +112,19 @@ MIN_SPAN_MISSING = 0.75
 # (the skull's own asymmetry joined to a cut) is left out, the hole's part kept (issue 42)
 NECK_SHELLS = 0.25
 MIN_CORE_VOXELS = 4
+# the core's allowance for the grid's staircase (issue 42): the shell's thickness ``t`` is read as twice a voxel
+# centre's distance to the nearest voxel outside the shell (the largest within reach) and the core's distance to
+# the bone is voxel centre to voxel centre, so on a coarse grid ``t`` reads up to a voxel's width (along the shell's
+# normal) over the shell's own, and a hole about twice the shell wide has no core (headsq's 20 mm cuts at 3.2 mm:
+# the shell reads 8.8-14.3 mm, their openings 7.5-11.5 mm). A voxel of the mirrored shell that the scan lacks is a
+# core with that width less (never nearer the bone than two widths: a shell one voxel thick reads two, and a sliver
+# a voxel thick is no hole) where the shell there is a plate with nothing behind it: along the mirrored shell's
+# normal, within PLATE_SHELLS of its thickness either way, neither the scan's bone nor, past the shell's own run,
+# the mirror's (the vault between the brain and the scalp). The layered bone of the face and the skull base (air
+# cells, sinuses, septa), where the two sides differ by holes that size, keeps the strict rule (headsq's mastoid and
+# nasal pieces: with one shell they became templates of the intact scan). Used only for pieces that the strict
+# cores do not make (``_plate_pieces``): a hole the strict rule finds keeps its template.
+PLATE_SHELLS = 2.0
 MIN_DEFECT_WIDTH_MM = 15.0  # the smallest defect reported: a plug this wide through the shell
 MIN_DEFECT_SKULL_SHARE = 0.001  # ... and at least this share of the skull's volume
 # voxel classes of the kernels' ``code``
@@ -134,6 +147,7 @@ class Piece:
     volume_mm3: float
     core_mm3: float
     anti_mm3: float = 0.0
+    plate: bool = False  # its cores came with the grid's allowance (``PLATE_SHELLS``): a hole the strict cores miss
     side_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)  # min, median, max distance to the plane (+: left)
     centroid_lps_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
     local_normal: tuple[float, float, float] | None = None
@@ -157,6 +171,7 @@ class Piece:
         out: dict[str, Any] = {
             "volume_mm3": round(self.volume_mm3, 2),
             "core_mm3": round(self.core_mm3, 2),
+            "core_with_grid_allowance": self.plate,
             "moved_bone_mm3": round(self.anti_mm3, 2),
             "side": "left" if self.side_mm[1] > 0 else "right",
             "plane_distance_mm": {"min": round(self.side_mm[0], 2), "median": round(self.side_mm[1], 2),
@@ -218,9 +233,15 @@ class _Rules:
 
     lo: npt.NDArray[np.int64]
     grown: BoolArray
-    core: npt.NDArray[np.uint8]  # 1: core, 2: anti-core
+    core: npt.NDArray[np.uint8]  # 1: core, 2: anti-core, 3: core with the grid's allowance (``PLATE_SHELLS``)
     mirrored: npt.NDArray[np.float32]
     thick: npt.NDArray[np.float32] | None  # the healthy shell's thickness where asked for (``_rules``' ``thick``)
+    plate_grown: BoolArray | None = None  # with ``plate="both"``: the region grown from the cores with the allowance
+
+    def with_plate(self) -> _Rules:
+        """The rules' output grown from the cores with the grid's allowance (``plate="both"``'s second answer)."""
+        assert self.plate_grown is not None
+        return _Rules(self.lo, self.plate_grown, self.core, self.mirrored, self.thick)
 
 
 def _mirror_box(grid: Grid, lo: Any, hi: Any, normal: Any, offset: float, margin: Any) -> tuple[Any, Any]:
@@ -259,10 +280,13 @@ def _rules(
     be: Backend,
     on_device: tuple[Any, Any, Any] | None = None,
     want_thick: bool = False,
+    plate: str = "none",
 ) -> _Rules:
     """Mirror, shell rule and growth on one box of the scan (the kernels, on the backend ``be``), mirror images
     sampled from ``source``; results on the host. ``on_device``: the box's scan, skull and distance to the bone when
-    already there (flat device arrays); ``want_thick``: the shell's thickness comes back too."""
+    already there (flat device arrays); ``want_thick``: the shell's thickness comes back too. ``plate``: the cores
+    with the grid's allowance (``_plate_cores``, marked 3 in ``core``): "none", "only" (the region grown from the
+    strict cores and them) or "both" (the strict region, and that one as ``plate_grown``)."""
     from engine.defect.kernel_specs import CORE, GROW, MIRROR_MAP
     from engine.defect.kernel_specs import MIRROR as MIRROR_KERNEL
     from engine.defect.ops import bits, distance, select, upload_mask
@@ -294,15 +318,92 @@ def _rules(
     to_mirror = distance(be, bits(be, code, MIRROR), shape, sp)
     core = be.empty(n, np.uint8)
     be.launch(CORE, n, [code, thick, to_bone, to_mirror, core])
-    to_core = distance(be, select(be, core, 1), shape, sp)
-    grown = be.empty(n, np.uint8)
-    be.launch(GROW, shape, [d_data, mirrored, code, thick, to_core, box, float(level), float(sp_arr.max()), grown])
 
     def host(arr: Any) -> Any:
         return be.to_host(arr).reshape(shape)
 
-    # sync point: only what the host reads comes back
-    return _Rules(lo, host(grown).astype(bool), host(core), host(mirrored), host(thick) if want_thick else None)
+    def grow(cores: Any) -> Any:
+        to_core = distance(be, select(be, cores, 1), shape, sp)
+        out = be.empty(n, np.uint8)
+        be.launch(GROW, shape, [d_data, mirrored, code, thick, to_core, box, float(level), float(sp_arr.max()), out])
+        return out
+
+    if plate == "none":
+        grown = grow(core)
+        # sync point: only what the host reads comes back
+        return _Rules(lo, host(grown).astype(bool), host(core), host(mirrored), host(thick) if want_thick else None)
+    # sync point: the cores with the grid's allowance are found on the host (a few thousand voxels' columns)
+    core_h, mirrored_h, thick_h = host(core), host(mirrored), host(thick)
+    added = _plate_cores(host(code), thick_h, host(to_bone), core_h, mirrored_h, data, sp_arr, level)
+    with_plate = core_h.copy()
+    with_plate[tuple(added.T)] = 1
+    grown_plate = host(grow(be.from_host(with_plate.reshape(-1)))).astype(bool)
+    core_h[tuple(added.T)] = 3
+    t_out = thick_h if want_thick else None
+    if plate == "only":
+        return _Rules(lo, grown_plate, core_h, mirrored_h, t_out)
+    return _Rules(lo, host(grow(core)).astype(bool), core_h, mirrored_h, t_out, plate_grown=grown_plate)
+
+
+def _plate_cores(
+    code: npt.NDArray[np.uint8],
+    thick: npt.NDArray[np.float32],
+    to_bone: npt.NDArray[np.float32],
+    core: npt.NDArray[np.uint8],
+    mirrored: npt.NDArray[np.float32],
+    data: npt.NDArray[np.float32],
+    sp: FloatArray,
+    level: float,
+) -> npt.NDArray[np.int64]:
+    """The cores with the grid's allowance (``PLATE_SHELLS``; indices (z, y, x) in the box): voxels of the
+    mirrored skull outside the bone whose sample is absent bone, that are no core, with no bone of the scan within
+    the shell's thickness less the voxel's width along the mirrored shell's normal (the mirrored field's unit
+    gradient, Sobel 3x3x3 in mm, as the growth's; the width capped at the largest voxel side), nor within two such
+    widths, and along that normal, within ``PLATE_SHELLS`` shells either way
+    (steps of half the smallest voxel side, samples trilinear), no bone of the scan and, once the column has left
+    the mirrored shell's run it starts in, no mirrored bone."""
+    from scipy import ndimage as ndi
+
+    big = float(sp.max())
+    cand = ((code & MIRROR) != 0) & ((code & BONE) == 0) & ((code & 8) != 0) & (core == 0) & (thick > 0)
+    cand &= to_bone > thick - big
+    idx = np.argwhere(cand)
+    if not len(idx):
+        return idx
+    shape = np.asarray(code.shape)
+    grad = np.zeros((len(idx), 3))
+    for k in range(27):
+        off = np.array([k // 9 - 1, (k // 3) % 3 - 1, k % 3 - 1])
+        at = np.clip(idx + off, 0, shape - 1)
+        v = mirrored[tuple(at.T)].astype(np.float64)
+        w = np.array([(2 - off[1] ** 2) * (2 - off[2] ** 2), (2 - off[0] ** 2) * (2 - off[2] ** 2),
+                      (2 - off[0] ** 2) * (2 - off[1] ** 2)])  # fmt: skip
+        grad += (off * w)[None, :] * v[:, None] / sp[None, :]
+    norm = np.linalg.norm(grad, axis=1)
+    ok = norm > 0
+    u = np.zeros_like(grad)
+    u[ok] = grad[ok] / norm[ok, None]
+    t = thick[tuple(idx.T)].astype(np.float64)
+    width = np.minimum(np.abs(u) @ sp, big)
+    free = ok & (to_bone[tuple(idx.T)] > np.maximum(t - width, 2.0 * width))
+    step = 0.5 * float(sp.min())
+    in_run = [free.copy(), free.copy()]
+    k = 1
+    while True:
+        d = k * step
+        active = free & (d <= PLATE_SHELLS * t + step)
+        if not active.any():
+            break
+        w = np.flatnonzero(active)
+        for s, sign in enumerate((1.0, -1.0)):
+            pts = (idx[w] + sign * d * u[w] / sp).T
+            scan = ndi.map_coordinates(data, pts, order=1, mode="constant", cval=-1.0e30) >= level
+            mirror = ndi.map_coordinates(mirrored, pts, order=1, mode="constant", cval=-1.0e30) >= level
+            run = in_run[s][w]
+            in_run[s][w[run & ~mirror]] = False
+            free[w[scan | (~in_run[s][w] & mirror)]] = False
+        k += 1
+    return idx[free]
 
 
 def _box(be: Backend, shape: tuple[int, ...], lo: Any, sp: tuple[float, float, float]) -> Any:
@@ -358,7 +459,7 @@ def find_region(
     shell_mm = float(2.0 * np.median(half_at_ridge)) if len(half_at_ridge) else float(sp_arr.max())
     source = _Source(d_data, d_skull, half, lo, float(data.min()), _box(be, shape, lo, grid.spacing_zyx))
     rules = _rules(data, skull_c, bone_c, lo, source, reflection(n_g, d_g), grid, level, mid, be,
-                   on_device=(d_data, d_skull, to_bone))  # fmt: skip
+                   on_device=(d_data, d_skull, to_bone), plate="both")  # fmt: skip
     seconds["global_rules"] = time.perf_counter() - t0
 
     skull_mm3 = float(skull.sum()) * grid.voxel_mm3
@@ -366,14 +467,18 @@ def find_region(
     region = Region(lo, np.zeros(data.shape, dtype=bool), data, rules.mirrored, bone_c, float(level), tissue,
                     mid, shell_mm, skull_mm3, float(v_min), seconds=seconds)  # fmt: skip
     t1 = time.perf_counter()
-    candidates = _pieces_of(rules, grid, region, n_g, d_g)
     min_core = MIN_CORE_VOXELS * grid.voxel_mm3
+    candidates = _plate_pieces(_pieces_of(rules, grid, region, n_g, d_g), rules, grid, region, n_g, d_g, min_core)
     pieces: list[Piece] = []
     # every piece that could be a defect is mirrored locally (until issue 42 only the six with the most core were:
     # a 20 mm cut, whose core is small, lost its turn to the skull base's asymmetries and was reported "smaller than
     # the smallest defect" without being looked at)
     worth = [p for p in candidates if p.core_mm3 >= min_core and p.volume_mm3 >= 0.5 * region.min_volume_mm3]
-    worth = sorted(worth, key=lambda p: -p.volume_mm3)[:MAX_LOCAL_PIECES]
+    # the strict cores' pieces take their turns first; the allowance's pieces are mirrored first, so where two
+    # local mirror images overlap a strict piece's is the one kept (its template as without the allowance)
+    strict = sorted((p for p in worth if not p.plate), key=lambda p: -p.volume_mm3)[:MAX_LOCAL_PIECES]
+    plate = sorted((p for p in worth if p.plate), key=lambda p: -p.volume_mm3)[: MAX_LOCAL_PIECES - len(strict)]
+    worth = plate + strict
     for p in candidates:
         if p in worth:
             continue
@@ -403,8 +508,38 @@ def find_region(
     return region
 
 
-def _pieces_of(rules: _Rules, grid: Grid, region: Region, normal: Any, offset: float) -> list[Piece]:
-    """The 26-connected pieces of a rules pass that hold a core, with their voxels (in the region's crop)."""
+def _plate_pieces(
+    strict: list[Piece], rules: _Rules, grid: Grid, region: Region, normal: Any, offset: float, min_core: float
+) -> list[Piece]:
+    """The candidates: the strict cores' pieces, and the pieces grown from the cores with the grid's allowance
+    (``PLATE_SHELLS``) that meet none of those holding at least ``min_core`` of core (a hole the strict rule finds is
+    its piece, as before, and no piece of the allowance joins it); such a piece takes the place of the strict
+    pieces with too little core that it meets."""
+    if rules.plate_grown is None:
+        return strict
+    firm = np.zeros(rules.grown.shape, dtype=bool)
+    shift = region.lo - rules.lo
+    for p in strict:
+        if p.core_mm3 >= min_core and p.index is not None:
+            firm[tuple((p.index + shift).T)] = True
+    extra = [q for q in _pieces_of(rules.with_plate(), grid, region, normal, offset, plate=True)
+             if q.index is not None and not firm[tuple((q.index + shift).T)].any()]  # fmt: skip
+    if not extra:
+        return strict
+    covered = np.zeros(rules.grown.shape, dtype=bool)
+    for q in extra:
+        q.plate = True
+        covered[tuple((q.index + shift).T)] = True  # type: ignore[operator]
+    kept = [p for p in strict
+            if p.core_mm3 >= min_core or p.index is None or not covered[tuple((p.index + shift).T)].any()]  # fmt: skip
+    return kept + extra
+
+
+def _pieces_of(
+    rules: _Rules, grid: Grid, region: Region, normal: Any, offset: float, plate: bool = False
+) -> list[Piece]:
+    """The 26-connected pieces of a rules pass that hold a core, with their voxels (in the region's crop); with
+    ``plate``, the cores with the grid's allowance count too."""
     from scipy import ndimage as ndi
 
     if not rules.grown.any():
@@ -413,7 +548,8 @@ def _pieces_of(rules: _Rules, grid: Grid, region: Region, normal: Any, offset: f
     b_lo, b_hi = bounding_box(rules.grown)
     box = tuple(slice(int(a), int(b)) for a, b in zip(b_lo, b_hi, strict=True))
     labels, nl = ndi.label(rules.grown[box], structure=CONNECTIVITY)
-    cores = np.bincount(labels[rules.core[box] == 1], minlength=nl + 1)
+    c_box = rules.core[box]
+    cores = np.bincount(labels[(c_box == 1) | (c_box == 3)] if plate else labels[c_box == 1], minlength=nl + 1)
     cores[0] = 0
     with_core = np.flatnonzero(cores)  # the labels holding a core, ascending
     if not len(with_core):
@@ -540,7 +676,8 @@ def _local_rules(
     inner = tuple(slice(int(a - r), int(b - r)) for a, b, r in zip(lo, hi, region.lo, strict=True))
     data = np.ascontiguousarray(region.data[inner])
     return _rules(data, np.ascontiguousarray(skull[box]), np.ascontiguousarray(bone[box]), lo, source,
-                  reflection(lp.normal, lp.offset), grid, region.level, region.mid, be, want_thick=True)  # fmt: skip
+                  reflection(lp.normal, lp.offset), grid, region.level, region.mid, be, want_thick=True,
+                  plate="only" if p.plate else "none")  # fmt: skip
 
 
 def _measure_local(
@@ -559,7 +696,7 @@ def _measure_local(
     box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
     inner = tuple(slice(int(a - r), int(b - r)) for a, b, r in zip(lo, hi, region.lo, strict=True))
     data = region.data[inner]
-    local = Piece(label=p.label, voxels=0, volume_mm3=0.0, core_mm3=0.0)
+    local = Piece(label=p.label, voxels=0, volume_mm3=0.0, core_mm3=0.0, plate=p.plate)
     local.local_normal = tuple(float(v) for v in n_l)  # type: ignore[assignment]
     local.local_offset_mm = d_l
     local.local_residual_mm = None if not np.isfinite(lp.residual) else lp.residual
@@ -569,7 +706,7 @@ def _measure_local(
     # the local pieces that overlap the global piece
     region_probe = Region(lo, rules.grown, data, rules.mirrored, bone[box], region.level, region.tissue, region.mid,
                           region.shell_mm, region.skull_mm3, region.min_volume_mm3)  # fmt: skip
-    parts = _pieces_of(rules, grid, region_probe, n_l, d_l)
+    parts = _pieces_of(rules, grid, region_probe, n_l, d_l, plate=p.plate)
     old = np.zeros(data.shape, dtype=bool)
     inside = np.all((g_idx >= lo) & (g_idx < hi), axis=1)
     old[tuple((g_idx[inside] - lo).T)] = True
@@ -935,7 +1072,9 @@ def _merge_overlapping(region: Region, grid: Grid) -> None:
     taken = np.full(region.data.shape, -1, dtype=np.int32)
     owners_of: list[Piece] = []
     live = [p for p in region.pieces if not p.reason and p.index is not None and len(p.index)]
-    for p in sorted(live, key=lambda q: -q.volume_mm3):
+    # the strict cores' pieces first: a piece of the grid's allowance that meets one is left out, not joined (a
+    # hole the strict rule finds keeps its template as without the allowance)
+    for p in sorted(live, key=lambda q: (q.plate, -q.volume_mm3)):
         assert p.index is not None
         owners = np.unique(taken[tuple(p.index.T)])
         owners = owners[owners >= 0]
@@ -944,6 +1083,9 @@ def _merge_overlapping(region: Region, grid: Grid) -> None:
             owners_of.append(p)
             continue
         big = owners_of[int(owners[0])]
+        if p.plate and not big.plate:
+            p.reason = "the same hole as a candidate of the strict cores (they met when mirrored locally): left out"
+            continue
         assert big.index is not None
         big.index = np.unique(np.concatenate([big.index, p.index]), axis=0)
         big.voxels = len(big.index)

@@ -199,8 +199,8 @@ def with_template(headsq, tmp_path_factory):
     """A 30 mm left-temple trephination, reconstructed with ``defect`` on, and its files."""
     from engine.defect.params import DefectParams
     from engine.job.outputs import write_outputs
-    from engine.params import IsoParams, ReconParams
     from engine.job.pipeline import reconstruct
+    from engine.params import IsoParams, ReconParams
 
     cut = _cut(headsq, (1.0, -0.1, 0.0), 30.0)
     params = ReconParams(iso=IsoParams(iso=HEADSQ_LEVEL), orient=HEADSQ_ORIENT, defect=DefectParams())
@@ -215,7 +215,7 @@ def test_reconstruct_with_defect_publishes_the_template_beside_the_model(with_te
     from engine.export.stl import from_stl
     from engine.surface import mesh_stats
 
-    cut, recon, paths, out = with_template
+    _cut, recon, paths, out = with_template
     assert set(paths) == set(engine_files(closed=True, defect=True))
     summary = recon.report["defect"]
     assert summary["found"] is True and summary["side"] == "left"
@@ -272,8 +272,8 @@ def test_the_phone_copies_carry_a_lighter_template_node(with_template):
 def test_reconstruct_without_a_defect_says_why_and_makes_no_implant(headsq, tmp_path):
     from engine.defect.params import DefectParams
     from engine.job.outputs import write_outputs
-    from engine.params import IsoParams, ReconParams
     from engine.job.pipeline import reconstruct
+    from engine.params import IsoParams, ReconParams
 
     params = ReconParams(iso=IsoParams(iso=HEADSQ_LEVEL), orient=HEADSQ_ORIENT, defect=DefectParams())
     recon = reconstruct(headsq, params, device="cpu")
@@ -287,8 +287,8 @@ def test_reconstruct_without_a_defect_says_why_and_makes_no_implant(headsq, tmp_
 
 
 def test_a_model_with_a_template_is_not_reoriented(with_template):
-    from engine.params import OrientParams
     from engine.job.reorient import reorient
+    from engine.params import OrientParams
 
     *_, out = with_template
     before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}

@@ -109,7 +109,6 @@ def test_the_mirrors_bone_a_slice_past_the_template_joins_it_between_thick_slice
     nothing of the bone; the ordinary fill (half the shell, 2 mm) does not reach across a 5 mm slice."""
     from engine.defect.region import _to_rim
     from engine.defect.rim import rim_of
-
     from tests.engine.defect.test_defect_confidence import thick_slice_hole
 
     wall, bone, template, missing = thick_slice_hole()
