@@ -129,8 +129,9 @@ def _warms_up(stack: ServiceStack, device: str) -> bool:
     return warms_up(Settings(device=device, warmup=stack.env.get("BONEMESH_WARMUP", "auto")))
 
 
-def _post_from_process(base_url: str, archive: Path, params: dict[str, Any], _: int) -> tuple[str, float, float]:
-    """One upload by a client process (``--upload-processes``): the job's id, and the POST's start and end."""
+def _post(base_url: str, archive: Path, params: dict[str, Any], _: int) -> tuple[str, float, float]:
+    """One upload by a client (a thread, or a process with ``--upload-processes``): the job's id, and the POST's
+    start and end."""
     with httpx.Client(base_url=base_url, headers={"X-API-Key": API_KEYS[0]}, timeout=600) as client:
         start = time.time()
         resp = submit(client, archive, params)
@@ -182,25 +183,19 @@ def run_phase(
         for w in workers:
             w.signal_group(signal.SIGSTOP)
 
-    def post(_: int) -> tuple[str, float, float]:
-        with stack.client(timeout=600) as client:
-            start = time.time()
-            resp = submit(client, archive, params)
-            assert resp.status_code == 202, resp.text
-            return resp.json()["id"], start, time.time()
-
+    # one client per thread, or per process (started, its imports done, before the clock starts)
     pool: Executor = (
         ProcessPoolExecutor(uploaders, mp_context=multiprocessing.get_context("spawn"))
         if upload_processes
         else ThreadPoolExecutor(uploaders)
     )
+    upload = functools.partial(_post, stack.base_url, archive, params)
     try:
-        if upload_processes:  # every client process started (and its imports done) before the clock starts
-            list(pool.map(time.sleep, [0.5] * uploaders))
-            upload = functools.partial(_post_from_process, stack.base_url, archive, params)
-        t0 = posting = time.time()
         with pool:  # clients upload side by side, as many users would
-            posts = list(pool.map(upload if upload_processes else post, range(jobs)))
+            if upload_processes:
+                list(pool.map(time.sleep, [0.5] * uploaders))
+            t0 = posting = time.time()
+            posts = list(pool.map(upload, range(jobs)))
         if queued:
             t0 = time.time()
             for w in workers:
