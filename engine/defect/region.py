@@ -335,14 +335,20 @@ def _rules(
     # sync point: the cores with the grid's allowance are found on the host (a few thousand voxels' columns)
     core_h, mirrored_h, thick_h = host(core), host(mirrored), host(thick)
     added = _plate_cores(host(code), thick_h, host(to_bone), core_h, mirrored_h, data, sp_arr, level)
-    with_plate = core_h.copy()
-    with_plate[tuple(added.T)] = 1
-    grown_plate = host(grow(be.from_host(with_plate.reshape(-1)))).astype(bool)
-    core_h[tuple(added.T)] = 3
+    strict = host(grow(core)).astype(bool) if plate == "both" or not len(added) else None
+    if len(added):
+        with_plate = core_h.copy()
+        with_plate[tuple(added.T)] = 1
+        grown_plate = host(grow(be.from_host(with_plate.reshape(-1)))).astype(bool)
+        core_h[tuple(added.T)] = 3
+    else:  # no core added: the region grown from them is the strict one (one growth, no copy up)
+        assert strict is not None
+        grown_plate = strict
     t_out = thick_h if want_thick else None
     if plate == "only":
         return _Rules(lo, grown_plate, core_h, mirrored_h, t_out)
-    return _Rules(lo, host(grow(core)).astype(bool), core_h, mirrored_h, t_out, plate_grown=grown_plate)
+    assert strict is not None
+    return _Rules(lo, strict, core_h, mirrored_h, t_out, plate_grown=grown_plate)
 
 
 def _plate_cores(
