@@ -1,8 +1,8 @@
 """The named kernels of the defect template (``engine.backend.Kernel``), each written twice: the Warp kernels of
-``kernels/edt.py``, ``kernels/mirror.py``, ``kernels/plane.py`` and ``kernels/skull.py``, and the OpenCL C of
-``kernels/edt.cl``, ``kernels/mirror.cl``, ``kernels/plane.cl`` and ``kernels/skull.cl``, launched with the same
-arguments by the one host code (``engine.defect.ops``, ``engine.defect.region``, ``engine.defect.plane``); and the
-argument structs they share."""
+``kernels/edt.py``, ``kernels/mirror.py``, ``kernels/plate.py``, ``kernels/plane.py`` and ``kernels/skull.py``, and
+the OpenCL C of ``kernels/edt.cl``, ``kernels/mirror.cl``, ``kernels/plate.cl``, ``kernels/plane.cl`` and
+``kernels/skull.cl``, launched with the same arguments by the one host code (``engine.defect.ops``,
+``engine.defect.region``, ``engine.defect.plane``); and the argument structs they share."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ _EDT, _EDT_CL = "engine.defect.kernels.edt", "engine.defect.kernels:edt.cl"
 _MIR, _MIR_CL = "engine.defect.kernels.mirror", "engine.defect.kernels:mirror.cl"
 _PLN, _PLN_CL = "engine.defect.kernels.plane", "engine.defect.kernels:plane.cl"
 _SKL, _SKL_CL = "engine.defect.kernels.skull", "engine.defect.kernels:skull.cl"
+_PLT, _PLT_CL = "engine.defect.kernels.plate", "engine.defect.kernels:plate.cl"
 
 FEATURES = Kernel("defect.features", f"{_EDT}:features_kernel", f"{_EDT_CL}:features")
 EDT_PASS = Kernel("defect.edt_pass", f"{_EDT}:edt_pass_kernel", f"{_EDT_CL}:edt_pass")
@@ -24,6 +25,7 @@ GROW = Kernel("defect.grow", f"{_MIR}:grow_kernel", f"{_MIR_CL}:grow")
 SELECT = Kernel("defect.select", f"{_MIR}:select_kernel", f"{_MIR_CL}:select_value")
 BITS = Kernel("defect.bits", f"{_MIR}:bits_kernel", f"{_MIR_CL}:any_bits")
 RIDGE = Kernel("defect.ridge", f"{_MIR}:ridge_kernel", f"{_MIR_CL}:ridge")
+PLATE = Kernel("defect.plate", f"{_PLT}:plate_kernel", f"{_PLT_CL}:plate")
 CFT_SEED = Kernel("defect.cft_seed", f"{_PLN}:seed_kernel", f"{_PLN_CL}:seed")
 CFT_PASS = Kernel("defect.cft_pass", f"{_PLN}:cft_pass_kernel", f"{_PLN_CL}:cft_pass")
 NEAREST = Kernel("defect.nearest", f"{_PLN}:nearest_kernel", f"{_PLN_CL}:nearest")

@@ -285,7 +285,7 @@ def _rules(
     """Mirror, shell rule and growth on one box of the scan (the kernels, on the backend ``be``), mirror images
     sampled from ``source``; results on the host. ``on_device``: the box's scan, skull and distance to the bone when
     already there (flat device arrays); ``want_thick``: the shell's thickness comes back too. ``plate``: the cores
-    with the grid's allowance (``_plate_cores``, marked 3 in ``core``): "none", "only" (the region grown from the
+    with the grid's allowance (``_plate_launch``, marked 3 in ``core``): "none", "only" (the region grown from the
     strict cores and them) or "both" (the strict region, and that one as ``plate_grown``)."""
     from engine.defect.kernel_specs import CORE, GROW, MIRROR_MAP
     from engine.defect.kernel_specs import MIRROR as MIRROR_KERNEL
@@ -332,23 +332,42 @@ def _rules(
         grown = grow(core)
         # sync point: only what the host reads comes back
         return _Rules(lo, host(grown).astype(bool), host(core), host(mirrored), host(thick) if want_thick else None)
-    # sync point: the cores with the grid's allowance are found on the host (a few thousand voxels' columns)
-    core_h, mirrored_h, thick_h = host(core), host(mirrored), host(thick)
-    added = _plate_cores(host(code), thick_h, host(to_bone), core_h, mirrored_h, data, sp_arr, level)
-    strict = host(grow(core)).astype(bool) if plate == "both" or not len(added) else None
-    if len(added):
-        with_plate = core_h.copy()
-        with_plate[tuple(added.T)] = 1
-        grown_plate = host(grow(be.from_host(with_plate.reshape(-1)))).astype(bool)
-        core_h[tuple(added.T)] = 3
-    else:  # no core added: the region grown from them is the strict one (one growth, no copy up)
-        assert strict is not None
-        grown_plate = strict
-    t_out = thick_h if want_thick else None
+    marked, with_plate = _plate_launch(be, shape, box, d_data, mirrored, code, thick, to_bone, core, level)
+    core_h = host(marked)  # sync point: the cores, 3 where the grid's allowance adds one
+    added = bool((core_h == 3).any())
+    strict = host(grow(core)).astype(bool) if plate == "both" or not added else None
+    # no core added: the region grown from them is the strict one (one growth)
+    grown_plate = host(grow(with_plate)).astype(bool) if added else strict
+    assert grown_plate is not None
+    t_out, mirrored_h = host(thick) if want_thick else None, host(mirrored)
     if plate == "only":
         return _Rules(lo, grown_plate, core_h, mirrored_h, t_out)
     assert strict is not None
     return _Rules(lo, strict, core_h, mirrored_h, t_out, plate_grown=grown_plate)
+
+
+def _plate_launch(
+    be: Backend,
+    shape: tuple[int, ...],
+    box: Any,
+    d_data: Any,
+    mirrored: Any,
+    code: Any,
+    thick: Any,
+    to_bone: Any,
+    core: Any,
+    level: float,
+) -> tuple[Any, Any]:
+    """The cores with the grid's allowance (``PLATE_SHELLS``; the ``PLATE`` kernel, on the device where the voxel
+    rules' flat arrays are): ``core`` with 3 where the allowance adds one, and 1 at every core, strict or added (what
+    the growth starts from)."""
+    from engine.defect.kernel_specs import PLATE
+
+    n = int(np.prod(shape))
+    marked, cores = be.empty(n, np.uint8), be.empty(n, np.uint8)
+    be.launch(PLATE, shape, [d_data, mirrored, code, thick, to_bone, core, box, float(level), PLATE_SHELLS, marked,
+                             cores])  # fmt: skip
+    return marked, cores
 
 
 def _plate_cores(
@@ -360,56 +379,28 @@ def _plate_cores(
     data: npt.NDArray[np.float32],
     sp: FloatArray,
     level: float,
+    device: Any = "cpu",
 ) -> npt.NDArray[np.int64]:
-    """The cores with the grid's allowance (``PLATE_SHELLS``; indices (z, y, x) in the box): voxels of the
-    mirrored skull outside the bone whose sample is absent bone, that are no core, with no bone of the scan within
-    the shell's thickness less the voxel's width along the mirrored shell's normal (the mirrored field's unit
-    gradient, Sobel 3x3x3 in mm, as the growth's; the width capped at the largest voxel side), nor within two such
-    widths, and along that normal, within ``PLATE_SHELLS`` shells either way
-    (steps of half the smallest voxel side, samples trilinear), no bone of the scan and, once the column has left
-    the mirrored shell's run it starts in, no mirrored bone."""
-    from scipy import ndimage as ndi
+    """The cores with the grid's allowance (``PLATE_SHELLS``) for host arrays of one box, found on ``device`` (a
+    ``Backend`` or a device spec; ``_plate_launch``), as indices (z, y, x) in the box: voxels of the mirrored skull
+    outside the bone whose sample is absent bone, that are no core, with no bone of the scan within the shell's
+    thickness less the voxel's width along the mirrored shell's normal (the mirrored field's unit gradient, Sobel
+    3x3x3 in mm, as the growth's; the width capped at the largest voxel side), nor within two such widths, and along
+    that normal, within ``PLATE_SHELLS`` shells either way (steps of half the smallest voxel side, samples
+    trilinear), no bone of the scan and, once the column has left the mirrored shell's run it starts in, no mirrored
+    bone."""
+    from engine.backend.select import get_backend
 
-    big = float(sp.max())
-    cand = ((code & MIRROR) != 0) & ((code & BONE) == 0) & ((code & 8) != 0) & (core == 0) & (thick > 0)
-    cand &= to_bone > thick - big
-    idx = np.argwhere(cand)
-    if not len(idx):
-        return idx
-    shape = np.asarray(code.shape)
-    grad = np.zeros((len(idx), 3))
-    for k in range(27):
-        off = np.array([k // 9 - 1, (k // 3) % 3 - 1, k % 3 - 1])
-        at = np.clip(idx + off, 0, shape - 1)
-        v = mirrored[tuple(at.T)].astype(np.float64)
-        w = np.array([(2 - off[1] ** 2) * (2 - off[2] ** 2), (2 - off[0] ** 2) * (2 - off[2] ** 2),
-                      (2 - off[0] ** 2) * (2 - off[1] ** 2)])  # fmt: skip
-        grad += (off * w)[None, :] * v[:, None] / sp[None, :]
-    norm = np.linalg.norm(grad, axis=1)
-    ok = norm > 0
-    u = np.zeros_like(grad)
-    u[ok] = grad[ok] / norm[ok, None]
-    t = thick[tuple(idx.T)].astype(np.float64)
-    width = np.minimum(np.abs(u) @ sp, big)
-    free = ok & (to_bone[tuple(idx.T)] > np.maximum(t - width, 2.0 * width))
-    step = 0.5 * float(sp.min())
-    in_run = [free.copy(), free.copy()]
-    k = 1
-    while True:
-        d = k * step
-        active = free & (d <= PLATE_SHELLS * t + step)
-        if not active.any():
-            break
-        w = np.flatnonzero(active)
-        for s, sign in enumerate((1.0, -1.0)):
-            pts = (idx[w] + sign * d * u[w] / sp).T
-            scan = ndi.map_coordinates(data, pts, order=1, mode="constant", cval=-1.0e30) >= level
-            mirror = ndi.map_coordinates(mirrored, pts, order=1, mode="constant", cval=-1.0e30) >= level
-            run = in_run[s][w]
-            in_run[s][w[run & ~mirror]] = False
-            free[w[scan | (~in_run[s][w] & mirror)]] = False
-        k += 1
-    return idx[free]
+    be = get_backend(device)
+    shape = tuple(int(s) for s in code.shape)
+
+    def up(a: Any, dtype: Any) -> Any:
+        return be.from_host(np.ascontiguousarray(a, dtype=dtype).reshape(-1))
+
+    box = _box(be, shape, np.zeros(3, np.int64), tuple(float(v) for v in sp))  # type: ignore[arg-type]
+    marked, _ = _plate_launch(be, shape, box, up(data, np.float32), up(mirrored, np.float32), up(code, np.uint8),
+                              up(thick, np.float32), up(to_bone, np.float32), up(core, np.uint8), level)  # fmt: skip
+    return np.argwhere(be.to_host(marked).reshape(shape) == 3)
 
 
 def _box(be: Backend, shape: tuple[int, ...], lo: Any, sp: tuple[float, float, float]) -> Any:

@@ -42,20 +42,20 @@ def _plate(radius: float, z0: int = 14, layers: int = 3) -> tuple[np.ndarray, np
     return slab, slab & ~hole
 
 
-def _added(bone: np.ndarray, mirror_bone: np.ndarray, thick_mm: float) -> np.ndarray:
+def _added(bone: np.ndarray, mirror_bone: np.ndarray, thick_mm: float, device: object) -> np.ndarray:
     from engine.defect.region import _plate_cores
 
     code, thick, to_bone, core, mirrored, data = _rules_in(bone, mirror_bone, thick_mm)
     assert not core.any()  # the strict rule sees no core: the opening is narrower than the shell reads
-    return _plate_cores(code, thick, to_bone, core, mirrored, data, SPACING, LEVEL)
+    return _plate_cores(code, thick, to_bone, core, mirrored, data, SPACING, LEVEL, device)
 
 
-def test_a_hole_about_twice_the_shell_wide_gets_cores_through_a_plate():
+def test_a_hole_about_twice_the_shell_wide_gets_cores_through_a_plate(device):
     """A 21 mm hole through a 9 mm plate of 3 mm voxels, its shell read as 12 mm (a voxel over: three voxels'
     centres): the strict rule has no core (the opening's middle is 10.5-11 mm from the rim); with the allowance the
     hole's middle is cores, within the hole only."""
     mirror_bone, bone = _plate(10.5)
-    added = _added(bone, mirror_bone, 12.0)
+    added = _added(bone, mirror_bone, 12.0, device)
     assert len(added) > 0
     hole = mirror_bone & ~bone
     assert hole[tuple(added.T)].all()
@@ -63,16 +63,16 @@ def test_a_hole_about_twice_the_shell_wide_gets_cores_through_a_plate():
     assert r.max() < 10.5 - 7.0  # its middle: more than the shell read less a voxel (9 mm) from the rim
 
 
-def test_layered_bone_keeps_the_strict_rule():
+def test_layered_bone_keeps_the_strict_rule(device):
     """The same hole with a second plate of the scan's bone a shell behind it (the skull base's layers), or with
     the mirror's own bone there (its septa): no core with the allowance; a plate farther than two shells from the
     hole's voxels does not stop it (the column looks two shells either way)."""
     mirror_bone, bone = _plate(10.5)
     behind_near, _ = _plate(40.0, z0=14 + 3 + 4)  # 4 voxels (12 mm, a shell as read) past the plate
-    assert len(_added(bone | behind_near, mirror_bone | behind_near, 12.0)) == 0
+    assert len(_added(bone | behind_near, mirror_bone | behind_near, 12.0, device)) == 0
     septum = np.zeros_like(bone)
     septum[14 + 3 + 1, 18:22, 18:22] = True  # the mirror's bone only, 6 mm behind the hole: a septum
-    added = _added(bone, mirror_bone | septum, 12.0)
+    added = _added(bone, mirror_bone | septum, 12.0, device)
     assert not (mirror_bone & ~bone)[tuple(added.T)].any()
     big = np.zeros((48, 40, 40), dtype=bool)
     big[:32] = mirror_bone
@@ -80,25 +80,25 @@ def test_layered_bone_keeps_the_strict_rule():
     scan[:32] = bone
     far = np.zeros_like(big)
     far[14 + 3 + 13 : 14 + 3 + 16] = True  # 13 voxels past the plate: 27 mm and more from the hole's voxels
-    assert len(_added(scan | far, big | far, 12.0)) > 0
+    assert len(_added(scan | far, big | far, 12.0, device)) > 0
 
 
-def test_a_sliver_beside_the_bone_gets_no_core():
+def test_a_sliver_beside_the_bone_gets_no_core(device):
     """The mirror's plate off the scan's by two voxels along its normal (asymmetry, less than the shell): the
     sliver has the scan's bone across it, so no core with the allowance either."""
     mirror_bone, _ = _plate(0.0, z0=14)
     bone, _ = _plate(0.0, z0=16)
-    assert len(_added(bone, mirror_bone, 12.0)) == 0
+    assert len(_added(bone, mirror_bone, 12.0, device)) == 0
 
 
-def test_no_core_nearer_the_bone_than_two_voxels():
+def test_no_core_nearer_the_bone_than_two_voxels(device):
     """A shell one voxel thick reads two (6 mm at 3 mm voxels): the allowance alone (a voxel less) would let a voxel
     more than a voxel from the bone be a core, where a sliver one voxel thick cannot be told from a hole. Its cores
     stay more than two voxels' widths from the bone: a 10 mm hole in it (its middle 4-5 mm from the rim) gets none."""
     mirror_bone, bone = _plate(5.0, layers=1)
     _, _, to_bone, _, _, _ = _rules_in(bone, mirror_bone, 6.0)
     assert (to_bone[mirror_bone & ~bone] > 6.0 - 3.0).any()  # what the allowance alone would take
-    assert len(_added(bone, mirror_bone, 6.0)) == 0
+    assert len(_added(bone, mirror_bone, 6.0, device)) == 0
 
 
 HEADSQ_ORIENT = OrientParams(first_slice="superior")
