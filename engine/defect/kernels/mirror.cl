@@ -147,6 +147,28 @@ static float value3(__global const float *a, const int nz, const int ny, const i
 }
 
 /* the candidate region (mirror.py's grow_kernel) */
+/* the mirrored field's gradient at voxel (z, y, x) of the box, Sobel 3x3x3 in mm: (z, y, x) components */
+static void gradient3(__global const float *mirrored, const box_t box, const int z, const int y, const int x,
+                      float *gz_, float *gy_, float *gx_)
+{
+    float gz = 0.0f, gy = 0.0f, gx = 0.0f;
+    for (int k = 0; k < 27; k++) {
+        const int dz = k / 9 - 1;
+        const int dy = (k / 3) % 3 - 1;
+        const int dx = k % 3 - 1;
+        const float v = value3(mirrored, box.nz, box.ny, box.nx, z + dz, y + dy, x + dx);
+        const float wz = (float)(2 - dy * dy) * (float)(2 - dx * dx);
+        const float wy = (float)(2 - dz * dz) * (float)(2 - dx * dx);
+        const float wx = (float)(2 - dz * dz) * (float)(2 - dy * dy);
+        gz = gz + (float)dz * wz * v / box.sz;
+        gy = gy + (float)dy * wy * v / box.sy;
+        gx = gx + (float)dx * wx * v / box.sx;
+    }
+    *gz_ = gz;
+    *gy_ = gy;
+    *gx_ = gx;
+}
+
 __kernel void grow(__global const float *data, __global const float *mirrored, __global const uchar *code,
                    __global const float *thick, __global const float *to_core, const box_t box, const float level,
                    const float reach, __global uchar *grown)
@@ -160,19 +182,8 @@ __kernel void grow(__global const float *data, __global const float *mirrored, _
     const float t = thick[i];
     if ((c & 4) != 0 && (c & 1) == 0 && to_core[i] <= t + reach) {
         g = 1;
-        float gz = 0.0f, gy = 0.0f, gx = 0.0f;
-        for (int k = 0; k < 27; k++) {
-            const int dz = k / 9 - 1;
-            const int dy = (k / 3) % 3 - 1;
-            const int dx = k % 3 - 1;
-            const float v = value3(mirrored, box.nz, box.ny, box.nx, z + dz, y + dy, x + dx);
-            const float wz = (float)(2 - dy * dy) * (float)(2 - dx * dx);
-            const float wy = (float)(2 - dz * dz) * (float)(2 - dx * dx);
-            const float wx = (float)(2 - dz * dz) * (float)(2 - dy * dy);
-            gz = gz + (float)dz * wz * v / box.sz;
-            gy = gy + (float)dy * wy * v / box.sy;
-            gx = gx + (float)dx * wx * v / box.sx;
-        }
+        float gz, gy, gx;
+        gradient3(mirrored, box, z, y, x, &gz, &gy, &gx);
         const float n = sqrt(gz * gz + gy * gy + gx * gx);
         if (n > 0.0f) {
             const float nz_ = gz / n;

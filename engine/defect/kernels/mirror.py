@@ -237,6 +237,26 @@ def _value(a: wp.array(dtype=wp.float32), nz: int, ny: int, nx: int, z: int, y: 
     return a[_at(wp.clamp(z, 0, nz - 1), wp.clamp(y, 0, ny - 1), wp.clamp(x, 0, nx - 1), ny, nx)]
 
 
+@wp.func
+def _gradient(mirrored: wp.array(dtype=wp.float32), box: Box, z: int, y: int, x: int) -> wp.vec3:
+    """The mirrored field's gradient at voxel (z, y, x) of the box, Sobel 3x3x3 in mm: (z, y, x) components."""
+    gz = float(0.0)
+    gy = float(0.0)
+    gx = float(0.0)
+    for k in range(27):
+        dz = k // 9 - 1
+        dy = (k // 3) % 3 - 1
+        dx = k % 3 - 1
+        v = _value(mirrored, box.nz, box.ny, box.nx, z + dz, y + dy, x + dx)
+        wz = float(2 - dy * dy) * float(2 - dx * dx)
+        wy = float(2 - dz * dz) * float(2 - dx * dx)
+        wx = float(2 - dz * dz) * float(2 - dy * dy)
+        gz = gz + float(dz) * wz * v / box.sz
+        gy = gy + float(dy) * wy * v / box.sy
+        gx = gx + float(dx) * wx * v / box.sx
+    return wp.vec3(gz, gy, gx)
+
+
 @wp.kernel
 def grow_kernel(
     data: wp.array(dtype=wp.float32),
@@ -261,20 +281,10 @@ def grow_kernel(
     t = thick[i]
     if (c & 4) != 0 and (c & 1) == 0 and to_core[i] <= t + reach:
         g = int(1)
-        gz = float(0.0)
-        gy = float(0.0)
-        gx = float(0.0)
-        for k in range(27):
-            dz = k // 9 - 1
-            dy = (k // 3) % 3 - 1
-            dx = k % 3 - 1
-            v = _value(mirrored, box.nz, box.ny, box.nx, z + dz, y + dy, x + dx)
-            wz = float(2 - dy * dy) * float(2 - dx * dx)
-            wy = float(2 - dz * dz) * float(2 - dx * dx)
-            wx = float(2 - dz * dz) * float(2 - dy * dy)
-            gz = gz + float(dz) * wz * v / box.sz
-            gy = gy + float(dy) * wy * v / box.sy
-            gx = gx + float(dx) * wx * v / box.sx
+        grad = _gradient(mirrored, box, z, y, x)
+        gz = grad[0]
+        gy = grad[1]
+        gx = grad[2]
         n = wp.sqrt(gz * gz + gy * gy + gx * gx)
         if n > 0.0:
             nz_ = gz / n

@@ -18,19 +18,8 @@ __kernel void plate(__global const float *data, __global const float *mirrored, 
     const float big = max(box.sz, max(box.sy, box.sx));
     int added = 0;
     if ((c & 4) != 0 && (c & 1) == 0 && (c & 8) != 0 && k0 == 0 && t > 0.0f && to_bone[i] > t - big) {
-        float gz = 0.0f, gy = 0.0f, gx = 0.0f;
-        for (int k = 0; k < 27; k++) {
-            const int dz = k / 9 - 1;
-            const int dy = (k / 3) % 3 - 1;
-            const int dx = k % 3 - 1;
-            const float v = value3(mirrored, box.nz, box.ny, box.nx, z + dz, y + dy, x + dx);
-            const float wz = (float)(2 - dy * dy) * (float)(2 - dx * dx);
-            const float wy = (float)(2 - dz * dz) * (float)(2 - dx * dx);
-            const float wx = (float)(2 - dz * dz) * (float)(2 - dy * dy);
-            gz = gz + (float)dz * wz * v / box.sz;
-            gy = gy + (float)dy * wy * v / box.sy;
-            gx = gx + (float)dx * wx * v / box.sx;
-        }
+        float gz, gy, gx;
+        gradient3(mirrored, box, z, y, x, &gz, &gy, &gx);
         const float n = sqrt(gz * gz + gy * gy + gx * gx);
         if (n > 0.0f) {
             const float nz_ = gz / n;

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from engine.defect.kernels.mirror import Box, _at, _sample, _value
+from engine.defect.kernels.mirror import Box, _at, _gradient, _sample
 
 
 @wp.kernel
@@ -37,20 +37,10 @@ def plate_kernel(
     big = wp.max(box.sz, wp.max(box.sy, box.sx))
     added = int(0)
     if (c & 4) != 0 and (c & 1) == 0 and (c & 8) != 0 and k0 == 0 and t > 0.0 and to_bone[i] > t - big:
-        gz = float(0.0)
-        gy = float(0.0)
-        gx = float(0.0)
-        for k in range(27):
-            dz = k // 9 - 1
-            dy = (k // 3) % 3 - 1
-            dx = k % 3 - 1
-            v = _value(mirrored, box.nz, box.ny, box.nx, z + dz, y + dy, x + dx)
-            wz = float(2 - dy * dy) * float(2 - dx * dx)
-            wy = float(2 - dz * dz) * float(2 - dx * dx)
-            wx = float(2 - dz * dz) * float(2 - dy * dy)
-            gz = gz + float(dz) * wz * v / box.sz
-            gy = gy + float(dy) * wy * v / box.sy
-            gx = gx + float(dx) * wx * v / box.sx
+        grad = _gradient(mirrored, box, z, y, x)
+        gz = grad[0]
+        gy = grad[1]
+        gx = grad[2]
         n = wp.sqrt(gz * gz + gy * gy + gx * gx)
         if n > 0.0:
             nz_ = gz / n
