@@ -519,8 +519,7 @@ def _plate_pieces(
     for p in strict:
         if p.core_mm3 >= min_core and p.index is not None:
             firm[tuple((p.index + shift).T)] = True
-    extra = [q for q in _pieces_of(rules.with_plate(), grid, region, normal, offset, plate=True)
-             if q.index is not None and not firm[tuple((q.index + shift).T)].any()]  # fmt: skip
+    extra = _pieces_of(rules.with_plate(), grid, region, normal, offset, plate=True, skip=firm)
     if not extra:
         return strict
     covered = np.zeros(rules.grown.shape, dtype=bool)
@@ -533,10 +532,16 @@ def _plate_pieces(
 
 
 def _pieces_of(
-    rules: _Rules, grid: Grid, region: Region, normal: Any, offset: float, plate: bool = False
+    rules: _Rules,
+    grid: Grid,
+    region: Region,
+    normal: Any,
+    offset: float,
+    plate: bool = False,
+    skip: BoolArray | None = None,
 ) -> list[Piece]:
     """The 26-connected pieces of a rules pass that hold a core, with their voxels (in the region's crop); with
-    ``plate``, the cores with the grid's allowance count too."""
+    ``plate``, the cores with the grid's allowance count too; none that meets ``skip`` (a mask of the rules' crop)."""
     from scipy import ndimage as ndi
 
     if not rules.grown.any():
@@ -548,6 +553,8 @@ def _pieces_of(
     c_box = rules.core[box]
     cores = np.bincount(labels[(c_box == 1) | (c_box == 3)] if plate else labels[c_box == 1], minlength=nl + 1)
     cores[0] = 0
+    if skip is not None:  # left out before their voxels are gathered and placed
+        cores[labels[skip[box]]] = 0
     with_core = np.flatnonzero(cores)  # the labels holding a core, ascending
     if not len(with_core):
         return []
