@@ -146,7 +146,6 @@ static float value3(__global const float *a, const int nz, const int ny, const i
     return a[at3(clamp(z, 0, nz - 1), clamp(y, 0, ny - 1), clamp(x, 0, nx - 1), ny, nx)];
 }
 
-/* the candidate region (mirror.py's grow_kernel) */
 /* the mirrored field's gradient at voxel (z, y, x) of the box, Sobel 3x3x3 in mm: (z, y, x) components */
 static void gradient3(__global const float *mirrored, const box_t box, const int z, const int y, const int x,
                       float *gz_, float *gy_, float *gx_)
@@ -169,6 +168,7 @@ static void gradient3(__global const float *mirrored, const box_t box, const int
     *gx_ = gx;
 }
 
+/* the candidate region (mirror.py's grow_kernel) */
 __kernel void grow(__global const float *data, __global const float *mirrored, __global const uchar *code,
                    __global const float *thick, __global const float *to_core, const box_t box, const float level,
                    const float reach, __global uchar *grown)
