@@ -10,7 +10,9 @@ border are left out (the rim there was not scanned).
 ``contact``: the share of the rim with a gap of at most ``CONTACT_GAP_VOXELS`` (the template meets the bone there);
 ``gap_mm``/``gap_voxels``: the mean gap over the rim (no bone within reach counts as the reach); ``open_share``: the
 share with a gap of more than ``OPEN_GAP_VOXELS`` or no bone within reach. ``thickness_mm``: the piece's volume over
-its outline's area (a plate's mean thickness; reported, not judged: a bevelled rim thins it).
+its outline's area (a plate's mean thickness; reported, not judged: a bevelled rim thins it). ``opening_width_mm``
+(issue 42): the diameter of the largest disc inside that outline, the hole's opening (the smallest defect's
+width is judged on it where the shell's reading over-reads a thin shell).
 
 ``open_toward_plane`` (its own function): whether the hole goes on past the template toward the symmetry plane,
 where the mirror image lacks the bone too (a defect across the midline). ``spans_shell`` (issue 42): whether the
@@ -100,17 +102,7 @@ def rim_of(
     gap_vox = gap_mm / ext
     voxel = float(np.prod(sp)) ** (1 / 3)  # a gap beyond the reach counts as the reach, in voxels of this size
     # the outline seen along the thinnest axis; each outline pixel takes its voxels' smallest gap
-    centre = pts.mean(axis=0)
-    _, axes = np.linalg.eigh(np.cov((pts - centre).T))
-    e1, e2, e3 = axes[:, 2], axes[:, 1], axes[:, 0]
-    h1, h2, h3 = float(np.abs(e1) @ sp), float(np.abs(e2) @ sp), float(np.abs(e3) @ sp)
-    u1 = np.round((pts - centre) @ e1 / h1).astype(np.int64)
-    u2 = np.round((pts - centre) @ e2 / h2).astype(np.int64)
-    u1 -= u1.min() - 1
-    u2 -= u2.min() - 1
-    img = np.zeros((int(u1.max()) + 2, int(u2.max()) + 2), dtype=bool)
-    img[u1, u2] = True
-    img = ndi.binary_fill_holes(img)
+    img, u1, u2, (h1, h2, h3) = _outline_image(pts, sp)
     thickness = len(index) * float(np.prod(sp)) / (float(img.sum()) * h1 * h2)
     outline = img & ~ndi.binary_erosion(img)
     pix = u1 * img.shape[1] + u2
@@ -133,6 +125,40 @@ def rim_of(
         thickness_mm=thickness,
         thickness_voxels=thickness / h3,
     )
+
+
+def _outline_image(pts: npt.NDArray[np.float64], sp: npt.NDArray[np.float64]) -> tuple[Any, Any, Any, Any]:
+    """A piece's voxels (grid mm ``pts``) seen along its thinnest principal axis: the filled picture on the plane of
+    its two widest axes (a pixel per voxel extent along each), each voxel's pixel (``u1``, ``u2``) and the pixels'
+    extents with the voxels' extent along the thinnest axis (``h1``, ``h2``, ``h3`` mm)."""
+    from scipy import ndimage as ndi
+
+    centre = pts.mean(axis=0)
+    _, axes = np.linalg.eigh(np.cov((pts - centre).T))
+    e1, e2, e3 = axes[:, 2], axes[:, 1], axes[:, 0]
+    h1, h2, h3 = float(np.abs(e1) @ sp), float(np.abs(e2) @ sp), float(np.abs(e3) @ sp)
+    u1 = np.round((pts - centre) @ e1 / h1).astype(np.int64)
+    u2 = np.round((pts - centre) @ e2 / h2).astype(np.int64)
+    u1 -= u1.min() - 1
+    u2 -= u2.min() - 1
+    img = np.zeros((int(u1.max()) + 2, int(u2.max()) + 2), dtype=bool)
+    img[u1, u2] = True
+    return ndi.binary_fill_holes(img), u1, u2, (h1, h2, h3)
+
+
+def opening_width_mm(index: npt.NDArray[np.int64], spacing_zyx: tuple[float, float, float]) -> float:
+    """How wide a piece's opening is (mm): the diameter of the largest disc inside its outline seen along its
+    thinnest principal axis (``rim_of``'s picture): twice the largest distance from a pixel's centre to the nearest
+    pixel centre outside, less the larger pixel extent (the outline's edge lies between its last pixel centre and
+    the first outside, so the centres' distance over-reads the diameter by half a pixel at each side). A hole's plug
+    is as wide as its opening, however thin the shell."""
+    from scipy import ndimage as ndi
+
+    if len(index) < 4:
+        return 0.0
+    sp = np.asarray(spacing_zyx, dtype=np.float64)
+    img, _, _, (h1, h2, _) = _outline_image(index * sp, sp)
+    return 2.0 * float(ndi.distance_transform_edt(img, sampling=(h1, h2)).max()) - max(h1, h2)
 
 
 def open_toward_plane(
