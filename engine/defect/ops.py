@@ -12,6 +12,8 @@ import numpy as np
 from engine.backend.base import Backend
 
 BIG_MM = 1.0e30  # "no feature": the distance where a transform found nothing
+# threads per point of the nearest-feature query (a warp's worth: each looks at every 32nd row of the point's box)
+NEAREST_PARTS = 32
 
 
 def distance(
@@ -88,18 +90,35 @@ def closest_feature(be: Backend, features: Any, shape: tuple[int, ...], spacing_
 
 
 def nearest_feature(
-    be: Backend, points: Any, count: int, rank: Any, features: Any, box: Any, out: Any, *, max_scan: int
+    be: Backend,
+    points: Any,
+    count: int,
+    rank: Any,
+    features: Any,
+    box: Any,
+    out: Any,
+    *,
+    max_scan: int,
+    parts: int | None = None,
 ) -> None:
     """``out[i]`` (int32 device array): the rank of the feature nearest to point ``i`` (grid x, y, z mm, three
     float32 each in ``points``) for the first ``count`` points (ties to the lower rank), from ``closest_feature``'s
     ``rank`` field of the grid ``box`` (``kernel_specs.BOX``). The closest feature of the voxel nearest to the point
     bounds the distance; the voxels within that bound are then looked at (exact: a feature is its own closest
     feature) where they are at most ``max_scan``, else the bound's feature is kept (a point far from every
-    feature)."""
-    from engine.defect.kernel_specs import NEAREST
+    feature). Each point's look is shared by ``parts`` threads (by default ``NEAREST_PARTS`` on a GPU, one on
+    the host's CPU), each taking every ``parts``-th row of the box, then joined: the same answer (the nearest, ties
+    to the lower rank, whatever the order of the looks), where one thread's look of up to ``max_scan`` voxels set
+    the query's time on a GPU."""
+    from engine.defect.kernel_specs import NEAREST_JOIN, NEAREST_PART
 
     if count:
-        be.launch(NEAREST, count, [points, rank, features, box, int(max_scan), out])
+        if parts is None:  # a CPU's cores are busy with one thread per point
+            parts = 1 if be.is_host else NEAREST_PARTS
+        n = count * parts
+        part_d2, part_rank = be.empty(n, np.float32), be.empty(n, np.int32)
+        be.launch(NEAREST_PART, n, [points, rank, features, box, int(max_scan), parts, part_d2, part_rank])
+        be.launch(NEAREST_JOIN, count, [part_d2, part_rank, parts, out])
 
 
 def set_voxels(be: Backend, mask: Any, shape: tuple[int, ...], *, surface: bool = False) -> np.ndarray:

@@ -73,21 +73,15 @@ static int2 span(const float p, const float reach, const float s, const int n)
     return (int2)(lo, hi);
 }
 
-/* out[i]: the rank of the feature nearest to point i (ties to the lower rank), -1 where there are none. The nearest
- * of the closest features of the 8 voxels around the point (clamped into the grid) bounds the distance; every voxel
- * whose centre may lie within that bound is then looked at (a feature is its own closest feature, so the nearest is
- * among them) where they are at most max_scan; else the bound's feature is the answer. */
-__kernel void nearest(__global const float *points, __global const int *rank, __global const int *features,
-                      const box_t box, const int max_scan, __global int *out)
+/* the nearest of the closest features of the 8 voxels around the point (x, y, z mm; clamped into the grid), ties
+ * to the lower rank: its rank (-1 where there are none), its squared distance in *best */
+static int bound(const float px, const float py, const float pz, __global const int *rank,
+                 __global const int *features, const box_t box, float *best)
 {
-    const int i = (int)get_global_id(0);
-    const float px = points[3 * i];
-    const float py = points[3 * i + 1];
-    const float pz = points[3 * i + 2];
     const int z0 = (int)floor(pz / box.sz);
     const int y0 = (int)floor(py / box.sy);
     const int x0 = (int)floor(px / box.sx);
-    float best = BIG;
+    float b = BIG;
     int pick = -1;
     for (int c = 0; c < 8; c++) {
         const int z = clamp(z0 + c / 4, 0, box.nz - 1);
@@ -96,32 +90,74 @@ __kernel void nearest(__global const float *points, __global const int *rank, __
         const int r = rank[(z * box.ny + y) * box.nx + x];
         if (r >= 0) {
             const float d2 = dist2(features[r], box, px, py, pz);
-            if (d2 < best || (d2 == best && r < pick)) {
-                best = d2;
+            if (d2 < b || (d2 == b && r < pick)) {
+                b = d2;
                 pick = r;
             }
         }
     }
+    *best = b;
+    return pick;
+}
+
+/* one of parts work-items of point id / parts: the nearest feature (ties to the lower rank) among the closest
+ * features of the 8 voxels around the point (bound) and the voxels of every parts-th row (z, y) of the box whose
+ * centres may lie within that bound (a feature is its own closest feature, so the nearest is among them all), where
+ * the box holds at most max_scan voxels; else the bound's feature. nearest_join takes the point's nearest over its
+ * parts: the order of the looks does not change the answer. */
+__kernel void nearest_part(__global const float *points, __global const int *rank, __global const int *features,
+                           const box_t box, const int max_scan, const int parts, __global float *part_d2,
+                           __global int *part_rank)
+{
+    const int tid = (int)get_global_id(0);
+    const int i = tid / parts;
+    const int k = tid - i * parts;
+    const float px = points[3 * i];
+    const float py = points[3 * i + 1];
+    const float pz = points[3 * i + 2];
+    float best;
+    int pick = bound(px, py, pz, rank, features, box, &best);
     if (pick >= 0) {
         const float reach = sqrt(best);
         const int2 sz = span(pz, reach, box.sz, box.nz);
         const int2 sy = span(py, reach, box.sy, box.ny);
         const int2 sx = span(px, reach, box.sx, box.nx);
-        if ((sz.y - sz.x + 1) * (sy.y - sy.x + 1) * (sx.y - sx.x + 1) <= max_scan) {
-            for (int vz = sz.x; vz <= sz.y; vz++) {
-                for (int vy = sy.x; vy <= sy.y; vy++) {
-                    for (int vx = sx.x; vx <= sx.y; vx++) {
-                        const int r = rank[(vz * box.ny + vy) * box.nx + vx];
-                        if (r >= 0 && r != pick) {
-                            const float d2 = dist2(features[r], box, px, py, pz);
-                            if (d2 < best || (d2 == best && r < pick)) {
-                                best = d2;
-                                pick = r;
-                            }
+        const int ny = sy.y - sy.x + 1;
+        const int rows = (sz.y - sz.x + 1) * ny;
+        if (rows * (sx.y - sx.x + 1) <= max_scan) {
+            for (int row = k; row < rows; row += parts) {
+                const int vz = sz.x + row / ny;
+                const int vy = sy.x + row - (row / ny) * ny;
+                for (int vx = sx.x; vx <= sx.y; vx++) {
+                    const int r = rank[(vz * box.ny + vy) * box.nx + vx];
+                    if (r >= 0 && r != pick) {
+                        const float d2 = dist2(features[r], box, px, py, pz);
+                        if (d2 < best || (d2 == best && r < pick)) {
+                            best = d2;
+                            pick = r;
                         }
                     }
                 }
             }
+        }
+    }
+    part_d2[tid] = best;
+    part_rank[tid] = pick;
+}
+
+/* out[i]: the nearest of point i's parts' features (ties to the lower rank), -1 where there are none */
+__kernel void nearest_join(__global const float *part_d2, __global const int *part_rank, const int parts,
+                           __global int *out)
+{
+    const int i = (int)get_global_id(0);
+    float best = BIG;
+    int pick = -1;
+    for (int k = 0; k < parts; k++) {
+        const int r = part_rank[i * parts + k];
+        const float d2 = part_d2[i * parts + k];
+        if (r >= 0 && (pick < 0 || d2 < best || (d2 == best && r < pick))) {
+            best = d2;
+            pick = r;
         }
     }
     out[i] = pick;

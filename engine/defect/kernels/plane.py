@@ -82,20 +82,16 @@ def _span(p: float, reach: float, s: float, n: int) -> wp.vec2i:
     return wp.vec2i(lo, hi)
 
 
-@wp.kernel
-def nearest_kernel(
+@wp.func
+def _bound(
     points: wp.array(dtype=wp.float32),
     rank: wp.array(dtype=wp.int32),
     features: wp.array(dtype=wp.int32),
     box: Box,
-    max_scan: int,
-    out: wp.array(dtype=wp.int32),
-):
-    """out[i]: the rank of the feature nearest to point i (ties to the lower rank), -1 where there are none. The
-    nearest of the closest features of the 8 voxels around the point (clamped into the grid) bounds the distance;
-    every voxel whose centre may lie within that bound is then looked at (a feature is its own closest feature, so
-    the nearest is among them) where they are at most ``max_scan``; else the bound's feature is the answer."""
-    i = wp.tid()
+    i: int,
+):  # Warp infers the two values' types
+    """The nearest of the closest features of the 8 voxels around point ``i`` (clamped into the grid), ties to the
+    lower rank: its rank (-1 where there are none) and its squared distance (mm^2)."""
     px = points[3 * i]
     py = points[3 * i + 1]
     pz = points[3 * i + 2]
@@ -114,21 +110,73 @@ def nearest_kernel(
             if d2 < best or (d2 == best and r < pick):
                 best = d2
                 pick = r
+    return pick, best
+
+
+@wp.kernel
+def nearest_part_kernel(
+    points: wp.array(dtype=wp.float32),
+    rank: wp.array(dtype=wp.int32),
+    features: wp.array(dtype=wp.int32),
+    box: Box,
+    max_scan: int,
+    parts: int,
+    part_d2: wp.array(dtype=wp.float32),
+    part_rank: wp.array(dtype=wp.int32),
+):
+    """One of ``parts`` threads of point ``tid // parts``: the nearest feature (ties to the lower rank) among the
+    closest features of the 8 voxels around the point (``_bound``) and the voxels of every ``parts``-th row (z, y)
+    of the box whose centres may lie within that bound (a feature is its own closest feature, so the nearest is
+    among them all), where the box holds at most ``max_scan`` voxels; else the bound's feature. ``nearest_join``
+    takes the point's nearest over its parts: the order of the looks does not change the answer."""
+    tid = wp.tid()
+    i = tid // parts
+    k = tid - i * parts
+    near, near_d2 = _bound(points, rank, features, box, i)
+    pick = int(near)  # loop-carried: declared as such
+    best = float(near_d2)
     if pick >= 0:
+        px = points[3 * i]
+        py = points[3 * i + 1]
+        pz = points[3 * i + 2]
         reach = wp.sqrt(best)
         sz = _span(pz, reach, box.sz, box.nz)
         sy = _span(py, reach, box.sy, box.ny)
         sx = _span(px, reach, box.sx, box.nx)
-        if (sz[1] - sz[0] + 1) * (sy[1] - sy[0] + 1) * (sx[1] - sx[0] + 1) <= max_scan:
-            for vz in range(sz[0], sz[1] + 1):
-                for vy in range(sy[0], sy[1] + 1):
-                    for vx in range(sx[0], sx[1] + 1):
-                        r = rank[(vz * box.ny + vy) * box.nx + vx]
-                        if r >= 0 and r != pick:
-                            e2 = _dist2(features[r], box, px, py, pz)
-                            if e2 < best or (e2 == best and r < pick):
-                                best = e2
-                                pick = r
+        ny = sy[1] - sy[0] + 1
+        rows = (sz[1] - sz[0] + 1) * ny
+        if rows * (sx[1] - sx[0] + 1) <= max_scan:
+            for row in range(k, rows, parts):
+                vz = sz[0] + row // ny
+                vy = sy[0] + row - (row // ny) * ny
+                for vx in range(sx[0], sx[1] + 1):
+                    r = rank[(vz * box.ny + vy) * box.nx + vx]
+                    if r >= 0 and r != pick:
+                        e2 = _dist2(features[r], box, px, py, pz)
+                        if e2 < best or (e2 == best and r < pick):
+                            best = e2
+                            pick = r
+    part_d2[tid] = best
+    part_rank[tid] = pick
+
+
+@wp.kernel
+def nearest_join_kernel(
+    part_d2: wp.array(dtype=wp.float32),
+    part_rank: wp.array(dtype=wp.int32),
+    parts: int,
+    out: wp.array(dtype=wp.int32),
+):
+    """out[i]: the nearest of point i's parts' features (ties to the lower rank), -1 where there are none."""
+    i = wp.tid()
+    best = float(BIG)
+    pick = int(-1)
+    for k in range(parts):
+        r = part_rank[i * parts + k]
+        d2 = part_d2[i * parts + k]
+        if r >= 0 and (pick < 0 or d2 < best or (d2 == best and r < pick)):
+            best = d2
+            pick = r
     out[i] = pick
 
 

@@ -87,6 +87,37 @@ def test_the_nearest_feature_of_a_point_is_the_k_d_trees(backend) -> None:
     assert np.all(near8 >= want - 1e-4) and np.mean(near8 <= want + 1e-4) > 0.5
 
 
+def test_the_nearest_feature_is_the_same_however_many_threads_share_a_points_look(backend) -> None:
+    """The query's look around a point split over threads (every ``parts``-th row of its box each, then joined) gives
+    the one thread's answer, ties to the lower rank included: points on a 1 mm grid's half-voxel lattice lie at
+    exactly the same distance from several features, so the lower rank must win across the parts."""
+    from engine.defect.kernel_specs import BOX
+    from engine.defect.ops import closest_feature, nearest_feature
+
+    shape, sp = (9, 11, 10), (1.0, 1.0, 1.0)
+    flat = np.flatnonzero(np.random.default_rng(7).random(shape) < 0.15).astype(np.int32)
+    feats = np.stack(np.unravel_index(flat, shape), axis=1)[:, ::-1].astype(np.float64)  # x, y, z mm
+    rng = np.random.default_rng(5)
+    half = rng.integers(-2, 2 * np.asarray(shape[::-1]) + 2, size=(400, 3)) * 0.5  # exact in float32
+    points = np.concatenate([half, rng.uniform(-2.0, np.asarray(shape[::-1]) + 2.0, size=(200, 3))])
+    d_flat = backend.from_host(flat)
+    rank = closest_feature(backend, d_flat, shape, sp)
+    box = backend.struct(BOX, nz=shape[0], ny=shape[1], nx=shape[2], lz=0, ly=0, lx=0, sz=sp[0], sy=sp[1], sx=sp[2])
+    d_points = backend.from_host(points.astype(np.float32).reshape(-1))
+    got = {}
+    for parts in (1, 3, 32):
+        out = backend.empty(len(points), np.int32)
+        nearest_feature(backend, d_points, len(points), rank, d_flat, box, out, max_scan=1 << 20, parts=parts)
+        got[parts] = backend.to_host(out)
+    assert np.array_equal(got[1], got[3]) and np.array_equal(got[1], got[32])
+    # on the lattice the distances are exact: the nearest feature with the lowest rank among the equally near
+    d2 = ((half[:, None, :] - feats[None, :, :]) ** 2).sum(axis=2)
+    want = np.argmin(d2, axis=1)  # the first (lowest rank) of the smallest
+    ties = (d2 == d2.min(axis=1, keepdims=True)).sum(axis=1) > 1
+    assert ties.sum() > 100  # the lattice holds many ties
+    assert np.array_equal(got[32][: len(half)], want)
+
+
 def test_the_skulls_voxels_surface_and_normals_on_the_device_are_the_hosts(backend) -> None:
     from engine.defect.grid import surface_voxels
     from engine.defect.ops import set_voxels, sobel, upload_mask
