@@ -271,7 +271,9 @@ class _Fit:
                 self.keep = exclude(n, d)
             dist, r, nu = self.pairs(n, d)
             k = self.keep
-            p, dist, r, nu = self.p[k], dist[k], r[k], nu[k]
+            p = self.p
+            if not k.all():  # (a hint's exclusion: else the copies would be the arrays themselves)
+                p, dist, r, nu = p[k], dist[k], r[k], nu[k]
             scale = max(self.floor, 1.5 * float(np.median(dist)))
             w = 1.0 / (1.0 + (dist / scale) ** 2)
             s = p @ n - d
