@@ -334,20 +334,10 @@ def spans_shell(
     missing = (in_shell & ~b).sum(axis=1) / np.maximum(in_shell.sum(axis=1), 1)
     spans = missing >= SPAN_MISSING
     # the outline seen along the piece's thinnest axis, and the part of it whose columns span the shell
-    pts = index * sp
-    centre = pts.mean(axis=0)
-    _, axes = np.linalg.eigh(np.cov((pts - centre).T))
-    e1, e2 = axes[:, 2], axes[:, 1]
-    h1, h2 = float(np.abs(e1) @ sp), float(np.abs(e2) @ sp)
-    u1 = np.round((pts - centre) @ e1 / h1).astype(np.int64)
-    u2 = np.round((pts - centre) @ e2 / h2).astype(np.int64)
-    u1 -= u1.min()
-    u2 -= u2.min()
-    img = np.zeros((int(u1.max()) + 1, int(u2.max()) + 1), dtype=bool)
-    img[u1, u2] = True
+    img, u1, u2, (h1, h2, _) = _outline_image(index * sp, sp)
     span_img = np.zeros_like(img)
     span_img[u1[spans], u2[spans]] = True
-    outline = float(ndi.binary_fill_holes(img).sum())
+    outline = float(img.sum())
     return Span(
         area_mm2=float(span_img.sum()) * h1 * h2,
         share=float(span_img.sum()) / max(outline, 1.0),
