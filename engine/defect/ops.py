@@ -100,6 +100,7 @@ def nearest_feature(
     *,
     max_scan: int,
     parts: int | None = None,
+    scratch: tuple[Any, Any] | None = None,
 ) -> None:
     """``out[i]`` (int32 device array): the rank of the feature nearest to point ``i`` (grid x, y, z mm, three
     float32 each in ``points``) for the first ``count`` points (ties to the lower rank), from ``closest_feature``'s
@@ -109,16 +110,22 @@ def nearest_feature(
     feature). Each point's look is shared by ``parts`` threads (by default ``NEAREST_PARTS`` on a GPU, one on
     the host's CPU), each taking every ``parts``-th row of the box, then joined: the same answer (the nearest, ties
     to the lower rank, whatever the order of the looks), where one thread's look of up to ``max_scan`` voxels set
-    the query's time on a GPU."""
+    the query's time on a GPU. ``scratch``: the parts' float32 and int32 device arrays (at least ``count * parts``
+    each) kept by a caller that queries again (allocated here when not given)."""
     from engine.defect.kernel_specs import NEAREST_JOIN, NEAREST_PART
 
     if count:
-        if parts is None:  # a CPU's cores are busy with one thread per point
-            parts = 1 if be.is_host else NEAREST_PARTS
+        parts = parts or nearest_parts(be)
         n = count * parts
-        part_d2, part_rank = be.empty(n, np.float32), be.empty(n, np.int32)
+        part_d2, part_rank = scratch or (be.empty(n, np.float32), be.empty(n, np.int32))
         be.launch(NEAREST_PART, n, [points, rank, features, box, int(max_scan), parts, part_d2, part_rank])
         be.launch(NEAREST_JOIN, count, [part_d2, part_rank, parts, out])
+
+
+def nearest_parts(be: Backend) -> int:
+    """Threads per point of ``nearest_feature`` on ``be``: ``NEAREST_PARTS`` on a GPU, one on the host's CPU (its
+    cores are busy with one thread per point)."""
+    return 1 if be.is_host else NEAREST_PARTS
 
 
 def set_voxels(be: Backend, mask: Any, shape: tuple[int, ...], *, surface: bool = False) -> np.ndarray:

@@ -148,6 +148,7 @@ class _DeviceNearest:
         self.capacity = 0
         self.points: Any = None
         self.out: Any = None
+        self.scratch: Any = None
 
     @classmethod
     def fits(cls, be: Any, shape: tuple[int, ...]) -> bool:
@@ -157,15 +158,18 @@ class _DeviceNearest:
         return n < 2**31 and n * cls.BYTES_PER_VOXEL <= int(be.default_budget())
 
     def __call__(self, q: FloatArray) -> npt.NDArray[np.int64]:
-        from engine.defect.ops import nearest_feature
+        from engine.defect.ops import nearest_feature, nearest_parts
 
         be, count = self.be, len(q)
         if count > self.capacity:
             self.capacity = count
             self.points = be.empty(3 * count, np.float32)
             self.out = be.empty(count, np.int32)
+            parts = count * nearest_parts(be)
+            self.scratch = (be.empty(parts, np.float32), be.empty(parts, np.int32))
         be.upload(self.points, np.ascontiguousarray(q + self.shift, dtype=np.float32).reshape(-1))
-        nearest_feature(be, self.points, count, self.rank, self.features, self.box, self.out, max_scan=MAX_SCAN)
+        nearest_feature(be, self.points, count, self.rank, self.features, self.box, self.out, max_scan=MAX_SCAN,
+                        scratch=self.scratch)  # fmt: skip
         pairs: npt.NDArray[np.int64] = be.to_host(self.out, count=count).astype(np.int64)  # sync point
         return pairs
 
