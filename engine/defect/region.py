@@ -55,7 +55,7 @@ import numpy as np
 import numpy.typing as npt
 
 from engine.backend.base import Backend
-from engine.defect.grid import CONNECTIVITY, BoolArray, FloatArray, Grid, bounding_box, reflect
+from engine.defect.grid import CONNECTIVITY, BoolArray, FloatArray, Grid, bounding_box, label_voxels, reflect, touching
 from engine.defect.params import DefectParams
 from engine.defect.plane import SymmetryPlane, reflection, ring_plane
 from engine.defect.rim import (
@@ -553,25 +553,23 @@ def _pieces_of(
 ) -> list[Piece]:
     """The 26-connected pieces of a rules pass that hold a core, with their voxels (in the region's crop); with
     ``plate``, the cores with the grid's allowance count too; none that meets ``skip`` (a mask of the rules' crop)."""
-    from scipy import ndimage as ndi
-
-    if not rules.grown.any():
+    # the grown voxels' pieces (``label_voxels``: scipy's pieces and numbers, from the few voxels themselves)
+    shape = rules.grown.shape
+    flat = np.flatnonzero(rules.grown)
+    if not len(flat):
         return []
-    # labelled within the grown voxels' box (the same pieces, numbered in the same raster order, on less)
-    b_lo, b_hi = bounding_box(rules.grown)
-    box = tuple(slice(int(a), int(b)) for a, b in zip(b_lo, b_hi, strict=True))
-    labels, nl = ndi.label(rules.grown[box], structure=CONNECTIVITY)
-    c_box = rules.core[box]
-    cores = np.bincount(labels[(c_box == 1) | (c_box == 3)] if plate else labels[c_box == 1], minlength=nl + 1)
+    labels, nl = label_voxels(flat, shape)
+    c_at = rules.core.reshape(-1)[flat]
+    cores = np.bincount(labels[(c_at == 1) | (c_at == 3)] if plate else labels[c_at == 1], minlength=nl + 1)
     cores[0] = 0
     if skip is not None:  # left out before their voxels are gathered and placed
-        cores[labels[skip[box]]] = 0
+        cores[labels[skip.reshape(-1)[flat]]] = 0
     with_core = np.flatnonzero(cores)  # the labels holding a core, ascending
     if not len(with_core):
         return []
     vox = grid.voxel_mm3
     in_piece = (cores > 0)[labels]  # a look-up per voxel, not a search
-    idx = np.argwhere(in_piece) + b_lo
+    idx = np.stack(np.unravel_index(flat[in_piece], shape), axis=1)
     lab = labels[in_piece]
     order = np.argsort(lab, kind="stable")
     starts = np.searchsorted(lab[order], with_core)
@@ -768,7 +766,7 @@ def _ring(index: npt.NDArray[np.int64], grid: Grid, width_mm: float) -> npt.NDAr
     hi = np.minimum(index.max(axis=0) + margin + 1, grid.shape)
     piece = np.zeros(tuple(int(b - a) for a, b in zip(lo, hi, strict=True)), dtype=bool)
     piece[tuple((index - lo).T)] = True
-    near = ndi.binary_dilation(piece, structure=CONNECTIVITY)
+    near = touching(piece)
     ring = (ndi.distance_transform_edt(~piece, sampling=sp) <= width_mm) & ~near
     return np.argwhere(ring) + lo
 

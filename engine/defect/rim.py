@@ -28,6 +28,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from engine.defect.grid import touching
+
 CONTACT_GAP_VOXELS = 1.0
 MIN_ALONG = 0.5  # a path toward the plane runs along the shell when the plane's direction is 30+ degrees off its normal
 OPEN_GAP_VOXELS = 2.0
@@ -177,7 +179,6 @@ def open_toward_plane(
     Where the shell faces the plane (a side wall) the way to the plane goes through it: those paths tell nothing
     and are left out. A one-sided defect's paths meet its rim; a defect across the midline's meet none there (the
     mirror image lacks that bone too)."""
-    from scipy import ndimage as ndi
 
     sp = np.asarray(spacing_zyx, dtype=np.float64)
     margin = np.ceil(reach_mm / sp).astype(np.int64) + 2
@@ -188,7 +189,7 @@ def open_toward_plane(
     local = index - lo
     piece = np.zeros(tuple(shape), dtype=bool)
     piece[tuple(local.T)] = True
-    near_bone = ndi.binary_dilation(bone[box], structure=np.ones((3, 3, 3), dtype=bool))
+    near_bone = touching(bone[box])
     # the shell's normal: the main axis of the mirrored scan's gradients over the piece (their structure tensor)
     grads = np.gradient(mirrored[box].astype(np.float64), *sp)
     g = np.stack([np.asarray(gr)[tuple(local.T)] for gr in grads], axis=1)
@@ -322,8 +323,9 @@ def spans_shell(
     shape = np.asarray(m_box.shape)
     ok = np.all((pos >= 0) & (pos < shape), axis=2)
     pos = np.clip(pos, 0, shape - 1)
-    m = mirror[pos[..., 0], pos[..., 1], pos[..., 2]] & ok
-    b = b_box[pos[..., 0], pos[..., 1], pos[..., 2]] & ok
+    at = (pos[..., 0] * shape[1] + pos[..., 1]) * shape[2] + pos[..., 2]  # flat indices in the box
+    m = mirror.reshape(-1)[at] & ok
+    b = np.ascontiguousarray(b_box).reshape(-1)[at] & ok
     gap = max(1, int(np.ceil(float(sp.max()) / step)))
     closed = ndi.binary_closing(m, structure=np.ones((1, 2 * gap + 1), dtype=bool), border_value=0) | m
     closed[:, c] = True

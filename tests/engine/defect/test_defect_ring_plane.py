@@ -8,13 +8,16 @@ import numpy as np
 import pytest
 
 
-def test_the_trilinear_samples_are_scipys_and_their_gradient_its_slope() -> None:
+@pytest.mark.parametrize("layout", ["crop", "whole", "one slice"])
+def test_the_trilinear_samples_are_scipys_and_their_gradient_its_slope(layout: str) -> None:
     from scipy import ndimage as ndi
 
     from engine.defect.plane import _trilinear
 
     rng = np.random.default_rng(3)
     data = rng.integers(0, 3000, (9, 12, 15)).astype(np.uint16)[1:8, 2:11, 3:14]  # a crop: not contiguous
+    if layout != "crop":  # read through one flat index per corner
+        data = np.ascontiguousarray(data[:1] if layout == "one slice" else data)
     at = rng.uniform(-1.5, np.asarray(data.shape) + 0.5, size=(4000, 3))  # some beyond every edge
     value, grad = _trilinear(data, at)
     want = ndi.map_coordinates(data, at.T, order=1, mode="nearest", output=np.float64)
