@@ -87,32 +87,35 @@ def rim_of(
         return NO_RIM
     sp = np.asarray(spacing_zyx, dtype=np.float64)
     pts = index * sp
+    # the outline seen along the thinnest axis; each outline pixel takes its voxels' smallest gap, so only the
+    # voxels seen on the outline are measured
+    img, u1, u2, (h1, h2, h3) = _outline_image(pts, sp)
+    thickness = len(index) * float(np.prod(sp)) / (float(img.sum()) * h1 * h2)
+    outline = img & ~ndi.binary_erosion(img)
+    pix = u1 * img.shape[1] + u2
+    seen = np.flatnonzero(outline.ravel()[pix])
+    pix, at = pix[seen], pts[seen]
     margin = np.ceil(reach_mm / sp).astype(np.int64) + 1
     lo = np.maximum(index.min(axis=0) - margin, 0)
     hi = np.minimum(index.max(axis=0) + margin + 1, bone.shape)
     near = np.argwhere(bone[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]) + lo
     if len(near) == 0:
-        gap_mm = np.full(len(index), np.inf)
-        ext = np.full(len(index), sp.min())
+        gap_mm = np.full(len(at), np.inf)
+        ext = np.full(len(at), sp.min())
     else:
-        dist, j = cKDTree(near * sp).query(pts, distance_upper_bound=reach_mm + float(sp.max()), workers=1)
+        dist, j = cKDTree(near * sp).query(at, distance_upper_bound=reach_mm + float(sp.max()), workers=1)
         found = np.isfinite(dist)
-        u = np.zeros_like(pts)
-        u[found] = (near[j[found]] * sp - pts[found]) / np.maximum(dist[found, None], 1e-12)
+        u = np.zeros_like(at)
+        u[found] = (near[j[found]] * sp - at[found]) / np.maximum(dist[found, None], 1e-12)
         ext = np.where(found, np.abs(u) @ sp, sp.min())  # both voxels' half extents along the line between them
         gap_mm = np.where(found, np.maximum(dist - ext, 0.0), np.inf)
     gap_vox = gap_mm / ext
     voxel = float(np.prod(sp)) ** (1 / 3)  # a gap beyond the reach counts as the reach, in voxels of this size
-    # the outline seen along the thinnest axis; each outline pixel takes its voxels' smallest gap
-    img, u1, u2, (h1, h2, h3) = _outline_image(pts, sp)
-    thickness = len(index) * float(np.prod(sp)) / (float(img.sum()) * h1 * h2)
-    outline = img & ~ndi.binary_erosion(img)
-    pix = u1 * img.shape[1] + u2
     order = np.lexsort((gap_vox, pix))  # by pixel, then gap: each pixel's smallest gap first
     first = np.ones(len(order), dtype=bool)
     first[1:] = pix[order][1:] != pix[order][:-1]
     best = order[first]
-    best = best[outline.ravel()[pix[best]] & ~on_border[best]]
+    best = best[~on_border[seen][best]]
     if len(best) == 0:
         return Rim(0.0, float("inf"), float("inf"), 1.0, 0.0, 0, thickness, thickness / h3)
     g_vox, g_mm = gap_vox[best], gap_mm[best]
