@@ -152,10 +152,10 @@ _LATER = np.array([(dz, dy, dx) for dz in (-1, 0, 1) for dy in (-1, 0, 1) for dx
 
 
 def label_voxels(flat: npt.NDArray[np.int64], shape: tuple[int, ...]) -> tuple[npt.NDArray[np.int64], int]:
-    """The 26-connected pieces of a few voxels of a large array: ``flat``, their ascending flat indices in a C-order
-    array of ``shape``. Per voxel its piece (1 .. n) and n, numbered as ``scipy.ndimage.label`` numbers them (by
-    each piece's first voxel in raster order), from a graph of the voxels' touching pairs: no pass over the whole
-    array (the rules' grown voxels are thousands scattered over a crop of millions)."""
+    """The 26-connected pieces of a few voxels of a large volume: ``flat``, their ascending flat indices in a C-order
+    volume of ``shape`` (z, y, x). Per voxel its piece (1 .. n) and n, numbered as ``scipy.ndimage.label`` numbers
+    them (by each piece's first voxel in raster order), from a graph of the voxels' touching pairs: no pass over the
+    whole volume (the rules' grown voxels are thousands scattered over a crop of millions)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -190,8 +190,8 @@ def label_voxels(flat: npt.NDArray[np.int64], shape: tuple[int, ...]) -> tuple[n
 
 def touching(mask: BoolArray) -> BoolArray:
     """The mask's voxels and every voxel touching one of them (26-connected): ``scipy.ndimage.binary_dilation`` with
-    the 3 x 3 x 3 cube (``CONNECTIVITY``), as the cube is: a voxel's step along each axis in turn (six shifted ors
-    instead of 26 per voxel)."""
+    the 3 x 3 x 3 cube (``CONNECTIVITY``). The cube is separable: a voxel's step along each axis in turn gives it,
+    six shifted ors instead of 26 per voxel."""
     out = np.array(mask, dtype=bool, copy=True)
     for axis in range(out.ndim):
         src = out.copy()
