@@ -1,8 +1,8 @@
 """The defect's own pieces and neighbourhoods are scipy's: ``grid.label_voxels`` (the 26-connected pieces of a few
-voxels, from their touching pairs) numbers them as ``scipy.ndimage.label`` does, and ``grid.touching`` (a voxel's
-step along each axis in turn) is ``binary_dilation`` with the 3 x 3 x 3 cube, on random volumes of every
-density and thin shapes (an axis of one voxel), where pieces wrap around, meet only at corners, and touch the
-array's borders."""
+voxels, from their touching pairs, or by scipy over their box where they are dense) numbers them as
+``scipy.ndimage.label`` does, and ``grid.touching`` (a voxel's step along each axis in turn) is ``binary_dilation``
+with the 3 x 3 x 3 cube, on random volumes of every density and thin shapes (an axis of one voxel), where pieces
+wrap around, meet only at corners, and touch the array's borders."""
 
 from __future__ import annotations
 
@@ -28,7 +28,12 @@ def _volumes(seed: int) -> list[np.ndarray]:
 
 
 @pytest.mark.parametrize("seed", [0, 1])
-def test_the_pieces_of_a_few_voxels_are_scipys_numbered_alike(seed: int) -> None:
+@pytest.mark.parametrize("way", ["pairs", "box"])
+def test_the_pieces_of_a_few_voxels_are_scipys_numbered_alike(seed: int, way: str, monkeypatch) -> None:
+    import engine.defect.grid as grid
+
+    # the graph of touching pairs for sparse voxels, scipy's pass over their box for dense ones: both ways, always
+    monkeypatch.setattr(grid, "DENSE_SHARE", 0 if way == "pairs" else 10**9)
     for vol in _volumes(seed):
         want, n = ndi.label(vol, structure=CONNECTIVITY)
         flat = np.flatnonzero(vol)
