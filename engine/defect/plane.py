@@ -594,20 +594,22 @@ def _trilinear(data: npt.NDArray[Any], at: FloatArray) -> tuple[FloatArray, Floa
     f = c - i0
     up = (shape > 1).astype(np.int64)  # the next sample along each axis (the same one along an axis of one)
     iz, iy, ix = i0[:, 0], i0[:, 1], i0[:, 2]
-    v = np.empty((2, 2, 2, len(c)))
     if data.flags.c_contiguous:  # one flat index per corner (a third of the time of three)
-        flat = data.reshape(-1)
-        step = up * np.array([shape[1] * shape[2], shape[2], 1], dtype=np.int64)
+        flat, strides = data.reshape(-1), np.array([shape[1] * shape[2], shape[2], 1], dtype=np.int64)
         base = (iz * shape[1] + iy) * shape[2] + ix
-        for a in range(2):
-            for b in range(2):
-                for k in range(2):
-                    v[a, b, k] = flat[base + (a * step[0] + b * step[1] + k * step[2])]
+
+        def corner(a: int, b: int, k: int) -> Any:
+            return flat[base + int(np.array([a, b, k]) * up @ strides)]
     else:  # a crop of the scan: indices, not a copy
-        for a in range(2):
-            for b in range(2):
-                for k in range(2):
-                    v[a, b, k] = data[iz + a * up[0], iy + b * up[1], ix + k * up[2]]
+
+        def corner(a: int, b: int, k: int) -> Any:
+            return data[iz + a * up[0], iy + b * up[1], ix + k * up[2]]
+
+    v = np.empty((2, 2, 2, len(c)))
+    for a in range(2):
+        for b in range(2):
+            for k in range(2):
+                v[a, b, k] = corner(a, b, k)
     fz, fy, fx = f[:, 0], f[:, 1], f[:, 2]
     vx = v[:, :, 0] + fx * (v[:, :, 1] - v[:, :, 0])  # (2, 2, N): along x
     vxy = vx[:, 0] + fy * (vx[:, 1] - vx[:, 0])  # (2, N): then y
